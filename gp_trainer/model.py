@@ -1,0 +1,389 @@
+"""GP dynamics model of the melt pool, ``x[k+1] = f(x_k, T_k, p_k, v_k)`` (paper eq. 1-5, 8).
+
+Input ``z = (area_m2 [m²], t_ahead_k [K], power_w [W], speed_m_s [m/s])``, output the melt-pool
+top-surface area one step later [m²]. All public quantities are SI; normalisation is internal.
+
+Structure
+---------
+``x[k+1] = m(z) + r(z)`` where
+
+* ``m(z) = β_0 + Σ_j β_j u_j`` is an explicit *linear least-squares mean* in the standardised
+  inputs ``u = (z - μ_z) / s_z``, fitted to the training points before the GP. Why linear and
+  not zero (the paper's eq. 2) or persistence ``x[k+1] = x_k``: the MPC linearises the model
+  and sometimes leaves the trained region. A zero-mean GP then predicts ``x[k+1] → 0`` with zero
+  input gains; persistence keeps the area but still has zero gain on power and speed, so the
+  controller would lose its authority exactly where it is lost. The linear model contains
+  persistence as a special case (β for ``x_k``), keeps the physically right signs of the gains
+  (∂x/∂p > 0, ∂x/∂v < 0, ∂x/∂T > 0) everywhere and is what a one-step melt-pool model is to
+  first order; the GP only has to learn the (smaller, local) nonlinearity.
+* ``r(z) ~ GP(0, k)`` with the SE-ARD kernel of eq. (3) on ``u`` and the residual scaled to
+  unit standard deviation; hyper-parameters ``(σ_f, σ_n, ℓ_1..4)`` maximise the log marginal
+  likelihood (:mod:`gp_trainer.kernel`).
+
+Far from the data ``k(z, X) → 0`` so the mean reverts to ``m(z)`` and the variance to
+``σ_f² s_r²`` (the prior), which is the honest "I don't know" the MPC can read.
+
+``predict`` returns the variance of the *latent* function ``f*`` (the paper's ``cov(f*)``,
+eq. 5) without the observation noise; add :attr:`GPModel.noise_variance` for the variance of a
+new noisy observation.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+
+from gp_trainer.atomic import atomic_write_bytes
+from gp_trainer.errors import ModelFormatError, ModelVersionError
+from gp_trainer.kernel import HyperBounds, fit_hyperparameters, gram, squared_differences
+
+FORMAT_NAME = "meltloop-gp-model"
+FORMAT_VERSION = 1
+INPUT_NAMES = ("area_m2", "t_ahead_k", "power_w", "speed_m_s")
+N_INPUTS = len(INPUT_NAMES)
+DEFAULT_RESTARTS = 8
+
+
+def _safe_scale(values: np.ndarray, axis: int | None = None) -> np.ndarray:
+    """Standard deviation, replaced where (near) zero so that division is safe.
+
+    A constant column (e.g. constant scan speed in every training case) gets the scale
+    ``max(|mean|, 1)``: its normalised value is then ≈ 0 in training and the GP extrapolates
+    smoothly if the MPC varies it.
+    """
+    std = np.std(values, axis=axis)
+    fallback = np.maximum(np.abs(np.mean(values, axis=axis)), 1.0)
+    return np.where(std > 1.0e-12 * fallback, std, fallback)
+
+
+class GPModel:
+    """One-step melt-pool GP model with an explicit linear mean; see the module docstring.
+
+    Construct with :meth:`fit` or :meth:`load`. Prediction methods are pure and allocation-light
+    (a few small temporaries), a few microseconds per call for 100 training points; the object
+    is immutable after construction and safe to share between threads.
+
+    Parameters
+    ----------
+    train_inputs : np.ndarray, shape (n, 4)
+        Training inputs ``z`` in SI units (see :data:`INPUT_NAMES`).
+    train_targets : np.ndarray, shape (n,)
+        Training targets ``x[k+1]`` [m²].
+    input_mean, input_scale : np.ndarray, shape (4,)
+        Normalisation ``u = (z - input_mean) / input_scale`` (SI units).
+    mean_coefficients : np.ndarray, shape (5,)
+        ``(β_0, β_1..4)`` of the linear mean ``m = β_0 + β·u`` [m²].
+    residual_scale : float
+        Scale of the GP residual ``s_r`` [m²]; the GP is fitted to ``(y - m) / s_r``.
+    signal_std, noise_std : float
+        σ_f and σ_n in units of ``s_r`` [-].
+    length_scales : np.ndarray, shape (4,)
+        ℓ_j in units of ``input_scale`` [-].
+    log_marginal_likelihood : float, optional
+        Of the normalised residual at these hyper-parameters (for the record).
+    provenance : Mapping, optional
+        JSON-serialisable description of where the model came from.
+    """
+
+    def __init__(
+        self,
+        *,
+        train_inputs: np.ndarray,
+        train_targets: np.ndarray,
+        input_mean: np.ndarray,
+        input_scale: np.ndarray,
+        mean_coefficients: np.ndarray,
+        residual_scale: float,
+        signal_std: float,
+        noise_std: float,
+        length_scales: np.ndarray,
+        log_marginal_likelihood: float | None = None,
+        provenance: Mapping[str, Any] | None = None,
+    ) -> None:
+        Z = np.array(train_inputs, dtype=float)
+        y = np.array(train_targets, dtype=float)
+        mu = np.array(input_mean, dtype=float)
+        s = np.array(input_scale, dtype=float)
+        beta = np.array(mean_coefficients, dtype=float)
+        ell = np.array(length_scales, dtype=float)
+        n = y.shape[0] if y.ndim == 1 else -1
+        expected = {
+            "train_inputs": (Z, (n, N_INPUTS)),
+            "train_targets": (y, (n,)),
+            "input_mean": (mu, (N_INPUTS,)),
+            "input_scale": (s, (N_INPUTS,)),
+            "mean_coefficients": (beta, (N_INPUTS + 1,)),
+            "length_scales": (ell, (N_INPUTS,)),
+        }
+        for name, (array, shape) in expected.items():
+            if array.shape != shape or n < 1:
+                raise ValueError(f"{name} has shape {array.shape}, expected {shape} with n >= 1")
+            if not np.all(np.isfinite(array)):
+                raise ValueError(f"{name} contains non-finite values")
+        positive = {"input_scale": s, "length_scales": ell, "residual_scale": residual_scale,
+                    "signal_std": signal_std, "noise_std": noise_std}
+        for name, value in positive.items():
+            if not np.all(np.isfinite(value)) or not np.all(np.asarray(value) > 0.0):
+                raise ValueError(f"{name} must be finite and positive, got {value}")
+
+        self.train_inputs, self.train_targets = Z, y
+        self.input_mean, self.input_scale = mu, s
+        self.mean_coefficients = beta
+        self.residual_scale = float(residual_scale)
+        self.signal_std, self.noise_std = float(signal_std), float(noise_std)
+        self.length_scales = ell
+        self.log_marginal_likelihood = None if log_marginal_likelihood is None else float(log_marginal_likelihood)
+        self.provenance: dict[str, Any] = dict(provenance or {})
+        for array in (Z, y, mu, s, beta, ell):
+            array.setflags(write=False)
+
+        U = (Z - mu) / s
+        residual = (y - (beta[0] + U @ beta[1:])) / self.residual_scale
+        theta = np.log(np.r_[self.signal_std, self.noise_std, ell])
+        Ky = gram(theta, squared_differences(U)) + self.noise_std**2 * np.eye(n)
+        try:
+            chol = scipy.linalg.cholesky(Ky, lower=True)
+        except np.linalg.LinAlgError as exc:
+            raise ValueError("covariance matrix is not positive definite") from exc
+        alpha = scipy.linalg.cho_solve((chol, True), residual)
+        k_inv = scipy.linalg.cho_solve((chol, True), np.eye(n))
+
+        # Hot-path constants (SI in, SI out). With k̃_i = exp(-½ |D_i|²), D = U/ℓ - u/ℓ:
+        #   mean = b + a·z + c_m·k̃,       ∂mean/∂z = a + ((c_m ∘ k̃) @ D) ∘ g,
+        #   var  = v_0 - k̃ᵀ C_v k̃,        ∂var/∂z  = -2 ((C_v k̃ ∘ k̃) @ D) ∘ g,
+        # where g = 1/(s ∘ ℓ) is ∂(u/ℓ)/∂z.
+        sf2 = self.signal_std**2
+        rs = self.residual_scale
+        self._slope = beta[1:] / s
+        self._intercept = float(beta[0] - self._slope @ mu)
+        self._grad_scale = 1.0 / (s * ell)
+        self._scaled_inputs = np.ascontiguousarray(U / ell)
+        self._mean_weights = rs * sf2 * alpha
+        self._prior_variance = rs * rs * sf2
+        self._variance_matrix = np.ascontiguousarray(rs * rs * sf2 * sf2 * k_inv)
+
+    # ------------------------------------------------------------------ prediction (hot path)
+    def _kernel_row(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        D = self._scaled_inputs - (np.asarray(z, dtype=float) - self.input_mean) * self._grad_scale
+        return np.exp(-0.5 * np.einsum("ij,ij->i", D, D)), D
+
+    def predict(self, z: np.ndarray) -> tuple[float, float]:
+        """Posterior mean and variance of ``x[k+1]`` at one point (eq. 5 over the linear mean).
+
+        Parameters
+        ----------
+        z : np.ndarray, shape (4,)
+            ``(area_m2 [m²], t_ahead_k [K], power_w [W], speed_m_s [m/s])``.
+
+        Returns
+        -------
+        tuple[float, float]
+            Mean [m²] and latent variance [m⁴] (≥ 0, observation noise excluded).
+        """
+        k, _ = self._kernel_row(z)
+        mean = self._intercept + float(self._slope @ z) + float(self._mean_weights @ k)
+        variance = self._prior_variance - float(k @ (self._variance_matrix @ k))
+        return mean, max(variance, 0.0)
+
+    def mean_and_jacobian(self, z: np.ndarray) -> tuple[float, np.ndarray]:
+        """Posterior mean and its gradient with respect to ``z``, both SI.
+
+        For the MPC linearisation ``x[k+1] ≈ mean + J·(z' - z)`` (paper eq. 9: ``A_d = J[0]``,
+        ``B_d = J[2:4]``, ``J[1]`` the sensitivity to the measured disturbance T).
+
+        Parameters
+        ----------
+        z : np.ndarray, shape (4,)
+            As in :meth:`predict`.
+
+        Returns
+        -------
+        tuple[float, np.ndarray]
+            Mean [m²] and ``J``, shape (4,): ``[-, m²/K, m²/W, m²/(m/s)]``.
+        """
+        k, D = self._kernel_row(z)
+        weighted = self._mean_weights * k
+        mean = self._intercept + float(self._slope @ z) + float(weighted.sum())
+        return mean, self._slope + (weighted @ D) * self._grad_scale
+
+    def variance_and_jacobian(self, z: np.ndarray) -> tuple[float, np.ndarray]:
+        """Posterior latent variance and its gradient with respect to ``z``.
+
+        Parameters
+        ----------
+        z : np.ndarray, shape (4,)
+            As in :meth:`predict`.
+
+        Returns
+        -------
+        tuple[float, np.ndarray]
+            Variance [m⁴] and its gradient, shape (4,): ``[m², m⁴/K, m⁴/W, m⁴/(m/s)]``. Where the
+            variance is clipped at 0 (numerically, at a training point) the gradient is 0.
+        """
+        k, D = self._kernel_row(z)
+        ck = self._variance_matrix @ k
+        variance = self._prior_variance - float(k @ ck)
+        if variance <= 0.0:
+            return 0.0, np.zeros(N_INPUTS)
+        return variance, -2.0 * ((ck * k) @ D) * self._grad_scale
+
+    def explicit_mean(self, z: np.ndarray) -> float:
+        """The linear mean ``m(z)`` alone [m²], to which :meth:`predict` reverts far from data."""
+        return self._intercept + float(self._slope @ np.asarray(z, dtype=float))
+
+    @property
+    def n_train(self) -> int:
+        """Number of training points."""
+        return int(self.train_targets.shape[0])
+
+    @property
+    def noise_variance(self) -> float:
+        """Observation-noise variance σ_n² s_r² [m⁴] (not included in :meth:`predict`)."""
+        return (self.noise_std * self.residual_scale) ** 2
+
+    def __repr__(self) -> str:
+        ell = ", ".join(f"{v:.3g}" for v in self.length_scales)
+        return (f"GPModel(n_train={self.n_train}, signal_std={self.signal_std:.3g}, "
+                f"noise_std={self.noise_std:.3g}, length_scales=[{ell}])")
+
+    # ------------------------------------------------------------------ fitting
+    @classmethod
+    def fit(
+        cls,
+        Z: np.ndarray,
+        y: np.ndarray,
+        *,
+        seed: int = 0,
+        n_restarts: int = DEFAULT_RESTARTS,
+        bounds: HyperBounds = HyperBounds(),
+        provenance: Mapping[str, Any] | None = None,
+    ) -> GPModel:
+        """Fit the linear mean by least squares, then the GP hyper-parameters by max. LML.
+
+        Parameters
+        ----------
+        Z : np.ndarray, shape (n, 4)
+            Training inputs, SI (see :data:`INPUT_NAMES`); ``n`` ≈ 100 (cost O(n³) per
+            optimiser iteration).
+        y : np.ndarray, shape (n,)
+            Training targets ``x[k+1]`` [m²].
+        seed : int
+            Seed of the optimiser's random restarts; the result is deterministic given it.
+        n_restarts : int
+            Number of L-BFGS-B starts (≥ 1).
+        bounds : HyperBounds
+            Hyper-parameter bounds in normalised units.
+        provenance : Mapping, optional
+            Stored with the model; ``seed``, ``n_restarts`` and the bounds are added.
+
+        Returns
+        -------
+        GPModel
+        """
+        Z = np.asarray(Z, dtype=float)
+        y = np.asarray(y, dtype=float)
+        if Z.ndim != 2 or Z.shape[1] != N_INPUTS or y.shape != (Z.shape[0],) or Z.shape[0] < N_INPUTS + 2:
+            raise ValueError(f"need Z of shape (n, {N_INPUTS}) and y of shape (n,), n >= {N_INPUTS + 2}; "
+                             f"got {Z.shape} and {y.shape}")
+        if not (np.all(np.isfinite(Z)) and np.all(np.isfinite(y))):
+            raise ValueError("training data contain non-finite values")
+        mu = Z.mean(axis=0)
+        s = _safe_scale(Z, axis=0)
+        U = (Z - mu) / s
+        design = np.column_stack([np.ones(len(y)), U])
+        beta = np.linalg.lstsq(design, y, rcond=None)[0]
+        residual = y - design @ beta
+        residual_scale = max(float(np.std(residual)), 1.0e-9 * float(np.std(y)), np.finfo(float).tiny)
+        theta, lml = fit_hyperparameters(U, residual / residual_scale, bounds=bounds,
+                                         n_restarts=n_restarts, seed=seed)
+        record = dict(provenance or {})
+        record.update(seed=seed, n_restarts=n_restarts, bounds={
+            "signal_std": list(bounds.signal_std), "noise_std": list(bounds.noise_std),
+            "length_scale": list(bounds.length_scale)})
+        params = np.exp(theta)
+        return cls(train_inputs=Z, train_targets=y, input_mean=mu, input_scale=s, mean_coefficients=beta,
+                   residual_scale=residual_scale, signal_std=float(params[0]), noise_std=float(params[1]),
+                   length_scales=params[2:], log_marginal_likelihood=lml, provenance=record)
+
+    # ------------------------------------------------------------------ persistence
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON document written by :meth:`save` (floats round-trip exactly)."""
+        return {
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "inputs": list(INPUT_NAMES),
+            "output": "area_m2 at step k+1",
+            "kernel": "squared-exponential ARD (paper eq. 3), k = sf^2 exp(-0.5 sum((u-u')/l)^2)",
+            "mean_model": "linear least squares in u = (z - input_mean) / input_scale",
+            "hyperparameters": {"signal_std": self.signal_std, "noise_std": self.noise_std,
+                                "length_scales": self.length_scales.tolist()},
+            "normalisation": {"input_mean": self.input_mean.tolist(), "input_scale": self.input_scale.tolist(),
+                              "residual_scale": self.residual_scale},
+            "mean_coefficients": self.mean_coefficients.tolist(),
+            "log_marginal_likelihood": self.log_marginal_likelihood,
+            "training": {"inputs": self.train_inputs.tolist(), "targets": self.train_targets.tolist()},
+            "provenance": self.provenance,
+        }
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write the model as versioned JSON, atomically (temporary file + ``os.replace``).
+
+        Returns
+        -------
+        Path
+            The written path.
+        """
+        text = json.dumps(self.to_dict(), indent=1, sort_keys=True, allow_nan=False) + "\n"
+        return atomic_write_bytes(path, text.encode("utf-8"))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> GPModel:
+        """Read a model written by :meth:`save`.
+
+        Raises
+        ------
+        ModelVersionError
+            The file is a model of another format version.
+        ModelFormatError
+            The file is missing, not JSON, not a model file or inconsistent.
+        """
+        try:
+            doc = json.loads(Path(path).read_bytes())
+        except OSError as exc:
+            raise ModelFormatError(f"cannot read model file {path}: {exc.strerror or exc}") from exc
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ModelFormatError(f"model file {path} is not valid JSON ({exc})") from exc
+        return cls.from_dict(doc, source=str(path))
+
+    @classmethod
+    def from_dict(cls, doc: Any, *, source: str = "<dict>") -> GPModel:
+        """Build a model from the document of :meth:`to_dict`; errors as in :meth:`load`."""
+        if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
+            raise ModelFormatError(f"{source} is not a {FORMAT_NAME} file")
+        if doc.get("format_version") != FORMAT_VERSION:
+            raise ModelVersionError(f"{source} has format version {doc.get('format_version')!r}, "
+                                    f"this code reads version {FORMAT_VERSION}; retrain or convert it")
+        try:
+            hyper, norm, training = doc["hyperparameters"], doc["normalisation"], doc["training"]
+            return cls(
+                train_inputs=np.array(training["inputs"], dtype=float),
+                train_targets=np.array(training["targets"], dtype=float),
+                input_mean=np.array(norm["input_mean"], dtype=float),
+                input_scale=np.array(norm["input_scale"], dtype=float),
+                mean_coefficients=np.array(doc["mean_coefficients"], dtype=float),
+                residual_scale=float(norm["residual_scale"]),
+                signal_std=float(hyper["signal_std"]),
+                noise_std=float(hyper["noise_std"]),
+                length_scales=np.array(hyper["length_scales"], dtype=float),
+                log_marginal_likelihood=doc.get("log_marginal_likelihood"),
+                provenance=doc.get("provenance") or {},
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            detail = f"missing field {exc}" if isinstance(exc, KeyError) else str(exc)
+            raise ModelFormatError(f"{source} is a corrupt model file: {detail}") from exc
