@@ -1,0 +1,356 @@
+"""The zenoh session helper shared by every node.
+
+Defaults are secure and local: peer mode, listening on loopback only (an ephemeral port),
+multicast scouting off, connecting to the run's hub endpoint (``launch.py`` opens the hub; by
+hand, start one node with ``--listen tcp/127.0.0.1:7447``). Peers discover each other through
+the hub by gossip and then talk directly.
+
+A :class:`NodeBus` owns one session for one node: typed publishers that validate and count
+what they send, inboxes whose zenoh callbacks only enqueue raw bytes (decoding and validation
+happen in the node's own loop), a liveliness token that says the node is ready, and start/end
+:class:`~messages.types.RunEvent` messages carrying the per-topic publish counts the recorder
+reconciles against. The session is always closed on exit (an unclosed session with declared
+callbacks keeps the process alive).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import zenoh
+
+from messages.cli import UsageError
+from messages.codec import MessageError, decode, encode
+from messages.foxglove import Log, LogLevel, Timestamp
+from messages.topics import LOG, RUN_EVENTS, Topic, key_expr, liveliness_key
+from messages.types import RunEvent
+
+DEFAULT_HUB = "tcp/127.0.0.1:7447"
+DEFAULT_LISTEN = "tcp/127.0.0.1:0"
+SUPERVISOR_ENV = "MELTLOOP_SUPERVISOR_PID"
+_RUN_ID_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
+
+
+@dataclass(frozen=True)
+class BusSettings:
+    """Where a node's zenoh session listens and connects, and which run it belongs to.
+
+    Attributes
+    ----------
+    run_id : str
+        Run identifier (letters, digits, ``_.-``; at most 64), the key namespace.
+    connect : tuple of str
+        Zenoh endpoints to connect to (default: the hub on loopback).
+    listen : tuple of str
+        Zenoh endpoints to listen on (default: an ephemeral loopback port).
+    zenoh_config : Path or None
+        A zenoh JSON5 configuration file; when given it is the base, and explicit
+        ``connect``/``listen`` options still override its endpoints.
+    """
+
+    run_id: str = "default"
+    connect: tuple[str, ...] = (DEFAULT_HUB,)
+    listen: tuple[str, ...] = (DEFAULT_LISTEN,)
+    zenoh_config: Path | None = None
+
+    def __post_init__(self) -> None:
+        if not (1 <= len(self.run_id) <= 64) or not set(self.run_id) <= _RUN_ID_CHARS or self.run_id[0] in "_.-":
+            raise UsageError(f"invalid run id {self.run_id!r}: use 1-64 letters, digits, '_', '.', '-'")
+        for endpoint in self.connect + self.listen:
+            proto, sep, address = endpoint.partition("/")
+            if not sep or not address or proto not in {"tcp", "udp", "tls", "quic", "unixsock-stream", "ws"}:
+                raise UsageError(f"invalid zenoh endpoint {endpoint!r}: expected e.g. tcp/127.0.0.1:7447")
+        if self.zenoh_config is not None and not self.zenoh_config.is_file():
+            raise UsageError(f"zenoh config file not found: {self.zenoh_config}")
+
+
+def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options every node shares: ``--run-id --connect --listen --zenoh-config``."""
+    group = parser.add_argument_group("zenoh bus")
+    group.add_argument("--run-id", default="default", help="run identifier, the key namespace (default: %(default)s)")
+    group.add_argument(
+        "--connect", action="append", metavar="ENDPOINT",
+        help=f"zenoh endpoint to connect to; repeatable (default: {DEFAULT_HUB})",
+    )
+    group.add_argument(
+        "--listen", action="append", metavar="ENDPOINT",
+        help=f"zenoh endpoint to listen on; repeatable (default: {DEFAULT_LISTEN}, loopback only)",
+    )
+    group.add_argument("--zenoh-config", type=Path, metavar="FILE", help="zenoh JSON5 configuration file")
+
+
+def bus_settings_from_args(args: argparse.Namespace) -> BusSettings:
+    """Build validated :class:`BusSettings` from parsed arguments (raises :class:`UsageError`)."""
+    return BusSettings(
+        run_id=args.run_id,
+        connect=tuple(args.connect) if args.connect else (() if args.zenoh_config else (DEFAULT_HUB,)),
+        listen=tuple(args.listen) if args.listen else (() if args.zenoh_config else (DEFAULT_LISTEN,)),
+        zenoh_config=args.zenoh_config,
+    )
+
+
+def zenoh_config(settings: BusSettings) -> zenoh.Config:
+    """The zenoh configuration: the given file, or peer mode on loopback with multicast off."""
+    if settings.zenoh_config is not None:
+        try:
+            config = zenoh.Config.from_file(str(settings.zenoh_config))
+        except Exception as err:  # zenoh raises its own error types
+            raise UsageError(f"cannot load zenoh config {settings.zenoh_config}: {err}") from None
+    else:
+        config = zenoh.Config()
+        config.insert_json5("mode", '"peer"')
+        config.insert_json5("scouting/multicast/enabled", "false")
+    if settings.listen:
+        config.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
+    if settings.connect:
+        config.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
+    return config
+
+
+class StopFlag:
+    """Set by SIGINT/SIGTERM, or when the supervising ``launch.py`` disappears.
+
+    Installing the handlers also resets an inherited 'ignore SIGINT' disposition (a background
+    process started from a non-interactive shell would otherwise ignore Ctrl-C).
+    """
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+        self.signal_name: str | None = None
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._handle)
+        supervisor = os.environ.get(SUPERVISOR_ENV)
+        if supervisor and supervisor.isdigit():
+            threading.Thread(target=self._watch_parent, args=(int(supervisor),), daemon=True).start()
+
+    def _handle(self, signum: int, _frame: Any) -> None:
+        self.signal_name = signal.Signals(signum).name
+        self._event.set()
+
+    def _watch_parent(self, pid: int) -> None:
+        while not self._event.wait(0.5):
+            if os.getppid() != pid:
+                self.signal_name = "supervisor gone"
+                self._event.set()
+
+    def set(self) -> None:
+        """Request a stop from inside the node."""
+        self._event.set()
+
+    def is_set(self) -> bool:
+        """Whether a stop was requested."""
+        return self._event.is_set()
+
+    def wait(self, timeout: float) -> bool:
+        """Sleep up to ``timeout`` seconds, waking early on a stop request."""
+        return self._event.wait(timeout)
+
+
+class TopicPublisher:
+    """Publishes validated messages of one topic and counts them."""
+
+    def __init__(self, bus: "NodeBus", topic: Topic, publisher: zenoh.Publisher) -> None:
+        self.topic = topic
+        self._bus = bus
+        self._publisher = publisher
+
+    def put(self, msg: Any) -> None:
+        """Encode (validating) and publish ``msg``; raises :class:`MessageError` if invalid."""
+        if not isinstance(msg, self.topic.type):
+            raise MessageError(f"{self.topic.channel} carries {self.topic.type.__name__}, not {type(msg).__name__}")
+        self._publisher.put(encode(msg))
+        self._bus.published[self.topic.suffix] = self._bus.published.get(self.topic.suffix, 0) + 1
+
+
+class Inbox:
+    """Messages of one topic received by a node, decoded in the node's loop.
+
+    The zenoh callback only appends the raw payload to a queue. :meth:`get` decodes and
+    validates; invalid payloads are dropped and counted in :attr:`n_invalid`, with the last
+    reason kept in :attr:`last_error`.
+    """
+
+    def __init__(self, topic: Topic) -> None:
+        self.topic = topic
+        self._queue: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self.n_invalid = 0
+        self.last_error = ""
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        self._queue.put(sample.payload.to_bytes())
+
+    def get(self, timeout: float | None = None) -> Any | None:
+        """Next valid message, waiting up to ``timeout`` s (``None``: do not wait); ``None`` if none."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                if deadline is None:
+                    payload = self._queue.get_nowait()
+                else:
+                    payload = self._queue.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                return None
+            try:
+                return decode(self.topic, payload)
+            except MessageError as err:
+                self.n_invalid += 1
+                self.last_error = str(err)
+
+    def drain(self) -> Iterator[Any]:
+        """Every valid message already queued, oldest first."""
+        while (msg := self.get()) is not None:
+            yield msg
+
+
+@dataclass
+class NodeBus:
+    """One node's zenoh session: publishers, inboxes, readiness, logs and life-cycle events.
+
+    Use as a context manager; on exit it publishes the ``end`` event with its publish counts,
+    undeclares everything and closes the session.
+    """
+
+    node: str
+    settings: BusSettings
+    published: dict[str, int] = field(default_factory=dict)
+    session: zenoh.Session | None = None
+    _token: Any = None
+    _declared: list[Any] = field(default_factory=list)
+    _publishers: dict[str, TopicPublisher] = field(default_factory=dict)
+    _end_detail: str = ""
+    _last_time_s: float = 0.0
+
+    def __enter__(self) -> "NodeBus":
+        zenoh.try_init_log_from_env()
+        self.session = zenoh.open(zenoh_config(self.settings))
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        try:
+            if self.session is not None and exc_type is None:
+                self.event("end", time_s=self._last_time_s, detail=self._end_detail)
+                time.sleep(0.05)  # let the end event leave before the links close
+        finally:
+            for entity in reversed(self._declared):
+                try:
+                    entity.undeclare()
+                except Exception:  # already gone with the session
+                    pass
+            if self.session is not None:
+                self.session.close()
+                self.session = None
+
+    @property
+    def run_id(self) -> str:
+        """The run this node belongs to."""
+        return self.settings.run_id
+
+    def publisher(self, topic: Topic, *, express: bool = True) -> TopicPublisher:
+        """A counted, validating publisher for ``topic`` (reliable, blocking on congestion)."""
+        if topic.suffix not in self._publishers:
+            assert self.session is not None
+            pub = self.session.declare_publisher(
+                key_expr(self.run_id, topic),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                reliability=zenoh.Reliability.RELIABLE,
+                express=express,
+            )
+            self._declared.append(pub)
+            self._publishers[topic.suffix] = TopicPublisher(self, topic, pub)
+        return self._publishers[topic.suffix]
+
+    def inbox(self, topic: Topic) -> Inbox:
+        """Subscribe to ``topic`` of this run; messages queue until the node reads them."""
+        assert self.session is not None
+        box = Inbox(topic)
+        sub = self.session.declare_subscriber(key_expr(self.run_id, topic), box._on_sample)
+        self._declared.append(sub)
+        return box
+
+    def ready(self, *, time_s: float = 0.0, config: dict[str, Any] | None = None, total_steps: int | None = None) -> None:
+        """Announce readiness: publish the ``start`` event, then declare the liveliness token."""
+        self.event("start", time_s=time_s, config=config, total_steps=total_steps)
+        assert self.session is not None
+        self._token = self.session.liveliness().declare_token(liveliness_key(self.run_id, self.node))
+        self._declared.append(self._token)
+
+    def wait_for_nodes(self, nodes: list[str], stop: StopFlag, timeout_s: float) -> None:
+        """Block until every node in ``nodes`` holds its liveliness token.
+
+        Raises
+        ------
+        TimeoutError
+            If they are not all present within ``timeout_s`` (or a stop was requested).
+        """
+        assert self.session is not None
+        missing = set(nodes)
+        deadline = time.monotonic() + timeout_s
+        while missing and not stop.is_set() and time.monotonic() < deadline:
+            for reply in self.session.liveliness().get(liveliness_key(self.run_id), timeout=0.5):
+                if reply.ok is not None:
+                    missing.discard(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+            if missing:
+                stop.wait(0.05)
+        if missing:
+            raise TimeoutError(f"nodes not present after {timeout_s:.0f} s: {', '.join(sorted(missing))}")
+
+    def watch_presence(self, node: str) -> threading.Event:
+        """An event set when ``node``'s liveliness token disappears (the node ended or died)."""
+        assert self.session is not None
+        gone = threading.Event()
+
+        def on_change(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                gone.set()
+
+        sub = self.session.liveliness().declare_subscriber(liveliness_key(self.run_id, node), on_change)
+        self._declared.append(sub)
+        return gone
+
+    def event(
+        self,
+        kind: str,
+        *,
+        time_s: float,
+        config: dict[str, Any] | None = None,
+        total_steps: int | None = None,
+        detail: str = "",
+    ) -> None:
+        """Publish a :class:`RunEvent` of this node (``end`` carries the publish counts so far)."""
+        self._last_time_s = max(self._last_time_s, time_s)
+        pub = self.publisher(RUN_EVENTS)
+        counts = dict(self.published)
+        counts[RUN_EVENTS.suffix] = counts.get(RUN_EVENTS.suffix, 0) + 1  # this event itself
+        pub.put(
+            RunEvent(
+                run_id=self.run_id,
+                node=self.node,
+                event=kind,  # type: ignore[arg-type]
+                time_s=time_s,
+                config_json=json.dumps(config, sort_keys=True, default=str) if config else "",
+                total_steps=total_steps,
+                published=counts if kind == "end" else {},
+                detail=detail[:2000],
+            )
+        )
+
+    def end_detail(self, detail: str) -> None:
+        """Text carried by the ``end`` event published on exit (e.g. a summary)."""
+        self._end_detail = detail
+
+    def log(self, level: LogLevel, text: str, *, time_s: float = 0.0) -> None:
+        """Publish a ``foxglove.Log`` line (process-time stamped) and mirror it on stderr."""
+        self._last_time_s = max(self._last_time_s, time_s)
+        self.publisher(LOG).put(
+            Log(timestamp=Timestamp.from_seconds(time_s), level=level, message=text[:8000], name=self.node)
+        )
+        print(f"{level.name.lower()}: {text}", flush=True)

@@ -1,0 +1,81 @@
+"""Topic registry: key expressions, MCAP channel names, types and size limits, in one place.
+
+Every key is namespaced by run id: ``meltloop/<run_id>/<suffix>``; the MCAP channel of a topic
+is ``/<suffix>``. Liveliness tokens (readiness and presence of each node) live at
+``meltloop/<run_id>/alive/<node>`` in zenoh's separate liveliness space.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from messages.foxglove import Log, RawImage
+from messages.types import ControllerDiagnostics, LaserCommand, MeltPoolState, PlantDiagnostics, RunEvent
+
+PREFIX = "meltloop"
+
+
+@dataclass(frozen=True)
+class Topic:
+    """One stream of the contract.
+
+    Attributes
+    ----------
+    suffix : str
+        Key suffix after ``meltloop/<run_id>/``, e.g. ``plant/state``.
+    type : type
+        Message class carried on it.
+    schema_name : str
+        MCAP schema name (Foxglove recognises ``foxglove.*`` names).
+    max_bytes : int
+        Largest payload accepted; larger ones are rejected before parsing.
+    """
+
+    suffix: str
+    type: type
+    schema_name: str
+    max_bytes: int
+
+    @property
+    def channel(self) -> str:
+        """MCAP channel / Foxglove topic name, e.g. ``/plant/state``."""
+        return "/" + self.suffix
+
+
+PLANT_STATE = Topic("plant/state", MeltPoolState, "meltloop.MeltPoolState", 16 * 1024)
+PLANT_DIAGNOSTICS = Topic("plant/diagnostics", PlantDiagnostics, "meltloop.PlantDiagnostics", 16 * 1024)
+PLANT_TEMPERATURE = Topic("plant/temperature", RawImage, "foxglove.RawImage", 4 * 1024 * 1024)
+LASER_COMMAND = Topic("controller/command", LaserCommand, "meltloop.LaserCommand", 16 * 1024)
+CONTROLLER_DIAGNOSTICS = Topic(
+    "controller/diagnostics", ControllerDiagnostics, "meltloop.ControllerDiagnostics", 64 * 1024
+)
+RUN_EVENTS = Topic("run/events", RunEvent, "meltloop.RunEvent", 512 * 1024)
+LOG = Topic("log", Log, "foxglove.Log", 32 * 1024)
+
+TOPICS: dict[str, Topic] = {
+    t.suffix: t
+    for t in (PLANT_STATE, PLANT_DIAGNOSTICS, PLANT_TEMPERATURE, LASER_COMMAND, CONTROLLER_DIAGNOSTICS, RUN_EVENTS, LOG)
+}
+
+
+def key_expr(run_id: str, topic: Topic) -> str:
+    """Zenoh key expression of ``topic`` in run ``run_id``."""
+    return f"{PREFIX}/{run_id}/{topic.suffix}"
+
+
+def run_prefix(run_id: str) -> str:
+    """Key expression matching every topic of a run (what the recorder subscribes to)."""
+    return f"{PREFIX}/{run_id}/**"
+
+
+def liveliness_key(run_id: str, node: str = "*") -> str:
+    """Liveliness token key of ``node`` (``*`` matches every node of the run)."""
+    return f"{PREFIX}/{run_id}/alive/{node}"
+
+
+def topic_for_key(run_id: str, key: str) -> Topic | None:
+    """The registered topic of a received key, or ``None`` if it is not part of the contract."""
+    head = f"{PREFIX}/{run_id}/"
+    if not key.startswith(head):
+        return None
+    return TOPICS.get(key[len(head):])

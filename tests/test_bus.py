@@ -1,0 +1,56 @@
+"""Two real processes exchange every message type over zenoh on loopback."""
+
+from __future__ import annotations
+
+import time
+
+from messages.bus import BusSettings, NodeBus, StopFlag
+from messages.topics import TOPICS
+from tests.conftest import finish, spawn
+from tests.samples import sample_messages
+
+
+def test_every_message_type_round_trips_through_another_process(hub, run_id):
+    echo = spawn("tests.nodes.echo", "--run-id", run_id, "--connect", hub)
+    try:
+        stop = StopFlag()
+        with NodeBus("tester", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus, NodeBus(
+            "tester-in", BusSettings(run_id=run_id + "-echo", connect=(hub,))
+        ) as back:
+            inboxes = {t.suffix: back.inbox(t) for t in TOPICS.values()}
+            bus.wait_for_nodes(["echo"], stop, timeout_s=20)
+            back.wait_for_nodes(["echo-out"], stop, timeout_s=20)
+            sent = sample_messages(run_id)
+            for topic, msg in sent:
+                bus.publisher(topic).put(msg)
+            received = {}
+            deadline = time.monotonic() + 10
+            while len(received) < len(sent) and time.monotonic() < deadline:
+                for suffix, box in inboxes.items():
+                    msg = box.get()
+                    if msg is not None and (suffix != "run/events" or msg.node == "fe_node"):
+                        received.setdefault(suffix, msg)
+                time.sleep(0.005)
+            for topic, msg in sent:
+                assert received.get(topic.suffix) == msg, topic.suffix
+            assert all(box.n_invalid == 0 for box in inboxes.values())
+    finally:
+        echo.terminate()
+        status, out = finish(echo, timeout=15)
+    assert status == 0, out
+
+
+def test_inbox_drops_and_counts_invalid_payloads(hub, run_id):
+    from messages.topics import PLANT_STATE, key_expr
+
+    with NodeBus("a", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as a:
+        box = a.inbox(PLANT_STATE)
+        raw = a.session.declare_publisher(key_expr(run_id, PLANT_STATE))
+        for payload in (b"garbage", b'{"step": 1}', b"x" * 100_000):
+            raw.put(payload)
+        (_, good), = [s for s in sample_messages(run_id) if s[0] is PLANT_STATE]
+        a.publisher(PLANT_STATE).put(good)
+        got = box.get(timeout=5)
+        assert got == good
+        assert box.n_invalid == 3
+        raw.undeclare()

@@ -1,0 +1,104 @@
+"""launch.py supervises real node processes: readiness, failure, and orderly shutdown."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+from messages.recording import is_complete, read_messages
+from tests.conftest import REPO, finish
+from tests.test_recorder import validate_recording
+
+NODES = """
+[[node]]
+name = "recorder"
+module = "messages.recorder"
+
+[[node]]
+name = "ticker"
+module = "tests.nodes.ticker"
+args = {ticker_args}
+main = true
+"""
+
+
+def start_launch(tmp_path, ticker_args, *extra):
+    nodes = tmp_path / "nodes.toml"
+    nodes.write_text(NODES.format(ticker_args=ticker_args))
+    out = tmp_path / "run.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(out), *extra],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+    )
+    return proc, out
+
+
+def child_pids(output: str) -> list[int]:
+    return [int(p) for p in re.findall(r"started \S+ \(pid (\d+)\)", output)]
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def test_launch_help():
+    out = subprocess.run([sys.executable, "launch.py", "--help"], cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0 and "usage" in out.stdout.lower()
+
+
+def test_run_to_completion_records_everything(tmp_path):
+    proc, out = start_launch(tmp_path, '["--steps", "300", "--rate-hz", "1000", "--require", "recorder"]', "--json")
+    status, output = finish(proc, timeout=60)
+    assert status == 0, output
+    assert "[ticker] published 300 states" in output
+    assert is_complete(out)
+    assert validate_recording(out)["/plant/state"] == 300
+    assert [s.step for s in read_messages(out, "/plant/state")] == list(range(300))
+
+
+def test_sigint_stops_every_node_within_10_s_and_finishes_the_mcap(tmp_path):
+    proc, out = start_launch(tmp_path, '["--steps", "0", "--require", "recorder"]')
+    deadline = time.monotonic() + 30
+    lines = []
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        lines.append(line)
+        if "[ticker] info: step 100" in line:
+            break
+    pids = child_pids("".join(lines))
+    assert len(pids) == 2, "".join(lines)
+    proc.send_signal(signal.SIGINT)
+    t0 = time.monotonic()
+    status, output = finish(proc, timeout=15)
+    assert status == 130, output
+    while any(alive(p) for p in pids) and time.monotonic() - t0 < 10:
+        time.sleep(0.1)
+    assert not any(alive(p) for p in pids)
+    assert time.monotonic() - t0 < 10
+    counts = validate_recording(out)
+    assert counts["/plant/state"] > 100
+    assert is_complete(out)
+
+
+def test_failing_node_ends_the_run_with_a_clear_message(tmp_path):
+    proc, out = start_launch(tmp_path, '["--steps", "0", "--require", "recorder", "--fail-at", "20"]')
+    status, output = finish(proc, timeout=60)
+    assert status == 1
+    assert "node ticker exited with status 3" in output
+    validate_recording(out)  # readable up to the fault
+
+
+def test_bad_node_list_exit_2(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[node]]\nname='x'\n")
+    out = subprocess.run([sys.executable, "launch.py", "--nodes", str(bad)], cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 2
+    assert out.stderr.count("\n") == 1 and "without 'module'" in out.stderr

@@ -1,0 +1,79 @@
+"""The recorder process writes every published message into a valid, finished MCAP."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+
+import jsonschema
+from mcap.reader import make_reader
+
+from messages.bus import BusSettings, NodeBus, StopFlag
+from messages.recording import is_complete, metadata, read_messages, run_config
+from tests.conftest import finish, spawn
+from tests.samples import sample_messages
+
+
+def validate_recording(path) -> Counter:
+    """Every message valid against its channel's JSON Schema; returns counts per channel."""
+    counts: Counter = Counter()
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        for schema, channel, message in reader.iter_messages():
+            assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+            jsonschema.validate(json.loads(message.data), json.loads(schema.data))
+            counts[channel.topic] += 1
+    return counts
+
+
+def test_recorder_records_everything_published(tmp_path, hub, run_id):
+    out = tmp_path / "run.mcap"
+    rec = spawn("messages.recorder", "--run-id", run_id, "--connect", hub, "--out", str(out), "--expect", "tester")
+    stop = StopFlag()
+    with NodeBus("tester", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        bus.wait_for_nodes(["recorder"], stop, timeout_s=20)
+        bus.ready(config={"purpose": "test"})
+        for step in range(200):
+            for topic, msg in sample_messages(run_id, step=step):
+                if topic.suffix != "run/events":
+                    bus.publisher(topic).put(msg)
+        published = dict(bus.published)
+    status, output = finish(rec, timeout=30)
+    assert status == 0, output
+    assert is_complete(out)
+    counts = validate_recording(out)
+    for suffix, n in published.items():
+        assert counts["/" + suffix] >= n, suffix
+    assert counts["/plant/state"] == 200
+    events = [(e.node, e.event) for e in read_messages(out, "/run/events")]
+    assert events == [("recorder", "start"), ("tester", "start"), ("tester", "end")]
+    states = list(read_messages(out, "/plant/state"))
+    assert [s.step for s in states] == list(range(200))
+    meta = metadata(out)
+    assert meta["meltloop"]["run_id"] == run_id
+    assert json.loads(meta["meltloop.counts"]["recorded"])["plant/state"] == 200
+    assert run_config(out) == {"tester": {"purpose": "test"}}
+
+
+def test_recorder_finishes_file_on_sigint(tmp_path, hub, run_id):
+    out = tmp_path / "int.mcap"
+    rec = spawn("messages.recorder", "--run-id", run_id, "--connect", hub, "--out", str(out))
+    stop = StopFlag()
+    with NodeBus("tester", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        bus.wait_for_nodes(["recorder"], stop, timeout_s=20)
+        (topic, msg), = [s for s in sample_messages(run_id) if s[0].suffix == "plant/state"]
+        bus.publisher(topic).put(msg)
+        import time
+        time.sleep(0.5)
+        rec.send_signal(2)
+        status, output = finish(rec, timeout=15)
+    assert status == 0, output
+    assert validate_recording(out)["/plant/state"] == 1
+    assert metadata(out)["meltloop.counts"]["stopped_by"] == "SIGINT"
+
+
+def test_recorder_bad_arguments_exit_2(tmp_path):
+    rec = spawn("messages.recorder", "--out", str(tmp_path / "x.txt"))
+    status, output = finish(rec)
+    assert status == 2
+    assert output.strip().count("\n") == 0 and "error" in output
