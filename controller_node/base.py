@@ -1,0 +1,150 @@
+"""Common controller machinery: ``update(measurement) -> (command, diagnostics)``.
+
+:class:`Controller` owns everything the controllers share — measurement checks,
+staleness, exception containment, fallback, clamping, timing, diagnostics — and
+delegates the control law to :meth:`Controller._propose`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+from .safety import FallbackPlan, clamp_power
+from .settings import ControllerSettings
+from .types import Command, Diagnostics, Measurement
+
+__all__ = ["Controller", "Proposal"]
+
+
+@dataclass(frozen=True, slots=True)
+class Proposal:
+    """A control law's answer to one measurement, before the safety layer.
+
+    Attributes
+    ----------
+    power_w : float
+        Proposed ``p[k]`` [W] (clamped afterwards).
+    status : str
+        ``"ok"``, or a failure reason that makes the safety layer fall back.
+    plan_w : tuple of float
+        Planned powers ``p[k..k+H-1]`` [W] kept for the fallback (may be empty).
+    predicted_area_m2 : tuple of float
+        Predicted ``x[k+1..k+H]`` [m²].
+    model_std_m2 : float or None
+        Model predictive std of ``x[k+1]`` [m²].
+    feedforward_w : float
+        Temperature feed-forward included in ``power_w`` [W].
+    reference_power_w : float or None
+        MPC steady-state reference power [W].
+    iterations : int
+        QP iterations.
+    """
+
+    power_w: float
+    status: str = "ok"
+    plan_w: tuple[float, ...] = ()
+    predicted_area_m2: tuple[float, ...] = ()
+    model_std_m2: float | None = None
+    feedforward_w: float = 0.0
+    reference_power_w: float | None = None
+    iterations: int = 0
+
+
+class Controller(ABC):
+    """Base class of every melt-pool controller (plain Python, no transport).
+
+    Parameters
+    ----------
+    settings : ControllerSettings
+        Shared and controller-specific settings.
+    """
+
+    name: ClassVar[str]
+
+    def __init__(self, settings: ControllerSettings) -> None:
+        if not isinstance(settings, ControllerSettings):
+            raise ValueError(f"settings must be a ControllerSettings, got {type(settings).__name__}")
+        self.settings = settings
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget all history (plan, last command, counters, internal states)."""
+        s = self.settings
+        self._fallback = FallbackPlan(s.power_min_w, s.power_max_w, s.nominal_power_w)
+        self._last_step: int | None = None
+        self.n_fallbacks = 0
+
+    @abstractmethod
+    def _propose(self, m: Measurement) -> Proposal:
+        """Control law for a plausible, fresh measurement (may raise; contained by ``update``)."""
+
+    def update(self, measurement: Measurement, now_step: int | None = None) -> tuple[Command, Diagnostics]:
+        """Compute the command answering ``measurement``.
+
+        Parameters
+        ----------
+        measurement : Measurement
+            Sample ``k`` (area, temperature ahead, applied power, speed).
+        now_step : int, optional
+            Latest step the caller knows has happened (default ``measurement.step``).
+            The command is for ``now_step + 1``; a measurement more than
+            ``settings.max_age_steps`` older than ``now_step``, or not newer than the
+            previous one, is stale.
+
+        Returns
+        -------
+        command : Command
+            ``step = now_step + 1``, power within ``[power_min_w, power_max_w]``,
+            speed ``nominal_speed_m_s``.
+        diagnostics : Diagnostics
+            Status, fallback flag and count, MPC predictions, timing.
+        """
+        t0 = time.perf_counter()
+        s = self.settings
+        step = measurement.step
+        now = step if now_step is None else max(int(now_step), step)
+        target = now + 1
+        proposal: Proposal | None = None
+        if not measurement.is_plausible():
+            status = "invalid_measurement"
+        elif now - step > s.max_age_steps or (self._last_step is not None and step <= self._last_step):
+            status = "stale"
+        else:
+            try:
+                proposal = self._propose(measurement)
+                status = proposal.status
+            except Exception as exc:  # a controller must answer, whatever its model does
+                status = f"controller_error:{type(exc).__name__}"
+            if status == "ok" and not math.isfinite(proposal.power_w):
+                status = "non_finite_command"
+        if self._last_step is None or step > self._last_step:
+            self._last_step = step
+
+        fallback = status != "ok"
+        if fallback:
+            self.n_fallbacks += 1
+            power = self._fallback.power_for(target)
+        else:
+            power = clamp_power(proposal.power_w, s.power_min_w, s.power_max_w, s.nominal_power_w)
+            self._fallback.store(target, proposal.plan_w)
+        self._fallback.last_power_w = power
+        command = Command(step=target, power_w=power, speed_m_s=s.nominal_speed_m_s)
+        elapsed = time.perf_counter() - t0
+        if fallback:
+            return command, Diagnostics(elapsed, status, fallback, self.n_fallbacks)
+        return command, Diagnostics(
+            solve_time_s=elapsed,
+            status=status,
+            fallback=False,
+            n_fallbacks=self.n_fallbacks,
+            predicted_area_m2=proposal.predicted_area_m2,
+            predicted_power_w=proposal.plan_w,
+            model_std_m2=proposal.model_std_m2,
+            feedforward_w=proposal.feedforward_w,
+            reference_power_w=proposal.reference_power_w,
+            solver_iterations=proposal.iterations,
+        )

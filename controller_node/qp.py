@@ -1,0 +1,154 @@
+"""The MPC quadratic programme of eq. (7), in normalised deviation variables.
+
+Scaling (chosen so that Table 3's ``Q = 1, R = 0.1, Q_f = 20`` are meaningful):
+
+* state  ``e = (x − x_sp) / x_sp``       — relative melt-pool area error [-];
+* input  ``u = (p − p_ref) / (p_u − p_l)`` — power as a fraction of its range [-].
+
+With the affine linearisation (eq. 8 plus the offset ``f0``) held over the horizon and
+the temperature held at ``T[k]``, the prediction model is ::
+
+    e[i+1] = a·e[i] + β·u[i] + g,   β = b·(p_u − p_l)/x_sp,
+    g = (f0 − a·x0 − b·p0 + d̂ + a·x_sp + b·p_ref − x_sp) / x_sp
+
+(``d̂`` is the optional output-disturbance estimate).  ``p_ref`` is the model's
+steady-state power ``p_ss`` for the set point, clamped to the bounds; then ``g = 0``
+unless ``p_ss`` is out of reach.  The QP, solved by :mod:`controller_node.mpc` (OSQP)
+and :mod:`controller_node.mpc_reference` (cvxpy), is ::
+
+    min  Σ_{i=1}^{H-1} Q e[i]² + Q_f e[H]² + R Σ_{i=0}^{H-1} w[i]² + Σ_{i=1}^{H} (ρ₁ s[i] + ρ₂ s[i]²)
+    s.t. e[i+1] = a e[i] + β u[i] + g,        e[0] given
+         e_l − s[i] <= e[i] <= e_u + s[i],   s[i] >= 0        (soft area bounds)
+         u_l <= u[i] <= u_u                                  (power bounds)
+         δ_l <= u[i] − u[i−1] <= δ_u,         u[−1] = u_prev   (rate bounds)
+
+with ``w[i] = u[i]`` (``input_penalty="steady_state"``) or ``w[i] = u[i] − u[i−1]``
+(``"move"``).  ``e[0]`` is fixed, so its stage cost is dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .model import Linearisation
+from .settings import ControllerSettings
+
+__all__ = ["QPData", "QPSolution", "QPBackend", "build_qp_data"]
+
+_MIN_GAIN_M2_PER_W = 1e-16  # b below this (1e-10 mm²/W) means power has no usable effect
+_MAX_NORMALISED = 1e6  # larger normalised coefficients mean a broken model/measurement
+
+
+@dataclass(frozen=True, slots=True)
+class QPData:
+    """Numbers that change from step to step (all normalised, dimensionless).
+
+    Attributes
+    ----------
+    a, beta, g : float
+        Prediction model ``e[i+1] = a e[i] + β u[i] + g``.
+    e0 : float
+        Current relative area error.
+    u_lo, u_hi : float
+        Power bounds in ``u``.
+    u_prev : float
+        Last applied power in ``u`` (rate bound and ``"move"`` penalty).
+    p_ref_w : float
+        ``p_ref`` [W] of the input scaling.
+    """
+
+    a: float
+    beta: float
+    g: float
+    e0: float
+    u_lo: float
+    u_hi: float
+    u_prev: float
+    p_ref_w: float
+
+
+@dataclass(frozen=True, slots=True)
+class QPSolution:
+    """Result of a backend solve.
+
+    Attributes
+    ----------
+    status : str
+        ``"solved"`` on success, else the solver's status.
+    u : numpy.ndarray
+        Planned normalised inputs ``u[0..H-1]``, shape (H,) (NaN when not solved).
+    e : numpy.ndarray
+        Predicted normalised errors ``e[1..H]``, shape (H,).
+    iterations : int
+        Solver iterations.
+    """
+
+    status: str
+    u: np.ndarray
+    e: np.ndarray
+    iterations: int
+
+
+class QPBackend(Protocol):
+    """A solver of the QP above for fixed settings."""
+
+    def solve(self, data: QPData) -> QPSolution:
+        """Solve for one step's data."""
+        ...
+
+
+def build_qp_data(
+    lin: Linearisation,
+    area_m2: float,
+    applied_power_w: float,
+    disturbance_m2: float,
+    settings: ControllerSettings,
+) -> QPData | None:
+    """Normalise one step's linearisation into :class:`QPData`.
+
+    Parameters
+    ----------
+    lin : Linearisation
+        GP mean linearised at ``z0 = (x[k], T[k], p0, v)``.
+    area_m2 : float
+        Measured ``x[k]`` [m²].
+    applied_power_w : float
+        ``p[k−1]`` [W], the rate-bound anchor (clamped to the power bounds).
+    disturbance_m2 : float
+        Output-disturbance estimate ``d̂`` added to every prediction [m²].
+    settings : ControllerSettings
+        Set point, power bounds.
+
+    Returns
+    -------
+    QPData or None
+        None when the numbers are not finite or absurdly large (|·| > 1e6).
+    """
+    x_sp = settings.set_point_m2
+    p_lo, p_hi = settings.power_min_w, settings.power_max_w
+    p_scale = p_hi - p_lo
+    x0, p0 = float(lin.z0[0]), float(lin.z0[2])
+    c = lin.f0 - lin.a * x0 - lin.b * p0 + disturbance_m2
+    if lin.b > _MIN_GAIN_M2_PER_W:
+        p_ref = min(max((x_sp * (1.0 - lin.a) - c) / lin.b, p_lo), p_hi)
+    else:
+        p_ref = min(max(p0, p_lo), p_hi)
+    g = (c + lin.a * x_sp + lin.b * p_ref - x_sp) / x_sp
+    p_prev = min(max(applied_power_w, p_lo), p_hi)
+    data = QPData(
+        a=lin.a,
+        beta=lin.b * p_scale / x_sp,
+        g=g,
+        e0=(area_m2 - x_sp) / x_sp,
+        u_lo=(p_lo - p_ref) / p_scale,
+        u_hi=(p_hi - p_ref) / p_scale,
+        u_prev=(p_prev - p_ref) / p_scale,
+        p_ref_w=p_ref,
+    )
+    values = np.array([data.a, data.beta, data.g, data.e0])
+    if not (np.all(np.isfinite(values)) and np.all(np.abs(values) <= _MAX_NORMALISED)):
+        return None
+    return data

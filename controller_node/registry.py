@@ -1,0 +1,53 @@
+"""Controllers by name: :func:`make_controller`."""
+
+from __future__ import annotations
+
+from .base import Controller
+from .baselines import OpenLoopController
+from .feedforward import FeedForwardController
+from .model import DynamicsModel
+from .mpc import MPCController
+from .pid import PIDController
+from .settings import ControllerSettings
+
+__all__ = ["CONTROLLERS", "make_controller"]
+
+CONTROLLERS: tuple[str, ...] = ("open-loop", "pid", "feedforward", "mpc")
+
+
+def make_controller(
+    name: str, settings: ControllerSettings | None = None, model: DynamicsModel | None = None
+) -> Controller:
+    """Build a controller by name.
+
+    Parameters
+    ----------
+    name : {"open-loop", "pid", "feedforward", "mpc"}
+        Controller kind.
+    settings : ControllerSettings, optional
+        Defaults to ``ControllerSettings()``.
+    model : DynamicsModel, optional
+        Required by ``"mpc"``, and by ``"feedforward"`` unless
+        ``settings.feedforward.gain_w_per_k`` is set; ignored otherwise.
+
+    Returns
+    -------
+    Controller
+
+    Raises
+    ------
+    ValueError
+        Unknown name or missing model.
+    """
+    settings = ControllerSettings() if settings is None else settings
+    if name == "open-loop":
+        return OpenLoopController(settings)
+    if name == "pid":
+        return PIDController(settings)
+    if name == "feedforward":
+        return FeedForwardController(settings, model)
+    if name == "mpc":
+        if model is None:
+            raise ValueError("the 'mpc' controller needs a model")
+        return MPCController(settings, model)
+    raise ValueError(f"unknown controller {name!r}; choose one of {', '.join(CONTROLLERS)}")

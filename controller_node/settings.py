@@ -1,0 +1,235 @@
+"""Controller settings: frozen dataclasses validated on construction.
+
+One :class:`ControllerSettings` configures every controller of the registry
+(:func:`controller_node.registry.make_controller`); each controller reads its own
+sub-settings.  Defaults follow the paper (Table 3, section IV.B) and the project's
+typical operating point (set point 0.07 mm², v = 0.8 m/s, Δt = 50 µs).
+Invalid values raise ``ValueError`` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+__all__ = ["ControllerSettings", "MPCSettings", "PIDSettings", "FeedForwardSettings"]
+
+
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ValueError(message)
+
+
+def _finite(obj: object, *names: str) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        _check(
+            isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value),
+            f"{type(obj).__name__}.{name} must be a finite number, got {value!r}",
+        )
+
+
+@dataclass(frozen=True)
+class FeedForwardSettings:
+    """Temperature feed-forward (paper IV.B: "a differential plus direct feedback
+    from the initial temperature is added to the MPC command").
+
+    The added power is ``Δp = K_T · (g_direct · (T[k] − T_ref) + g_diff · (T[k] − T[k−1]))``
+    with ``K_T = −(∂f/∂T)/(∂f/∂p)`` [W/K], the power change that keeps the model's
+    melt-pool area (and its steady state, since both partials share the factor
+    ``1/(1 − ∂f/∂x)``) unchanged for a temperature change.
+
+    Parameters
+    ----------
+    enabled : bool
+        Add the term (to the MPC command; the ``feedforward`` baseline always uses it).
+    direct_gain : float
+        ``g_direct`` (dimensionless).  0 by default for the MPC: the MPC already
+        linearises at the measured ``T[k]``, a direct term would count it twice.
+    differential_gain : float
+        ``g_diff`` (dimensionless): compensates the temperature change the MPC's
+        constant-temperature prediction misses.
+    reference_temperature_k : float
+        ``T_ref`` [K] of the direct term (the ``feedforward`` baseline's nominal
+        power is meant for this temperature).
+    gain_w_per_k : float or None
+        Fixed ``K_T`` [W/K]; None derives it from the model at each step (MPC) or at
+        the nominal point (``feedforward`` baseline).
+    max_abs_w : float
+        Clamp of the added power [W] (> 0).
+    """
+
+    enabled: bool = False
+    direct_gain: float = 0.0
+    differential_gain: float = 1.0
+    reference_temperature_k: float = 300.0
+    gain_w_per_k: float | None = None
+    max_abs_w: float = 150.0
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.enabled, bool), f"FeedForwardSettings.enabled must be bool, got {self.enabled!r}")
+        _finite(self, "direct_gain", "differential_gain", "reference_temperature_k", "max_abs_w")
+        _check(self.reference_temperature_k > 0, "FeedForwardSettings.reference_temperature_k must be > 0 K")
+        _check(self.max_abs_w > 0, "FeedForwardSettings.max_abs_w must be > 0 W")
+        if self.gain_w_per_k is not None:
+            _finite(self, "gain_w_per_k")
+
+
+@dataclass(frozen=True)
+class MPCSettings:
+    """Linear time-varying MPC of eq. (7)-(8) in normalised deviation variables.
+
+    Normalisation (so that Table 3's Q, R, Q_f are meaningful):
+    ``e = (x − x_sp) / x_sp`` (relative area error) and
+    ``u = (p − p_ref) / (p_u − p_l)`` (power as a fraction of its range).
+
+    Parameters
+    ----------
+    horizon : int
+        Prediction horizon ``H`` (Table 3: 20).
+    q, r, q_f : float
+        Stage state, input and terminal weights on ``e`` and ``u`` (Table 3: 1, 0.1, 20).
+    input_penalty : {"steady_state", "move"}
+        What ``R`` weighs: ``"steady_state"`` the deviation of ``p`` from the
+        model's steady-state power ``p_ss`` for the set point (offset-free target
+        tracking, ``p_ref = p_ss``), ``"move"`` the moves ``Δp[i] = p[i] − p[i−1]``.
+    rate_min_w, rate_max_w : float
+        Bounds of ``Δp`` per step [W] (Table 3: ±350; cannot bind when
+        ``p_u − p_l <= 350`` W, kept for other ranges).
+    area_min_m2, area_max_m2 : float
+        Soft area bounds ``x_l, x_u`` [m²] (Table 3: 0, 0.5 mm²).
+    slack_linear, slack_quadratic : float
+        Penalty ``ρ₁·s + ρ₂·s²`` on the normalised area-bound violation ``s >= 0``.
+    disturbance_gain : float
+        Filter gain in [0, 1] of the output-disturbance estimate (the model's
+        one-step prediction error, added to the prediction); 0 disables it.
+    eps_abs, eps_rel : float
+        OSQP tolerances (<= 1e-5: at 1e-3 OSQP is off by up to 9 W).
+    max_iter : int
+        OSQP iteration limit.
+    temperature_horizon : {"constant"}
+        Temperature prediction over the horizon: held at ``T[k]``.
+    report_model_std : bool
+        Also call ``model.predict`` to report the predictive std in the diagnostics.
+    feedforward : FeedForwardSettings
+        Temperature feed-forward added to the MPC command.
+    """
+
+    horizon: int = 20
+    q: float = 1.0
+    r: float = 0.1
+    q_f: float = 20.0
+    input_penalty: Literal["steady_state", "move"] = "steady_state"
+    rate_min_w: float = -350.0
+    rate_max_w: float = 350.0
+    area_min_m2: float = 0.0
+    area_max_m2: float = 0.5e-6
+    slack_linear: float = 100.0
+    slack_quadratic: float = 1000.0
+    disturbance_gain: float = 0.0
+    eps_abs: float = 1e-6
+    eps_rel: float = 1e-6
+    max_iter: int = 4000
+    temperature_horizon: Literal["constant"] = "constant"
+    report_model_std: bool = True
+    feedforward: FeedForwardSettings = field(default_factory=FeedForwardSettings)
+
+    def __post_init__(self) -> None:
+        _check(
+            isinstance(self.horizon, int) and not isinstance(self.horizon, bool) and 1 <= self.horizon <= 500,
+            f"MPCSettings.horizon must be an int in [1, 500], got {self.horizon!r}",
+        )
+        _finite(self, "q", "r", "q_f", "rate_min_w", "rate_max_w", "area_min_m2", "area_max_m2",
+                "slack_linear", "slack_quadratic", "disturbance_gain", "eps_abs", "eps_rel")
+        _check(self.q >= 0 and self.q_f >= 0, "MPCSettings.q and q_f must be >= 0")
+        _check(self.r > 0, f"MPCSettings.r must be > 0 (strictly convex QP), got {self.r}")
+        _check(self.input_penalty in ("steady_state", "move"),
+               f"MPCSettings.input_penalty must be 'steady_state' or 'move', got {self.input_penalty!r}")
+        _check(self.rate_min_w < 0 < self.rate_max_w, "MPCSettings.rate_min_w < 0 < rate_max_w required")
+        _check(0 <= self.area_min_m2 < self.area_max_m2, "MPCSettings.area bounds need 0 <= area_min_m2 < area_max_m2")
+        _check(self.slack_linear >= 0 and self.slack_quadratic > 0,
+               "MPCSettings.slack_linear must be >= 0 and slack_quadratic > 0")
+        _check(0 <= self.disturbance_gain <= 1, "MPCSettings.disturbance_gain must be in [0, 1]")
+        _check(0 < self.eps_abs <= 1e-5 and 0 < self.eps_rel <= 1e-5,
+               "MPCSettings.eps_abs and eps_rel must be in (0, 1e-5]")
+        _check(isinstance(self.max_iter, int) and not isinstance(self.max_iter, bool) and self.max_iter > 0,
+               "MPCSettings.max_iter must be a positive int")
+        _check(self.temperature_horizon == "constant",
+               f"MPCSettings.temperature_horizon must be 'constant', got {self.temperature_horizon!r}")
+        _check(isinstance(self.report_model_std, bool), "MPCSettings.report_model_std must be bool")
+        _check(isinstance(self.feedforward, FeedForwardSettings),
+               "MPCSettings.feedforward must be a FeedForwardSettings")
+
+
+@dataclass(frozen=True)
+class PIDSettings:
+    """Discrete PID on the relative area error ``e = (x_sp − x) / x_sp``.
+
+    ``p = p_nom + kp·e + I + kd·(e[k] − e[k−1])`` with ``I += ki·e`` each step,
+    frozen while the output saturates in the direction of ``e`` (conditional
+    integration anti-windup), output clamped to the power bounds.
+
+    Parameters
+    ----------
+    kp_w, ki_w, kd_w : float
+        Gains [W per unit relative error] (``ki_w`` per step), >= 0.
+    """
+
+    kp_w: float = 100.0
+    ki_w: float = 25.0
+    kd_w: float = 0.0
+
+    def __post_init__(self) -> None:
+        _finite(self, "kp_w", "ki_w", "kd_w")
+        _check(min(self.kp_w, self.ki_w, self.kd_w) >= 0, "PIDSettings gains must be >= 0")
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """Settings shared by all controllers.
+
+    Parameters
+    ----------
+    set_point_m2 : float
+        Melt-pool area set point ``x_sp`` [m²] (> 0).
+    power_min_w, power_max_w : float
+        Power bounds ``p_l, p_u`` [W] (Table 3: 0, 350).  No command leaves them.
+    nominal_power_w : float
+        Open-loop power and the safe power before any command was issued [W].
+    nominal_speed_m_s : float
+        Scan speed [m/s] (power-only control, paper IV.B); used when the measured
+        speed is unusable.
+    max_age_steps : int
+        A measurement older than this many steps (``now_step − step``) is stale.
+    mpc, pid : MPCSettings, PIDSettings
+        Controller-specific settings.
+    feedforward : FeedForwardSettings
+        Settings of the ``feedforward`` baseline.
+    """
+
+    set_point_m2: float = 0.07e-6
+    power_min_w: float = 0.0
+    power_max_w: float = 350.0
+    nominal_power_w: float = 250.0
+    nominal_speed_m_s: float = 0.8
+    max_age_steps: int = 1
+    mpc: MPCSettings = field(default_factory=MPCSettings)
+    pid: PIDSettings = field(default_factory=PIDSettings)
+    feedforward: FeedForwardSettings = field(default_factory=lambda: FeedForwardSettings(
+        enabled=True, direct_gain=1.0, differential_gain=0.0))
+
+    def __post_init__(self) -> None:
+        _finite(self, "set_point_m2", "power_min_w", "power_max_w", "nominal_power_w", "nominal_speed_m_s")
+        _check(self.set_point_m2 > 0, f"ControllerSettings.set_point_m2 must be > 0, got {self.set_point_m2}")
+        _check(0 <= self.power_min_w < self.power_max_w,
+               "ControllerSettings needs 0 <= power_min_w < power_max_w")
+        _check(self.power_min_w <= self.nominal_power_w <= self.power_max_w,
+               "ControllerSettings.nominal_power_w must lie within the power bounds")
+        _check(self.nominal_speed_m_s > 0, "ControllerSettings.nominal_speed_m_s must be > 0")
+        _check(isinstance(self.max_age_steps, int) and not isinstance(self.max_age_steps, bool)
+               and self.max_age_steps >= 0, "ControllerSettings.max_age_steps must be an int >= 0")
+        _check(self.mpc.area_min_m2 < self.set_point_m2 < self.mpc.area_max_m2,
+               "ControllerSettings.set_point_m2 must lie inside the MPC area bounds")
+        for name, cls in (("mpc", MPCSettings), ("pid", PIDSettings), ("feedforward", FeedForwardSettings)):
+            _check(isinstance(getattr(self, name), cls), f"ControllerSettings.{name} must be a {cls.__name__}")

@@ -1,0 +1,170 @@
+"""Plain data types of the melt-pool controller (SI units throughout).
+
+The controller's functional core is ``update(measurement) -> (command, diagnostics)``
+(see :mod:`controller_node.base`).  The types here are transport-agnostic frozen
+dataclasses; the zenoh node converts them from/to the message contract.
+
+Conventions
+-----------
+Step ``k`` follows the discrete dynamics of the paper, eq. (1):
+``x[k+1] = f(x[k], T[k], p[k], v[k])``.  A :class:`Measurement` with ``step = k``
+carries ``x[k]`` and ``T[k]`` together with the power ``p[k-1]`` that was applied
+during the step that produced it; the :class:`Command` answering it carries
+``p[k]`` and has ``step = k + 1`` (the step its power produces).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Measurement", "Command", "Diagnostics"]
+
+
+def _real(name: str, value: object) -> float:
+    """Convert a real number (Python or numpy, not bool) to float, else ``ValueError``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be a real number, got {type(value).__name__}")
+    return float(value)
+
+
+def _step(name: str, value: object) -> int:
+    """Validate a step index: a non-negative int (numpy integers accepted), else ``ValueError``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{name} must be a non-negative int, got {type(value).__name__}")
+    if value < 0:
+        raise ValueError(f"{name} must be >= 0, got {value}")
+    return int(value)
+
+
+@dataclass(frozen=True, slots=True)
+class Measurement:
+    """One sensor sample of the melt pool, eq. (1) inputs at step ``k``.
+
+    Parameters
+    ----------
+    step : int
+        Step index ``k`` (>= 0).
+    time_s : float
+        Simulation time of the sample [s].
+    area_m2 : float
+        Melt-pool top-surface area ``x[k]`` [m²].
+    t_ahead_k : float
+        Surface temperature ahead of the laser ``T[k]`` [K] (measurable disturbance).
+    power_w : float
+        Laser power ``p[k-1]`` applied during the step that produced this sample [W].
+    speed_m_s : float
+        Scan speed ``v`` [m/s].
+
+    Notes
+    -----
+    Construction checks types only (``ValueError`` for non-numbers and bad steps).
+    Non-finite or physically impossible *values* (NaN, inf, negative area, zero
+    speed) are accepted on purpose: a sensor dropout must still produce a safe
+    command, so the controller detects them (:meth:`is_plausible`) and falls back.
+    """
+
+    step: int
+    time_s: float
+    area_m2: float
+    t_ahead_k: float
+    power_w: float
+    speed_m_s: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "step", _step("step", self.step))
+        for name in ("time_s", "area_m2", "t_ahead_k", "power_w", "speed_m_s"):
+            object.__setattr__(self, name, _real(name, getattr(self, name)))
+
+    def is_plausible(self) -> bool:
+        """Return True when every field is finite and physically possible.
+
+        Returns
+        -------
+        bool
+            ``area >= 0``, ``T > 0`` K, ``power >= 0``, ``speed > 0`` and all finite.
+        """
+        values = (self.time_s, self.area_m2, self.t_ahead_k, self.power_w, self.speed_m_s)
+        return (
+            all(math.isfinite(v) for v in values)
+            and self.area_m2 >= 0.0
+            and self.t_ahead_k > 0.0
+            and self.power_w >= 0.0
+            and self.speed_m_s > 0.0
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    """Laser command ``u[k] = (p[k], v[k])`` for the step it will produce.
+
+    Parameters
+    ----------
+    step : int
+        The step this command produces (``measurement.step + 1``).
+    power_w : float
+        Laser power [W], finite and >= 0 (the controller also keeps it within its
+        power bounds).
+    speed_m_s : float
+        Scan speed [m/s], finite and > 0.
+    """
+
+    step: int
+    power_w: float
+    speed_m_s: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "step", _step("step", self.step))
+        power = _real("power_w", self.power_w)
+        speed = _real("speed_m_s", self.speed_m_s)
+        if not (math.isfinite(power) and power >= 0.0):
+            raise ValueError(f"power_w must be finite and >= 0, got {power}")
+        if not (math.isfinite(speed) and speed > 0.0):
+            raise ValueError(f"speed_m_s must be finite and > 0, got {speed}")
+        object.__setattr__(self, "power_w", power)
+        object.__setattr__(self, "speed_m_s", speed)
+
+
+@dataclass(frozen=True, slots=True)
+class Diagnostics:
+    """What the controller did in one ``update``.
+
+    Parameters
+    ----------
+    solve_time_s : float
+        Wall time of the whole update (linearisation + QP + clamping) [s].
+    status : str
+        ``"ok"`` or the fallback reason: ``"invalid_measurement"``, ``"stale"``,
+        ``"model_error"``, ``"solver_failed"``, ``"solver_error"``, or a solver status.
+    fallback : bool
+        True when the command is the safe fallback, not the controller's own output.
+    n_fallbacks : int
+        Fallbacks since construction/reset.
+    predicted_area_m2 : tuple of float
+        MPC predicted areas ``x[k+1..k+H]`` [m²] (empty for baselines/fallback).
+    predicted_power_w : tuple of float
+        MPC planned powers ``p[k..k+H-1]`` [W] (empty for baselines).
+    model_std_m2 : float or None
+        GP predictive standard deviation of ``x[k+1]`` at the operating point [m²],
+        None when not computed.
+    feedforward_w : float
+        Temperature feed-forward added to the command [W] (0 when off).
+    reference_power_w : float or None
+        MPC steady-state reference power of the normalised problem [W].
+    solver_iterations : int
+        QP iterations (0 when no QP was solved).
+    """
+
+    solve_time_s: float
+    status: str
+    fallback: bool
+    n_fallbacks: int
+    predicted_area_m2: tuple[float, ...] = ()
+    predicted_power_w: tuple[float, ...] = ()
+    model_std_m2: float | None = None
+    feedforward_w: float = 0.0
+    reference_power_w: float | None = None
+    solver_iterations: int = 0
