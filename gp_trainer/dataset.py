@@ -19,6 +19,7 @@ Dropped pairs, counted in :class:`DropReport`:
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -214,6 +215,19 @@ def read_states(path: str | os.PathLike[str]) -> list[Any]:
     if not states:
         raise RecordingError(f"{path}: no {STATE_CHANNEL} messages")
     return states
+
+
+def recording_info(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Provenance of one recording: name, size, SHA-256, recorder metadata and node configs."""
+    from messages.recording import RecordingError as ReaderError
+    from messages.recording import metadata, run_config
+
+    try:
+        data = Path(path).read_bytes()
+        info = {"meltloop": metadata(path).get("meltloop", {}), "config": run_config(path)}
+    except (OSError, ReaderError, ValueError) as exc:  # run_config parses JSON attachments
+        raise RecordingError(f"{path}: unreadable metadata ({exc})") from None
+    return {"name": Path(path).name, "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest(), **info}
 
 
 def save_samples(path: str | os.PathLike[str], samples: Samples, meta: dict[str, Any]) -> Path:

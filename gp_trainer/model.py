@@ -48,6 +48,8 @@ FORMAT_VERSION = 1
 INPUT_NAMES = ("area_m2", "t_ahead_k", "power_w", "speed_m_s")
 N_INPUTS = len(INPUT_NAMES)
 DEFAULT_RESTARTS = 8
+DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_gp.json"
+"""The shipped model (``python -m gp_trainer train`` writes it; ``launch.py`` loads it)."""
 
 
 def _safe_scale(values: np.ndarray, axis: int | None = None) -> np.ndarray:

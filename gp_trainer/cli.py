@@ -1,0 +1,176 @@
+"""Command line: ``python -m gp_trainer {dataset,train,evaluate,campaign}``.
+
+Typical use::
+
+    python -m gp_trainer campaign --workers 2      # nine Table 2 cases -> recordings/campaign/
+    python -m gp_trainer dataset                   # -> out/gp/dataset.npz
+    python -m gp_trainer train                     # -> gp_trainer/models/in625_gp.json
+    python -m gp_trainer evaluate --json           # metrics + out/gp/gp_scatter.png, gp_rollout.png
+
+User errors (missing or bad files, too few samples, bad arguments) end with exit status 2 and a
+one-line reason on stderr; nothing is half-written (every output is written atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NoReturn
+
+from gp_trainer.errors import DatasetError, GPTrainerError
+from gp_trainer.model import DEFAULT_MODEL_PATH, DEFAULT_RESTARTS
+
+PROG = "python -m gp_trainer"
+DEFAULT_DATASET = Path("out/gp/dataset.npz")
+DEFAULT_RECORDINGS = Path("recordings/campaign")
+DEFAULT_PLOTS = Path("out/gp")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors and exit status 2."""
+
+    def error(self, message: str) -> NoReturn:  # noqa: D102 - argparse hook
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of :func:`main`."""
+    parser = _Parser(prog=PROG, description=__doc__.split("\n\n")[0],
+                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    fmt = argparse.ArgumentDefaultsHelpFormatter
+
+    p = sub.add_parser("dataset", formatter_class=fmt, help="build training samples from recordings")
+    p.add_argument("recordings", nargs="*", type=Path, help="MCAP recordings (default: table2-case*.mcap in --recordings-dir)")
+    p.add_argument("--recordings-dir", type=Path, default=DEFAULT_RECORDINGS, help="campaign directory")
+    p.add_argument("--synthetic", action="store_true", help="use the synthetic stand-in plant (gp_trainer.synthetic) instead of recordings")
+    p.add_argument("--out", type=Path, default=DEFAULT_DATASET, help="dataset file (.npz)")
+    p.add_argument("--startup-fraction", type=float, default=0.5, help="a track's pool is formed once its area reaches this fraction of the track median")
+    p.add_argument("--min-samples", type=int, default=120, help="fewer usable samples is an error")
+
+    p = sub.add_parser("train", formatter_class=fmt, help="select training points and fit the GP")
+    p.add_argument("--dataset", type=Path, default=DEFAULT_DATASET, help="dataset file from `dataset`")
+    p.add_argument("--out", type=Path, default=DEFAULT_MODEL_PATH, help="model file (JSON)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the point selection and optimiser restarts")
+    p.add_argument("--n-train", type=int, default=100, help="training points")
+    p.add_argument("--restarts", type=int, default=DEFAULT_RESTARTS, help="optimiser starts")
+
+    p = sub.add_parser("evaluate", formatter_class=fmt, help="validate a model on the held-out samples")
+    p.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH, help="model file")
+    p.add_argument("--dataset", type=Path, default=DEFAULT_DATASET, help="dataset file")
+    p.add_argument("--plots-dir", type=Path, default=DEFAULT_PLOTS, help="where the PNG figures go")
+    p.add_argument("--rollout-source", default="table2-case2", help="case of the multi-step forward simulation")
+    p.add_argument("--json", action="store_true", help="print the metrics as JSON (last line)")
+
+    p = sub.add_parser("campaign", formatter_class=fmt, help="record the Table 2 cases open loop")
+    p.add_argument("--workers", type=int, default=2, help="cases run in parallel")
+    p.add_argument("--cases", type=int, nargs="+", default=list(range(1, 10)), help="Table 2 case numbers")
+    p.add_argument("--out-dir", type=Path, default=DEFAULT_RECORDINGS, help="recordings directory")
+    p.add_argument("--timeout", type=float, default=None, help="wall-time limit per case [s]")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print a JSON summary (last line)")
+    return parser
+
+
+def _case_number(path: Path) -> tuple[int, str]:
+    match = re.search(r"case(\d+)", path.stem)
+    return (int(match.group(1)) if match else sys.maxsize, path.name)
+
+
+def _dataset(args: argparse.Namespace) -> int:
+    from gp_trainer import dataset, synthetic
+
+    settings = dataset.DatasetSettings(startup_fraction=args.startup_fraction, min_samples=args.min_samples)
+    if not 0.0 < settings.startup_fraction <= 1.0:
+        raise DatasetError(f"--startup-fraction must be in (0, 1], got {settings.startup_fraction}")
+    parts, reports, recordings = [], [], []
+    if args.synthetic:
+        if args.recordings:
+            raise DatasetError("give recordings or --synthetic, not both")
+        sources = {f"table2-case{c}": synthetic.table2_case(c, noise_rel=0.002, seed=c) for c in range(1, 10)}
+        recordings = [{"name": "synthetic stand-in plant (gp_trainer.synthetic), NOT FE data", "noise_rel": 0.002}]
+    else:
+        paths = args.recordings or sorted(args.recordings_dir.glob("table2-case*.mcap"), key=_case_number)
+        paths = [p for p in paths if not p.name.endswith(".partial.mcap")]
+        if not paths:
+            raise DatasetError(f"no recordings given and none in {args.recordings_dir} (run `{PROG} campaign`)")
+        sources = {p.stem: dataset.read_states(p) for p in paths}
+        recordings = [dataset.recording_info(p) for p in paths]
+    for name, states in sources.items():
+        samples, report = dataset.build_samples(states, name, settings)
+        parts.append(samples)
+        reports.append(report)
+        print(report.summary())
+    samples = dataset.concatenate(parts, settings)
+    meta = {"recordings": recordings, "reports": [r.__dict__ for r in reports],
+            "settings": settings.__dict__}
+    out = dataset.save_samples(args.out, samples, meta)
+    dropped = sum(r.dropped_startup + r.dropped_no_pool + r.dropped_gap for r in reports)
+    print(f"{len(samples)} samples from {len(reports)} sources ({dropped} pairs dropped) -> {out}")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from gp_trainer.dataset import load_samples
+    from gp_trainer.train import TrainSettings, train
+
+    if args.n_train < 10 or args.restarts < 1:
+        raise DatasetError("--n-train must be at least 10 and --restarts at least 1")
+    samples, meta = load_samples(args.dataset)
+    meta = {**meta, "file": args.dataset.name}
+    model = train(samples, meta, TrainSettings(n_train=args.n_train, seed=args.seed, n_restarts=args.restarts))
+    out = model.save(args.out)
+    print(f"{model} log ML = {model.log_marginal_likelihood:.3f} -> {out}")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from gp_trainer.dataset import load_samples
+    from gp_trainer.evaluate import evaluate
+    from gp_trainer.model import GPModel
+
+    model = GPModel.load(args.model)
+    samples, _ = load_samples(args.dataset)
+    result = evaluate(model, samples, args.plots_dir, rollout_source=args.rollout_source)
+    if result["n_train_found"] < model.n_train:
+        print(f"warning: only {result['n_train_found']} of the model's {model.n_train} training points are in "
+              f"{args.dataset}; the model was trained on other data", file=sys.stderr)
+    if result["rollout_case2_mape_pct"] is None:
+        print(f"warning: no samples of {args.rollout_source!r} in {args.dataset}: no rollout", file=sys.stderr)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        rollout = result["rollout_case2_mape_pct"]
+        print(f"R² = {result['r2']:.5f}, MAPE = {result['mape_pct']:.3f} % on {result['n_valid']} held-out samples "
+              f"({result['n_train']} training); rollout {args.rollout_source}: "
+              + ("n/a" if rollout is None else f"MAPE = {rollout:.3f} %"))
+    return 0
+
+
+def _campaign(args: argparse.Namespace) -> int:
+    from gp_trainer.campaign import CampaignSettings, run_campaign, summary_json
+
+    settings = CampaignSettings(cases=tuple(args.cases), out_dir=args.out_dir, workers=args.workers,
+                                timeout_s=args.timeout)
+    results = run_campaign(settings, progress=not args.no_progress)
+    for r in results:
+        print(f"case {r.case}: {r.status} ({r.wall_s:.1f} s) {r.recording} {r.detail}".rstrip())
+    if args.json:
+        print(summary_json(results))
+    return 1 if any(r.status == "failed" for r in results) else 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run one sub-command; return the exit status (2 for user errors, with a one-line reason)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    command = {"dataset": _dataset, "train": _train, "evaluate": _evaluate, "campaign": _campaign}[args.command]
+    try:
+        return command(args)
+    except GPTrainerError as exc:
+        print(f"{PROG} {args.command}: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
