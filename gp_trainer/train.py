@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -61,7 +61,6 @@ def train(samples: Samples, dataset_meta: dict[str, Any], settings: TrainSetting
         "dataset": dataset_meta,
         "selection": {"method": "greedy farthest-point (maximin) on standardised inputs",
                       "n_train": settings.n_train, "n_samples": len(samples)},
-        "train_settings": asdict(settings),
         "code": code_version(),
     }
     return GPModel.fit(samples.Z[index], samples.y[index], seed=settings.seed,
