@@ -1,0 +1,173 @@
+"""Material model: temperature-dependent IN625 (or constant properties) in enthalpy form.
+
+The solver's state is the volumetric enthalpy ``H`` [J/m³]; conduction acts on the
+Kirchhoff variable ``phi`` [K],
+
+    phi(T) = (1 / k_ref) * integral_0^T k(s) ds,      div(k grad T) = k_ref * lap(phi),
+
+so the stiffness matrix never changes while k depends on T.  ``H(T) = rho * integral_0^T
+cp(s) ds + rho * L * f_liq(T)`` with a liquid fraction rising linearly from solidus to
+liquidus.  ``H -> T`` and ``H -> phi`` are piecewise-linear look-up tables, uniform in
+``H`` so a look-up is an index computation and a gather (no search).  The table is the
+constitutive law; energy bookkeeping is done in ``H`` and is exact regardless.
+
+Property set (IN625)
+--------------------
+Linear set of the Penn State group (the group of the paper's reference [WangAM2020]):
+rho = 8440 kg/m³, cp = 405 + 0.247 T[°C] J/(kg K), k = 9.5 + 0.0150 T[°C] W/(m K)
+capped at the solidus, latent heat L = 2.8e5 J/kg, solidus 1563 K, liquidus 1623 K
+(Special Metals datasheet melting range 1290-1350 °C).
+
+Liquid choices (documented assumptions):
+
+* k in the liquid stays at its solidus value, 28.85 W/(m K).  The paper's FE model is
+  conduction only with no Marangoni enhancement, and the tabulated set of the open-source
+  code mlhpbf gives 31.9 W/(m K) just below and 27 W/(m K) above melting, i.e. no jump.
+* cp is held at its liquidus value, 738 J/(kg K), in the liquid (mlhpbf: 769 liquid).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_C0 = 273.15
+
+
+@dataclass(frozen=True)
+class Material:
+    """Thermal properties, linear in temperature and capped (see module docstring).
+
+    Parameters
+    ----------
+    name : str
+        Label.
+    rho : float
+        Density [kg/m³].
+    cp_a, cp_b : float
+        ``cp = cp_a + cp_b * (T - 273.15)`` [J/(kg K)], T [K], held constant above
+        ``t_liquidus``.
+    k_a, k_b : float
+        ``k = k_a + k_b * (T - 273.15)`` [W/(m K)], held constant above ``t_solidus``.
+    latent : float
+        Latent heat of fusion [J/kg], released linearly between solidus and liquidus.
+    t_solidus, t_liquidus : float
+        [K].
+    """
+
+    name: str = "IN625"
+    rho: float = 8440.0
+    cp_a: float = 405.0
+    cp_b: float = 0.247
+    k_a: float = 9.5
+    k_b: float = 0.0150
+    latent: float = 2.8e5
+    t_solidus: float = 1563.0
+    t_liquidus: float = 1623.0
+
+    def __post_init__(self):
+        if not (self.rho > 0 and self.latent >= 0):
+            raise ValueError("material: rho must be > 0 and latent heat >= 0")
+        if not 0 < self.t_solidus < self.t_liquidus:
+            raise ValueError("material: need 0 < t_solidus < t_liquidus")
+        for what, f in (("cp", self.cp), ("k", self.k)):
+            if min(f(0.0), f(self.t_liquidus)) <= 0:
+                raise ValueError(f"material: {what} must stay positive")
+
+    @classmethod
+    def in625(cls) -> "Material":
+        """Temperature-dependent IN625 (Penn State linear set, module docstring)."""
+        return cls()
+
+    @classmethod
+    def constant(cls, k: float, rho: float, cp: float, latent: float = 0.0,
+                 t_solidus: float = 1563.0, t_liquidus: float = 1623.0) -> "Material":
+        """Constant k [W/(m K)], rho [kg/m³], cp [J/(kg K)]; optional latent heat [J/kg]."""
+        return cls(name="constant", rho=rho, cp_a=cp, cp_b=0.0, k_a=k, k_b=0.0,
+                   latent=latent, t_solidus=t_solidus, t_liquidus=t_liquidus)
+
+    def cp(self, t):
+        """Specific heat [J/(kg K)] at temperature ``t`` [K] (array-like)."""
+        return self.cp_a + self.cp_b * (np.minimum(t, self.t_liquidus) - _C0)
+
+    def k(self, t):
+        """Thermal conductivity [W/(m K)] at temperature ``t`` [K] (array-like)."""
+        return self.k_a + self.k_b * (np.minimum(t, self.t_solidus) - _C0)
+
+    @property
+    def k_ref(self) -> float:
+        """Reference conductivity of the Kirchhoff transform, k(solidus) [W/(m K)]."""
+        return float(self.k(self.t_solidus))
+
+
+class Constitutive:
+    """Uniform-in-H look-up tables ``H -> T`` and ``H -> phi`` for a :class:`Material`.
+
+    Parameters
+    ----------
+    material : Material
+    n_table : int
+        Number of table intervals between 0 K and ``t_liquidus + 50 K``.  Above the table
+        both maps are extrapolated linearly, which is exact there (cp, k constant).
+    """
+
+    def __init__(self, material: Material, n_table: int = 1 << 15):
+        m = material
+        self.material = m
+        self.k_ref = m.k_ref
+        # fine temperature grid containing the property kinks -> trapezoid sums are exact
+        t = np.unique(np.concatenate([np.linspace(0.0, m.t_liquidus + 50.0, 400_001),
+                                      [m.t_solidus, m.t_liquidus]]))
+        cp, k = m.cp(t), m.k(t)
+        dt = np.diff(t)
+        h = np.concatenate([[0.0], np.cumsum(0.5 * (cp[1:] + cp[:-1]) * dt)]) * m.rho
+        h += m.rho * m.latent * np.clip((t - m.t_solidus) / (m.t_liquidus - m.t_solidus), 0, 1)
+        phi = np.concatenate([[0.0], np.cumsum(0.5 * (k[1:] + k[:-1]) * dt)]) / self.k_ref
+        self._t_grid, self._h_grid, self._phi_grid = t, h, phi
+        hn = np.linspace(h[0], h[-1], n_table + 1)
+        tn = np.interp(hn, h, t)
+        pn = np.interp(hn, h, phi)
+        self._h0 = hn[0]
+        self._inv_dh = n_table / (hn[-1] - hn[0])
+        self._imax = n_table - 1
+        sl_t = np.diff(tn) / np.diff(hn)
+        sl_p = np.diff(pn) / np.diff(hn)
+        self._t_a, self._t_b = tn[:-1] - sl_t * hn[:-1], sl_t
+        self._p_a, self._p_b = pn[:-1] - sl_p * hn[:-1], sl_p
+        # the last interval is inside the liquid: make it the exact liquid line
+        cpl = float(m.cp(m.t_liquidus))
+        h_liq = float(np.interp(m.t_liquidus, t, h))
+        phi_liq = float(np.interp(m.t_liquidus, t, phi))
+        self._t_b[-1] = 1.0 / (m.rho * cpl)
+        self._t_a[-1] = m.t_liquidus - h_liq * self._t_b[-1]
+        self._p_b[-1] = float(m.k(m.t_liquidus)) / self.k_ref / (m.rho * cpl)
+        self._p_a[-1] = phi_liq - h_liq * self._p_b[-1]
+        self.max_diffusivity = float(self.k_ref * self._p_b.max())
+        """Largest k/(rho cp) [m²/s] of the table (explicit stability)."""
+
+    def _index(self, h):
+        i = np.asarray((h - self._h0) * self._inv_dh).astype(np.intp)
+        return np.clip(i, 0, self._imax, out=i)
+
+    def temperature(self, h):
+        """Temperature [K] from enthalpy ``h`` [J/m³] (any shape)."""
+        h = np.asarray(h, dtype=float)
+        i = self._index(h)
+        return self._t_a[i] + self._t_b[i] * h
+
+    def dtemperature(self, h):
+        """Slope dT/dH [K m³/J] of the table at enthalpy ``h`` (any shape)."""
+        return self._t_b[self._index(h)]
+
+    def kirchhoff(self, h):
+        """Kirchhoff variable phi [K] from enthalpy ``h`` [J/m³] (any shape)."""
+        i = self._index(h)
+        return self._p_a[i] + self._p_b[i] * h
+
+    def enthalpy(self, t):
+        """Volumetric enthalpy [J/m³] at temperature ``t`` [K] (setup use, exact)."""
+        t = np.asarray(t, dtype=float)
+        m = self.material
+        hl = np.interp(np.minimum(t, self._t_grid[-1]), self._t_grid, self._h_grid)
+        extra = np.maximum(t - self._t_grid[-1], 0.0) * m.rho * float(m.cp(m.t_liquidus))
+        return hl + extra

@@ -1,0 +1,91 @@
+"""Plant settings (process, boundary conditions, discretisation), validated on construction."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+from fe_node.material import Material
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Thermal-model settings (SI units).  Defaults follow paper Table 1.
+
+    Parameters
+    ----------
+    material : Material
+        Default: temperature-dependent IN625 (see :mod:`fe_node.material`).
+    absorptivity : float
+        a of eq. 6 [-] (Table 1: 0.4).
+    beam_radius_m : float
+        r_s of eq. 6 [m] (Table 1: 50 µm).  The penetration depth c = 3 µm is modelled
+        by its c -> 0 limit, a surface flux (see :mod:`fe_node.source`).
+    dt_s : float
+        Sampling/step time [s] (50 µs: the laser moves 40 µm per step at 800 mm/s).
+    h_fine_m : float
+        Element size in the refined band around the scan paths [m]; 25 µm is converged
+        to ~1 % (``python -m fe_node validate``), and matches the paper's 25 µm mesh.
+    growth, h_max_m : float
+        Geometric growth factor of element sizes outside the band, and size cap [m].
+    fine_pad_m : float
+        Refined band extends this far around the tracks in x and y [m].
+    fine_depth_m : float
+        Depth of the refined band below the top surface [m].
+    margin_m : float
+        Domain extends this far around the tracks in x and y [m].
+    depth_m : float
+        Domain depth [m].  The side and bottom faces are insulated; with margin 1 mm and
+        depth 1.5 mm they sit >= 2 thermal diffusion lengths sqrt(alpha t) (~0.49 mm
+        for the 50 ms layer) from the heated band, so they hardly affect the melt pool.
+    t0_k : float
+        Initial (preheat) temperature [K].
+    t_amb_k : float
+        Ambient temperature for convection and radiation [K].
+    h_conv_w_m2k : float
+        Top-surface convection coefficient [W/(m² K)] (gas flow; 10 by default).
+    emissivity : float
+        Top-surface emissivity [-] (IN625 about 0.4-0.5).
+    """
+
+    material: Material = field(default_factory=Material.in625)
+    absorptivity: float = 0.4
+    beam_radius_m: float = 50e-6
+    dt_s: float = 50e-6
+    h_fine_m: float = 25e-6
+    growth: float = 1.35
+    h_max_m: float = 0.5e-3
+    fine_pad_m: float = 150e-6
+    fine_depth_m: float = 150e-6
+    margin_m: float = 1.0e-3
+    depth_m: float = 1.5e-3
+    t0_k: float = 300.0
+    t_amb_k: float = 300.0
+    h_conv_w_m2k: float = 10.0
+    emissivity: float = 0.4
+
+    def __post_init__(self):
+        if not isinstance(self.material, Material):
+            raise ValueError("settings: material must be a fe_node.material.Material")
+        positive = ("beam_radius_m", "dt_s", "h_fine_m", "h_max_m", "fine_pad_m",
+                    "fine_depth_m", "margin_m", "depth_m", "t0_k", "t_amb_k")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"settings: {name} must be > 0, got {getattr(self, name)}")
+        if not 0 < self.absorptivity <= 1:
+            raise ValueError(f"settings: absorptivity must be in (0, 1], got {self.absorptivity}")
+        if not 0 <= self.emissivity <= 1:
+            raise ValueError(f"settings: emissivity must be in [0, 1], got {self.emissivity}")
+        if self.h_conv_w_m2k < 0:
+            raise ValueError(f"settings: h_conv_w_m2k must be >= 0, got {self.h_conv_w_m2k}")
+        if not 1 <= self.growth <= 2:
+            raise ValueError(f"settings: growth must be in [1, 2], got {self.growth}")
+        if self.h_fine_m > self.beam_radius_m:
+            raise ValueError(f"settings: mesh too coarse for the beam: h_fine_m "
+                             f"{self.h_fine_m:g} m > beam radius {self.beam_radius_m:g} m")
+        if self.h_max_m < self.h_fine_m:
+            raise ValueError("settings: h_max_m must be >= h_fine_m")
+        if self.fine_pad_m > self.margin_m or self.fine_depth_m > self.depth_m:
+            raise ValueError("settings: refined band must lie inside the domain")
+
+    @classmethod
+    def field_names(cls) -> set[str]:
+        return {f.name for f in fields(cls)}
