@@ -3,7 +3,7 @@
 The QP is written exactly as documented in :mod:`controller_node.qp`; only the
 per-step numbers are ``cvxpy.Parameter`` objects, so cvxpy compiles the problem
 once.  It is solved with Clarabel (interior point, independent of OSQP).  Use it as
-the reference (tests, benchmark) or via ``MPCController(..., backend="cvxpy")``;
+the reference (tests, benchmark) or via ``MPCSettings(solver="cvxpy")``;
 it is ~2 ms per solve, too slow for the loop.
 """
 
@@ -12,8 +12,7 @@ from __future__ import annotations
 import cvxpy as cp
 import numpy as np
 
-from .mpc import qp_constants
-from .qp import QPData, QPSolution
+from .qp import QPData, QPSolution, qp_constants
 from .settings import ControllerSettings
 
 __all__ = ["CvxpyBackend"]

@@ -36,10 +36,11 @@ import numpy as np
 from .model import Linearisation
 from .settings import ControllerSettings
 
-__all__ = ["QPData", "QPSolution", "QPBackend", "build_qp_data"]
+__all__ = ["QPData", "QPSolution", "QPBackend", "build_qp_data", "qp_constants"]
 
 _MIN_GAIN_M2_PER_W = 1e-16  # b below this (1e-10 mm²/W) means power has no usable effect
 _MAX_NORMALISED = 1e6  # larger normalised coefficients mean a broken model/measurement
+_MAX_STATE_GAIN = 1.5  # |∂f/∂x| above this: explosive linearised pool dynamics, untrustworthy model
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,7 +126,9 @@ def build_qp_data(
     Returns
     -------
     QPData or None
-        None when the numbers are not finite or absurdly large (|·| > 1e6).
+        None when the numbers are not finite, absurdly large (|·| > 1e6), or the
+        linearised pool dynamics are explosive (``|a| > 1.5``; a^H would dominate
+        the condensed QP).
     """
     x_sp = settings.set_point_m2
     p_lo, p_hi = settings.power_min_w, settings.power_max_w
@@ -149,6 +152,25 @@ def build_qp_data(
         p_ref_w=p_ref,
     )
     values = np.array([data.a, data.beta, data.g, data.e0])
-    if not (np.all(np.isfinite(values)) and np.all(np.abs(values) <= _MAX_NORMALISED)):
+    if not (np.all(np.isfinite(values)) and np.all(np.abs(values) <= _MAX_NORMALISED)) or abs(data.a) > _MAX_STATE_GAIN:
         return None
     return data
+
+
+def qp_constants(settings: ControllerSettings) -> dict[str, float]:
+    """Step-independent normalised bounds of the QP.
+
+    Returns
+    -------
+    dict
+        ``e_lo, e_hi`` (soft area bounds in ``e``), ``du_lo, du_hi`` (rate bounds in ``u``).
+    """
+    x_sp = settings.set_point_m2
+    p_scale = settings.power_max_w - settings.power_min_w
+    m = settings.mpc
+    return {
+        "e_lo": (m.area_min_m2 - x_sp) / x_sp,
+        "e_hi": (m.area_max_m2 - x_sp) / x_sp,
+        "du_lo": m.rate_min_w / p_scale,
+        "du_hi": m.rate_max_w / p_scale,
+    }

@@ -104,6 +104,9 @@ class MPCSettings:
     disturbance_gain : float
         Filter gain in [0, 1] of the output-disturbance estimate (the model's
         one-step prediction error, added to the prediction); 0 disables it.
+    solver : {"daqp", "osqp", "cvxpy"}
+        QP backend: condensed DAQP (exact, fastest), sparse OSQP, or the cvxpy
+        reference (ms per solve).
     eps_abs, eps_rel : float
         OSQP tolerances (<= 1e-5: at 1e-3 OSQP is off by up to 9 W).
     max_iter : int
@@ -120,14 +123,15 @@ class MPCSettings:
     q: float = 1.0
     r: float = 0.1
     q_f: float = 20.0
-    input_penalty: Literal["steady_state", "move"] = "steady_state"
+    input_penalty: Literal["steady_state", "move"] = "move"
     rate_min_w: float = -350.0
     rate_max_w: float = 350.0
     area_min_m2: float = 0.0
     area_max_m2: float = 0.5e-6
     slack_linear: float = 100.0
     slack_quadratic: float = 1000.0
-    disturbance_gain: float = 0.0
+    disturbance_gain: float = 0.2
+    solver: Literal["daqp", "osqp", "cvxpy"] = "daqp"
     eps_abs: float = 1e-6
     eps_rel: float = 1e-6
     max_iter: int = 4000
@@ -151,6 +155,8 @@ class MPCSettings:
         _check(self.slack_linear >= 0 and self.slack_quadratic > 0,
                "MPCSettings.slack_linear must be >= 0 and slack_quadratic > 0")
         _check(0 <= self.disturbance_gain <= 1, "MPCSettings.disturbance_gain must be in [0, 1]")
+        _check(self.solver in ("daqp", "osqp", "cvxpy"),
+               f"MPCSettings.solver must be 'daqp', 'osqp' or 'cvxpy', got {self.solver!r}")
         _check(0 < self.eps_abs <= 1e-5 and 0 < self.eps_rel <= 1e-5,
                "MPCSettings.eps_abs and eps_rel must be in (0, 1e-5]")
         _check(isinstance(self.max_iter, int) and not isinstance(self.max_iter, bool) and self.max_iter > 0,

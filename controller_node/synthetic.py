@@ -146,7 +146,7 @@ class ClosedLoopResult:
     Attributes
     ----------
     area_m2 : numpy.ndarray
-        ``x[1..N]`` [m²], shape (N,).
+        True ``x[1..N]`` [m²], shape (N,).
     power_w : numpy.ndarray
         ``p[0..N-1]`` [W], shape (N,).
     diagnostics : list of Diagnostics
@@ -169,6 +169,8 @@ def run_closed_loop(
     power0_w: float = 250.0,
     speed_m_s: float = 0.8,
     dt_s: float = 50e-6,
+    noise_std_m2: float = 0.0,
+    seed: int = 0,
 ) -> ClosedLoopResult:
     """Run ``controller`` in closed loop on ``plant`` over the temperature sequence.
 
@@ -182,15 +184,21 @@ def run_closed_loop(
         ``T[k]`` [K], shape (N,).
     area0_m2, power0_w, speed_m_s, dt_s : float
         Initial area [m²], power applied before step 0 [W], speed [m/s], step [s].
+    noise_std_m2 : float
+        Std of the Gaussian noise added to the measured (not the true) area [m²].
+    seed : int
+        Noise seed.
 
     Returns
     -------
     ClosedLoopResult
     """
+    rng = np.random.default_rng(seed)
     x, p = area0_m2, power0_w
     areas, powers, diags, meas = [], [], [], []
     for k, t in enumerate(temperature_k):
-        m = Measurement(step=k, time_s=k * dt_s, area_m2=x, t_ahead_k=float(t), power_w=p, speed_m_s=speed_m_s)
+        measured = max(x + noise_std_m2 * rng.standard_normal(), 0.0) if noise_std_m2 > 0 else x
+        m = Measurement(step=k, time_s=k * dt_s, area_m2=measured, t_ahead_k=float(t), power_w=p, speed_m_s=speed_m_s)
         cmd, diag = controller.update(m)
         if cmd.step != k + 1:
             raise RuntimeError(f"command for step {cmd.step}, expected {k + 1}")

@@ -1,0 +1,136 @@
+"""The controller as a zenoh node: ``python -m controller_node``.
+
+A thin shell around :func:`controller_node.registry.make_controller`: it subscribes to
+``MeltPoolState``, converts it to an SI :class:`~controller_node.types.Measurement`, asks the
+controller, and publishes the ``LaserCommand`` for the next step plus a
+``ControllerDiagnostics``. The same loop serves a lockstep plant (the FE node waits for each
+command) and a free-running one (a sensor publishes at its own rate): it always answers the
+newest state and counts the older ones it skipped. Invalid messages are dropped and counted,
+never acted on; a power outside the configured bounds is never published. It stops when the
+plant's liveliness token disappears (the plant ended or died), or on SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from controller_node.registry import CONTROLLERS, make_controller
+from controller_node.settings import ControllerSettings
+from controller_node.types import Measurement
+from messages import ControllerDiagnostics, LaserCommand, LogLevel, MeltPoolState
+from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
+from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.config import as_dict, build, load_toml
+from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE
+
+DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "gp_trainer" / "models" / "in625_gp.json"
+NODE_NAME = "controller"
+
+
+def measurement_from_state(state: MeltPoolState) -> Measurement:
+    """Contract message (mm², mm/s) → SI measurement (m², m/s)."""
+    return Measurement(
+        step=state.step,
+        time_s=state.time_s,
+        area_m2=state.area_mm2 * 1e-6,
+        t_ahead_k=state.t_ahead_k,
+        power_w=state.power_w,
+        speed_m_s=state.speed_mm_s * 1e-3,
+    )
+
+
+def load_model(name: str, path: Path | None):
+    """The GP model for controllers that need one (``mpc``, ``feedforward``), else ``None``."""
+    if name not in ("mpc", "feedforward"):
+        return None
+    from gp_trainer.errors import GPTrainerError
+    from gp_trainer.model import GPModel
+
+    path = path or DEFAULT_MODEL
+    try:
+        return GPModel.load(path)
+    except (GPTrainerError, OSError) as err:
+        raise UsageError(f"cannot load GP model {path}: {' '.join(str(err).split())}") from None
+
+
+def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, plant: str, config: dict) -> int:
+    """Answer plant states until the plant goes away or a stop is requested."""
+    states = bus.inbox(PLANT_STATE)
+    commands = bus.publisher(LASER_COMMAND)
+    diagnostics = bus.publisher(CONTROLLER_DIAGNOSTICS)
+    plant_gone = bus.watch_presence(plant)
+    bus.ready(config=config)
+    n_skipped = 0
+    last_time_s = 0.0
+    while not stop.is_set() and not plant_gone.is_set():
+        state = states.get(timeout=0.05)
+        if state is None:
+            continue
+        for newer in states.drain():  # free-running plant: answer the newest state only
+            state, n_skipped = newer, n_skipped + 1
+        last_time_s = state.time_s
+        command, diag = controller.update(measurement_from_state(state))
+        power = command.power_w
+        if not settings.power_min_w <= power <= settings.power_max_w:  # the core guarantees this; never trust it blindly
+            bus.log(LogLevel.ERROR, f"controller produced {power} W outside bounds; not published", time_s=state.time_s)
+            continue
+        commands.put(LaserCommand(
+            run_id=bus.run_id, step=command.step, time_s=state.time_s, power_w=power,
+            speed_mm_s=command.speed_m_s * 1e3, controller=controller.name,
+        ))
+        diagnostics.put(ControllerDiagnostics(
+            run_id=bus.run_id, step=command.step, time_s=state.time_s, controller=controller.name,
+            status=diag.status[:64], solve_time_us=diag.solve_time_s * 1e6, fallback=diag.fallback,
+            n_fallbacks=diag.n_fallbacks, n_dropped=states.n_invalid + n_skipped,
+            setpoint_mm2=settings.set_point_m2 * 1e6,
+            predicted_area_mm2=[a * 1e6 for a in diag.predicted_area_m2],
+            predicted_power_w=list(diag.predicted_power_w),
+            model_std_mm2=None if diag.model_std_m2 is None else diag.model_std_m2 * 1e6,
+            feedforward_w=diag.feedforward_w,
+        ))
+    reason = "stopped" if stop.is_set() else f"plant '{plant}' went away"
+    summary = f"{reason}; {controller.n_fallbacks} fallbacks, {states.n_invalid} invalid states dropped, {n_skipped} skipped"
+    bus.log(LogLevel.INFO, summary, time_s=last_time_s)
+    bus.end_detail(summary)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Command line of ``python -m controller_node``."""
+    parser = ArgumentParser(prog="python -m controller_node", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--controller", default="mpc", choices=CONTROLLERS, help="control law (default: %(default)s)")
+    parser.add_argument("--model", type=Path, help=f"GP model file (default: {DEFAULT_MODEL.relative_to(DEFAULT_MODEL.parents[2])})")
+    parser.add_argument("--setpoint-mm2", type=float, help="melt-pool area set point [mm²]")
+    parser.add_argument("--config", type=Path, help="TOML run configuration; its [controller] table holds ControllerSettings fields")
+    parser.add_argument("--plant", default="plant", help="name of the plant node to follow (default: %(default)s)")
+    add_bus_arguments(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m controller_node``."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        bus_settings = bus_settings_from_args(args)
+        table = dict(load_toml(args.config).get("controller", {}))
+        table.pop("name", None)  # the controller's name is a launch option
+        set_point = None if args.setpoint_mm2 is None else args.setpoint_mm2 * 1e-6
+        settings = build(ControllerSettings, table, "[controller]", set_point_m2=set_point)
+        model = load_model(args.controller, args.model)
+        try:
+            controller = make_controller(args.controller, settings, model)
+        except ValueError as err:
+            raise UsageError(str(err)) from None
+    except UsageError as err:
+        return exit_usage(parser.prog, err)
+    config = {"controller": args.controller, "model": str(args.model or DEFAULT_MODEL) if model else None, **as_dict(settings)}
+    stop = StopFlag()
+    with NodeBus(NODE_NAME, bus_settings) as bus:
+        return run(bus, controller, settings, stop, args.plant, config)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
