@@ -80,9 +80,45 @@ class Supervisor:
     run_id: str
     hub: str
     out: TextIO = sys.stdout
-    ready_timeout_s: float = 60.0
+    ready_timeout_s: float = 120.0
+    progress: bool = False
     nodes: list[RunningNode] = field(default_factory=list)
     _print_lock: threading.Lock = field(default_factory=threading.Lock)
+    _bar: Any = None
+    _steps: list[int] = field(default_factory=lambda: [0, 0])  # [latest plant step, total steps]
+
+    def _follow_progress(self, session: Any) -> None:
+        """Subscribe (callbacks only store numbers) to the plant's steps and announced total."""
+        from messages.codec import MessageError, decode
+        from messages.topics import PLANT_STATE, RUN_EVENTS, key_expr
+
+        def on_event(sample: Any) -> None:
+            try:
+                event = decode(RUN_EVENTS, sample.payload.to_bytes())
+            except MessageError:
+                return
+            if event.event == "start" and event.total_steps:
+                self._steps[1] = event.total_steps
+
+        def on_state(sample: Any) -> None:
+            try:
+                self._steps[0] = max(self._steps[0], decode(PLANT_STATE, sample.payload.to_bytes()).step)
+            except MessageError:
+                pass
+
+        session.declare_subscriber(key_expr(self.run_id, RUN_EVENTS), on_event)
+        session.declare_subscriber(key_expr(self.run_id, PLANT_STATE), on_state)
+
+    def _update_bar(self) -> None:
+        step, total = self._steps
+        if not total:
+            return
+        if self._bar is None:
+            from tqdm import tqdm
+
+            with self._print_lock:
+                self._bar = tqdm(total=total, desc="[launch] steps", unit="step", file=sys.stderr, dynamic_ncols=True)
+        self._bar.update(step - self._bar.n)
 
     def say(self, text: str) -> None:
         """Print a supervisor line, ``[launch] ...``."""
@@ -90,7 +126,10 @@ class Supervisor:
 
     def _emit(self, line: str) -> None:
         with self._print_lock:
-            print(line, file=self.out, flush=True)
+            if self._bar is not None:
+                self._bar.write(line, file=self.out)
+            else:
+                print(line, file=self.out, flush=True)
 
     def _relay(self, name: str, stream: TextIO) -> None:
         for line in stream:
@@ -158,6 +197,8 @@ class Supervisor:
 
         settings = BusSettings(run_id=self.run_id, connect=(), listen=(self.hub,))
         with zenoh.open(zenoh_config(settings)) as session:
+            if self.progress:
+                self._follow_progress(session)
             try:
                 for spec in specs:
                     node = self.spawn(spec)
@@ -169,6 +210,9 @@ class Supervisor:
                 return 1
             finally:
                 self.stop_all()
+                if self._bar is not None:
+                    self._bar.close()
+                    self._bar = None
 
     def _supervise(self, stop: threading.Event) -> int:
         finished_at: float | None = None
@@ -189,6 +233,8 @@ class Supervisor:
                 late = [n.spec.name for n in self.nodes if n.process.poll() is None]
                 self.say(f"error: {', '.join(late)} still running {FINISH_GRACE_S:.0f} s after the run finished")
                 return 1
+            if self.progress:
+                self._update_bar()
             stop.wait(0.05)
 
 
@@ -225,6 +271,74 @@ def load_node_list(path: Path) -> list[NodeSpec]:
     return specs
 
 
+CONTROLLER_CHOICES = ("mpc", "pid", "feedforward", "open-loop", "none")
+COMPARED = ("open-loop", "pid", "feedforward", "mpc")
+DEFAULT_SETPOINT_MM2 = 0.07
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """What one default run consists of (validated command-line options)."""
+
+    scenario: str = "layer"
+    controller: str = "mpc"
+    setpoint_mm2: float | None = None
+    config: Path | None = None
+    max_steps: int | None = None
+    h_um: float | None = None
+    model: Path | None = None
+
+    def __post_init__(self) -> None:
+        if self.controller not in CONTROLLER_CHOICES:
+            raise UsageError(f"unknown controller {self.controller!r}; choose one of {', '.join(CONTROLLER_CHOICES)}")
+        if self.setpoint_mm2 is not None and not 0 < self.setpoint_mm2 < 0.5:
+            raise UsageError(f"--setpoint-mm2 must be in (0, 0.5), got {self.setpoint_mm2}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise UsageError("--max-steps must be >= 1")
+        if self.config is not None and not self.config.is_file():
+            raise UsageError(f"config file not found: {self.config}")
+        if self.model is not None and not self.model.is_file():
+            raise UsageError(f"model file not found: {self.model}")
+
+    @property
+    def closed_loop(self) -> bool:
+        """Whether a controller node takes part (``none``: the plant plays its own profile)."""
+        return self.controller != "none"
+
+    def setpoint(self) -> float:
+        """The set point [mm²]: the option, else the [controller] table's, else the default."""
+        if self.setpoint_mm2 is not None:
+            return self.setpoint_mm2
+        from messages.config import load_toml
+
+        table = load_toml(self.config).get("controller", {})
+        return float(table.get("set_point_m2", DEFAULT_SETPOINT_MM2 * 1e-6)) * 1e6
+
+
+def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
+    """The declarative node list of a run: recorder, controller (unless ``none``), plant."""
+    common = ("--config", str(opts.config)) if opts.config else ()
+    plant_args = ["--scenario", opts.scenario, "--require", "recorder", *common]
+    recorder_args = ["--out", str(out), "--expect", "plant"]
+    nodes = [NodeSpec("recorder", "messages.recorder", tuple(recorder_args))]
+    if opts.closed_loop:
+        recorder_args += ["--expect", "controller"]
+        nodes[0] = NodeSpec("recorder", "messages.recorder", tuple(recorder_args))
+        controller_args = ["--controller", opts.controller, "--setpoint-mm2", repr(opts.setpoint()), *common]
+        if opts.model:
+            controller_args += ["--model", str(opts.model)]
+        nodes.append(NodeSpec("controller", "controller_node", tuple(controller_args)))
+        plant_args += ["--require", "controller"]
+    else:
+        plant_args += ["--open-loop"]
+    if opts.max_steps:
+        plant_args += ["--max-steps", str(opts.max_steps)]
+    if opts.h_um:
+        plant_args += ["--h-um", repr(opts.h_um)]
+    nodes.append(NodeSpec("plant", "fe_node", tuple(plant_args), main=True))
+    return nodes
+
+
 def default_recording(scenario: str, controller: str) -> Path:
     """``recordings/<date>-<scenario>-<controller>.mcap``."""
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
@@ -236,14 +350,95 @@ def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(
         prog="python launch.py",
         description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        epilog="With no options: the paper's MPC test — 4 x 10 mm bidirectional IN625 layer, hatch 0.1 mm, "
+        "800 mm/s, nominal 250 W — under GP-MPC, recorded to recordings/.",
     )
+    parser.add_argument("--scenario", default="layer", help="plant scenario: layer, single-track, double-track, table2-case1..9")
+    parser.add_argument("--controller", default="mpc", help=f"one of {', '.join(CONTROLLER_CHOICES)} ('none': the plant plays the scenario's open-loop profile)")
+    parser.add_argument("--setpoint-mm2", type=float, help=f"melt-pool area set point [mm²] (default {DEFAULT_SETPOINT_MM2})")
+    parser.add_argument("--config", type=Path, help="TOML run configuration: [plant] and [controller] tables of settings")
+    parser.add_argument("--model", type=Path, help="GP model file (default: the shipped gp_trainer/models/in625_gp.json)")
+    parser.add_argument("--max-steps", type=int, help="end the run after this many plant steps")
+    parser.add_argument("--h-um", type=float, help="fine FE element size [µm]")
+    parser.add_argument("--out", type=Path, help="MCAP recording to write (with --compare: the output folder)")
+    parser.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    parser.add_argument("--compare", action="store_true", help="run open-loop, pid, feedforward and mpc on the same plant; write a table and a figure")
+    parser.add_argument("--report", type=Path, metavar="RECORDING", help="only compute the Table 4 metrics and figure of an existing recording")
     parser.add_argument("--nodes", type=Path, metavar="FILE", help="declarative node list (TOML [[node]] tables) replacing the default nodes")
-    parser.add_argument("--out", type=Path, help="MCAP recording to write (default: recordings/<date>-<scenario>-<controller>.mcap)")
     parser.add_argument("--run-id", default=None, help="run identifier (default: derived from the recording name)")
     parser.add_argument("--hub", default=None, metavar="ENDPOINT", help="zenoh endpoint of the run's hub (default: a free loopback port)")
-    parser.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
+
+
+def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None, progress: bool) -> tuple[int, float]:
+    """Run one list of nodes to its end; returns (exit status, wall time [s])."""
+    run_id = run_id or "".join(c if c.isalnum() or c in "_.-" else "_" for c in out.stem)[-64:].lstrip("_.-")
+    BusSettings(run_id=run_id, connect=(hub or "tcp/127.0.0.1:7447",))  # validates
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    supervisor = Supervisor(run_id=run_id, hub=hub or free_loopback_endpoint(), progress=progress)
+    started = time.monotonic()
+    status = supervisor.run([_with_out(s, out) for s in specs], stop)
+    return status, time.monotonic() - started
+
+
+def _summarise(out: Path, opts: RunOptions, status: int, wall_s: float) -> dict[str, Any]:
+    from controller_node.report import metrics, read_trace
+    from messages.recording import RecordingError
+
+    summary: dict[str, Any] = {"status": status, "wall_s": round(wall_s, 2), "recording": str(out),
+                               "scenario": opts.scenario, "controller": opts.controller}
+    try:
+        trace = read_trace(out)
+    except RecordingError as err:
+        summary["error"] = str(err)
+        return summary
+    summary["steps"] = int(trace.time_s.size - 1)
+    if opts.closed_loop:
+        try:
+            m = metrics(trace, opts.setpoint())
+        except ValueError as err:
+            summary["error"] = str(err)
+            return summary
+        summary.update(setpoint_mm2=m.setpoint_mm2, overshoot_pct=round(m.overshoot_pct, 2),
+                       undershoot_pct=round(m.undershoot_pct, 2), steady_rmse_pct=round(m.steady_rmse_pct, 2))
+    return summary
+
+
+def _print_table(summary: dict[str, Any]) -> None:
+    if "steady_rmse_pct" in summary:
+        print(f"[launch] {summary['controller']} on {summary['scenario']}: set point {summary['setpoint_mm2']:.4f} mm² | "
+              f"max overshoot {summary['overshoot_pct']:.1f} % | max undershoot {summary['undershoot_pct']:.1f} % | "
+              f"steady-state RMSE {summary['steady_rmse_pct']:.2f} % | {summary['steps']} steps in {summary['wall_s']:.1f} s")
+    print(f"[launch] recording: {summary['recording']}")
+
+
+def compare(opts: RunOptions, folder: Path, hub: str | None, progress: bool) -> tuple[int, dict[str, Any]]:
+    """Run every compared controller on the same plant; write ``comparison.md`` and ``comparison.png``."""
+    from controller_node.report import plot, read_trace
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rows, traces = [], {}
+    for name in COMPARED:
+        run_opts = RunOptions(opts.scenario, name, opts.setpoint(), opts.config, opts.max_steps, opts.h_um, opts.model)
+        out = folder / f"{opts.scenario}-{name}.mcap"
+        status, wall_s = launch(default_nodes(run_opts, out), out, None, hub, progress)
+        summary = _summarise(out, run_opts, status, wall_s)
+        _print_table(summary)
+        if status != 0 or "steady_rmse_pct" not in summary:
+            return status or 1, {"failed": name, **summary}
+        rows.append(summary)
+        traces[name] = read_trace(out)
+    lines = ["| controller | max overshoot [%] | max undershoot [%] | steady-state RMSE [%] | wall time [s] |",
+             "|---|---:|---:|---:|---:|"]
+    lines += [f"| {r['controller']} | {r['overshoot_pct']:.1f} | {r['undershoot_pct']:.1f} | {r['steady_rmse_pct']:.2f} | {r['wall_s']:.1f} |" for r in rows]
+    table = folder / "comparison.md"
+    table.write_text(f"Scenario `{opts.scenario}`, set point {opts.setpoint():.4f} mm²\n\n" + "\n".join(lines) + "\n")
+    figure = plot(traces, opts.setpoint(), folder / "comparison.png")
+    print("\n".join(lines))
+    return 0, {"table": str(table), "figure": str(figure), "runs": rows}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -251,22 +446,37 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        if args.nodes is None:
-            raise UsageError("no default node list yet: pass --nodes FILE")
-        specs = load_node_list(args.nodes)
-        out = args.out or default_recording("custom", "nodes")
-        run_id = args.run_id or out.stem.replace(" ", "_")[-64:]
-        hub = args.hub or free_loopback_endpoint()
-        BusSettings(run_id=run_id, connect=(hub,))
+        if args.report:
+            from controller_node.report import main as report_main
+
+            return report_main([str(args.report), "--json"] + (["--setpoint-mm2", str(args.setpoint_mm2)] if args.setpoint_mm2 else []))
+        opts = RunOptions(args.scenario, args.controller, args.setpoint_mm2, args.config, args.max_steps, args.h_um, args.model)
+        if args.nodes is not None:
+            specs = load_node_list(args.nodes)
+        else:
+            from fe_node.scenarios import SCENARIOS
+
+            if opts.scenario not in SCENARIOS:
+                raise UsageError(f"unknown scenario {opts.scenario!r}; choose one of {', '.join(SCENARIOS)}")
+            specs = None
+        if args.hub is not None:
+            BusSettings(connect=(args.hub,))
+        if args.run_id is not None:
+            BusSettings(run_id=args.run_id)
     except UsageError as err:
         return exit_usage(parser.prog, err)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    supervisor = Supervisor(run_id=run_id, hub=hub)
-    started = time.monotonic()
-    status = supervisor.run([_with_out(s, out) for s in specs], stop)
-    summary = {"status": status, "wall_s": round(time.monotonic() - started, 3), "recording": str(out)}
+    progress = not args.no_progress
+    if args.compare:
+        folder = args.out or Path("recordings") / f"{datetime.now(timezone.utc):%Y%m%d-%H%M%S}-compare-{opts.scenario}"
+        status, result = compare(opts, folder, args.hub, progress)
+        if args.json:
+            print(json.dumps(result))
+        return status
+    out = args.out or default_recording(opts.scenario, opts.controller)
+    status, wall_s = launch(specs or default_nodes(opts, out), out, args.run_id, args.hub, progress)
+    summary = _summarise(out, opts, status, wall_s) if specs is None else {"status": status, "wall_s": round(wall_s, 2), "recording": str(out)}
+    if specs is None:
+        _print_table(summary)
     if args.json:
         print(json.dumps(summary))
     return status
