@@ -156,24 +156,38 @@ class GPModel:
         alpha = scipy.linalg.cho_solve((chol, True), residual)
         k_inv = scipy.linalg.cho_solve((chol, True), np.eye(n))
 
-        # Hot-path constants (SI in, SI out). With k̃_i = exp(-½ |D_i|²), D = U/ℓ - u/ℓ:
-        #   mean = b + a·z + c_m·k̃,       ∂mean/∂z = a + ((c_m ∘ k̃) @ D) ∘ g,
-        #   var  = v_0 - k̃ᵀ C_v k̃,        ∂var/∂z  = -2 ((C_v k̃ ∘ k̃) @ D) ∘ g,
-        # where g = 1/(s ∘ ℓ) is ∂(u/ℓ)/∂z.
+        # Hot-path constants (SI in, SI out). With w = u/ℓ = (z - μ) ∘ g, g = 1/(s ∘ ℓ), training
+        # points W_i = U_i/ℓ and k̃_i = exp(-½ |W_i - w|²) = exp(W_i·w - ½|W_i|² - ½|w|²):
+        #   mean = b + a·z + c_m·k̃,      ∂mean/∂z = a + ((c_m ∘ k̃) @ W - Σ(c_m ∘ k̃) w) ∘ g,
+        #   var  = v_0 - k̃ᵀ C_v k̃,       ∂var/∂z  = -2 ((C_v k̃ ∘ k̃) @ W - Σ(C_v k̃ ∘ k̃) w) ∘ g.
+        # The expansion of |W_i - w|² avoids an (n, 4) temporary; its rounding error (≈ 1e-16 of
+        # |W_i|² + |w|²) is negligible in the exponent. [W, 1] gives @ W and Σ in one product.
         sf2 = self.signal_std**2
         rs = self.residual_scale
+        scaled = U / ell
         self._slope = beta[1:] / s
         self._intercept = float(beta[0] - self._slope @ mu)
         self._grad_scale = 1.0 / (s * ell)
-        self._scaled_inputs = np.ascontiguousarray(U / ell)
+        self._scaled_inputs = np.ascontiguousarray(scaled)
+        self._scaled_inputs_1 = np.ascontiguousarray(np.column_stack([scaled, np.ones(n)]))
+        self._half_sq_norms = -0.5 * np.einsum("ij,ij->i", scaled, scaled)
         self._mean_weights = rs * sf2 * alpha
         self._prior_variance = rs * rs * sf2
         self._variance_matrix = np.ascontiguousarray(rs * rs * sf2 * sf2 * k_inv)
 
     # ------------------------------------------------------------------ prediction (hot path)
     def _kernel_row(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        D = self._scaled_inputs - (np.asarray(z, dtype=float) - self.input_mean) * self._grad_scale
-        return np.exp(-0.5 * np.einsum("ij,ij->i", D, D)), D
+        """``k̃`` (n,) and ``w`` (4,) at ``z`` (see the constants in ``__init__``)."""
+        w = (z - self.input_mean) * self._grad_scale
+        k = self._scaled_inputs @ w
+        k += self._half_sq_norms
+        k -= 0.5 * float(w @ w)
+        return np.exp(k, out=k), w
+
+    def _gradient(self, weights: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """``(weights @ W - Σ weights · w) ∘ g``, shape (4,)."""
+        v = weights @ self._scaled_inputs_1
+        return (v[:N_INPUTS] - v[N_INPUTS] * w) * self._grad_scale
 
     def predict(self, z: np.ndarray) -> tuple[float, float]:
         """Posterior mean and variance of ``x[k+1]`` at one point (eq. 5 over the linear mean).
@@ -209,10 +223,10 @@ class GPModel:
         tuple[float, np.ndarray]
             Mean [m²] and ``J``, shape (4,): ``[-, m²/K, m²/W, m²/(m/s)]``.
         """
-        k, D = self._kernel_row(z)
+        k, w = self._kernel_row(z)
         weighted = self._mean_weights * k
         mean = self._intercept + float(self._slope @ z) + float(weighted.sum())
-        return mean, self._slope + (weighted @ D) * self._grad_scale
+        return mean, self._slope + self._gradient(weighted, w)
 
     def variance_and_jacobian(self, z: np.ndarray) -> tuple[float, np.ndarray]:
         """Posterior latent variance and its gradient with respect to ``z``.
@@ -228,12 +242,12 @@ class GPModel:
             Variance [m⁴] and its gradient, shape (4,): ``[m², m⁴/K, m⁴/W, m⁴/(m/s)]``. Where the
             variance is clipped at 0 (numerically, at a training point) the gradient is 0.
         """
-        k, D = self._kernel_row(z)
+        k, w = self._kernel_row(z)
         ck = self._variance_matrix @ k
         variance = self._prior_variance - float(k @ ck)
         if variance <= 0.0:
             return 0.0, np.zeros(N_INPUTS)
-        return variance, -2.0 * ((ck * k) @ D) * self._grad_scale
+        return variance, -2.0 * self._gradient(ck * k, w)
 
     def explicit_mean(self, z: np.ndarray) -> float:
         """The linear mean ``m(z)`` alone [m²], to which :meth:`predict` reverts far from data."""
