@@ -235,7 +235,7 @@ class ControllerSettings:
         _check(self.nominal_speed_m_s > 0, "ControllerSettings.nominal_speed_m_s must be > 0")
         _check(isinstance(self.max_age_steps, int) and not isinstance(self.max_age_steps, bool)
                and self.max_age_steps >= 0, "ControllerSettings.max_age_steps must be an int >= 0")
-        _check(self.mpc.area_min_m2 < self.set_point_m2 < self.mpc.area_max_m2,
-               "ControllerSettings.set_point_m2 must lie inside the MPC area bounds")
         for name, cls in (("mpc", MPCSettings), ("pid", PIDSettings), ("feedforward", FeedForwardSettings)):
             _check(isinstance(getattr(self, name), cls), f"ControllerSettings.{name} must be a {cls.__name__}")
+        _check(self.mpc.area_min_m2 < self.set_point_m2 < self.mpc.area_max_m2,
+               "ControllerSettings.set_point_m2 must lie inside the MPC area bounds")
