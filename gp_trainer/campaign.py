@@ -2,10 +2,15 @@
 
 Every case is a separate run of the project's own entry point,
 
-    python launch.py --scenario table2-caseN --controller open-loop
-                     --out <dir>/table2-caseN.partial.mcap --run-id table2-caseN --json
+    python launch.py --scenario table2-caseN --controller none --no-progress --json
+                     --out <dir>/table2-caseN.partial.mcap --run-id table2-caseN
 
-so the data come through exactly the path a live run takes (plant → zenoh → recorder). A case
+so the data come through exactly the path a live run takes (plant → zenoh → recorder).
+"Open loop" here means launch.py's ``--controller none``: no controller node, the plant plays
+the case's own power/speed profile (constant, sinusoidal or staircase, Table 2).
+``--controller open-loop`` is something else in launch.py, the paper's constant-power baseline
+*controller*, which would overwrite the profiles and leave the GP without power/speed
+excitation. A case
 writes to ``*.partial.mcap`` and is renamed to ``table2-caseN.mcap`` only when the launcher
 succeeded and the recorder marked the file complete; a re-run skips cases whose final
 recording is complete. A failed case keeps its ``.partial.mcap`` for inspection.
@@ -49,6 +54,8 @@ class CampaignSettings:
         Interpreter used to run the launcher.
     timeout_s : float or None
         Wall-time limit per case [s].
+    controller : str
+        launch.py's ``--controller``; ``none`` plays the scenario's profiles (module docstring).
     """
 
     cases: tuple[int, ...] = TABLE2_CASES
@@ -57,6 +64,7 @@ class CampaignSettings:
     launcher: Path = REPO_ROOT / "launch.py"
     python: str = sys.executable
     timeout_s: float | None = None
+    controller: str = "none"
 
 
 @dataclass(frozen=True)
@@ -90,7 +98,7 @@ def recording_complete(path: Path) -> bool:
 def case_command(settings: CampaignSettings, case: int, out: Path) -> list[str]:
     """Command line that records one case to ``out``."""
     return [settings.python, str(settings.launcher), "--scenario", scenario_name(case), "--controller",
-            "open-loop", "--out", str(out), "--run-id", scenario_name(case), "--json"]
+            settings.controller, "--no-progress", "--json", "--out", str(out), "--run-id", scenario_name(case)]
 
 
 class _Runner:

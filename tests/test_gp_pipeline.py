@@ -146,7 +146,7 @@ from test_gp_pipeline import _record
 from gp_trainer import synthetic
 args = sys.argv[1:]
 scenario = args[args.index("--scenario") + 1]
-assert args[args.index("--controller") + 1] == "open-loop" and "--json" in args
+assert args[args.index("--controller") + 1] == "none" and "--json" in args
 case = int(scenario.removeprefix("table2-case"))
 log = Path({log!r})
 with log.open("a") as f:
