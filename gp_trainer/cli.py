@@ -18,6 +18,7 @@ import json
 import re
 import sys
 from collections.abc import Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import NoReturn
 
@@ -106,8 +107,7 @@ def _dataset(args: argparse.Namespace) -> int:
         reports.append(report)
         print(report.summary())
     samples = dataset.concatenate(parts, settings)
-    meta = {"recordings": recordings, "reports": [r.__dict__ for r in reports],
-            "settings": settings.__dict__}
+    meta = {"recordings": recordings, "reports": [asdict(r) for r in reports], "settings": asdict(settings)}
     out = dataset.save_samples(args.out, samples, meta)
     dropped = sum(r.dropped_startup + r.dropped_no_pool + r.dropped_gap for r in reports)
     print(f"{len(samples)} samples from {len(reports)} sources ({dropped} pairs dropped) -> {out}")

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gp_trainer import synthetic
 from gp_trainer.campaign import CampaignSettings, recording_path, run_campaign
@@ -56,6 +58,19 @@ def test_track_changes_gaps_and_vanished_pools_are_dropped_and_counted():
 def test_bad_states_raise_a_typed_error(states, reason):
     with pytest.raises(DatasetError, match=reason):
         build_samples(states, "t")
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from([0.0, 0.0, 0.03, 0.07, 0.08]), st.integers(0, 2), st.integers(1, 3)),
+                min_size=2, max_size=60))
+def test_every_pair_is_either_a_sample_or_counted_as_dropped(rows):
+    step, states = 0, []
+    for area, track_step, gap in rows:
+        step += gap
+        states.append(State(step, step * 50e-6, track_step, area, 400.0, 250.0, 800.0))
+    samples, report = build_samples(states, "t")
+    assert report.n_samples + report.dropped_gap + report.dropped_no_pool + report.dropped_startup == len(states) - 1
+    assert np.all(samples.Z[:, 0] > 0) and np.all(samples.y > 0) and np.all(np.diff(samples.step) > 0)
 
 
 def test_too_few_samples_is_an_error():
@@ -126,6 +141,8 @@ def test_cli_dataset_train_evaluate_end_to_end_on_recordings(tmp_path, capsys):
     (["dataset", "{tmp}/short.mcap", "--out", "{tmp}/d.npz"], "usable samples"),
     (["evaluate", "--model", "{tmp}/missing.json"], "cannot read model file"),
     (["train", "--dataset", "{tmp}/garbage.npz"], "unreadable"),
+    (["dataset", "--synthetic", "{tmp}/short.mcap", "--out", "{tmp}/d.npz"], "not both"),
+    (["dataset", "--synthetic", "--startup-fraction", "0", "--out", "{tmp}/d.npz"], "--startup-fraction"),
 ])
 def test_cli_user_errors_exit_2_with_one_line(tmp_path, capsys, argv, reason):
     _record(tmp_path / "short.mcap", synthetic.table2_case(1)[:40])
@@ -136,6 +153,13 @@ def test_cli_user_errors_exit_2_with_one_line(tmp_path, capsys, argv, reason):
     err = capsys.readouterr().err.strip()
     assert reason in err and len(err.splitlines()) == 1 and "Traceback" not in err
     assert not (tmp_path / "d.npz").exists()  # nothing half-written
+
+
+def test_cli_synthetic_dataset(tmp_path, capsys):
+    assert main(["dataset", "--synthetic", "--out", str(tmp_path / "d.npz")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) == 10 and "table2-case9" in out[8] and "start-up" in out[8]
+    assert out[-1].startswith("1645 samples from 9 sources")
 
 
 FAKE_LAUNCHER = '''
