@@ -2,7 +2,9 @@
 
 The QP is written exactly as documented in :mod:`controller_node.qp`; only the
 per-step numbers are ``cvxpy.Parameter`` objects, so cvxpy compiles the problem
-once.  It is solved with Clarabel (interior point, independent of OSQP).  Use it as
+once.  It is solved with Clarabel (interior point, independent of OSQP and DAQP)
+at tight tolerances (1e-11): with active slacks the cost is ~1e4 and the plan's
+tail is nearly flat in the cost, so default tolerances move the plan by ~1 W.  Use it as
 the reference (tests, benchmark) or via ``MPCSettings(solver="cvxpy")``;
 it is ~2 ms per solve, too slow for the loop.
 """
@@ -84,7 +86,7 @@ class CvxpyBackend:
             getattr(self, name).value = getattr(data, name)
         h = self._u.shape[0]
         try:
-            self.problem.solve(solver=cp.CLARABEL)
+            self.problem.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
         except cp.error.SolverError:
             return QPSolution("solver_error", np.full(h, np.nan), np.full(h, np.nan), 0)
         if self.problem.status != cp.OPTIMAL:
