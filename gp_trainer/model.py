@@ -154,12 +154,14 @@ class GPModel:
         except np.linalg.LinAlgError as exc:
             raise ValueError("covariance matrix is not positive definite") from exc
         alpha = scipy.linalg.cho_solve((chol, True), residual)
-        k_inv = scipy.linalg.cho_solve((chol, True), np.eye(n))
+        chol_inv = scipy.linalg.solve_triangular(chol, np.eye(n), lower=True)
 
         # Hot-path constants (SI in, SI out). With w = u/ℓ = (z - μ) ∘ g, g = 1/(s ∘ ℓ), training
         # points W_i = U_i/ℓ and k̃_i = exp(-½ |W_i - w|²) = exp(W_i·w - ½|W_i|² - ½|w|²):
         #   mean = b + a·z + c_m·k̃,      ∂mean/∂z = a + ((c_m ∘ k̃) @ W - Σ(c_m ∘ k̃) w) ∘ g,
-        #   var  = v_0 - k̃ᵀ C_v k̃,       ∂var/∂z  = -2 ((C_v k̃ ∘ k̃) @ W - Σ(C_v k̃ ∘ k̃) w) ∘ g.
+        #   var  = v_0 - |M k̃|²,         ∂var/∂z  = -2 ((Mᵀ M k̃ ∘ k̃) @ W - Σ(Mᵀ M k̃ ∘ k̃) w) ∘ g,
+        # with M = s_r σ_f² L⁻¹ (L the Cholesky factor of K_y): |M k̃|² is far less sensitive to
+        # the conditioning of K_y than k̃ᵀ K_y⁻¹ k̃ with an explicit inverse.
         # The expansion of |W_i - w|² avoids an (n, 4) temporary; its rounding error (≈ 1e-16 of
         # |W_i|² + |w|²) is negligible in the exponent. [W, 1] gives @ W and Σ in one product.
         sf2 = self.signal_std**2
@@ -173,7 +175,8 @@ class GPModel:
         self._half_sq_norms = -0.5 * np.einsum("ij,ij->i", scaled, scaled)
         self._mean_weights = rs * sf2 * alpha
         self._prior_variance = rs * rs * sf2
-        self._variance_matrix = np.ascontiguousarray(rs * rs * sf2 * sf2 * k_inv)
+        self._variance_factor = np.ascontiguousarray(rs * sf2 * chol_inv)
+        self._variance_factor_t = np.ascontiguousarray(self._variance_factor.T)
 
     # ------------------------------------------------------------------ prediction (hot path)
     def _kernel_row(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -204,7 +207,8 @@ class GPModel:
         """
         k, _ = self._kernel_row(z)
         mean = self._intercept + float(self._slope @ z) + float(self._mean_weights @ k)
-        variance = self._prior_variance - float(k @ (self._variance_matrix @ k))
+        v = self._variance_factor @ k
+        variance = self._prior_variance - float(v @ v)
         return mean, max(variance, 0.0)
 
     def mean_and_jacobian(self, z: np.ndarray) -> tuple[float, np.ndarray]:
@@ -243,11 +247,11 @@ class GPModel:
             variance is clipped at 0 (numerically, at a training point) the gradient is 0.
         """
         k, w = self._kernel_row(z)
-        ck = self._variance_matrix @ k
-        variance = self._prior_variance - float(k @ ck)
+        v = self._variance_factor @ k
+        variance = self._prior_variance - float(v @ v)
         if variance <= 0.0:
             return 0.0, np.zeros(N_INPUTS)
-        return variance, -2.0 * self._gradient(ck * k, w)
+        return variance, -2.0 * self._gradient((self._variance_factor_t @ v) * k, w)
 
     def explicit_mean(self, z: np.ndarray) -> float:
         """The linear mean ``m(z)`` alone [m²], to which :meth:`predict` reverts far from data."""

@@ -183,3 +183,22 @@ def test_farthest_point_selection_is_deterministic_and_spread(samples):
 
     random_gap = max(min_gap(np.random.default_rng(s).choice(len(U), 100, replace=False)) for s in range(5))
     assert min_gap(a) > 3.0 * random_gap
+
+
+def test_variance_stays_accurate_for_noise_free_data():
+    """Noise-free data drive σ_n to its lower bound (cond K_y ~ 1e10): the variance must still be right."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel
+
+    clean = concatenate([build_samples(synthetic.table2_case(c), f"case{c}")[0] for c in range(1, 10)])
+    idx = farthest_point_indices(clean.Z, 100, seed=0)
+    model = GPModel.fit(clean.Z[idx], clean.y[idx], seed=0, n_restarts=2)
+    assert model.noise_std == pytest.approx(1e-3)  # at the bound: the ill-conditioned case
+    U = (model.train_inputs - model.input_mean) / model.input_scale
+    t = (model.train_targets - model.mean_coefficients[0] - U @ model.mean_coefficients[1:]) / model.residual_scale
+    gpr = GaussianProcessRegressor(ConstantKernel(model.signal_std**2, "fixed") * RBF(model.length_scales, "fixed"),
+                                   alpha=model.noise_std**2, optimizer=None).fit(U, t)
+    Zq = _probe_points(clean, 30)
+    _, sk_std = gpr.predict((Zq - model.input_mean) / model.input_scale, return_std=True)
+    ours = np.sqrt([model.predict(z)[1] for z in Zq])
+    np.testing.assert_allclose(ours, model.residual_scale * sk_std, rtol=1e-5)
