@@ -73,7 +73,10 @@ class FeedForwardController(Controller):
                 raise ValueError("feedforward needs a model or feedforward.gain_w_per_k")
             z = np.array([settings.set_point_m2, ff.reference_temperature_k, settings.nominal_power_w,
                           settings.nominal_speed_m_s])
-            lin = linearise(model, z)
+            try:
+                lin = linearise(model, z)
+            except Exception as exc:  # report any model failure as a configuration error
+                raise ValueError(f"model failed at the nominal point: {exc}") from exc
             if lin is None or lin.b <= 0.0:
                 raise ValueError("model gives no usable power sensitivity at the nominal point")
             self.gain_w_per_k = lin.temperature_gain_w_per_k()
