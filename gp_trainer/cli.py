@@ -40,7 +40,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of :func:`main`."""
-    parser = _Parser(prog=PROG, description=__doc__.split("\n\n")[0],
+    parser = _Parser(prog=PROG, description="Build the dataset, train and validate the melt-pool GP model (paper eq. 1-5, IV.A).",
                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     fmt = argparse.ArgumentDefaultsHelpFormatter
