@@ -11,10 +11,12 @@ __all__ = ["PIDController"]
 class PIDController(Controller):
     """Discrete PID on the relative area error ``e = (x_sp − x[k]) / x_sp``.
 
-    ``p[k] = p_nom + kp·e[k] + I[k] + kd·(e[k] − e[k−1])``.  Anti-windup by
-    conditional integration: ``I[k] = I[k−1] + ki·e[k]`` is accepted only if the
-    resulting output is not saturated, or if the error drives it back from
-    saturation.  The base class clamps the output to the power bounds.
+    ``p[k] = p_nom + kp·e[k] + I[k] + kd·(e[k] − e[k−1])`` with
+    ``I[k] = I[k−1] + ki·e[k]``.  Anti-windup by integrator clamping: when the error
+    pushes the output past a power bound, the integral grows only up to the
+    headroom left by the other terms (``p_u − p_nom − kp·e − kd·Δe``), never beyond,
+    so it leaves saturation as soon as the error reverses.  The base class clamps
+    the output to the power bounds.
 
     Parameters
     ----------
@@ -40,9 +42,9 @@ class PIDController(Controller):
         self._previous = (m.step, error)
         base = s.nominal_power_w + gains.kp_w * error + gains.kd_w * derivative
         candidate = self.integral_w + gains.ki_w * error
-        output = base + candidate
-        saturated_high = output > s.power_max_w and error > 0.0
-        saturated_low = output < s.power_min_w and error < 0.0
-        if not (saturated_high or saturated_low):
-            self.integral_w = candidate
+        if error > 0.0 and base + candidate > s.power_max_w:
+            candidate = max(self.integral_w, s.power_max_w - base)
+        elif error < 0.0 and base + candidate < s.power_min_w:
+            candidate = min(self.integral_w, s.power_min_w - base)
+        self.integral_w = candidate
         return Proposal(base + self.integral_w)

@@ -173,8 +173,8 @@ class PIDSettings:
     """Discrete PID on the relative area error ``e = (x_sp − x) / x_sp``.
 
     ``p = p_nom + kp·e + I + kd·(e[k] − e[k−1])`` with ``I += ki·e`` each step,
-    frozen while the output saturates in the direction of ``e`` (conditional
-    integration anti-windup), output clamped to the power bounds.
+    limited to the headroom to the power bound the error pushes towards
+    (integrator-clamping anti-windup), output clamped to the power bounds.
 
     Parameters
     ----------
