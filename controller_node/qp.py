@@ -151,10 +151,10 @@ def build_qp_data(
         u_prev=(p_prev - p_ref) / p_scale,
         p_ref_w=p_ref,
     )
-    values = np.array([data.a, data.beta, data.g, data.e0])
-    if not (np.all(np.isfinite(values)) and np.all(np.abs(values) <= _MAX_NORMALISED)) or abs(data.a) > _MAX_STATE_GAIN:
-        return None
-    return data
+    for value in (data.a, data.beta, data.g, data.e0, data.u_prev):
+        if not abs(value) <= _MAX_NORMALISED:  # also rejects NaN
+            return None
+    return data if abs(data.a) <= _MAX_STATE_GAIN else None
 
 
 def qp_constants(settings: ControllerSettings) -> dict[str, float]:
