@@ -454,10 +454,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.nodes is not None:
             specs = load_node_list(args.nodes)
         else:
-            from fe_node.scenarios import SCENARIOS
+            from fe_node.scenarios import NAMES
 
-            if opts.scenario not in SCENARIOS:
-                raise UsageError(f"unknown scenario {opts.scenario!r}; choose one of {', '.join(SCENARIOS)}")
+            if opts.scenario not in NAMES:
+                raise UsageError(f"unknown scenario {opts.scenario!r}; choose one of {', '.join(NAMES)}")
             specs = None
         if args.hub is not None:
             BusSettings(connect=(args.hub,))

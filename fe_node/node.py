@@ -13,6 +13,9 @@ needs no controller.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -20,7 +23,7 @@ from pathlib import Path
 
 from fe_node.image import temperature_image
 from fe_node.observe import Observation
-from fe_node.scenarios import SCENARIOS, Scenario, build_scenario
+from fe_node.scenarios import NAMES, Scenario, scenario as build_scenario
 from fe_node.solver import ThermalModel
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
 from messages.bus import Inbox, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
@@ -61,6 +64,20 @@ class CommandPolicy:
             self.power_min_w <= cmd.power_w <= self.power_max_w
             and self.speed_min_m_s <= cmd.speed_mm_s * 1e-3 <= self.speed_max_m_s
         )
+
+
+def n_steps(scenario: Scenario) -> int:
+    """Steps to the end of the plan at the profile's lowest speed (exact for a constant speed)."""
+    v_min = scenario.profile.speed_m_s.range()[0]
+    return math.ceil(scenario.plan.total_length / (v_min * scenario.settings.dt_s) - 1e-9)
+
+
+def describe(scenario: Scenario) -> dict:
+    """JSON-able description of a scenario (recorded as the plant's configuration)."""
+    return json.loads(json.dumps(
+        {"scenario": scenario.name, "settings": dataclasses.asdict(scenario.settings),
+         "plan": dataclasses.asdict(scenario.plan), "profile": dataclasses.asdict(scenario.profile)},
+        default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
 def state_message(run_id: str, obs: Observation) -> MeltPoolState:
@@ -109,9 +126,9 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, policy: CommandPo
     images = bus.publisher(PLANT_TEMPERATURE, express=False)
     waiter = CommandWaiter(bus.inbox(LASER_COMMAND), policy) if not args.open_loop else None
     controller_gone = bus.watch_presence(args.controller) if waiter else None
-    total = scenario.n_steps if args.max_steps is None else min(scenario.n_steps, args.max_steps)
+    total = n_steps(scenario) if args.max_steps is None else min(n_steps(scenario), args.max_steps)
     bus.wait_for_nodes(args.require, stop, timeout_s=60.0)
-    bus.ready(config={**scenario.describe(), "policy": vars(policy), "open_loop": args.open_loop,
+    bus.ready(config={**describe(scenario), "policy": vars(policy), "open_loop": args.open_loop,
                       "setup_s": round(setup_s, 3), "nodes": model.grid.n_nodes}, total_steps=total)
     bus.log(LogLevel.INFO, f"{scenario.name}: {total} steps, {model.grid.n_nodes} nodes, setup {setup_s:.1f} s")
     obs = model.initial_observation()
@@ -170,7 +187,7 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, policy: CommandPo
 def build_parser() -> argparse.ArgumentParser:
     """Command line of ``python -m fe_node`` (node mode)."""
     parser = ArgumentParser(prog="python -m fe_node", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenario", default="layer", help=f"one of {', '.join(SCENARIOS)} (default: %(default)s)")
+    parser.add_argument("--scenario", default="layer", help=f"one of {', '.join(NAMES)} (default: %(default)s)")
     parser.add_argument("--power-w", type=float, help="nominal / open-loop power [W] (scenario default)")
     parser.add_argument("--speed-mm-s", type=float, help="scan speed [mm/s] (scenario default)")
     parser.add_argument("--h-um", type=float, help="fine element size [µm] (default: converged 25 µm)")
@@ -203,11 +220,12 @@ def main(argv: list[str] | None = None) -> int:
                                fallback=args.fallback, safe_power_w=args.safe_power_w)
         plant_table = load_toml(args.config).get("plant", {})
         try:
-            scenario = build_scenario(
-                args.scenario, table=plant_table, power_w=args.power_w,
-                speed_m_s=None if args.speed_mm_s is None else args.speed_mm_s * 1e-3,
-                h_fine_m=None if args.h_um is None else args.h_um * 1e-6,
-            )
+            overrides = {k: v for k, v in {
+                "power_w": args.power_w,
+                "speed_m_s": None if args.speed_mm_s is None else args.speed_mm_s * 1e-3,
+                "h_fine_m": None if args.h_um is None else args.h_um * 1e-6,
+            }.items() if v is not None}
+            scenario = build_scenario(args.scenario, **{**plant_table, **overrides})
         except ValueError as err:
             raise UsageError(str(err)) from None
     except UsageError as err:
