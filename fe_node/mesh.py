@@ -10,8 +10,10 @@ applies ``K`` as one sparse product on the (y, z) planes followed by one along x
 is exact and avoids assembling the 27-point matrix.  ``tests/test_fe_mesh.py`` checks it
 against scikit-fem assembly (``Basis(m, ElementHex1(), intorder=2)``).
 
-Array convention: nodal fields are ``(nx, ny, nz)`` arrays, C order; z is ascending and
-the top surface (z = 0) is ``[:, :, -1]``.
+Array convention: the solver stores nodal fields as ``(ny, nz, nx)`` arrays (C order, x
+fastest), so the (y, z)-plane product needs no transposes and the top surface (z = 0,
+z ascending) ``[:, -1, :]`` is contiguous.  ``Grid.to_xyz`` gives the ``(nx, ny, nz)``
+view used in the public API.
 """
 from __future__ import annotations
 
@@ -93,15 +95,25 @@ class Grid:
         """Smallest element edge [m]."""
         return float(min(np.diff(a).min() for a in (self.xs, self.ys, self.zs)))
 
+    @property
+    def solver_shape(self) -> tuple[int, int, int]:
+        """Storage shape (ny, nz, nx) of solver fields."""
+        return (len(self.ys), len(self.zs), len(self.xs))
+
+    @staticmethod
+    def to_xyz(u: np.ndarray) -> np.ndarray:
+        """View of a solver field (ny, nz, nx) as (nx, ny, nz)."""
+        return np.transpose(u, (2, 0, 1))
+
     def lumped_mass(self) -> np.ndarray:
-        """Row-sum lumped nodal volumes [m³], shape ``(nx, ny, nz)``."""
+        """Row-sum lumped nodal volumes [m³], solver shape ``(ny, nz, nx)``."""
         mx, my, mz = (np.asarray(fe1d(a)[1].sum(axis=1)).ravel() for a in (self.xs, self.ys, self.zs))
-        return mx[:, None, None] * my[None, :, None] * mz[None, None, :]
+        return my[:, None, None] * mz[None, :, None] * mx[None, None, :]
 
     def top_areas(self) -> np.ndarray:
-        """Row-sum lumped nodal areas of the top face [m²], shape ``(nx, ny)``."""
+        """Row-sum lumped nodal areas of the top face [m²], shape ``(ny, nx)``."""
         mx, my = (np.asarray(fe1d(a)[1].sum(axis=1)).ravel() for a in (self.xs, self.ys))
-        return mx[:, None] * my[None, :]
+        return my[:, None] * mx[None, :]
 
     def skfem_mesh(self):
         """The same grid as a :class:`skfem.MeshHex` plus the map to our node order.
@@ -110,7 +122,7 @@ class Grid:
         -------
         mesh : skfem.MeshHex
         perm : ndarray of int, shape (n_nodes,)
-            ``perm[our_flat_index] = skfem node index``.
+            ``perm[solver_flat_index] = skfem node index`` (solver order (ny, nz, nx)).
         """
         from skfem import MeshHex
 
@@ -122,7 +134,7 @@ class Grid:
         ix = _nearest(self.xs, mesh.p[0], ix)
         iy = _nearest(self.ys, mesh.p[1], iy)
         iz = _nearest(self.zs, mesh.p[2], iz)
-        ours = np.ravel_multi_index((ix, iy, iz), self.shape)
+        ours = np.ravel_multi_index((iy, iz, ix), self.solver_shape)
         perm = np.empty(self.n_nodes, dtype=np.intp)
         perm[ours] = np.arange(self.n_nodes)
         return mesh, perm
@@ -136,33 +148,41 @@ def _nearest(a, v, i):
 class Stiffness:
     """Exact action of the unit-conductivity trilinear stiffness matrix ``K`` [m].
 
-    ``K u`` for ``u`` of shape ``(nx, ny, nz)`` (or flat) is computed as
-    ``Kx (u A^T) + Mx (u B^T)`` with ``A = My (x) Mz`` and ``B = Ky (x) Mz + My (x) Kz``
-    acting on the (y, z) plane: two sparse products, no 3-D matrix.
+    ``K u`` for a solver field ``u`` of shape ``(ny, nz, nx)`` (or flat) is computed as
+    ``(A u) Kx + (B u) Mx`` with ``A = My (x) Mz`` and ``B = Ky (x) Mz + My (x) Kz``
+    acting on the (y, z) index (one sparse product, no copy), then the symmetric
+    tridiagonal ``Kx``, ``Mx`` along the contiguous x axis by array slicing.
     """
 
     def __init__(self, grid: Grid):
-        self.shape = grid.shape
-        self.kx, self.mx = fe1d(grid.xs)
+        self.shape = grid.solver_shape
+        kx, mx = fe1d(grid.xs)
         ky, my = fe1d(grid.ys)
         kz, mz = fe1d(grid.zs)
         a = sp.kron(my, mz)
         b = sp.kron(ky, mz) + sp.kron(my, kz)
         self._ab = sp.vstack([a, b]).tocsr()
         self._p = a.shape[0]
+        self._kd, self._ko = kx.diagonal(), kx.diagonal(1)
+        self._md, self._mo = mx.diagonal(), mx.diagonal(1)
 
     def __call__(self, u: np.ndarray) -> np.ndarray:
         """Return ``K u`` with the shape of ``u``."""
-        nx = self.shape[0]
-        ut = np.ascontiguousarray(np.reshape(u, (nx, self._p)).T)
-        vw = self._ab @ ut
-        v = np.ascontiguousarray(vw[: self._p].T)
-        w = np.ascontiguousarray(vw[self._p:].T)
-        out = self.kx @ v
-        out += self.mx @ w
+        nx = self.shape[2]
+        vw = self._ab @ np.reshape(u, (self._p, nx))
+        v, w = vw[: self._p], vw[self._p:]
+        out = v * self._kd
+        out += w * self._md
+        up = v[:, :-1] * self._ko          # couplings (i, i+1): contributions to row i+1
+        up += w[:, :-1] * self._mo
+        out[:, 1:] += up
+        dn = v[:, 1:] * self._ko           # contributions to row i
+        dn += w[:, 1:] * self._mo
+        out[:, :-1] += dn
         return out.reshape(np.shape(u))
 
     def assembled(self) -> sp.csr_matrix:
-        """The full sparse ``K`` (for tests and the baseline only), our node order."""
-        ky_my = self._ab[self._p:]
-        return (sp.kron(self.kx, self._ab[: self._p]) + sp.kron(self.mx, ky_my)).tocsr()
+        """The full sparse ``K`` in solver order (for tests only)."""
+        kx = sp.diags([self._kd, self._ko, self._ko], [0, -1, 1])
+        mx = sp.diags([self._md, self._mo, self._mo], [0, -1, 1])
+        return (sp.kron(self._ab[: self._p], kx) + sp.kron(self._ab[self._p:], mx)).tocsr()

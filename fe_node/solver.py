@@ -81,9 +81,9 @@ class ThermalModel:
         self.n_substeps = max(1, math.ceil(settings.dt_s / dt_stable))
         self._dt_sub = settings.dt_s / self.n_substeps
         self._c = (self._dt_sub * self.law.k_ref) / self._m
-        self._c_top = self._dt_sub / self._m[:, :, -1]
-        self._h = np.full(self.grid.shape, float(self.law.enthalpy(settings.t0_k)))
-        self._e0 = float(np.vdot(self._m, self._h))
+        self._c_top = self._dt_sub / self._m[:, -1, :]
+        self._h = np.full(self.grid.solver_shape, float(self.law.enthalpy(settings.t0_k)))
+        self._e0 = self._energy()
         self._s = 0.0
         self.step_index = 0
         self._absorbed = 0.0
@@ -106,9 +106,13 @@ class ThermalModel:
     def time_s(self) -> float:
         return self.step_index * self.settings.dt_s
 
+    def _energy(self) -> float:
+        """Enthalpy content sum_i m_i H_i [J] (einsum: no multithreaded BLAS)."""
+        return float(np.einsum("ijk,ijk->", self._m, self._h))
+
     def temperature(self) -> np.ndarray:
-        """Nodal temperature [K], shape ``grid.shape``."""
-        return self.law.temperature(self._h)
+        """Nodal temperature [K], shape ``grid.shape`` = (nx, ny, nz)."""
+        return np.ascontiguousarray(self.grid.to_xyz(self.law.temperature(self._h)))
 
     def step(self, power_w: float, speed_m_s: float) -> Observation:
         """Advance one step ``dt_s`` with laser power [W] and scan speed [m/s].
@@ -126,7 +130,7 @@ class ThermalModel:
         for _ in range(self.n_substeps):
             s_pos = self._s + (np.arange(n_pos) + 0.5) / n_pos * ds
             on = s_pos < total
-            load = 0.0
+            load = np.zeros((1, 1))
             if np.any(on) and power_w > 0:
                 _, xy, _ = self.plan.locate(s_pos[on])
                 load = surface_load(self.grid.xs, self.grid.ys, xy, power_w * on.mean(),
@@ -139,13 +143,13 @@ class ThermalModel:
     def _substep(self, load) -> None:
         """One explicit sub-step (losses at the start temperature, capped at boiling)."""
         s, h = self.settings, self._h
-        t_top = np.minimum(self.law.temperature(h[:, :, -1]), s.material.t_boil)
+        t_top = np.minimum(self.law.temperature(h[:, -1, :]), s.material.t_boil)
         q = self._a_top * (s.h_conv_w_m2k * (t_top - s.t_amb_k)
                            + s.emissivity * SIGMA_SB * (t_top**4 - s.t_amb_k**4))
         kphi = self._stiff(self.law.kirchhoff(h))
         kphi *= self._c
         h -= kphi
-        h[:, :, -1] += (load - q) * self._c_top
+        h[:, -1, :] += (load.T - q) * self._c_top
         self._absorbed += float(np.sum(load)) * self._dt_sub
         self._lost += float(q.sum()) * self._dt_sub
 
@@ -156,19 +160,19 @@ class ThermalModel:
     def _observe(self, power_w: float, speed_m_s: float) -> Observation:
         s, g, h = self.settings, self.grid, self._h
         track, xy, d = self.plan.locate(self._s)
-        t_top = self.law.temperature(h[:, :, -1])
+        t_top = self.law.temperature(h[:, -1, :]).T       # (nx, ny)
         tl = s.material.t_liquidus
         liquid = np.argwhere(t_top > tl)
         if len(liquid):
             (i0, j0), (i1, j1) = liquid.min(axis=0), liquid.max(axis=0)
             i0, j0 = max(i0 - 1, 0), max(j0 - 1, 0)
             i1, j1 = min(i1 + 2, g.shape[0]), min(j1 + 2, g.shape[1])
-            t3 = self.law.temperature(h[i0:i1, j0:j1])
+            t3 = self.grid.to_xyz(self.law.temperature(h[j0:j1, :, i0:i1]))
             geo = pool_geometry(t3, g.xs[i0:i1], g.ys[j0:j1], g.zs, tl)
         else:
             geo = pool_geometry(t_top[:1, :1, None], g.xs[:1], g.ys[:1], g.zs[-1:], tl)
         ahead = xy + (speed_m_s * s.dt_s + s.beam_radius_m) * d
-        stored = float(np.vdot(self._m, h)) - self._e0
+        stored = self._energy() - self._e0
         err = (100.0 * (self._absorbed - stored - self._lost) / self._absorbed
                if self._absorbed > 0 else 0.0)
         return Observation(
@@ -203,6 +207,6 @@ class ThermalModel:
         _, xy, _ = self.plan.locate(self._s)
         px = xy[0] + np.arange(-half_length_m, half_length_m + pixel_m / 2, pixel_m)
         py = xy[1] + np.arange(-half_width_m, half_width_m + pixel_m / 2, pixel_m)
-        t_top = self.law.temperature(self._h[:, :, -1])
+        t_top = self.law.temperature(self._h[:, -1, :]).T
         img = interp_matrix(self.grid.ys, py) @ t_top.T @ interp_matrix(self.grid.xs, px).T
         return img, (float(px[0]), float(px[-1]), float(py[0]), float(py[-1]))

@@ -45,7 +45,7 @@ def hat_gaussian_integrals(x: np.ndarray, centre: float, sigma: float) -> np.nda
     out = np.zeros_like(x)
     out[:-1] += left
     out[1:] += right
-    return out
+    return np.maximum(out, 0.0)          # round-off in the far tails
 
 
 def surface_load(xs: np.ndarray, ys: np.ndarray, positions: np.ndarray, power_w: float,

@@ -1,0 +1,170 @@
+"""Correctness tests of the FE plant core (fe_node): operators, source, energy, geometry."""
+import numpy as np
+import pytest
+
+from fe_node.material import Constitutive, Material
+from fe_node.mesh import Grid, Stiffness, graded_axis
+from fe_node.observe import area_above, pool_geometry
+from fe_node.scan import ScanPlan
+from fe_node.settings import Settings
+from fe_node.solver import ThermalModel
+from fe_node.source import hat_gaussian_integrals, surface_load
+
+COARSE = dict(h_fine_m=40e-6, margin_m=0.5e-3, depth_m=0.6e-3, fine_pad_m=120e-6,
+              fine_depth_m=120e-6, h_max_m=0.2e-3)
+
+
+def small_grid():
+    ax = dict(h=30e-6, growth=1.4, h_max=0.2e-3)
+    return Grid(graded_axis(-0.4e-3, 0.5e-3, -0.1e-3, 0.2e-3, **ax),
+                graded_axis(-0.3e-3, 0.3e-3, -0.1e-3, 0.1e-3, **ax),
+                graded_axis(-0.4e-3, 0.0, -0.1e-3, 0.0, **ax))
+
+
+def test_graded_axis_bounds_and_fine_size():
+    x = graded_axis(-1e-3, 2e-3, 0.0, 1e-3, 25e-6, 1.35, 0.3e-3)
+    assert x[0] == -1e-3 and x[-1] == 2e-3 and np.all(np.diff(x) > 0)
+    fine = np.diff(x[(x >= 0) & (x <= 1e-3)])
+    assert np.allclose(fine, 25e-6) and np.diff(x).max() <= 0.3e-3 + 1e-12
+
+
+def test_tensor_stiffness_equals_skfem_assembly():
+    from skfem import Basis, BilinearForm, ElementHex1
+    from skfem.helpers import dot, grad
+
+    g = small_grid()
+    mesh, perm = g.skfem_mesh()
+    basis = Basis(mesh, ElementHex1(), intorder=2)
+    K = BilinearForm(lambda u, v, w: dot(grad(u), grad(v))).assemble(basis)
+    M = BilinearForm(lambda u, v, w: u * v).assemble(basis)
+    u = np.random.default_rng(0).standard_normal(g.n_nodes)
+    ours = Stiffness(g)(u.reshape(g.solver_shape)).ravel()
+    ref = (K @ u[np.argsort(perm)])[perm]
+    assert np.allclose(ours, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    assert np.allclose(g.lumped_mass().ravel(), np.asarray(M.sum(axis=1)).ravel()[perm], rtol=1e-12)
+    kfull = Stiffness(g).assembled()
+    assert abs(kfull - K[perm][:, perm]).max() < 1e-10 * abs(K).max()
+
+
+def test_constitutive_tables_roundtrip():
+    law = Constitutive(Material.in625())
+    t = np.array([300.0, 900.0, 1500.0, 1700.0, 4000.0])
+    assert np.allclose(law.temperature(law.enthalpy(t)), t, atol=1e-3)
+    # latent heat is released between solidus and liquidus
+    m = law.material
+    dh = law.enthalpy(m.t_liquidus) - law.enthalpy(m.t_solidus)
+    sensible = m.rho * 0.5 * (m.cp(m.t_solidus) + m.cp(m.t_liquidus)) * 60.0
+    assert dh == pytest.approx(m.rho * m.latent + sensible, rel=1e-6)
+    c = Constitutive(Material.constant(20.0, 8000.0, 500.0))
+    assert np.allclose(c.kirchhoff(c.enthalpy(t)), t) and c.max_diffusivity == pytest.approx(5e-6)
+
+
+def test_hat_gaussian_integrals_exact():
+    x = np.sort(np.random.default_rng(1).uniform(-3e-4, 3e-4, 40))
+    x[0], x[-1] = -4e-4, 4e-4
+    g = hat_gaussian_integrals(x, 1.3e-5, 2e-5)
+    assert g.sum() == pytest.approx(2e-5 * np.sqrt(2 * np.pi), rel=1e-12)
+    # brute force against fine quadrature of the hat functions
+    xf = np.linspace(-4e-4, 4e-4, 400001)
+    gauss = np.exp(-((xf - 1.3e-5) ** 2) / (2 * 4e-10))
+    for i in (5, 17, 20, 30):
+        hat = np.interp(xf, x, np.eye(len(x))[i])
+        assert g[i] == pytest.approx(np.trapezoid(hat * gauss, xf), rel=1e-6, abs=1e-15)
+
+
+def test_surface_load_deposits_a_p():
+    g = small_grid()
+    pos = np.array([[1e-5 * k, 3e-6] for k in range(8)])
+    load = surface_load(g.xs, g.ys, pos, 237.0, 0.4, 50e-6)
+    assert load.sum() == pytest.approx(0.4 * 237.0, rel=1e-13) and load.min() >= 0
+
+
+@pytest.fixture(scope="module")
+def coarse_track():
+    s = Settings(**COARSE)
+    model = ThermalModel(s, ScanPlan.single(1.2e-3))
+    obs = [model.initial_observation()]
+    while not model.done:
+        obs.append(model.step(250.0, 0.8))
+    return model, obs
+
+
+def test_absorbed_energy_and_conservation(coarse_track):
+    model, obs = coarse_track
+    n = len(obs) - 1
+    assert n == 30 and obs[-1].time_s == pytest.approx(30 * 50e-6)
+    assert obs[-1].energy_absorbed_j == pytest.approx(0.4 * 250.0 * 50e-6 * n, rel=1e-12)
+    assert obs[-1].energy_lost_j > 0
+    assert max(abs(o.energy_error_pct) for o in obs[1:]) < 1e-6
+    assert obs[0].step == 0 and obs[0].area_m2 == 0.0 and obs[0].t_ahead_k == pytest.approx(300.0, abs=1e-5)
+
+
+def test_centred_track_is_symmetric(coarse_track):
+    model, obs = coarse_track
+    t = model.temperature()
+    ys = model.grid.ys
+    assert np.allclose(ys, -ys[::-1], atol=1e-15)
+    assert np.allclose(t, t[:, ::-1, :], rtol=1e-9)
+    assert obs[-1].y_m == 0.0 and obs[-1].direction == (1.0, 0.0)
+
+
+def test_melt_pool_is_plausible(coarse_track):
+    _, obs = coarse_track
+    o = obs[-1]
+    assert 0.03e-6 < o.area_m2 < 0.12e-6 and 80e-6 < o.width_m < 200e-6
+    assert 30e-6 < o.depth_m < 100e-6 and o.length_m > o.width_m
+    assert 0 < o.cross_section_m2 < o.width_m * o.depth_m
+    assert o.t_peak_k > 1623.0
+
+
+def test_t_ahead_location(coarse_track):
+    model, obs = coarse_track
+    o = obs[-1]   # rule of paper footnote 1, checked against the public image sampler
+    x_ahead = o.x_m + (o.speed_m_s * 50e-6 + 50e-6) * o.direction[0]
+    img, ext = model.temperature_image(half_length_m=0.2e-3, half_width_m=0.05e-3, pixel_m=10e-6)
+    px = np.linspace(ext[0], ext[1], img.shape[1])
+    py = np.linspace(ext[2], ext[3], img.shape[0])
+    col = np.argmin(abs(px - x_ahead))
+    assert px[col] == pytest.approx(x_ahead, abs=1e-9)
+    assert img[np.argmin(abs(py - o.y_m)), col] == pytest.approx(o.t_ahead_k, rel=1e-9)
+    assert o.t_ahead_k < 1000.0   # ahead of the pool, barely heated
+
+
+def test_area_extraction_on_elliptical_field():
+    a, b = 300e-6, 70e-6
+    # fine nodes (5 µm) so that the bilinear interpolation error of the field is
+    # ~1e-4: what remains is the extraction error
+    xs = graded_axis(-0.5e-3, 0.5e-3, -0.4e-3, 0.4e-3, 5e-6, 1.3, 0.1e-3)
+    ys = graded_axis(-0.2e-3, 0.2e-3, -0.1e-3, 0.1e-3, 5e-6, 1.3, 0.1e-3)
+    zs = np.linspace(-0.2e-3, 0.0, 41)
+    X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
+    # a field that is linear along every grid line through the level set is not
+    # available for an ellipse; use T = exp(-r²) so the bilinear error is O(h²)
+    r2 = (X / a) ** 2 + (Y / b) ** 2 + (Z / 50e-6) ** 2
+    t = 2000.0 * np.exp(1.0 - r2)            # level 2000 <=> ellipsoid r2 = 1
+    geo = pool_geometry(t, xs, ys, zs, 2000.0)
+    assert geo["area_m2"] == pytest.approx(np.pi * a * b, rel=1e-3)
+    assert geo["length_m"] == pytest.approx(2 * a, rel=1e-3)
+    assert geo["width_m"] == pytest.approx(2 * b, rel=1e-3)
+    assert geo["depth_m"] == pytest.approx(50e-6, rel=1e-3)
+    assert geo["cross_section_m2"] == pytest.approx(np.pi * b * 50e-6 / 2, rel=1e-3)
+
+
+def test_area_exact_for_piecewise_linear_field():
+    # 1 - |x| - |y|/2 is linear per cell on a grid with a node at 0; {f > 1/2} is a
+    # diamond with half-diagonals 1/2 and 1, area 1, recovered to round-off
+    xs = np.linspace(-1, 1, 11)
+    X, Y = np.meshgrid(xs, xs, indexing="ij")
+    f = 1 - np.abs(X) - np.abs(Y) * 0.5
+    assert area_above(f, xs, xs, 0.5, n_refine=4) == pytest.approx(1.0, rel=1e-12)
+
+
+def test_step_rejects_bad_commands():
+    model = ThermalModel(Settings(**COARSE), ScanPlan.single(0.2e-3))
+    for p, v in [(-1.0, 0.8), (100.0, 0.0), (float("nan"), 0.8), (100.0, -1.0)]:
+        with pytest.raises(ValueError):
+            model.step(p, v)
+    while not model.done:
+        model.step(0.0, 0.8)
+    with pytest.raises(RuntimeError):
+        model.step(100.0, 0.8)
