@@ -273,7 +273,7 @@ def load_node_list(path: Path) -> list[NodeSpec]:
 
 CONTROLLER_CHOICES = ("mpc", "pid", "feedforward", "open-loop", "none")
 COMPARED = ("open-loop", "pid", "feedforward", "mpc")
-DEFAULT_SETPOINT_MM2 = 0.07
+DEFAULT_SETPOINT_MM2 = 0.063
 
 
 @dataclass(frozen=True)
