@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.sparse.linalg import LinearOperator, eigsh
 
 from fe_node.material import Constitutive
 from fe_node.mesh import Grid, Stiffness, graded_axis
@@ -89,13 +88,27 @@ class ThermalModel:
         self._absorbed = 0.0
         self._lost = 0.0
 
-    def _max_eigenvalue(self) -> float:
-        """Largest eigenvalue of ``M_L^-1 K`` [1/m²] (Lanczos on the symmetric form)."""
-        d = 1.0 / np.sqrt(self._m.ravel())
-        n = d.size
-        op = LinearOperator((n, n), matvec=lambda u: d * self._stiff(d * np.ravel(u)), dtype=float)
-        v0 = np.cos(np.arange(n) * 2.0)   # deterministic, rich in high frequencies
-        return float(eigsh(op, k=1, which="LA", tol=1e-3, v0=v0, return_eigenvectors=False)[0])
+    def _max_eigenvalue(self, n_iter: int = 60) -> float:
+        """Largest eigenvalue of ``M_L^-1 K`` [1/m²] by power iteration.
+
+        The symmetric form ``D K D`` (``D = M_L^-1/2``) is iterated from a vector that
+        alternates in sign along each axis (the top eigenvectors oscillate node to node
+        along one axis); the Rayleigh quotient approaches the top of the spectrum from
+        below within ~1 % in 60 iterations, well inside the 10 % stability margin.
+        Dot products use einsum (no multithreaded BLAS on the shared 2-core host).
+        """
+        d = 1.0 / np.sqrt(self._m)
+        ny, nz, nx = d.shape
+        rng = np.random.default_rng(0)
+        v = ((-1.0) ** np.arange(ny)[:, None, None] + (-1.0) ** np.arange(nz)[None, :, None]
+             + (-1.0) ** np.arange(nx)[None, None, :] + 0.1 * rng.standard_normal(d.shape))
+        lam = 0.0
+        for _ in range(n_iter):
+            v /= np.sqrt(np.einsum("ijk,ijk->", v, v))
+            w = d * self._stiff(d * v)
+            lam = float(np.einsum("ijk,ijk->", v, w))
+            v = w
+        return lam
 
     @property
     def done(self) -> bool:

@@ -46,8 +46,8 @@ def validate(h_fine_m: float = 25e-6, progress: bool = False) -> dict:
         energy_case="double-track IN625, 2 x 5 mm, 250 W, 800 mm/s, convection + radiation",
         eagar_tsai_area_error_pct=100 * (fe_h - analytic) / analytic,
         mesh_convergence_pct=100 * (fe_h - fe_h2) / fe_h2,
-        mesh_convergence_h_um=[h_fine_m * 1e6, h_fine_m * 0.5e6],
+        mesh_convergence_h_um=[round(h_fine_m * 1e6, 6), round(h_fine_m * 0.5e6, 6)],
         fe_area_h2_mm2=fe_h2 * 1e6,
         eagar_tsai_case=dict(case.as_dict(), fe_area_mm2=fe_h * 1e6,
-                             analytic_area_mm2=analytic * 1e6, h_um=h_fine_m * 1e6),
+                             analytic_area_mm2=analytic * 1e6, h_um=round(h_fine_m * 1e6, 6)),
     )
