@@ -1,1 +1,20 @@
-"""fe_node package."""
+"""fe_node: the FE thermal plant of meltloop (paper Sec. II.D) and its zenoh node.
+
+Core API (no transport)::
+
+    from fe_node import scenario, ThermalModel
+    sc = scenario("layer")
+    model = ThermalModel(sc.settings, sc.plan)
+    obs = model.step(*sc.profile.command(model.step_index))
+
+See docs/fe.md.
+"""
+from fe_node.material import Material
+from fe_node.observe import Observation
+from fe_node.scan import Profile, ScanPlan, Signal
+from fe_node.scenarios import NAMES, Scenario, scenario
+from fe_node.settings import Settings
+from fe_node.solver import ThermalModel
+
+__all__ = ["Material", "NAMES", "Observation", "Profile", "ScanPlan", "Scenario", "Settings",
+           "Signal", "ThermalModel", "scenario"]

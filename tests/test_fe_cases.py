@@ -39,10 +39,16 @@ def test_fe_agrees_with_eagar_tsai_on_coarse_mesh(et_geometry):
     assert fe == pytest.approx(et_geometry["area_m2"], rel=0.07)   # +5.8 % at 40 µm
 
 
-@pytest.mark.slow
 def test_fe_agrees_with_eagar_tsai_default_mesh(et_geometry):
     fe = fe_eagar_tsai_area(EagarTsaiCase(), h_fine_m=25e-6)
     assert fe == pytest.approx(et_geometry["area_m2"], rel=0.03)
+
+
+@pytest.mark.slow
+def test_mesh_convergence_default_vs_half():
+    fe = fe_eagar_tsai_area(EagarTsaiCase(), h_fine_m=25e-6)
+    fine = fe_eagar_tsai_area(EagarTsaiCase(), h_fine_m=12.5e-6)
+    assert fe == pytest.approx(fine, rel=0.02)
 
 
 def test_table2_geometry():

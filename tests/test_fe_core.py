@@ -168,3 +168,22 @@ def test_step_rejects_bad_commands():
         model.step(0.0, 0.8)
     with pytest.raises(RuntimeError):
         model.step(100.0, 0.8)
+
+
+def test_track_change_and_variable_speed_keep_energy_exact():
+    plan = ScanPlan.layer(2, 0.3e-3, 0.1e-3)
+    model = ThermalModel(Settings(**COARSE), plan)
+    obs, speeds = [], [0.8, 1.0, 0.6, 0.9]
+    while not model.done:
+        obs.append(model.step(200.0, speeds[model.step_index % 4]))
+    tracks = [o.track for o in obs]
+    assert tracks[0] == 0 and tracks[-1] == 1 and sorted(tracks) == tracks
+    second = [o for o in obs if o.track == 1]
+    assert all(o.direction == (-1.0, 0.0) and o.y_m == pytest.approx(0.05e-3) for o in second)
+    travelled = sum(o.speed_m_s for o in obs[:-1]) * 50e-6
+    assert travelled < plan.total_length <= travelled + obs[-1].speed_m_s * 50e-6
+    # the last step is only partly on the plan: the laser is off past its end
+    frac = (plan.total_length - travelled) / (obs[-1].speed_m_s * 50e-6)
+    expected = 0.4 * 200.0 * 50e-6 * (len(obs) - 1 + frac)
+    assert obs[-1].energy_absorbed_j == pytest.approx(expected, rel=0.03)
+    assert max(abs(o.energy_error_pct) for o in obs) < 1e-6
