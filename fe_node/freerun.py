@@ -1,0 +1,301 @@
+"""Free-running plant loop shared by sensor-like nodes (example sensor, GP surrogate).
+
+A free-running plant behaves like a camera or pyrometer: it publishes ``MeltPoolState`` at a
+fixed rate and never waits for the controller. Between two publishes it takes whatever
+``LaserCommand`` arrives; at each tick it applies the newest accepted command and echoes the
+applied power in the state it publishes. The command answering state k (``step = k + 1``) is
+*on time* if it arrives before state k+1 is published; otherwise that step is a deadline miss.
+If no command at all arrived for ``timeout_s``, the configured fallback (hold or safe power)
+applies, as in the lockstep FE node.
+
+Functional core: :class:`CommandLatch` (which command applies, deadline and round-trip
+bookkeeping; no I/O, time passed in). Thin shell: :func:`run_free` (zenoh, clock, loop).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from fe_node.node import CommandPolicy
+from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
+from messages.bus import BusSettings, NodeBus, StopFlag
+from messages.cli import UsageError
+from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
+
+RING = 1 << 14  # publish times kept for round-trip matching (steps)
+
+
+@dataclass(frozen=True)
+class PlantSample:
+    """What a free-running plant observes at one tick (SI).
+
+    Attributes
+    ----------
+    area_m2 : float
+        Melt-pool top-surface area [m²].
+    t_ahead_k : float
+        Surface temperature ahead of the spot [K].
+    x_m, y_m : float
+        Laser spot position [m].
+    direction : tuple of float
+        Unit scan direction (x, y).
+    track : int
+        Track index in the layer.
+    """
+
+    area_m2: float
+    t_ahead_k: float
+    x_m: float
+    y_m: float
+    direction: tuple[float, float]
+    track: int
+
+
+class FreePlant(Protocol):
+    """A plant stepped by the free-running loop (synthetic model, GP surrogate, hardware)."""
+
+    def initial(self) -> PlantSample:
+        """The observation before the first step."""
+
+    def step(self, power_w: float, speed_m_s: float, dt_s: float) -> PlantSample:
+        """Advance by ``dt_s`` [s] under ``power_w`` [W] and ``speed_m_s`` [m/s]; the new observation."""
+
+
+@dataclass(frozen=True)
+class FreeRunSettings:
+    """Timing of a free-running plant.
+
+    Attributes
+    ----------
+    rate_hz : float
+        Publish rate [Hz]; also sets the process time step ``1 / rate_hz`` [s].
+    max_steps : int or None
+        Stop after this many steps (``None``: until stopped).
+    duration_s : float or None
+        Stop after this wall time [s] (``None``: no limit).
+    diagnostics_every : int
+        Publish ``PlantDiagnostics`` every N steps (and at the end).
+    """
+
+    rate_hz: float = 1000.0
+    max_steps: int | None = None
+    duration_s: float | None = None
+    diagnostics_every: int = 100
+
+    def __post_init__(self) -> None:
+        if not 0 < self.rate_hz <= 100_000:
+            raise UsageError(f"--rate-hz must be in (0, 100000], got {self.rate_hz}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise UsageError("--max-steps must be >= 1")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise UsageError("--duration-s must be > 0")
+        if self.diagnostics_every < 1:
+            raise UsageError("--diagnostics-every must be >= 1")
+
+
+@dataclass
+class CommandLatch:
+    """Which command applies at each tick, and the deadline/round-trip bookkeeping.
+
+    Parameters
+    ----------
+    policy : CommandPolicy
+        Bounds (never apply a power outside them), timeout and fallback.
+    power_w, speed_m_s : float
+        Initial (nominal) command, applied until the first command arrives [W], [m/s].
+    """
+
+    policy: CommandPolicy
+    power_w: float
+    speed_m_s: float
+    newest_step: int = -1
+    last_command_t: float | None = None
+    on_time_step: int = -1
+    n_rejected: int = 0
+    n_late: int = 0
+    n_fallbacks: int = 0
+    rtt_s: list[float] = field(default_factory=list)
+    _published_t: np.ndarray = field(default_factory=lambda: np.full(RING, np.nan))
+    _published_step: int = -1
+
+    def published(self, step: int, t: float) -> None:
+        """State ``step`` was published at monotonic time ``t`` [s]."""
+        self._published_t[step % RING] = t
+        self._published_step = step
+
+    def offer(self, cmd: LaserCommand, t: float) -> None:
+        """A decoded command received at monotonic time ``t`` [s]."""
+        if not self.policy.accepts(cmd):
+            self.n_rejected += 1
+            return
+        answered = cmd.step - 1
+        if 0 <= answered <= self._published_step and self._published_step - answered < RING:
+            self.rtt_s.append(t - float(self._published_t[answered % RING]))
+        if cmd.step <= self._published_step:
+            self.n_late += 1  # its state's successor is already out: too late for its step
+        else:
+            self.on_time_step = max(self.on_time_step, cmd.step)
+        if cmd.step > self.newest_step:
+            self.newest_step = cmd.step
+            self.power_w, self.speed_m_s = cmd.power_w, cmd.speed_mm_s * 1e-3
+            self.last_command_t = t
+
+    def command_for(self, t: float, started_t: float) -> tuple[float, float, str]:
+        """(power [W], speed [m/s], source) to apply now; fallback after ``timeout_s`` without commands."""
+        last = self.last_command_t if self.last_command_t is not None else started_t
+        if t - last > self.policy.timeout_s:
+            self.n_fallbacks += 1
+            if self.policy.fallback == "safe":
+                return self.policy.safe_power_w, self.speed_m_s, "fallback-safe"
+            return self.power_w, self.speed_m_s, "fallback-hold"
+        return self.power_w, self.speed_m_s, "controller"
+
+    def missed(self, step: int) -> bool:
+        """Whether the command for ``step`` had not arrived when state ``step`` was published."""
+        return self.on_time_step < step
+
+
+@dataclass(frozen=True)
+class FreeRunStats:
+    """Outcome of a free-running session (times in s)."""
+
+    steps: int
+    wall_s: float
+    misses: int
+    late: int
+    rejected: int
+    invalid: int
+    fallbacks: int
+    rtt_s: tuple[float, ...]
+
+    def summary(self) -> dict[str, float | int]:
+        """JSON-able figures: achieved rate [Hz], deadline misses [%], round trip [µs]."""
+        rtt = np.asarray(self.rtt_s) * 1e6
+        return {
+            "steps": self.steps,
+            "rate_hz": round(self.steps / self.wall_s, 1) if self.wall_s > 0 else 0.0,
+            "deadline_miss_pct": round(100.0 * self.misses / self.steps, 3) if self.steps else 0.0,
+            "rtt_median_us": round(float(np.median(rtt)), 1) if rtt.size else None,
+            "rtt_p99_us": round(float(np.percentile(rtt, 99)), 1) if rtt.size else None,
+            "commands": int(rtt.size),
+            "late_commands": self.late,
+            "rejected_commands": self.rejected,
+            "invalid_commands": self.invalid,
+            "fallback_steps": self.fallbacks,
+        }
+
+
+def state_message(run_id: str, step: int, time_s: float, s: PlantSample, power_w: float, speed_m_s: float,
+                  source: str) -> MeltPoolState:
+    """SI sample → contract message (mm², mm, mm/s at this edge)."""
+    return MeltPoolState(
+        run_id=run_id, step=step, time_s=time_s, laser_x_mm=s.x_m * 1e3, laser_y_mm=s.y_m * 1e3,
+        scan_dir_x=s.direction[0], scan_dir_y=s.direction[1], track=s.track, area_mm2=s.area_m2 * 1e6,
+        t_ahead_k=s.t_ahead_k, power_w=power_w, speed_mm_s=speed_m_s * 1e3, source=source,  # type: ignore[arg-type]
+    )
+
+
+def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: FreeRunSettings, stop: StopFlag,
+             source: str) -> FreeRunStats:
+    """Publish states at ``settings.rate_hz`` until the step/time limit or a stop; apply the newest command.
+
+    The node must have announced readiness (``bus.ready``) before; the loop never blocks on
+    the controller. Ticks follow a fixed schedule; an overrun by more than one period restarts
+    it from now (no burst to catch up). The achieved rate is reported.
+    """
+    states = bus.publisher(PLANT_STATE)
+    diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
+    inbox = bus.inbox(LASER_COMMAND)
+    period = 1.0 / settings.rate_hz
+    sample = plant.initial()
+    power, speed = latch.power_w, latch.speed_m_s
+    step = misses = 0
+    started = next_tick = time.monotonic()
+    states.put(state_message(bus.run_id, 0, 0.0, sample, power, speed, source))
+    latch.published(0, time.monotonic())
+    end_t = None if settings.duration_s is None else started + settings.duration_s
+    while not stop.is_set() and (settings.max_steps is None or step < settings.max_steps):
+        next_tick += period
+        if next_tick < time.monotonic() - period:  # overrun by more than a period: restart the schedule
+            next_tick = time.monotonic()
+        if end_t is not None and next_tick > end_t:
+            break
+        while (remaining := next_tick - time.monotonic()) > 0:
+            cmd = inbox.get(timeout=remaining)
+            if cmd is not None:
+                latch.offer(cmd, time.monotonic())
+        for cmd in inbox.drain():
+            latch.offer(cmd, time.monotonic())
+        step += 1
+        now = time.monotonic()
+        power, speed, command_source = latch.command_for(now, started)
+        misses += latch.missed(step)
+        sample = plant.step(power, speed, period)
+        states.put(state_message(bus.run_id, step, step * period, sample, power, speed, source))
+        latch.published(step, time.monotonic())
+        if step % settings.diagnostics_every == 0:
+            diagnostics.put(PlantDiagnostics(
+                run_id=bus.run_id, step=step, time_s=step * period, step_wall_ms=(time.monotonic() - now) * 1e3,
+                n_fallbacks=latch.n_fallbacks, n_stale_commands=latch.n_late,
+                n_dropped=latch.n_rejected + inbox.n_invalid, command_source=command_source,
+            ))
+    wall = time.monotonic() - started
+    for cmd in inbox.drain():  # count what is still queued
+        latch.offer(cmd, time.monotonic())
+    stats = FreeRunStats(step, wall, misses, latch.n_late, latch.n_rejected, inbox.n_invalid, latch.n_fallbacks,
+                         tuple(latch.rtt_s))
+    bus.log(LogLevel.INFO, f"{'stopped' if stop.is_set() else 'finished'} after {step} steps in {wall:.2f} s; "
+            f"{misses} deadline misses, {latch.n_rejected} rejected, {inbox.n_invalid} invalid commands, "
+            f"{latch.n_fallbacks} fallback steps", time_s=step * period)
+    return stats
+
+
+def add_free_run_arguments(parser: argparse.ArgumentParser, rate_hz: float) -> None:
+    """Options of every free-running plant: rate, limits, command bounds and fallback."""
+    parser.add_argument("--rate-hz", type=float, default=rate_hz, help="publish rate [Hz] (default: %(default)s)")
+    parser.add_argument("--max-steps", type=int, help="stop after this many steps")
+    parser.add_argument("--duration-s", type=float, help="stop after this wall time [s]")
+    parser.add_argument("--diagnostics-every", type=int, default=100, help="PlantDiagnostics every N steps")
+    parser.add_argument("--power-w", type=float, default=250.0, help="power until the first command [W]")
+    parser.add_argument("--speed-mm-s", type=float, default=800.0, help="speed until the first command [mm/s]")
+    parser.add_argument("--power-min-w", type=float, default=0.0, help="lowest power ever applied [W]")
+    parser.add_argument("--power-max-w", type=float, default=350.0, help="highest power ever applied [W]")
+    parser.add_argument("--command-timeout-s", type=float, default=0.5, help="fallback after this long without commands [s]")
+    parser.add_argument("--fallback", choices=("hold", "safe"), default="safe", help="hold the last power or apply --safe-power-w")
+    parser.add_argument("--safe-power-w", type=float, default=0.0, help="power of the 'safe' fallback [W]")
+    parser.add_argument("--require", action="append", default=[], metavar="NODE", help="wait for these nodes before publishing")
+    parser.add_argument("--json", action="store_true", help="print the timing summary as JSON (last line)")
+
+
+def settings_from_args(args: argparse.Namespace) -> tuple[FreeRunSettings, CommandPolicy]:
+    """Validated settings and command policy (raises :class:`UsageError`)."""
+    settings = FreeRunSettings(args.rate_hz, args.max_steps, args.duration_s, args.diagnostics_every)
+    policy = CommandPolicy(args.power_min_w, args.power_max_w, timeout_s=args.command_timeout_s,
+                           fallback=args.fallback, safe_power_w=args.safe_power_w)
+    probe = LaserCommand(run_id="x", step=0, time_s=0.0, power_w=max(args.power_w, 0.0),
+                         speed_mm_s=max(args.speed_mm_s, 1e-9), controller="initial")
+    if not (args.power_w >= 0 and args.speed_mm_s > 0 and policy.accepts(probe)):
+        raise UsageError("--power-w/--speed-mm-s must lie within the command bounds")
+    return settings, policy
+
+
+def serve(node: str, plant: FreePlant, bus_settings: BusSettings, args: argparse.Namespace,
+          settings: FreeRunSettings, policy: CommandPolicy, config: dict, source: str) -> int:
+    """Open the bus as ``node``, wait for ``--require``, announce readiness, run; exit status."""
+    stop = StopFlag()
+    latch = CommandLatch(policy, args.power_w, args.speed_mm_s * 1e-3)
+    with NodeBus(node, bus_settings) as bus:
+        bus.wait_for_nodes(args.require, stop, timeout_s=60.0)
+        bus.ready(config={**config, "rate_hz": settings.rate_hz, "policy": vars(policy)}, total_steps=settings.max_steps)
+        stats = run_free(bus, plant, latch, settings, stop, source)
+        summary = stats.summary()
+        bus.end_detail(json.dumps(summary))
+    if args.json:
+        print(json.dumps(summary), flush=True)
+    return 0
