@@ -16,7 +16,9 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m fe_node", description="meltloop FE plant (scikit-fem).")
+    p = _Parser(prog="python -m fe_node", description="meltloop FE plant (scikit-fem). "
+                "Without a subcommand (or with 'node') the zenoh node starts: "
+                "python -m fe_node node --help.")
     sub = p.add_subparsers(dest="command", parser_class=_Parser)
     r = sub.add_parser("run", help="run a scenario open loop and print the melt pool")
     r.add_argument("--scenario", default="single-track", choices=NAMES, metavar="NAME",
