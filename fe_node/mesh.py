@@ -91,11 +91,6 @@ class Grid:
         return int(np.prod(self.shape))
 
     @property
-    def h_min(self) -> float:
-        """Smallest element edge [m]."""
-        return float(min(np.diff(a).min() for a in (self.xs, self.ys, self.zs)))
-
-    @property
     def solver_shape(self) -> tuple[int, int, int]:
         """Storage shape (ny, nz, nx) of solver fields."""
         return (len(self.ys), len(self.zs), len(self.xs))
