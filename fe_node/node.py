@@ -131,8 +131,8 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, policy: CommandPo
     bus.ready(config={**describe(scenario), "policy": vars(policy), "open_loop": args.open_loop,
                       "setup_s": round(setup_s, 3), "nodes": model.grid.n_nodes}, total_steps=total)
     bus.log(LogLevel.INFO, f"{scenario.name}: {total} steps, {model.grid.n_nodes} nodes, setup {setup_s:.1f} s")
-    obs = model.initial_observation()
     power_w, speed_m_s = scenario.profile.command(0)
+    obs = dataclasses.replace(model.initial_observation(), speed_m_s=speed_m_s)  # laser off, about to scan at v
     n_fallbacks = 0
     status = 0
     t_min, t_max = scenario.settings.t0_k, scenario.settings.material.t_liquidus + 600.0

@@ -136,7 +136,8 @@ class RunTracker:
         return {t: n - recorded[t] for t, n in self.published.items() if recorded[t] < n}
 
 
-def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTracker, drain_s: float) -> int:
+def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTracker, drain_s: float,
+           config: dict[str, Any]) -> int:
     """Receive everything under the run's prefix until the run ends; returns the exit status."""
     inbox: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
     assert bus.session is not None
@@ -145,7 +146,7 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
         lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes(), time.time_ns())),
     )
     bus._declared.append(sub)
-    bus.ready()
+    bus.ready(config=config)
     invalid: Counter[str] = Counter()
     unknown = 0
     last_time_s = 0.0
@@ -174,8 +175,9 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
             continue
         recorder.write(topic, payload, msg, wall_ns)
         last_time_s = max(last_time_s, log_time_ns(msg) / 1e9)
-        if topic is RUN_EVENTS and msg.node != NODE_NAME:
-            tracker.on_event(msg)
+        if topic is RUN_EVENTS:
+            if msg.node != NODE_NAME:
+                tracker.on_event(msg)
             if msg.event == "start" and msg.config_json:
                 recorder.attach(f"config/{msg.node}.json", msg.config_json.encode())
     missing = tracker.missing(recorder.recorded)
@@ -229,7 +231,8 @@ def main(argv: list[str] | None = None) -> int:
     recorder = McapRecorder(path, settings.run_id)
     try:
         with NodeBus(NODE_NAME, settings) as bus:
-            return record(recorder, bus, stop, RunTracker(tuple(args.expect)), args.drain_s)
+            config = {"out": str(path), "expect": args.expect, "drain_s": args.drain_s}
+            return record(recorder, bus, stop, RunTracker(tuple(args.expect)), args.drain_s, config)
     finally:
         recorder.finish({"complete": "false", "stopped_by": "error"})
 

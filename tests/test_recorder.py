@@ -52,7 +52,7 @@ def test_recorder_records_everything_published(tmp_path, hub, run_id):
     meta = metadata(out)
     assert meta["meltloop"]["run_id"] == run_id
     assert json.loads(meta["meltloop.counts"]["recorded"])["plant/state"] == 200
-    assert run_config(out) == {"tester": {"purpose": "test"}}
+    assert run_config(out)["tester"] == {"purpose": "test"}
 
 
 def test_recorder_finishes_file_on_sigint(tmp_path, hub, run_id):

@@ -1,0 +1,77 @@
+"""The closed loop end to end through ``launch.py``: real processes, zenoh, FE plant, MCAP."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from messages.recording import is_complete, metadata, read_messages, run_config
+from tests.conftest import REPO
+from tests.test_recorder import validate_recording
+
+
+def run_launch(*args: str, timeout: float = 240) -> tuple[int, str]:
+    proc = subprocess.run([sys.executable, "launch.py", "--no-progress", *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=timeout)
+    return proc.returncode, proc.stdout + proc.stderr
+
+
+def test_short_mpc_run_is_complete_valid_and_reported(tmp_path):
+    out = tmp_path / "e2e.mcap"
+    status, output = run_launch("--controller", "mpc", "--max-steps", "200", "--h-um", "40", "--out", str(out), "--json")
+    assert status == 0, output
+    summary = json.loads(output.strip().splitlines()[-1])
+    assert summary["steps"] == 200 and summary["recording"] == str(out)
+    for key in ("overshoot_pct", "undershoot_pct", "steady_rmse_pct", "wall_s"):
+        assert isinstance(summary[key], float)
+
+    # Every message valid against its channel's JSON Schema, and nothing published is missing.
+    assert is_complete(out)
+    counts = validate_recording(out)
+    meta = metadata(out)["meltloop.counts"]
+    published, recorded = json.loads(meta["published"]), json.loads(meta["recorded"])
+    assert all(recorded[topic] >= n for topic, n in published.items()), (published, recorded)
+    assert counts["/plant/state"] == 201 and counts["/controller/command"] == 201  # one answer per state
+    assert counts["/plant/temperature"] >= 20 and counts["/log"] >= 2
+    states = list(read_messages(out, "/plant/state"))
+    commands = {c.step: c for c in read_messages(out, "/controller/command")}
+    assert all(s.power_w == commands[s.step].power_w for s in states[1:])  # the plant applied what was commanded
+    assert all(0.0 <= c.power_w <= 350.0 for c in commands.values())
+    assert set(run_config(out)) == {"recorder", "controller", "plant"}
+
+    # The report command reads the recording back.
+    figure = tmp_path / "fig5.png"
+    proc = subprocess.run([sys.executable, "-m", "controller_node.report", str(out), "--figure", str(figure), "--json"],
+                          cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["steady_rmse_pct"] == summary["steady_rmse_pct"] or abs(report["steady_rmse_pct"] - summary["steady_rmse_pct"]) < 0.01
+    assert figure.stat().st_size > 10_000
+
+
+def test_open_loop_profile_run(tmp_path):
+    out = tmp_path / "case2.mcap"
+    status, output = run_launch("--scenario", "table2-case2", "--controller", "none", "--max-steps", "60", "--h-um", "40",
+                                "--out", str(out), "--json")
+    assert status == 0, output
+    powers = [s.power_w for s in read_messages(out, "/plant/state")][1:]
+    assert len(powers) == 60 and max(powers) - min(powers) > 10  # the sinusoidal power profile is played
+
+
+def test_same_config_gives_the_same_recording(tmp_path):
+    traces = []
+    for name in ("a", "b"):
+        out = tmp_path / f"{name}.mcap"
+        status, output = run_launch("--controller", "pid", "--max-steps", "40", "--h-um", "40", "--out", str(out))
+        assert status == 0, output
+        traces.append([(s.step, s.area_mm2, s.power_w, s.t_ahead_k) for s in read_messages(out, "/plant/state")])
+    assert traces[0] == traces[1]
+
+
+def test_bad_options_exit_2_with_one_line():
+    for args in (["--scenario", "nope"], ["--controller", "bang-bang"], ["--setpoint-mm2", "-1"], ["--max-steps", "0"],
+                 ["--config", "/nonexistent.toml"]):
+        status, output = run_launch(*args, timeout=60)
+        assert status == 2, (args, output)
+        assert output.strip().count("\n") == 0, (args, output)
