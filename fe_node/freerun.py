@@ -80,13 +80,22 @@ class FreeRunSettings:
     duration_s : float or None
         Stop after this wall time [s] (``None``: no limit).
     diagnostics_every : int
-        Publish ``PlantDiagnostics`` every N steps (and at the end).
+        Publish ``PlantDiagnostics`` every N steps.
+    dt_s : float or None
+        Process time per step [s] (``None``: the wall period ``1 / rate_hz``, as a sensor;
+        a model with its own time step, e.g. the GP surrogate, sets it).
     """
 
     rate_hz: float = 1000.0
     max_steps: int | None = None
     duration_s: float | None = None
     diagnostics_every: int = 100
+    dt_s: float | None = None
+
+    @property
+    def step_s(self) -> float:
+        """Process time per step [s]."""
+        return self.dt_s if self.dt_s is not None else 1.0 / self.rate_hz
 
     def __post_init__(self) -> None:
         if not 0 < self.rate_hz <= 100_000:
@@ -97,6 +106,8 @@ class FreeRunSettings:
             raise UsageError("--duration-s must be > 0")
         if self.diagnostics_every < 1:
             raise UsageError("--diagnostics-every must be >= 1")
+        if self.dt_s is not None and not 0 < self.dt_s < 1:
+            raise UsageError(f"process time step must be in (0, 1) s, got {self.dt_s}")
 
 
 @dataclass
@@ -212,7 +223,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     states = bus.publisher(PLANT_STATE)
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
     inbox = bus.inbox(LASER_COMMAND)
-    period = 1.0 / settings.rate_hz
+    period, dt = 1.0 / settings.rate_hz, settings.step_s
     sample = plant.initial()
     power, speed = latch.power_w, latch.speed_m_s
     step = misses = 0
@@ -236,12 +247,12 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
         now = time.monotonic()
         power, speed, command_source = latch.command_for(now, started)
         misses += latch.missed(step)
-        sample = plant.step(power, speed, period)
-        states.put(state_message(bus.run_id, step, step * period, sample, power, speed, source))
+        sample = plant.step(power, speed, dt)
+        states.put(state_message(bus.run_id, step, step * dt, sample, power, speed, source))
         latch.published(step, time.monotonic())
         if step % settings.diagnostics_every == 0:
             diagnostics.put(PlantDiagnostics(
-                run_id=bus.run_id, step=step, time_s=step * period, step_wall_ms=(time.monotonic() - now) * 1e3,
+                run_id=bus.run_id, step=step, time_s=step * dt, step_wall_ms=(time.monotonic() - now) * 1e3,
                 n_fallbacks=latch.n_fallbacks, n_stale_commands=latch.n_late,
                 n_dropped=latch.n_rejected + inbox.n_invalid, command_source=command_source,
             ))
@@ -252,7 +263,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
                          tuple(latch.rtt_s))
     bus.log(LogLevel.INFO, f"{'stopped' if stop.is_set() else 'finished'} after {step} steps in {wall:.2f} s; "
             f"{misses} deadline misses, {latch.n_rejected} rejected, {inbox.n_invalid} invalid commands, "
-            f"{latch.n_fallbacks} fallback steps", time_s=step * period)
+            f"{latch.n_fallbacks} fallback steps", time_s=step * dt)
     return stats
 
 
@@ -273,9 +284,12 @@ def add_free_run_arguments(parser: argparse.ArgumentParser, rate_hz: float) -> N
     parser.add_argument("--json", action="store_true", help="print the timing summary as JSON (last line)")
 
 
-def settings_from_args(args: argparse.Namespace) -> tuple[FreeRunSettings, CommandPolicy]:
-    """Validated settings and command policy (raises :class:`UsageError`)."""
-    settings = FreeRunSettings(args.rate_hz, args.max_steps, args.duration_s, args.diagnostics_every)
+def settings_from_args(args: argparse.Namespace, dt_s: float | None = None) -> tuple[FreeRunSettings, CommandPolicy]:
+    """Validated settings (process step ``dt_s`` [s], ``None``: the wall period) and command policy.
+
+    Raises :class:`UsageError`.
+    """
+    settings = FreeRunSettings(args.rate_hz, args.max_steps, args.duration_s, args.diagnostics_every, dt_s)
     policy = CommandPolicy(args.power_min_w, args.power_max_w, timeout_s=args.command_timeout_s,
                            fallback=args.fallback, safe_power_w=args.safe_power_w)
     probe = LaserCommand(run_id="x", step=0, time_s=0.0, power_w=max(args.power_w, 0.0),
