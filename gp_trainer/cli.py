@@ -29,6 +29,9 @@ PROG = "python -m gp_trainer"
 DEFAULT_DATASET = Path("out/gp/dataset.npz")
 DEFAULT_RECORDINGS = Path("recordings/campaign")
 DEFAULT_PLOTS = Path("out/gp")
+FE_SOURCE = "FE campaign: finite-element plant (fe_node) recordings, see dataset.recordings"
+RECORDED_SOURCE = "recordings whose plant is not identified as the FE node, see dataset.recordings"
+SYNTHETIC_SOURCE = "synthetic stand-in plant (gp_trainer.synthetic), NOT FE data"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -59,6 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the point selection and optimiser restarts")
     p.add_argument("--n-train", type=int, default=100, help="training points")
     p.add_argument("--restarts", type=int, default=DEFAULT_RESTARTS, help="optimiser starts")
+    p.add_argument("--selection", choices=("variance", "maximin"), default="variance",
+                   help="training-point design: integrated-variance reduction after a maximin pilot fit, or maximin alone")
 
     p = sub.add_parser("evaluate", formatter_class=fmt, help="validate a model on the held-out samples")
     p.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH, help="model file")
@@ -82,6 +87,14 @@ def _case_number(path: Path) -> tuple[int, str]:
     return (int(match.group(1)) if match else sys.maxsize, path.name)
 
 
+def _recorded_source(recordings: list[dict]) -> str:
+    """:data:`FE_SOURCE` if every recording's plant config is the FE node's (it has a mesh), else generic."""
+    def is_fe(info: dict) -> bool:
+        plant = (info.get("config") or {}).get("plant") or {}
+        return isinstance(plant, dict) and "nodes" in plant and "settings" in plant
+    return FE_SOURCE if recordings and all(is_fe(r) for r in recordings) else RECORDED_SOURCE
+
+
 def _dataset(args: argparse.Namespace) -> int:
     from gp_trainer import dataset, synthetic
 
@@ -94,6 +107,7 @@ def _dataset(args: argparse.Namespace) -> int:
             raise DatasetError("give recordings or --synthetic, not both")
         sources = {f"table2-case{c}": synthetic.table2_case(c, noise_rel=0.002, seed=c) for c in range(1, 10)}
         recordings = [{"name": "synthetic stand-in plant (gp_trainer.synthetic), NOT FE data", "noise_rel": 0.002}]
+        data_source = SYNTHETIC_SOURCE
     else:
         paths = args.recordings or sorted(args.recordings_dir.glob("table2-case*.mcap"), key=_case_number)
         paths = [p for p in paths if not p.name.endswith(".partial.mcap")]
@@ -101,13 +115,14 @@ def _dataset(args: argparse.Namespace) -> int:
             raise DatasetError(f"no recordings given and none in {args.recordings_dir} (run `{PROG} campaign`)")
         sources = {p.stem: dataset.read_states(p) for p in paths}
         recordings = [dataset.recording_info(p) for p in paths]
+        data_source = _recorded_source(recordings)
     for name, states in sources.items():
         samples, report = dataset.build_samples(states, name, settings)
         parts.append(samples)
         reports.append(report)
         print(report.summary())
     samples = dataset.concatenate(parts, settings)
-    meta = {"recordings": recordings, "reports": [asdict(r) for r in reports], "settings": asdict(settings)}
+    meta = {"data_source": data_source, "recordings": recordings, "reports": [asdict(r) for r in reports], "settings": asdict(settings)}
     out = dataset.save_samples(args.out, samples, meta)
     dropped = sum(r.dropped_startup + r.dropped_no_pool + r.dropped_gap for r in reports)
     print(f"{len(samples)} samples from {len(reports)} sources ({dropped} pairs dropped) -> {out}")
@@ -122,7 +137,8 @@ def _train(args: argparse.Namespace) -> int:
         raise DatasetError("--n-train must be at least 10 and --restarts at least 1")
     samples, meta = load_samples(args.dataset)
     meta = {**meta, "file": args.dataset.name}
-    model = train(samples, meta, TrainSettings(n_train=args.n_train, seed=args.seed, n_restarts=args.restarts))
+    model = train(samples, meta, TrainSettings(n_train=args.n_train, seed=args.seed, n_restarts=args.restarts,
+                                               selection=args.selection))
     out = model.save(args.out)
     print(f"{model} log ML = {model.log_marginal_likelihood:.3f} -> {out}")
     return 0
