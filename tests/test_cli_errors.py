@@ -1,0 +1,64 @@
+"""Bad command-line values for every entry point: exit status 2 and one line on stderr."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import REPO
+
+CASES = [
+    # launch.py
+    (["launch.py", "--controller", "bogus"], "unknown controller"),
+    (["launch.py", "--setpoint-mm2", "-1"], "--setpoint-mm2 must be in"),
+    (["launch.py", "--max-steps", "0"], "--max-steps must be >= 1"),
+    (["launch.py", "--scenario", "nope"], "unknown scenario"),
+    (["launch.py", "--config", "missing.toml"], "config file not found"),
+    (["launch.py", "--run-id", "bad id"], "invalid run id"),
+    (["launch.py", "--hub", "nonsense"], "invalid zenoh endpoint"),
+    (["launch.py", "--max-steps", "x"], "invalid int value"),
+    # the FE plant node
+    (["-m", "fe_node", "--max-steps", "0"], "--max-steps must be >= 1"),
+    (["-m", "fe_node", "--command-timeout-s", "0"], "--command-timeout-s must be > 0"),
+    (["-m", "fe_node", "--power-min-w", "300", "--power-max-w", "200"], "power bounds"),
+    (["-m", "fe_node", "--safe-power-w", "999"], "--safe-power-w must lie within"),
+    (["-m", "fe_node", "--fallback", "panic"], "invalid choice"),
+    (["-m", "fe_node", "--connect", "tcp"], "invalid zenoh endpoint"),
+    (["-m", "fe_node", "--zenoh-config", "missing.json5"], "zenoh config file not found"),
+    # controller node
+    (["-m", "controller_node", "--controller", "bogus"], "invalid choice"),
+    (["-m", "controller_node", "--run-id=_x"], "invalid run id"),
+    (["-m", "controller_node", "--config", "missing.toml"], "config file not found"),
+    (["-m", "controller_node", "--setpoint-mm2", "nan"], "must be a finite number"),
+    # recorder
+    (["-m", "messages.recorder", "--out", "x.txt"], "--out must name a .mcap file"),
+    (["-m", "messages.recorder", "--drain-s", "-1"], "--drain-s must be >= 0"),
+    # example sensor, surrogate (free-running plants)
+    (["-m", "fe_node.example_sensor", "--rate-hz", "0"], "--rate-hz must be in"),
+    (["-m", "fe_node.example_sensor", "--rate-hz", "1e9"], "--rate-hz must be in"),
+    (["-m", "fe_node.example_sensor", "--max-steps", "0"], "--max-steps must be >= 1"),
+    (["-m", "fe_node.example_sensor", "--duration-s", "0"], "--duration-s must be > 0"),
+    (["-m", "fe_node.example_sensor", "--power-w", "500"], "must lie within the command bounds"),
+    (["-m", "fe_node.example_sensor", "--command-timeout-s", "-1"], "--command-timeout-s must be > 0"),
+    (["-m", "fe_node.surrogate", "--rate-hz", "-5"], "--rate-hz must be in"),
+    (["-m", "fe_node.surrogate", "--model", "missing.json"], "cannot load GP model"),
+    (["-m", "fe_node.surrogate", "--speed-mm-s", "0"], "must lie within the command bounds"),
+    # replay
+    (["-m", "fe_node.replay", "missing.mcap"], "recording not found"),
+    (["-m", "fe_node.replay", "README.md", "--rate-scale", "-1"], "--rate-scale must be finite and > 0"),
+    (["-m", "fe_node.replay"], "the following arguments are required"),
+    # offline tools
+    (["-m", "fe_node", "run", "--scenario", "nope"], ""),
+    (["-m", "gp_trainer", "train", "--restarts", "-1"], ""),
+    (["-m", "gp_trainer", "bogus"], "invalid choice"),
+]
+
+
+@pytest.mark.parametrize("argv, message", CASES, ids=[" ".join(a) for a, _ in CASES])
+def test_bad_value_exits_2_with_one_line(argv, message):
+    run = subprocess.run([sys.executable, *argv], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2, run.stdout + run.stderr
+    lines = run.stderr.splitlines()
+    assert len(lines) == 1 and "error" in lines[0] and message in lines[0], run.stderr
