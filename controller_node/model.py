@@ -13,7 +13,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["DynamicsModel", "Linearisation", "linearise"]
+__all__ = ["DynamicsModel", "Linearisation", "guard", "linearise"]
 
 
 @runtime_checkable
@@ -81,3 +81,29 @@ def linearise(model: DynamicsModel, z0: np.ndarray) -> Linearisation | None:
     if not (math.isfinite(f0) and math.isfinite(a) and math.isfinite(b) and math.isfinite(e)):
         return None
     return Linearisation(z0=z0, f0=f0, a=a, b=b, e=e)
+
+
+def guard(lin: Linearisation, a_max: float, b_min: float) -> Linearisation:
+    """Clip a linearisation to the physical prior: ``a <= a_max``, ``b >= b_min``.
+
+    The affine term ``f0`` and the operating point are kept, so the guarded model
+    still passes through the model's own one-step prediction at ``z0``.
+
+    Parameters
+    ----------
+    lin : Linearisation
+        Raw linearisation.
+    a_max : float
+        Upper bound of ``∂f/∂x`` (an open-loop stable pool: < 1).
+    b_min : float
+        Lower bound of ``∂f/∂p`` [m²/W] (more power, larger pool: > 0).
+
+    Returns
+    -------
+    Linearisation
+        ``lin`` itself when nothing is clipped.
+    """
+    a, b = min(lin.a, a_max), max(lin.b, b_min)
+    if a == lin.a and b == lin.b:
+        return lin
+    return Linearisation(z0=lin.z0, f0=lin.f0, a=a, b=b, e=lin.e)

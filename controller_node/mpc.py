@@ -15,8 +15,8 @@ import numpy as np
 
 from .base import Controller, Proposal
 from .feedforward import temperature_feedforward_w
-from .model import DynamicsModel, Linearisation, linearise
-from .qp import QPBackend, build_qp_data
+from .model import DynamicsModel, Linearisation, guard, linearise
+from .qp import _MAX_STATE_GAIN, QPBackend, build_qp_data, power_scale_w
 from .settings import ControllerSettings
 from .types import Measurement
 
@@ -83,38 +83,53 @@ class MPCController(Controller):
         """Forget history, including the disturbance estimate and the last linearisation."""
         super().reset()
         self._previous: tuple[Measurement, Linearisation] | None = None
+        self._feedforward_w = 0.0  # feed-forward included in the last command
         self.disturbance_m2 = 0.0
 
     def _propose(self, m: Measurement) -> Proposal:
         s = self.settings
         mpc = s.mpc
-        p0 = min(max(m.power_w, s.power_min_w), s.power_max_w)
-        z0 = np.array([m.area_m2, m.t_ahead_k, p0, m.speed_m_s])
-        lin = linearise(self.model, z0)
-        if lin is None:
-            return Proposal(math.nan, status="model_error")
+        ff = mpc.feedforward
         previous = self._previous if self._previous is not None and self._previous[0].step == m.step - 1 else None
+        # the power the MPC planned for the step just applied: applied minus its feed-forward
+        applied = min(max(m.power_w, s.power_min_w), s.power_max_w)
+        planned_prev = applied - (self._feedforward_w if previous is not None else 0.0)
+        feedforward = 0.0
+        t_lin = m.t_ahead_k
+        raw = None
+        if ff.enabled:
+            t_prev = previous[0].t_ahead_k if previous is not None else m.t_ahead_k
+            gain = ff.gain_w_per_k
+            if gain is None:
+                raw = linearise(self.model, np.array([m.area_m2, m.t_ahead_k, min(max(planned_prev, s.power_min_w),
+                                                      s.power_max_w), m.speed_m_s]))
+                if raw is None:
+                    return Proposal(math.nan, status="model_error")
+                gain = raw.temperature_gain_w_per_k()
+            feedforward = temperature_feedforward_w(ff, gain, m.t_ahead_k, t_prev)
+            # with the direct term the plant seen by the MPC behaves as at T_ref (to first order)
+            t_lin = m.t_ahead_k - ff.direct_gain * (m.t_ahead_k - ff.reference_temperature_k)
+        p0 = min(max(planned_prev, s.power_min_w), s.power_max_w)
+        z0 = np.array([m.area_m2, t_lin, p0, m.speed_m_s])
+        lin = raw if raw is not None and t_lin == m.t_ahead_k else linearise(self.model, z0)
+        if lin is None or not abs(lin.a) <= _MAX_STATE_GAIN:
+            return Proposal(math.nan, status="model_error")
+        lin = guard(lin, mpc.state_gain_max, mpc.power_gain_min_m2_per_w)
         if previous is not None and mpc.disturbance_gain > 0.0:
             prev_lin = previous[1]
-            predicted = prev_lin.f0 + prev_lin.b * (m.power_w - prev_lin.z0[2])
+            predicted = prev_lin.f0 + prev_lin.b * (planned_prev - prev_lin.z0[2])
             self.disturbance_m2 += mpc.disturbance_gain * (m.area_m2 - predicted - self.disturbance_m2)
         self._previous = (m, lin)
 
-        data = build_qp_data(lin, m.area_m2, m.power_w, self.disturbance_m2, s)
+        data = build_qp_data(lin, m.area_m2, planned_prev, self.disturbance_m2, s, feedforward)
         if data is None:
             return Proposal(math.nan, status="model_error")
         sol = self.backend.solve(data)
         if sol.status != "solved":
             return Proposal(math.nan, status=f"solver_failed:{sol.status}")
 
-        feedforward = 0.0
-        ff = mpc.feedforward
-        if ff.enabled:
-            t_prev = previous[0].t_ahead_k if previous is not None else m.t_ahead_k
-            gain = ff.gain_w_per_k if ff.gain_w_per_k is not None else lin.temperature_gain_w_per_k()
-            feedforward = temperature_feedforward_w(ff, gain, m.t_ahead_k, t_prev)
-        p_scale = s.power_max_w - s.power_min_w
-        plan = data.p_ref_w + p_scale * sol.u + feedforward
+        self._feedforward_w = feedforward
+        plan = data.p_ref_w + power_scale_w(s) * sol.u + feedforward
         areas = s.set_point_m2 * (1.0 + sol.e)
         std = None
         if mpc.report_model_std:
@@ -126,6 +141,6 @@ class MPCController(Controller):
             predicted_area_m2=tuple(areas.tolist()),
             model_std_m2=std,
             feedforward_w=feedforward,
-            reference_power_w=data.p_ref_w,
+            reference_power_w=data.p_ref_w + feedforward,
             iterations=sol.iterations,
         )

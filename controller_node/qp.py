@@ -3,12 +3,13 @@
 Scaling (chosen so that Table 3's ``Q = 1, R = 0.1, Q_f = 20`` are meaningful):
 
 * state  ``e = (x − x_sp) / x_sp``       — relative melt-pool area error [-];
-* input  ``u = (p − p_ref) / (p_u − p_l)`` — power as a fraction of its range [-].
+* input  ``u = (p − p_ref) / P`` — power as a fraction of ``P`` = ``mpc.power_scale_w``
+  (default ``p_u − p_l``, the power range) [-].
 
 With the affine linearisation (eq. 8 plus the offset ``f0``) held over the horizon and
 the temperature held at ``T[k]``, the prediction model is ::
 
-    e[i+1] = a·e[i] + β·u[i] + g,   β = b·(p_u − p_l)/x_sp,
+    e[i+1] = a·e[i] + β·u[i] + g,   β = b·P/x_sp,
     g = (f0 − a·x0 − b·p0 + d̂ + a·x_sp + b·p_ref − x_sp) / x_sp
 
 (``d̂`` is the optional output-disturbance estimate).  ``p_ref`` is the model's
@@ -36,7 +37,7 @@ import numpy as np
 from .model import Linearisation
 from .settings import ControllerSettings
 
-__all__ = ["QPData", "QPSolution", "QPBackend", "build_qp_data", "qp_constants"]
+__all__ = ["QPData", "QPSolution", "QPBackend", "build_qp_data", "power_scale_w", "qp_constants"]
 
 _MIN_GAIN_M2_PER_W = 1e-16  # b below this (1e-10 mm²/W) means power has no usable effect
 _MAX_NORMALISED = 1e6  # larger normalised coefficients mean a broken model/measurement
@@ -101,12 +102,19 @@ class QPBackend(Protocol):
         ...
 
 
+def power_scale_w(settings: ControllerSettings) -> float:
+    """Power normalisation [W]: ``mpc.power_scale_w``, default ``p_u − p_l``."""
+    scale = settings.mpc.power_scale_w
+    return settings.power_max_w - settings.power_min_w if scale is None else scale
+
+
 def build_qp_data(
     lin: Linearisation,
     area_m2: float,
     applied_power_w: float,
     disturbance_m2: float,
     settings: ControllerSettings,
+    power_offset_w: float = 0.0,
 ) -> QPData | None:
     """Normalise one step's linearisation into :class:`QPData`.
 
@@ -122,6 +130,11 @@ def build_qp_data(
         Output-disturbance estimate ``d̂`` added to every prediction [m²].
     settings : ControllerSettings
         Set point, power bounds.
+    power_offset_w : float
+        Power added to the planned power outside the QP (the temperature
+        feed-forward ``Δp_ff``): the QP plans ``p̃ = p − Δp_ff`` within
+        ``[p_l − Δp_ff, p_u − Δp_ff]``; ``applied_power_w`` and ``lin.z0[2]`` are in
+        the same (compensated) units.
 
     Returns
     -------
@@ -131,8 +144,8 @@ def build_qp_data(
         the condensed QP).
     """
     x_sp = settings.set_point_m2
-    p_lo, p_hi = settings.power_min_w, settings.power_max_w
-    p_scale = p_hi - p_lo
+    p_lo, p_hi = settings.power_min_w - power_offset_w, settings.power_max_w - power_offset_w
+    p_scale = power_scale_w(settings)
     x0, p0 = float(lin.z0[0]), float(lin.z0[2])
     c = lin.f0 - lin.a * x0 - lin.b * p0 + disturbance_m2
     if lin.b > _MIN_GAIN_M2_PER_W:
@@ -166,7 +179,7 @@ def qp_constants(settings: ControllerSettings) -> dict[str, float]:
         ``e_lo, e_hi`` (soft area bounds in ``e``), ``du_lo, du_hi`` (rate bounds in ``u``).
     """
     x_sp = settings.set_point_m2
-    p_scale = settings.power_max_w - settings.power_min_w
+    p_scale = power_scale_w(settings)
     m = settings.mpc
     return {
         "e_lo": (m.area_min_m2 - x_sp) / x_sp,

@@ -96,7 +96,9 @@ def test_registry_rejects_unknown_name_and_missing_model() -> None:
         make_controller("lqr")
     with pytest.raises(ValueError, match="needs a model"):
         make_controller("mpc", ControllerSettings())
-    with pytest.raises(ValueError):
-        make_controller("feedforward", ControllerSettings())
+    with pytest.raises(ValueError):  # no fixed gain and no model to derive it from
+        make_controller("feedforward", ControllerSettings(
+            feedforward=FeedForwardSettings(enabled=True, direct_gain=1.0, differential_gain=0.0)))
+    assert make_controller("feedforward", ControllerSettings()).name == "feedforward"  # fixed FE gain by default
     assert make_controller("feedforward", ControllerSettings(
         feedforward=FeedForwardSettings(enabled=True, direct_gain=1.0, gain_w_per_k=-0.1))).name == "feedforward"
