@@ -15,12 +15,12 @@ import sys
 import pytest
 
 from messages.recording import metadata, read_messages
-from tests.conftest import REPO
+from tests.conftest import REPO, finish
 
 STEPS = 150
 
 
-def run_with_fuzzer(tmp_path, name: str, count: int) -> tuple[str, object]:
+def start_run(tmp_path, name: str, count: int) -> tuple[subprocess.Popen[str], object]:
     nodes = tmp_path / f"{name}.toml"
     nodes.write_text(f"""
 [[node]]
@@ -45,16 +45,23 @@ args = ["--h-um", "40", "--max-steps", "{STEPS}", "--command-timeout-s", "30", "
 main = true
 """)
     out = tmp_path / f"{name}.mcap"
-    run = subprocess.run([sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(out), "--no-progress"],
-                         cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stdout + run.stderr
-    return run.stdout, out
+    proc = subprocess.Popen([sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(out), "--no-progress"],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    return proc, out
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
+    """The clean and the fuzzed run, side by side (lockstep: the result does not depend on timing)."""
     tmp = tmp_path_factory.mktemp("fuzz")
-    return run_with_fuzzer(tmp, "clean", 0), run_with_fuzzer(tmp, "fuzzed", 10_000)
+    started = [start_run(tmp, "clean", 0), start_run(tmp, "fuzzed", 10_000)]
+    results = []
+    for proc, out in started:
+        status, output = finish(proc, timeout=300)
+        assert status == 0, output
+        results.append((output, out))
+    return results
 
 
 def test_every_malformed_payload_is_rejected_and_counted(runs):
