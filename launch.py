@@ -79,6 +79,7 @@ class Supervisor:
 
     run_id: str
     hub: str
+    zenoh_config: Path | None = None
     out: TextIO = sys.stdout
     ready_timeout_s: float = 120.0
     progress: bool = False
@@ -139,6 +140,8 @@ class Supervisor:
         """Start one node as its own process (own session, so the terminal's Ctrl-C reaches
         only the supervisor, which then stops the nodes in order)."""
         cmd = [sys.executable, "-u", "-m", spec.module, *spec.args, "--run-id", self.run_id, "--connect", self.hub]
+        if self.zenoh_config is not None:
+            cmd += ["--zenoh-config", str(self.zenoh_config)]
         env = dict(os.environ, PYTHONUNBUFFERED="1", **{SUPERVISOR_ENV: str(os.getpid())})
         process = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -195,7 +198,7 @@ class Supervisor:
         """Start ``specs`` in order, supervise until the run ends, stop everything; exit status."""
         import zenoh  # imported here: only the supervising process needs it, after argument parsing
 
-        settings = BusSettings(run_id=self.run_id, connect=(), listen=(self.hub,))
+        settings = BusSettings(run_id=self.run_id, connect=(), listen=(self.hub,), zenoh_config=self.zenoh_config)
         with zenoh.open(zenoh_config(settings)) as session:
             if self.progress:
                 self._follow_progress(session)
@@ -367,18 +370,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--nodes", type=Path, metavar="FILE", help="declarative node list (TOML [[node]] tables) replacing the default nodes")
     parser.add_argument("--run-id", default=None, help="run identifier (default: derived from the recording name)")
     parser.add_argument("--hub", default=None, metavar="ENDPOINT", help="zenoh endpoint of the run's hub (default: a free loopback port)")
+    parser.add_argument("--zenoh-config", type=Path, metavar="FILE", help="zenoh JSON5 configuration for the hub and every node (e.g. docs/zenoh-acl.json5)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
 
-def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None, progress: bool) -> tuple[int, float]:
+def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None, progress: bool,
+           zenoh_config: Path | None = None) -> tuple[int, float]:
     """Run one list of nodes to its end; returns (exit status, wall time [s])."""
     run_id = run_id or "".join(c if c.isalnum() or c in "_.-" else "_" for c in out.stem)[-64:].lstrip("_.-")
     BusSettings(run_id=run_id, connect=(hub or "tcp/127.0.0.1:7447",))  # validates
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    supervisor = Supervisor(run_id=run_id, hub=hub or free_loopback_endpoint(), progress=progress)
+    supervisor = Supervisor(run_id=run_id, hub=hub or free_loopback_endpoint(), zenoh_config=zenoh_config, progress=progress)
     started = time.monotonic()
     status = supervisor.run([_with_out(s, out) for s in specs], stop)
     return status, time.monotonic() - started
@@ -415,7 +420,8 @@ def _print_table(summary: dict[str, Any]) -> None:
     print(f"[launch] recording: {summary['recording']}")
 
 
-def compare(opts: RunOptions, folder: Path, hub: str | None, progress: bool) -> tuple[int, dict[str, Any]]:
+def compare(opts: RunOptions, folder: Path, hub: str | None, progress: bool,
+            zenoh_config: Path | None = None) -> tuple[int, dict[str, Any]]:
     """Run every compared controller on the same plant; write ``comparison.md`` and ``comparison.png``."""
     from controller_node.report import plot, read_trace
 
@@ -424,7 +430,7 @@ def compare(opts: RunOptions, folder: Path, hub: str | None, progress: bool) -> 
     for name in COMPARED:
         run_opts = RunOptions(opts.scenario, name, opts.setpoint(), opts.config, opts.max_steps, opts.h_um, opts.model)
         out = folder / f"{opts.scenario}-{name}.mcap"
-        status, wall_s = launch(default_nodes(run_opts, out), out, None, hub, progress)
+        status, wall_s = launch(default_nodes(run_opts, out), out, None, hub, progress, zenoh_config)
         summary = _summarise(out, run_opts, status, wall_s)
         _print_table(summary)
         if status != 0 or "steady_rmse_pct" not in summary:
@@ -463,17 +469,19 @@ def main(argv: list[str] | None = None) -> int:
             BusSettings(connect=(args.hub,))
         if args.run_id is not None:
             BusSettings(run_id=args.run_id)
+        if args.zenoh_config is not None:
+            BusSettings(zenoh_config=args.zenoh_config)
     except UsageError as err:
         return exit_usage(parser.prog, err)
     progress = not args.no_progress
     if args.compare:
         folder = args.out or Path("recordings") / f"{datetime.now(timezone.utc):%Y%m%d-%H%M%S}-compare-{opts.scenario}"
-        status, result = compare(opts, folder, args.hub, progress)
+        status, result = compare(opts, folder, args.hub, progress, args.zenoh_config)
         if args.json:
             print(json.dumps(result))
         return status
     out = args.out or default_recording(opts.scenario, opts.controller)
-    status, wall_s = launch(specs or default_nodes(opts, out), out, args.run_id, args.hub, progress)
+    status, wall_s = launch(specs or default_nodes(opts, out), out, args.run_id, args.hub, progress, args.zenoh_config)
     summary = _summarise(out, opts, status, wall_s) if specs is None else {"status": status, "wall_s": round(wall_s, 2), "recording": str(out)}
     if specs is None:
         _print_table(summary)
