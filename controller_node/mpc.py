@@ -119,6 +119,10 @@ class MPCController(Controller):
             prev_lin = previous[1]
             predicted = prev_lin.f0 + prev_lin.b * (planned_prev - prev_lin.z0[2])
             self.disturbance_m2 += mpc.disturbance_gain * (m.area_m2 - predicted - self.disturbance_m2)
+        if previous is not None and mpc.integral_gain > 0.0:
+            error = m.area_m2 - s.set_point_m2
+            if abs(error) <= mpc.integral_band * s.set_point_m2:  # conditional integration: no wind-up at hot track starts
+                self.disturbance_m2 += mpc.integral_gain * (1.0 - lin.a) * error
         self._previous = (m, lin)
 
         data = build_qp_data(lin, m.area_m2, planned_prev, self.disturbance_m2, s, feedforward)

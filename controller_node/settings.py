@@ -115,6 +115,12 @@ class MPCSettings:
     disturbance_gain : float
         Filter gain in [0, 1] of the output-disturbance estimate (the model's
         one-step prediction error, added to the prediction); 0 disables it.
+    integral_gain, integral_band : float
+        Offset-free integral action on the same output-disturbance term: each step
+        ``d̂ += integral_gain · (1 − a) · (x[k] − x_sp)``, which moves the model's steady
+        state by ``integral_gain`` of the error. Conditional integration: frozen while
+        ``|x[k] − x_sp| > integral_band · x_sp`` (hot track starts), so it does not wind up.
+        Defaults 0.05 and 0.1 (tuned on the FE layer, docs/controller.md).
     solver : {"daqp", "osqp", "cvxpy"}
         QP backend: condensed DAQP (exact, fastest), sparse OSQP, or the cvxpy
         reference (ms per solve).
@@ -157,6 +163,8 @@ class MPCSettings:
     slack_linear: float = 100.0
     slack_quadratic: float = 1000.0
     disturbance_gain: float = 0.0
+    integral_gain: float = 0.05
+    integral_band: float = 0.1
     solver: Literal["daqp", "osqp", "cvxpy"] = "daqp"
     eps_abs: float = 1e-6
     eps_rel: float = 1e-6
@@ -165,7 +173,7 @@ class MPCSettings:
     report_model_std: bool = True
     state_gain_max: float = 0.9
     power_gain_min_m2_per_w: float = 2e-11
-    power_scale_w: float | None = 15.0
+    power_scale_w: float | None = 4.0
     feedforward: FeedForwardSettings = field(default_factory=lambda: FeedForwardSettings(
         enabled=True, direct_gain=1.0, differential_gain=0.0,
         reference_temperature_k=FE_REFERENCE_TEMPERATURE_K, gain_w_per_k=FE_TEMPERATURE_GAIN_W_PER_K))
@@ -176,7 +184,7 @@ class MPCSettings:
             f"MPCSettings.horizon must be an int in [1, 500], got {self.horizon!r}",
         )
         _finite(self, "q", "r", "q_f", "rate_min_w", "rate_max_w", "area_min_m2", "area_max_m2",
-                "slack_linear", "slack_quadratic", "disturbance_gain", "eps_abs", "eps_rel")
+                "slack_linear", "slack_quadratic", "disturbance_gain", "integral_gain", "integral_band", "eps_abs", "eps_rel")
         _check(self.q >= 0 and self.q_f >= 0, "MPCSettings.q and q_f must be >= 0")
         _check(self.r > 0, f"MPCSettings.r must be > 0 (strictly convex QP), got {self.r}")
         _check(self.input_penalty in ("steady_state", "move"),
@@ -186,6 +194,8 @@ class MPCSettings:
         _check(self.slack_linear >= 0 and self.slack_quadratic > 0,
                "MPCSettings.slack_linear must be >= 0 and slack_quadratic > 0")
         _check(0 <= self.disturbance_gain <= 1, "MPCSettings.disturbance_gain must be in [0, 1]")
+        _check(0 <= self.integral_gain <= 1, "MPCSettings.integral_gain must be in [0, 1]")
+        _check(0 < self.integral_band <= 1, "MPCSettings.integral_band must be in (0, 1]")
         _check(self.solver in ("daqp", "osqp", "cvxpy"),
                f"MPCSettings.solver must be 'daqp', 'osqp' or 'cvxpy', got {self.solver!r}")
         _check(0 < self.eps_abs <= 1e-5 and 0 < self.eps_rel <= 1e-5,

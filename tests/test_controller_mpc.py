@@ -24,7 +24,7 @@ MODEL = AnalyticMeltPoolModel(alpha=0.25, n_p=1.1, n_t=0.55)
 # Tuning for the synthetic plant, whose power acts on the area within one step (no
 # distributed delay as in the FE plant): one-step prediction-error disturbance estimate,
 # power normalised by its range, no temperature feed-forward (the defaults are the FE tuning).
-SYNTHETIC_MPC = MPCSettings(disturbance_gain=0.2, power_scale_w=None, feedforward=FeedForwardSettings())
+SYNTHETIC_MPC = MPCSettings(disturbance_gain=0.2, integral_gain=0.0, power_scale_w=None, feedforward=FeedForwardSettings())
 SYNTHETIC = ControllerSettings(mpc=SYNTHETIC_MPC)
 
 SETTING_VARIANTS = {
@@ -215,3 +215,21 @@ def test_default_mpc_plans_compensated_power_with_fixed_temperature_gain() -> No
 
 def _plan_without_ff(diag) -> list[float]:  # noqa: ANN001
     return [p - diag.feedforward_w for p in diag.predicted_power_w]
+
+
+def test_integral_action_removes_offset_and_freezes_outside_its_band() -> None:
+    wrong = AnalyticMeltPoolModel(alpha=0.4, n_p=1.0, n_t=0.7, area_ref_m2=0.06e-6)
+    temps = np.full(400, 600.0)
+    offsets = {}
+    for gain in (0.0, 0.05):
+        mpc_settings = dataclasses.replace(SYNTHETIC_MPC, disturbance_gain=0.0, integral_gain=gain)
+        run = run_closed_loop(make_controller("mpc", ControllerSettings(mpc=mpc_settings), wrong), PLANT, temps)
+        offsets[gain] = float(np.mean(run.area_m2[-50:])) / SET_POINT - 1.0
+    assert abs(offsets[0.0]) > 0.03
+    assert abs(offsets[0.05]) < 0.005
+    # far outside the band (e.g. a hot track start) the integral does not move
+    mpc = make_controller("mpc", ControllerSettings(mpc=dataclasses.replace(SYNTHETIC_MPC, integral_gain=0.05,
+                                                                             disturbance_gain=0.0)), wrong)
+    for step in range(5):
+        mpc.update(Measurement(step, step * 50e-6, 2.0 * SET_POINT, 600.0, 200.0, 0.8))
+    assert mpc.disturbance_m2 == 0.0
