@@ -52,8 +52,16 @@ def main() -> int:
         bus.wait_for_nodes(["controller"], StopFlag(), timeout_s=60)
         plant = spawn("fe_node.surrogate", "--rate-hz", repr(args.rate_hz), "--duration-s", repr(args.duration_s),
                       "--require", "controller", "--json", *common)
-        plant_out, _ = plant.communicate(timeout=args.duration_s + 60)
-        controller_out, _ = controller.communicate(timeout=30)
+        try:
+            plant_out, _ = plant.communicate(timeout=args.duration_s + 60)
+            controller_out, _ = controller.communicate(timeout=30)
+        except subprocess.TimeoutExpired as err:
+            for proc in (plant, controller):
+                proc.kill()
+                proc.communicate()
+            print(json.dumps({"error": f"{err.cmd[3]} did not finish within {err.timeout:.0f} s",
+                              "target_rate_hz": args.rate_hz}))
+            return 1
     print("\n".join(f"[plant] {line}" for line in plant_out.splitlines()[:-1]))
     print("\n".join(f"[controller] {line}" for line in controller_out.splitlines()))
     if plant.returncode != 0 or controller.returncode != 0:
