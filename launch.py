@@ -318,6 +318,27 @@ class RunOptions:
         return float(table.get("set_point_m2", DEFAULT_SETPOINT_MM2 * 1e-6)) * 1e6
 
 
+def check_config(opts: RunOptions) -> None:
+    """Validate the scenario and the TOML configuration as the nodes will read them, before
+    any node starts (raises :class:`UsageError` with the offending table and key)."""
+    from controller_node.settings import ControllerSettings
+    from fe_node.scenarios import NAMES, scenario
+    from messages.config import build, load_toml
+
+    if opts.scenario not in NAMES:
+        raise UsageError(f"unknown scenario {opts.scenario!r}; choose one of {', '.join(NAMES)}")
+    data = load_toml(opts.config)
+    unknown = set(data) - {"plant", "controller"}
+    if unknown:
+        raise UsageError(f"{opts.config}: unknown table(s) {', '.join(sorted(unknown))}; expected [plant] and [controller]")
+    try:
+        scenario(opts.scenario, **data.get("plant", {}))
+    except (ValueError, TypeError) as err:
+        raise UsageError(f"{opts.config} [plant]: {err}") from None
+    table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
+    build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint() * 1e-6)
+
+
 def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
     """The declarative node list of a run: recorder, controller (unless ``none``), plant."""
     common = ("--config", str(opts.config)) if opts.config else ()
@@ -460,10 +481,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.nodes is not None:
             specs = load_node_list(args.nodes)
         else:
-            from fe_node.scenarios import NAMES
-
-            if opts.scenario not in NAMES:
-                raise UsageError(f"unknown scenario {opts.scenario!r}; choose one of {', '.join(NAMES)}")
+            check_config(opts)
             specs = None
         if args.hub is not None:
             BusSettings(connect=(args.hub,))
