@@ -276,6 +276,14 @@ class NodeBus:
         self._declared.append(sub)
         return box
 
+    def subscribe_raw(self, key: str, callback: Any) -> None:
+        """Subscribe ``callback(sample)`` to any key expression (e.g. the recorder's ``meltloop/<run>/**``).
+
+        The callback runs on a zenoh thread: it must only enqueue.
+        """
+        assert self.session is not None
+        self._declared.append(self.session.declare_subscriber(key, callback))
+
     def ready(self, *, time_s: float = 0.0, config: dict[str, Any] | None = None, total_steps: int | None = None) -> None:
         """Announce readiness: publish the ``start`` event, then declare the liveliness token."""
         self.event("start", time_s=time_s, config=config, total_steps=total_steps)

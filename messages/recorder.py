@@ -140,12 +140,7 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
            config: dict[str, Any]) -> int:
     """Receive everything under the run's prefix until the run ends; returns the exit status."""
     inbox: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
-    assert bus.session is not None
-    sub = bus.session.declare_subscriber(
-        run_prefix(bus.run_id),
-        lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes(), time.time_ns())),
-    )
-    bus._declared.append(sub)
+    bus.subscribe_raw(run_prefix(bus.run_id), lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes(), time.time_ns())))
     bus.ready(config=config)
     invalid: Counter[str] = Counter()
     unknown = 0
