@@ -392,7 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run-id", default=None, help="run identifier (default: derived from the recording name)")
     parser.add_argument("--hub", default=None, metavar="ENDPOINT", help="zenoh endpoint of the run's hub (default: a free loopback port)")
     parser.add_argument("--zenoh-config", type=Path, metavar="FILE", help="zenoh JSON5 configuration for the hub and every node (e.g. docs/zenoh-acl.json5)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal anyway)")
     return parser
 
 
@@ -491,7 +491,7 @@ def main(argv: list[str] | None = None) -> int:
             BusSettings(zenoh_config=args.zenoh_config)
     except UsageError as err:
         return exit_usage(parser.prog, err)
-    progress = not args.no_progress
+    progress = not args.no_progress and sys.stderr.isatty()  # a bar only on a terminal, not in logs
     if args.compare:
         folder = args.out or Path("recordings") / f"{datetime.now(timezone.utc):%Y%m%d-%H%M%S}-compare-{opts.scenario}"
         status, result = compare(opts, folder, args.hub, progress, args.zenoh_config)
