@@ -17,7 +17,6 @@ Fig. 5-style PNG (area with set point, power, T ahead vs time) next to the recor
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from dataclasses import asdict, dataclass

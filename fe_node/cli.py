@@ -6,7 +6,7 @@ import json
 import sys
 
 from fe_node.driver import quasi_steady, run_open_loop, summary
-from fe_node.scenarios import DEFAULT, NAMES, scenario
+from fe_node.scenarios import NAMES, scenario
 
 
 class _Parser(argparse.ArgumentParser):

@@ -16,7 +16,6 @@ published has arrived, and on SIGINT/SIGTERM. Exit status 1 if messages were mis
 
 from __future__ import annotations
 
-import argparse
 import json
 import queue
 import sys

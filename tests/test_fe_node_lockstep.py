@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from messages import LaserCommand
-from messages.bus import BusSettings, NodeBus, StopFlag
+from messages.bus import BusSettings, NodeBus
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
 from tests.conftest import finish, spawn
 
@@ -15,7 +15,6 @@ def command(run_id: str, step: int, power_w: float) -> LaserCommand:
 def test_plant_applies_only_the_matching_in_bounds_command(hub, run_id):
     plant = spawn("fe_node", "--scenario", "single-track", "--h-um", "40", "--max-steps", "6", "--power-max-w", "300",
                   "--run-id", run_id, "--connect", hub)
-    stop = StopFlag()
     with NodeBus("controller", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         states, diags = bus.inbox(PLANT_STATE), bus.inbox(PLANT_DIAGNOSTICS)
         commands = bus.publisher(LASER_COMMAND)

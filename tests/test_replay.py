@@ -53,7 +53,7 @@ def test_replay_drives_the_controller_node(fe_recording, hub, run_id):
         assert got.source == "replay" and got.run_id == run_id
         assert msgspec.structs.replace(got, run_id=want.run_id, source=want.source) == want
     assert [c.step for c in answered] == [s.step + 1 for s in original]  # 5 ms apart: every state answered
-    assert f"replayed 13 of 13 states; 13 commands received" in out
+    assert "replayed 13 of 13 states; 13 commands received" in out
     status, out = finish(controller, timeout=20)
     assert status == 0 and "plant 'plant' went away" in out, out
 

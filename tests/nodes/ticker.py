@@ -7,7 +7,6 @@ stopped. Used by the launch and recorder tests in place of the FE node.
 from __future__ import annotations
 
 import sys
-import time
 
 from messages import LogLevel, MeltPoolState
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
