@@ -175,12 +175,14 @@ class Inbox:
     """Messages of one topic received by a node, decoded in the node's loop.
 
     The zenoh callback only appends the raw payload to a queue. :meth:`get` decodes and
-    validates; invalid payloads are dropped and counted in :attr:`n_invalid`, with the last
-    reason kept in :attr:`last_error`.
+    validates (including that the message's ``run_id`` is the run of its key); invalid
+    payloads are dropped and counted in :attr:`n_invalid`, with the last reason kept in
+    :attr:`last_error`.
     """
 
-    def __init__(self, topic: Topic) -> None:
+    def __init__(self, topic: Topic, run_id: str | None = None) -> None:
         self.topic = topic
+        self.run_id = run_id
         self._queue: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self.n_invalid = 0
         self.last_error = ""
@@ -200,10 +202,16 @@ class Inbox:
             except queue.Empty:
                 return None
             try:
-                return decode(self.topic, payload)
+                msg = decode(self.topic, payload)
             except MessageError as err:
                 self.n_invalid += 1
                 self.last_error = str(err)
+                continue
+            if self.run_id is not None and getattr(msg, "run_id", self.run_id) != self.run_id:
+                self.n_invalid += 1
+                self.last_error = f"{self.topic.channel}: run_id {msg.run_id!r} does not match the key's run {self.run_id!r}"
+                continue
+            return msg
 
     def drain(self) -> Iterator[Any]:
         """Every valid message already queued, oldest first."""
@@ -271,7 +279,7 @@ class NodeBus:
     def inbox(self, topic: Topic) -> Inbox:
         """Subscribe to ``topic`` of this run; messages queue until the node reads them."""
         assert self.session is not None
-        box = Inbox(topic)
+        box = Inbox(topic, self.run_id)
         sub = self.session.declare_subscriber(key_expr(self.run_id, topic), box._on_sample)
         self._declared.append(sub)
         return box

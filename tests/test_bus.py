@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import time
 
+import msgspec
+
+from messages import encode
 from messages.bus import BusSettings, NodeBus, StopFlag
 from messages.topics import TOPICS
 from tests.conftest import finish, spawn
@@ -29,6 +32,9 @@ def test_every_message_type_round_trips_through_another_process(hub, run_id):
                 for suffix, box in inboxes.items():
                     msg = box.get()
                     if msg is not None and (suffix != "run/events" or msg.node == "fe_node"):
+                        if hasattr(msg, "run_id"):
+                            assert msg.run_id == run_id + "-echo"
+                            msg = msgspec.structs.replace(msg, run_id=run_id)
                         received.setdefault(suffix, msg)
                 time.sleep(0.005)
             for topic, msg in sent:
@@ -46,11 +52,12 @@ def test_inbox_drops_and_counts_invalid_payloads(hub, run_id):
     with NodeBus("a", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as a:
         box = a.inbox(PLANT_STATE)
         raw = a.session.declare_publisher(key_expr(run_id, PLANT_STATE))
-        for payload in (b"garbage", b'{"step": 1}', b"x" * 100_000):
-            raw.put(payload)
         (_, good), = [s for s in sample_messages(run_id) if s[0] is PLANT_STATE]
+        (_, foreign), = [s for s in sample_messages("another-run") if s[0] is PLANT_STATE]
+        for payload in (b"garbage", b'{"step": 1}', b"x" * 100_000, encode(foreign)):
+            raw.put(payload)
         a.publisher(PLANT_STATE).put(good)
         got = box.get(timeout=5)
         assert got == good
-        assert box.n_invalid == 3
+        assert box.n_invalid == 4 and "does not match" in box.last_error
         raw.undeclare()

@@ -1,4 +1,4 @@
-"""Test node: republishes every valid message of run ``--run-id`` on run ``<run-id>-echo``.
+"""Test node: republishes every valid message of run ``--run-id`` on run ``<run-id>-echo`` (with that run id).
 
 Each message is decoded (validated) and re-encoded, so a round trip through this process
 checks the whole codec across a process boundary.
@@ -7,6 +7,8 @@ checks the whole codec across a process boundary.
 from __future__ import annotations
 
 import sys
+
+import msgspec
 
 from messages.bus import BusSettings, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
 from messages.cli import ArgumentParser
@@ -29,6 +31,8 @@ def main(argv: list[str] | None = None) -> int:
             idle = True
             for box in inboxes:
                 for msg in box.drain():
+                    if hasattr(msg, "run_id"):  # now a message of the echo run
+                        msg = msgspec.structs.replace(msg, run_id=out_settings.run_id)
                     pubs[box.topic.suffix].put(msg)
                     idle = False
             if idle:
