@@ -348,7 +348,8 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
     if opts.closed_loop:
         recorder_args += ["--expect", "controller"]
         nodes[0] = NodeSpec("recorder", "messages.recorder", tuple(recorder_args))
-        controller_args = ["--controller", opts.controller, "--setpoint-mm2", repr(opts.setpoint()), *common]
+        controller_args = ["--controller", opts.controller, "--setpoint-mm2", repr(opts.setpoint()),
+                           "--require", "recorder", *common]
         if opts.model:
             controller_args += ["--model", str(opts.model)]
         nodes.append(NodeSpec("controller", "controller_node", tuple(controller_args)))

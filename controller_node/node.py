@@ -21,7 +21,7 @@ from controller_node.settings import ControllerSettings
 from controller_node.types import Measurement
 from messages import ControllerDiagnostics, LaserCommand, LogLevel, MeltPoolState
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.config import as_dict, build, load_toml
 from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE
 
@@ -61,7 +61,7 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
     commands = bus.publisher(LASER_COMMAND)
     diagnostics = bus.publisher(CONTROLLER_DIAGNOSTICS)
     plant_gone = bus.watch_presence(plant)
-    bus.ready(config=config)
+    bus.ready(config=config, stop=stop)
     n_skipped = 0
     last_time_s = 0.0
     while not stop.is_set() and not plant_gone.is_set():
@@ -128,8 +128,11 @@ def main(argv: list[str] | None = None) -> int:
         return exit_usage(parser.prog, err)
     config = {"controller": args.controller, "model": str(args.model or DEFAULT_MODEL) if model else None, **as_dict(settings)}
     stop = StopFlag()
-    with NodeBus(NODE_NAME, bus_settings) as bus:
-        return run(bus, controller, settings, stop, args.plant, config)
+    try:
+        with NodeBus(NODE_NAME, bus_settings) as bus:
+            return run(bus, controller, settings, stop, args.plant, config)
+    except TimeoutError as err:  # a --require node never appeared
+        return exit_error(parser.prog, err)
 
 
 if __name__ == "__main__":

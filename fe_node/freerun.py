@@ -25,7 +25,7 @@ import numpy as np
 from fe_node.node import CommandPolicy
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
 from messages.bus import BusSettings, NodeBus, StopFlag
-from messages.cli import UsageError
+from messages.cli import UsageError, exit_error
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
 
 RING = 1 << 14  # publish times kept for round-trip matching (steps)
@@ -280,7 +280,6 @@ def add_free_run_arguments(parser: argparse.ArgumentParser, rate_hz: float) -> N
     parser.add_argument("--command-timeout-s", type=float, default=0.5, help="fallback after this long without commands [s]")
     parser.add_argument("--fallback", choices=("hold", "safe"), default="safe", help="hold the last power or apply --safe-power-w")
     parser.add_argument("--safe-power-w", type=float, default=0.0, help="power of the 'safe' fallback [W]")
-    parser.add_argument("--require", action="append", default=[], metavar="NODE", help="wait for these nodes before publishing")
     parser.add_argument("--json", action="store_true", help="print the timing summary as JSON (last line)")
 
 
@@ -301,15 +300,18 @@ def settings_from_args(args: argparse.Namespace, dt_s: float | None = None) -> t
 
 def serve(node: str, plant: FreePlant, bus_settings: BusSettings, args: argparse.Namespace,
           settings: FreeRunSettings, policy: CommandPolicy, config: dict, source: str) -> int:
-    """Open the bus as ``node``, wait for ``--require``, announce readiness, run; exit status."""
+    """Open the bus as ``node``, announce readiness (after any ``--require`` nodes), run; exit status."""
     stop = StopFlag()
     latch = CommandLatch(policy, args.power_w, args.speed_mm_s * 1e-3)
-    with NodeBus(node, bus_settings) as bus:
-        bus.wait_for_nodes(args.require, stop, timeout_s=60.0)
-        bus.ready(config={**config, "rate_hz": settings.rate_hz, "policy": vars(policy)}, total_steps=settings.max_steps)
-        stats = run_free(bus, plant, latch, settings, stop, source)
-        summary = stats.summary()
-        bus.end_detail(json.dumps(summary))
+    try:
+        with NodeBus(node, bus_settings) as bus:
+            bus.ready(config={**config, "rate_hz": settings.rate_hz, "policy": vars(policy)},
+                      total_steps=settings.max_steps, stop=stop)
+            stats = run_free(bus, plant, latch, settings, stop, source)
+            summary = stats.summary()
+            bus.end_detail(json.dumps(summary))
+    except TimeoutError as err:  # a --require node never appeared
+        return exit_error(node, err)
     if args.json:
         print(json.dumps(summary), flush=True)
     return 0

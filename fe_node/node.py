@@ -27,7 +27,7 @@ from fe_node.scenarios import NAMES, Scenario, scenario as build_scenario
 from fe_node.solver import ThermalModel
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
 from messages.bus import Inbox, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.config import load_toml
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE, PLANT_TEMPERATURE
 
@@ -127,9 +127,8 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, policy: CommandPo
     waiter = CommandWaiter(bus.inbox(LASER_COMMAND), policy) if not args.open_loop else None
     controller_gone = bus.watch_presence(args.controller) if waiter else None
     total = n_steps(scenario) if args.max_steps is None else min(n_steps(scenario), args.max_steps)
-    bus.wait_for_nodes(args.require, stop, timeout_s=60.0)
     bus.ready(config={**describe(scenario), "policy": vars(policy), "open_loop": args.open_loop,
-                      "setup_s": round(setup_s, 3), "nodes": model.grid.n_nodes}, total_steps=total)
+                      "setup_s": round(setup_s, 3), "nodes": model.grid.n_nodes}, total_steps=total, stop=stop)
     bus.log(LogLevel.INFO, f"{scenario.name}: {total} steps, {model.grid.n_nodes} nodes, setup {setup_s:.1f} s")
     power_w, speed_m_s = scenario.profile.command(0)
     obs = dataclasses.replace(model.initial_observation(), speed_m_s=speed_m_s)  # laser off, about to scan at v
@@ -201,7 +200,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--power-max-w", type=float, default=350.0, help="highest power ever applied [W]")
     parser.add_argument("--image-every", type=int, default=10, help="publish the temperature image every N steps")
     parser.add_argument("--controller", default="controller", help="controller node to follow (default: %(default)s)")
-    parser.add_argument("--require", action="append", default=[], metavar="NODE", help="wait for these nodes before stepping")
     add_bus_arguments(parser)
     return parser
 
@@ -234,8 +232,11 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     model = ThermalModel(scenario.settings, scenario.plan)
     setup_s = time.perf_counter() - t0
-    with NodeBus(NODE_NAME, bus_settings) as bus:
-        return run(bus, scenario, model, policy, args, stop, setup_s)
+    try:
+        with NodeBus(NODE_NAME, bus_settings) as bus:
+            return run(bus, scenario, model, policy, args, stop, setup_s)
+    except TimeoutError as err:  # a --require node never appeared
+        return exit_error(parser.prog, err)
 
 
 if __name__ == "__main__":

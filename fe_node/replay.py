@@ -18,7 +18,7 @@ import msgspec
 
 from messages import LogLevel, MeltPoolState
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.recording import RecordingError, read_messages
 from messages.topics import LASER_COMMAND, PLANT_STATE
 
@@ -67,7 +67,6 @@ def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(prog="python -m fe_node.replay", description=__doc__.split("\n\n")[0])
     parser.add_argument("recording", type=Path, help="MCAP recording with /plant/state")
     parser.add_argument("--rate-scale", type=float, default=1.0, help="playback speed; 1 = real time (default: %(default)s)")
-    parser.add_argument("--require", action="append", default=[], metavar="NODE", help="wait for these nodes first")
     add_bus_arguments(parser)
     args = parser.parse_args(argv)
     try:
@@ -79,11 +78,13 @@ def main(argv: list[str] | None = None) -> int:
         return exit_usage(parser.prog, err)
     offsets = schedule(states, args.rate_scale)
     stop = StopFlag()
-    with NodeBus(NODE_NAME, bus_settings) as bus:
-        bus.wait_for_nodes(args.require, stop, timeout_s=60.0)
-        bus.ready(config={"recording": str(args.recording), "rate_scale": args.rate_scale, "states": len(states)},
-                  total_steps=len(states))
-        replay(bus, states, offsets, stop)
+    try:
+        with NodeBus(NODE_NAME, bus_settings) as bus:
+            bus.ready(config={"recording": str(args.recording), "rate_scale": args.rate_scale, "states": len(states)},
+                      total_steps=len(states), stop=stop)
+            replay(bus, states, offsets, stop)
+    except TimeoutError as err:  # a --require node never appeared
+        return exit_error(parser.prog, err)
     return 0
 
 

@@ -37,6 +37,7 @@ from messages.types import RunEvent
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
 DEFAULT_LISTEN = "tcp/127.0.0.1:0"
 SUPERVISOR_ENV = "MELTLOOP_SUPERVISOR_PID"
+REQUIRE_TIMEOUT_S = 60.0
 _RUN_ID_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
 
 
@@ -55,12 +56,18 @@ class BusSettings:
     zenoh_config : Path or None
         A zenoh JSON5 configuration file; when given it is the base, and explicit
         ``connect``/``listen`` options still override its endpoints.
+    require : tuple of str
+        Nodes that must be present before this node announces itself (:meth:`NodeBus.ready`).
+        Seeing a node's liveliness token means its subscriptions (declared before the token)
+        have reached this session, so nothing published afterwards is lost to it; a node that
+        is recorded requires ``recorder`` for that reason.
     """
 
     run_id: str = "default"
     connect: tuple[str, ...] = (DEFAULT_HUB,)
     listen: tuple[str, ...] = (DEFAULT_LISTEN,)
     zenoh_config: Path | None = None
+    require: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not (1 <= len(self.run_id) <= 64) or not set(self.run_id) <= _RUN_ID_CHARS or self.run_id[0] in "_.-":
@@ -71,10 +78,13 @@ class BusSettings:
                 raise UsageError(f"invalid zenoh endpoint {endpoint!r}: expected e.g. tcp/127.0.0.1:7447")
         if self.zenoh_config is not None and not self.zenoh_config.is_file():
             raise UsageError(f"zenoh config file not found: {self.zenoh_config}")
+        for node in self.require:
+            if not (1 <= len(node) <= 64) or not set(node) <= _RUN_ID_CHARS or node[0] in "_.-":
+                raise UsageError(f"invalid node name {node!r} for --require: use 1-64 letters, digits, '_', '.', '-'")
 
 
 def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the options every node shares: ``--run-id --connect --listen --zenoh-config``."""
+    """Add the options every node shares: ``--run-id --connect --listen --zenoh-config --require``."""
     group = parser.add_argument_group("zenoh bus")
     group.add_argument("--run-id", default="default", help="run identifier, the key namespace (default: %(default)s)")
     group.add_argument(
@@ -86,6 +96,10 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"zenoh endpoint to listen on; repeatable (default: {DEFAULT_LISTEN}, loopback only)",
     )
     group.add_argument("--zenoh-config", type=Path, metavar="FILE", help="zenoh JSON5 configuration file")
+    group.add_argument(
+        "--require", action="append", default=[], metavar="NODE",
+        help="wait until this node of the run is present before announcing readiness; repeatable",
+    )
 
 
 def bus_settings_from_args(args: argparse.Namespace) -> BusSettings:
@@ -95,6 +109,7 @@ def bus_settings_from_args(args: argparse.Namespace) -> BusSettings:
         connect=tuple(args.connect) if args.connect else (() if args.zenoh_config else (DEFAULT_HUB,)),
         listen=tuple(args.listen) if args.listen else (() if args.zenoh_config else (DEFAULT_LISTEN,)),
         zenoh_config=args.zenoh_config,
+        require=tuple(args.require),
     )
 
 
@@ -292,14 +307,25 @@ class NodeBus:
         assert self.session is not None
         self._declared.append(self.session.declare_subscriber(key, callback))
 
-    def ready(self, *, time_s: float = 0.0, config: dict[str, Any] | None = None, total_steps: int | None = None) -> None:
-        """Announce readiness: publish the ``start`` event, then declare the liveliness token."""
+    def ready(self, *, time_s: float = 0.0, config: dict[str, Any] | None = None, total_steps: int | None = None,
+              stop: StopFlag | threading.Event | None = None) -> None:
+        """Announce readiness: wait for the required nodes, publish the ``start`` event, then
+        declare the liveliness token.
+
+        Raises
+        ------
+        TimeoutError
+            If a node of ``settings.require`` is not present within ``REQUIRE_TIMEOUT_S``
+            (or ``stop`` is set while waiting).
+        """
+        if self.settings.require:
+            self.wait_for_nodes(list(self.settings.require), stop or threading.Event(), REQUIRE_TIMEOUT_S)
         self.event("start", time_s=time_s, config=config, total_steps=total_steps)
         assert self.session is not None
         self._token = self.session.liveliness().declare_token(liveliness_key(self.run_id, self.node))
         self._declared.append(self._token)
 
-    def wait_for_nodes(self, nodes: list[str], stop: StopFlag, timeout_s: float) -> None:
+    def wait_for_nodes(self, nodes: list[str], stop: StopFlag | threading.Event, timeout_s: float) -> None:
         """Block until every node in ``nodes`` holds its liveliness token.
 
         Raises
@@ -316,6 +342,8 @@ class NodeBus:
                     missing.discard(str(reply.ok.key_expr).rsplit("/", 1)[-1])
             if missing:
                 stop.wait(0.05)
+        if missing and stop.is_set():
+            raise TimeoutError(f"stopped while waiting for nodes: {', '.join(sorted(missing))}")
         if missing:
             raise TimeoutError(f"nodes not present after {timeout_s:.0f} s: {', '.join(sorted(missing))}")
 

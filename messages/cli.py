@@ -18,6 +18,13 @@ class ArgumentParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
+def exit_error(prog: str, err: Exception) -> int:
+    """Print ``err`` as a one-line run-time error of ``prog`` and return exit status 1."""
+    text = " ".join(str(err).split())
+    print(f"{prog}: error: {text}", file=sys.stderr)
+    return 1
+
+
 def exit_usage(prog: str, err: Exception) -> int:
     """Print ``err`` as a one-line usage error of ``prog`` and return exit status 2."""
     text = " ".join(str(err).split())

@@ -131,7 +131,11 @@ class RunTracker:
         return bool(waiting_for) and waiting_for <= self.ended
 
     def missing(self, recorded: Counter[str]) -> dict[str, int]:
-        """Per topic, how many reported-published messages were not recorded."""
+        """Per topic, how many reported-published messages were not recorded.
+
+        ``recorded`` must count only messages of the tracked nodes (not the recorder's own
+        events and logs), or a lost message could hide behind one of the recorder's.
+        """
         return {t: n - recorded[t] for t, n in self.published.items() if recorded[t] < n}
 
 
@@ -142,6 +146,7 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
     bus.subscribe_raw(run_prefix(bus.run_id), lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes(), time.time_ns())))
     bus.ready(config=config)
     invalid: Counter[str] = Counter()
+    from_nodes: Counter[str] = Counter()  # recorded messages of other nodes (what their end events count)
     unknown = 0
     last_time_s = 0.0
     end_since: float | None = None
@@ -153,7 +158,7 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
                 break
             if tracker.all_ended():
                 end_since = end_since or time.monotonic()
-                if not tracker.missing(recorder.recorded) or time.monotonic() - end_since > drain_s:
+                if not tracker.missing(from_nodes) or time.monotonic() - end_since > drain_s:
                     break
             continue
         topic = topic_for_key(bus.run_id, key)
@@ -168,13 +173,15 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
                 recorder.log(LogLevel.WARNING, f"dropped invalid message: {err}", last_time_s)
             continue
         recorder.write(topic, payload, msg, wall_ns)
+        if getattr(msg, "node", getattr(msg, "name", None)) != NODE_NAME:
+            from_nodes[topic.suffix] += 1
         last_time_s = max(last_time_s, log_time_ns(msg) / 1e9)
         if topic is RUN_EVENTS:
             if msg.node != NODE_NAME:
                 tracker.on_event(msg)
             if msg.event == "start" and msg.config_json:
                 recorder.attach(f"config/{msg.node}.json", msg.config_json.encode())
-    missing = tracker.missing(recorder.recorded)
+    missing = tracker.missing(from_nodes)
     status = 0
     if missing:
         recorder.log(LogLevel.ERROR, f"messages published but not recorded: {missing}", last_time_s)

@@ -32,6 +32,7 @@ CASES = [
     (["-m", "controller_node", "--run-id=_x"], "invalid run id"),
     (["-m", "controller_node", "--config", "missing.toml"], "config file not found"),
     (["-m", "controller_node", "--setpoint-mm2", "nan"], "must be a finite number"),
+    (["-m", "controller_node", "--require", "a/b"], "invalid node name"),
     # recorder
     (["-m", "messages.recorder", "--out", "x.txt"], "--out must name a .mcap file"),
     (["-m", "messages.recorder", "--drain-s", "-1"], "--drain-s must be >= 0"),

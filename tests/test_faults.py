@@ -34,7 +34,7 @@ def test_controller_killed_plant_applies_fallback_within_timeout_and_fails(tmp_p
     with NodeBus("observer", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         states, logs = bus.inbox(PLANT_STATE), bus.inbox(LOG)
         recorder = spawn("messages.recorder", "--out", str(out), "--expect", "plant", "--expect", "controller", *common)
-        controller = spawn("controller_node", "--controller", "pid", "--setpoint-mm2", "0.063", *common)
+        controller = spawn("controller_node", "--controller", "pid", "--setpoint-mm2", "0.063", "--require", "recorder", *common)
         bus.wait_for_nodes(["recorder", "controller"], StopFlag(), timeout_s=60)
         plant = spawn("fe_node", *FE, "--max-steps", "2000", "--command-timeout-s", str(TIMEOUT_S), "--fallback", "safe",
                       "--safe-power-w", "40", "--require", "recorder", "--require", "controller", *common)
@@ -72,7 +72,7 @@ args = ["--expect", "plant", "--expect", "controller"]
 [[node]]
 name = "controller"
 module = "controller_node"
-args = ["--controller", "{controller}", "--setpoint-mm2", "0.063"]
+args = ["--controller", "{controller}", "--setpoint-mm2", "0.063", "--require", "recorder"]
 
 [[node]]
 name = "plant"

@@ -31,12 +31,12 @@ args = ["--expect", "plant", "--expect", "controller"]
 [[node]]
 name = "controller"
 module = "controller_node"
-args = ["--controller", "mpc", "--setpoint-mm2", "0.063"]
+args = ["--controller", "mpc", "--setpoint-mm2", "0.063", "--require", "recorder"]
 
 [[node]]
 name = "fuzzer"
 module = "tests.nodes.fuzzer"
-args = ["--count", "{count}", "--seed", "7", "--topic", "plant/state", "--topic", "controller/command", "--topic", "run/events"]
+args = ["--require", "recorder", "--count", "{count}", "--seed", "7", "--topic", "plant/state", "--topic", "controller/command", "--topic", "run/events"]
 
 [[node]]
 name = "plant"

@@ -77,3 +77,30 @@ def test_recorder_bad_arguments_exit_2(tmp_path):
     status, output = finish(rec)
     assert status == 2
     assert output.strip().count("\n") == 0 and "error" in output
+
+
+def test_recorder_reports_a_lost_event_even_with_its_own_in_the_file(tmp_path, hub, run_id):
+    """A node's lost ``start`` event must not hide behind the recorder's own start event."""
+    out = tmp_path / "lost.mcap"
+    rec = spawn("messages.recorder", "--run-id", run_id, "--connect", hub, "--out", str(out), "--expect", "tester",
+                "--drain-s", "0.5")
+    with NodeBus("tester", BusSettings(run_id=run_id, connect=(), listen=(hub,), require=("recorder",))) as bus:
+        bus.ready(stop=StopFlag())
+        bus.published["run/events"] += 1  # as if a second event had been sent and lost on the way
+    status, output = finish(rec, timeout=30)
+    assert status == 1, output
+    assert "messages published but not recorded: {'run/events': 1}" in output
+    assert json.loads(metadata(out)["meltloop.counts"]["published"])["run/events"] == 3
+    assert metadata(out)["meltloop.counts"]["complete"] == "false"
+
+
+def test_ready_waits_for_required_nodes_and_reports_a_missing_one(hub, run_id):
+    import threading
+
+    import pytest
+
+    with NodeBus("tester", BusSettings(run_id=run_id, connect=(), listen=(hub,), require=("nobody",))) as bus:
+        stop = threading.Event()
+        threading.Timer(0.3, stop.set).start()
+        with pytest.raises(TimeoutError, match="stopped while waiting for nodes: nobody"):
+            bus.ready(stop=stop)

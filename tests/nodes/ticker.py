@@ -18,16 +18,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(prog="ticker")
     parser.add_argument("--steps", type=int, default=0)
     parser.add_argument("--rate-hz", type=float, default=200.0)
-    parser.add_argument("--require", action="append", default=[])
     parser.add_argument("--name", default="ticker")
     parser.add_argument("--fail-at", type=int, default=-1, help="exit 3 at this step")
     add_bus_arguments(parser)
     args = parser.parse_args(argv)
     stop = StopFlag()
     with NodeBus(args.name, bus_settings_from_args(args)) as bus:
-        bus.wait_for_nodes(args.require, stop, timeout_s=30)
         pub = bus.publisher(PLANT_STATE)
-        bus.ready(config={"steps": args.steps}, total_steps=args.steps or None)
+        bus.ready(config={"steps": args.steps}, total_steps=args.steps or None, stop=stop)
         step = 0
         while not stop.is_set() and (args.steps == 0 or step < args.steps):
             if step == args.fail_at:
