@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 
 from .base import Controller, Proposal
-from .model import DynamicsModel, linearise
+from .model import DynamicsModel, linearise, operating_point
 from .settings import ControllerSettings, FeedForwardSettings
 from .types import Measurement
 
@@ -71,8 +70,8 @@ class FeedForwardController(Controller):
         else:
             if model is None:
                 raise ValueError("feedforward needs a model or feedforward.gain_w_per_k")
-            z = np.array([settings.set_point_m2, ff.reference_temperature_k, settings.nominal_power_w,
-                          settings.nominal_speed_m_s])
+            z = operating_point(model, settings.set_point_m2, ff.reference_temperature_k, settings.nominal_power_w,
+                                settings.nominal_speed_m_s)
             try:
                 lin = linearise(model, z)
             except Exception as exc:  # report any model failure as a configuration error

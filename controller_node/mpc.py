@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 
 from .base import Controller, Proposal
 from .feedforward import temperature_feedforward_w
-from .model import DynamicsModel, Linearisation, guard, linearise
+from .model import DynamicsModel, Linearisation, guard, linearise, operating_point
 from .qp import _MAX_STATE_GAIN, QPBackend, build_qp_data, power_scale_w
 from .settings import ControllerSettings
 from .types import Measurement
@@ -55,8 +54,9 @@ def make_backend(settings: ControllerSettings) -> QPBackend:
 class MPCController(Controller):
     """Linear time-varying GP-MPC (paper eq. 7-8) with soft area bounds.
 
-    Each update linearises the model mean at ``z0 = (x[k], T[k], p[k−1], v)`` with
-    the affine term, builds the normalised QP (:func:`controller_node.qp.build_qp_data`),
+    Each update linearises the model mean at ``z0 = (x[k], T[k], p[k−1], v[, x[k] − x[k−1]])``
+    with the affine term (a history model gets the previous sample's area when it is step
+    ``k−1`` of the same track, else no change), builds the normalised QP (:func:`controller_node.qp.build_qp_data`),
     solves it, applies the first planned power plus the optional temperature
     feed-forward and keeps the plan for the fallback.
 
@@ -91,6 +91,8 @@ class MPCController(Controller):
         mpc = s.mpc
         ff = mpc.feedforward
         previous = self._previous if self._previous is not None and self._previous[0].step == m.step - 1 else None
+        same_track = previous is not None and (m.track is None or previous[0].track in (None, m.track))
+        x_prev = previous[0].area_m2 if same_track else None
         # the power the MPC planned for the step just applied: applied minus its feed-forward
         applied = min(max(m.power_w, s.power_min_w), s.power_max_w)
         planned_prev = applied - (self._feedforward_w if previous is not None else 0.0)
@@ -101,8 +103,9 @@ class MPCController(Controller):
             t_prev = previous[0].t_ahead_k if previous is not None else m.t_ahead_k
             gain = ff.gain_w_per_k
             if gain is None:
-                raw = linearise(self.model, np.array([m.area_m2, m.t_ahead_k, min(max(planned_prev, s.power_min_w),
-                                                      s.power_max_w), m.speed_m_s]))
+                raw = linearise(self.model, operating_point(
+                    self.model, m.area_m2, m.t_ahead_k, min(max(planned_prev, s.power_min_w), s.power_max_w),
+                    m.speed_m_s, x_prev))
                 if raw is None:
                     return Proposal(math.nan, status="model_error")
                 gain = raw.temperature_gain_w_per_k()
@@ -110,9 +113,9 @@ class MPCController(Controller):
             # with the direct term the plant seen by the MPC behaves as at T_ref (to first order)
             t_lin = m.t_ahead_k - ff.direct_gain * (m.t_ahead_k - ff.reference_temperature_k)
         p0 = min(max(planned_prev, s.power_min_w), s.power_max_w)
-        z0 = np.array([m.area_m2, t_lin, p0, m.speed_m_s])
+        z0 = operating_point(self.model, m.area_m2, t_lin, p0, m.speed_m_s, x_prev)
         lin = raw if raw is not None and t_lin == m.t_ahead_k else linearise(self.model, z0)
-        if lin is None or not abs(lin.a) <= _MAX_STATE_GAIN:
+        if lin is None or not lin.spectral_radius() <= _MAX_STATE_GAIN:
             return Proposal(math.nan, status="model_error")
         lin = guard(lin, mpc.state_gain_max, mpc.power_gain_min_m2_per_w)
         if previous is not None and mpc.disturbance_gain > 0.0:
@@ -122,7 +125,7 @@ class MPCController(Controller):
         if previous is not None and mpc.integral_gain > 0.0:
             error = m.area_m2 - s.set_point_m2
             if abs(error) <= mpc.integral_band * s.set_point_m2:  # conditional integration: no wind-up at hot track starts
-                self.disturbance_m2 += mpc.integral_gain * (1.0 - lin.a) * error
+                self.disturbance_m2 += mpc.integral_gain * (1.0 - lin.a - lin.a_prev) * error
         self._previous = (m, lin)
 
         data = build_qp_data(lin, m.area_m2, planned_prev, self.disturbance_m2, s, feedforward)

@@ -34,6 +34,8 @@ class CvxpyBackend:
         h = m.horizon
         k = qp_constants(settings)
         self.a = cp.Parameter(name="a")
+        self.a_prev = cp.Parameter(name="a_prev")
+        self.e_prev = cp.Parameter(name="e_prev")
         self.beta = cp.Parameter(name="beta")
         self.g = cp.Parameter(name="g")
         self.e0 = cp.Parameter(name="e0")
@@ -41,24 +43,25 @@ class CvxpyBackend:
         self.u_hi = cp.Parameter(name="u_hi")
         self.u_prev = cp.Parameter(name="u_prev")
 
-        e = cp.Variable(h + 1, name="e")  # e[0..H]
+        e = cp.Variable(h + 2, name="e")  # e[-1..H]
         u = cp.Variable(h, name="u")  # u[0..H-1]
         s = cp.Variable(h, nonneg=True, name="slack")  # s[1..H]
         u_ext = cp.hstack([cp.reshape(self.u_prev, (1,), order="F"), u])  # u[-1..H-1]
         moves = u_ext[1:] - u_ext[:-1]
         penalised = moves if m.input_penalty == "move" else u
         cost = (
-            m.q * cp.sum_squares(e[1:h])
-            + m.q_f * cp.square(e[h])
+            m.q * cp.sum_squares(e[2 : h + 1])
+            + m.q_f * cp.square(e[h + 1])
             + m.r * cp.sum_squares(penalised)
             + m.slack_linear * cp.sum(s)
             + m.slack_quadratic * cp.sum_squares(s)
         )
         constraints = [
-            e[0] == self.e0,
-            e[1:] == self.a * e[:-1] + self.beta * u + self.g,
-            e[1:] >= k["e_lo"] - s,
-            e[1:] <= k["e_hi"] + s,
+            e[0] == self.e_prev,
+            e[1] == self.e0,
+            e[2:] == self.a * e[1:-1] + self.a_prev * e[:-2] + self.beta * u + self.g,
+            e[2:] >= k["e_lo"] - s,
+            e[2:] <= k["e_hi"] + s,
             u >= self.u_lo,
             u <= self.u_hi,
             moves >= k["du_lo"],
@@ -82,7 +85,7 @@ class CvxpyBackend:
         QPSolution
             ``status`` is ``"solved"`` when cvxpy reports an optimal solution.
         """
-        for name in ("a", "beta", "g", "e0", "u_lo", "u_hi", "u_prev"):
+        for name in ("a", "a_prev", "beta", "g", "e0", "e_prev", "u_lo", "u_hi", "u_prev"):
             getattr(self, name).value = getattr(data, name)
         h = self._u.shape[0]
         try:
@@ -92,4 +95,4 @@ class CvxpyBackend:
         if self.problem.status != cp.OPTIMAL:
             return QPSolution(str(self.problem.status), np.full(h, np.nan), np.full(h, np.nan), 0)
         iterations = int(self.problem.solver_stats.num_iters or 0)
-        return QPSolution("solved", np.array(self._u.value, dtype=float), np.array(self._e.value[1:], dtype=float), iterations)
+        return QPSolution("solved", np.array(self._u.value, dtype=float), np.array(self._e.value[2:], dtype=float), iterations)

@@ -38,6 +38,7 @@ def measurement_from_state(state: MeltPoolState) -> Measurement:
         t_ahead_k=state.t_ahead_k,
         power_w=state.power_w,
         speed_m_s=state.speed_mm_s * 1e-3,
+        track=state.track,
     )
 
 

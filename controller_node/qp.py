@@ -9,16 +9,17 @@ Scaling (chosen so that Table 3's ``Q = 1, R = 0.1, Q_f = 20`` are meaningful):
 With the affine linearisation (eq. 8 plus the offset ``f0``) held over the horizon and
 the temperature held at ``T[k]``, the prediction model is ::
 
-    e[i+1] = a·e[i] + β·u[i] + g,   β = b·P/x_sp,
-    g = (f0 − a·x0 − b·p0 + d̂ + a·x_sp + b·p_ref − x_sp) / x_sp
+    e[i+1] = a·e[i] + a⁻·e[i−1] + β·u[i] + g,   β = b·P/x_sp,
+    g = (f0 − a·x0 − a⁻·x0⁻ − b·p0 + d̂ + (a + a⁻)·x_sp + b·p_ref − x_sp) / x_sp
 
-(``d̂`` is the optional output-disturbance estimate).  ``p_ref`` is the model's
+(``d̂`` is the optional output-disturbance estimate; ``a⁻ = ∂f/∂x[k−1]`` of a history model,
+0 for the paper's model, and ``e[−1]`` the previous area's error).  ``p_ref`` is the model's
 steady-state power ``p_ss`` for the set point, clamped to the bounds; then ``g = 0``
 unless ``p_ss`` is out of reach.  The QP, solved by :mod:`controller_node.mpc` (OSQP)
 and :mod:`controller_node.mpc_reference` (cvxpy), is ::
 
     min  Σ_{i=1}^{H-1} Q e[i]² + Q_f e[H]² + R Σ_{i=0}^{H-1} w[i]² + Σ_{i=1}^{H} (ρ₁ s[i] + ρ₂ s[i]²)
-    s.t. e[i+1] = a e[i] + β u[i] + g,        e[0] given
+    s.t. e[i+1] = a e[i] + a⁻ e[i−1] + β u[i] + g,   e[0], e[−1] given
          e_l − s[i] <= e[i] <= e_u + s[i],   s[i] >= 0        (soft area bounds)
          u_l <= u[i] <= u_u                                  (power bounds)
          δ_l <= u[i] − u[i−1] <= δ_u,         u[−1] = u_prev   (rate bounds)
@@ -41,7 +42,7 @@ __all__ = ["QPData", "QPSolution", "QPBackend", "build_qp_data", "power_scale_w"
 
 _MIN_GAIN_M2_PER_W = 1e-16  # b below this (1e-10 mm²/W) means power has no usable effect
 _MAX_NORMALISED = 1e6  # larger normalised coefficients mean a broken model/measurement
-_MAX_STATE_GAIN = 1.5  # |∂f/∂x| above this: explosive linearised pool dynamics, untrustworthy model
+_MAX_STATE_GAIN = 1.5  # spectral radius above this: explosive linearised pool dynamics, untrustworthy model
 
 
 @dataclass(frozen=True, slots=True)
@@ -51,7 +52,7 @@ class QPData:
     Attributes
     ----------
     a, beta, g : float
-        Prediction model ``e[i+1] = a e[i] + β u[i] + g``.
+        Prediction model ``e[i+1] = a e[i] + a_prev e[i−1] + β u[i] + g``.
     e0 : float
         Current relative area error.
     u_lo, u_hi : float
@@ -60,6 +61,10 @@ class QPData:
         Last applied power in ``u`` (rate bound and ``"move"`` penalty).
     p_ref_w : float
         ``p_ref`` [W] of the input scaling.
+    a_prev : float
+        Gain on the previous error ``e[i−1]`` (0 for the paper's one-state model).
+    e_prev : float
+        Previous relative area error ``e[−1]``.
     """
 
     a: float
@@ -70,6 +75,8 @@ class QPData:
     u_hi: float
     u_prev: float
     p_ref_w: float
+    a_prev: float = 0.0
+    e_prev: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,19 +147,20 @@ def build_qp_data(
     -------
     QPData or None
         None when the numbers are not finite, absurdly large (|·| > 1e6), or the
-        linearised pool dynamics are explosive (``|a| > 1.5``; a^H would dominate
-        the condensed QP).
+        linearised pool dynamics are explosive (spectral radius > 1.5; its H-th power
+        would dominate the condensed QP).
     """
     x_sp = settings.set_point_m2
     p_lo, p_hi = settings.power_min_w - power_offset_w, settings.power_max_w - power_offset_w
     p_scale = power_scale_w(settings)
-    x0, p0 = float(lin.z0[0]), float(lin.z0[2])
-    c = lin.f0 - lin.a * x0 - lin.b * p0 + disturbance_m2
+    x0, p0, x0_prev = float(lin.z0[0]), float(lin.z0[2]), lin.previous_area_m2
+    gain = lin.a + lin.a_prev
+    c = lin.f0 - lin.a * x0 - lin.a_prev * x0_prev - lin.b * p0 + disturbance_m2
     if lin.b > _MIN_GAIN_M2_PER_W:
-        p_ref = min(max((x_sp * (1.0 - lin.a) - c) / lin.b, p_lo), p_hi)
+        p_ref = min(max((x_sp * (1.0 - gain) - c) / lin.b, p_lo), p_hi)
     else:
         p_ref = min(max(p0, p_lo), p_hi)
-    g = (c + lin.a * x_sp + lin.b * p_ref - x_sp) / x_sp
+    g = (c + gain * x_sp + lin.b * p_ref - x_sp) / x_sp
     p_prev = min(max(applied_power_w, p_lo), p_hi)
     data = QPData(
         a=lin.a,
@@ -163,11 +171,13 @@ def build_qp_data(
         u_hi=(p_hi - p_ref) / p_scale,
         u_prev=(p_prev - p_ref) / p_scale,
         p_ref_w=p_ref,
+        a_prev=lin.a_prev,
+        e_prev=(x0_prev - x_sp) / x_sp,
     )
-    for value in (data.a, data.beta, data.g, data.e0, data.u_prev):
+    for value in (data.a, data.a_prev, data.beta, data.g, data.e0, data.e_prev, data.u_prev):
         if not abs(value) <= _MAX_NORMALISED:  # also rejects NaN
             return None
-    return data if abs(data.a) <= _MAX_STATE_GAIN else None
+    return data if lin.spectral_radius() <= _MAX_STATE_GAIN else None
 
 
 def qp_constants(settings: ControllerSettings) -> dict[str, float]:

@@ -1,10 +1,11 @@
 """Condensed dense backend of the MPC QP (:mod:`controller_node.qp`) solved by DAQP.
 
-Condensing the scalar prediction ``e[i+1] = a e[i] + β u[i] + g`` gives
+Condensing the prediction ``e[i+1] = a e[i] + a⁻ e[i−1] + β u[i] + g`` gives
 ``e[1..H] = c + Γ u`` with ::
 
-    Γ[j, i] = β a^(j−i)  (i <= j, 0-based rows j = 0..H−1 for e[j+1]),
-    c[j]    = a^(j+1) e0 + g Σ_{m=0}^{j} a^m,
+    Γ[j, i] = β h[j−i]  (i <= j, 0-based rows j = 0..H−1 for e[j+1]),
+    h[0] = 1, h[1] = a, h[n] = a h[n−1] + a⁻ h[n−2]   (impulse response; a^n when a⁻ = 0),
+    c       = the free response from e[0], e[−1] with the constant input g,
 
 so the QP in ``u`` has Hessian ``2(ΓᵀWΓ + R_u)`` (``W = diag(Q, …, Q, Q_f)``,
 ``R_u = R·I`` or ``R·DᵀD`` for moves) and gradient ``2ΓᵀWc`` (``− 2R u_prev`` on
@@ -31,6 +32,25 @@ __all__ = ["DaqpBackend"]
 _INF = 1e30  # DAQP's infinity
 
 
+def _condense(h: int, data: QPData) -> tuple[np.ndarray, np.ndarray]:
+    """``β h[0..H−1]`` (scaled impulse response) and the free response ``c``, both shape (H,).
+
+    Plain float recursions: 20 steps cost ~3 µs, less than building them with array calls.
+    """
+    a, a_prev, g = data.a, data.a_prev, data.g
+    impulse = [data.beta] * h
+    free = [0.0] * h
+    older, old = data.e_prev, data.e0
+    for n in range(h):
+        if n == 1:
+            impulse[1] = a * impulse[0]
+        elif n >= 2:
+            impulse[n] = a * impulse[n - 1] + a_prev * impulse[n - 2]
+        older, old = old, a * old + a_prev * older + g
+        free[n] = old
+    return np.array(impulse), np.array(free)
+
+
 class DaqpBackend:
     """Exact dense solver of the MPC QP (condensed, DAQP), fixed settings.
 
@@ -52,7 +72,6 @@ class DaqpBackend:
         cols = np.arange(h)[None, :]
         self._lag = np.where(cols <= rows, rows - cols, 0)
         self._lower = (cols <= rows).astype(float)
-        self._powers_exp = np.arange(h, dtype=float)
         self._w = np.full(h, m.q)
         self._w[-1] = m.q_f
         diff = np.eye(h) - np.eye(h, k=-1)  # rows: u[i] − u[i−1] (u[−1] in the bounds)
@@ -88,9 +107,8 @@ class DaqpBackend:
             ``u`` shape (H,), ``e`` shape (H,); ``iterations`` sums both phases.
         """
         h = self._h
-        powers = data.a**self._powers_exp  # a^0 .. a^(H−1)
-        gamma = data.beta * powers[self._lag] * self._lower
-        c = data.a * powers * data.e0 + data.g * np.cumsum(powers)
+        gamma, c = _condense(h, data)
+        gamma = gamma[self._lag] * self._lower
         wg = self._w[:, None] * gamma
         hess = 2.0 * (gamma.T @ wg) + self._r_u
         grad = 2.0 * (wg.T @ c)

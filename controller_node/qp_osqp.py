@@ -1,6 +1,6 @@
 """Sparse OSQP backend of the MPC QP (:mod:`controller_node.qp`), built once, updated in place.
 
-Variables ``z = (e[1..H], u[0..H-1], s[1..H])``; each step only the ``a``/``β``
+Variables ``z = (e[1..H], u[0..H-1], s[1..H])``; each step only the ``a``/``a⁻``/``β``
 entries of the constraint matrix and the bound vectors change (OSQP ``update`` plus
 warm start, tolerances ``settings.mpc.eps_abs/eps_rel``).  Measured on the
 benchmark sequence: ~60 µs per solve; :class:`controller_node.qp_daqp.DaqpBackend`
@@ -69,6 +69,8 @@ class OSQPBackend:
             add(i, e_col + i, 1.0)  # e[i+1]
             if i > 0:
                 add(i, e_col + i - 1, -1.0)  # −a·e[i] (placeholder value)
+            if i > 1:
+                add(i, e_col + i - 2, -1.0)  # −a⁻·e[i−1] (placeholder value)
             add(i, u_col + i, -1.0)  # −β·u[i] (placeholder value)
             add(h + i, e_col + i, 1.0)
             add(h + i, s_col + i, 1.0)
@@ -89,8 +91,9 @@ class OSQPBackend:
         where = np.empty(len(vals), dtype=np.int64)
         where[order] = np.arange(len(order))
         self._a_idx = np.array([where[entry[(i, e_col + i - 1)]] for i in range(1, h)], dtype=np.int64)
+        a_prev_idx = np.array([where[entry[(i, e_col + i - 2)]] for i in range(2, h)], dtype=np.int64)
         self._b_idx = np.array([where[entry[(i, u_col + i)]] for i in range(h)], dtype=np.int64)
-        self._ax_idx = np.concatenate([self._a_idx, self._b_idx])
+        self._ax_idx = np.concatenate([self._a_idx, a_prev_idx, self._b_idx])
         self._ax = np.empty(len(self._ax_idx))
 
         inf = np.inf
@@ -122,10 +125,13 @@ class OSQPBackend:
         """
         h = self._h
         self._ax[: h - 1] = -data.a
-        self._ax[h - 1 :] = -data.beta
+        self._ax[h - 1 : 2 * h - 3] = -data.a_prev
+        self._ax[2 * h - 3 :] = -data.beta
         lo, hi = self._l, self._u
         lo[:h] = data.g
-        lo[0] += data.a * data.e0
+        lo[0] += data.a * data.e0 + data.a_prev * data.e_prev
+        if h > 1:
+            lo[1] += data.a_prev * data.e0
         hi[:h] = lo[:h]
         lo[3 * h : 4 * h] = data.u_lo
         hi[3 * h : 4 * h] = data.u_hi

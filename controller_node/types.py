@@ -58,6 +58,9 @@ class Measurement:
         Laser power ``p[k-1]`` applied during the step that produced this sample [W].
     speed_m_s : float
         Scan speed ``v`` [m/s].
+    track : int or None
+        Track index, when the plant reports it (a history model only uses the previous
+        sample of the same track).
 
     Notes
     -----
@@ -73,9 +76,12 @@ class Measurement:
     t_ahead_k: float
     power_w: float
     speed_m_s: float
+    track: int | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "step", _step("step", self.step))
+        if self.track is not None:
+            object.__setattr__(self, "track", _step("track", self.track))
         for name in ("time_s", "area_m2", "t_ahead_k", "power_w", "speed_m_s"):
             object.__setattr__(self, name, _real(name, getattr(self, name)))
 

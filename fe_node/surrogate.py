@@ -54,13 +54,13 @@ class TrackProfile:
 
 
 class GPSurrogate:
-    """The GP mean as a one-step plant (area clipped at 0)."""
+    """The GP mean as a one-step plant (area clipped at 0; a history model gets the last change)."""
 
     def __init__(self, model, profile: TrackProfile, area0_m2: float = 0.05e-6) -> None:
         self.model, self.profile = model, profile
         self.distance_m = 0.0
-        self.area_m2 = area0_m2
-        self._z = np.zeros(4)
+        self.area_m2 = self.previous_area_m2 = area0_m2
+        self._z = np.zeros(getattr(model, "n_inputs", 4))
 
     def _sample(self) -> PlantSample:
         at = self.profile.at(self.distance_m)
@@ -74,8 +74,10 @@ class GPSurrogate:
         """One GP step at ``power_w`` [W], ``speed_m_s`` [m/s]; the spot moves ``speed · dt_s``."""
         z = self._z
         z[0], z[1], z[2], z[3] = self.area_m2, self.profile.at(self.distance_m).t_ahead_k, power_w, speed_m_s
+        if z.shape[0] == 5:
+            z[4] = self.area_m2 - self.previous_area_m2
         mean, _ = self.model.mean_and_jacobian(z)
-        self.area_m2 = max(mean, 0.0)
+        self.previous_area_m2, self.area_m2 = self.area_m2, max(mean, 0.0)
         self.distance_m += speed_m_s * dt_s
         return self._sample()
 

@@ -64,6 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--restarts", type=int, default=DEFAULT_RESTARTS, help="optimiser starts")
     p.add_argument("--selection", choices=("variance", "maximin"), default="variance",
                    help="training-point design: integrated-variance reduction after a maximin pilot fit, or maximin alone")
+    p.add_argument("--no-history", action="store_true",
+                   help="the paper's four inputs (x, T, p, v) only, without the area change x[k] - x[k-1]")
 
     p = sub.add_parser("evaluate", formatter_class=fmt, help="validate a model on the held-out samples")
     p.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH, help="model file")
@@ -138,7 +140,7 @@ def _train(args: argparse.Namespace) -> int:
     samples, meta = load_samples(args.dataset)
     meta = {**meta, "file": args.dataset.name}
     model = train(samples, meta, TrainSettings(n_train=args.n_train, seed=args.seed, n_restarts=args.restarts,
-                                               selection=args.selection))
+                                               selection=args.selection, history=not args.no_history))
     out = model.save(args.out)
     print(f"{model} log ML = {model.log_marginal_likelihood:.3f} -> {out}")
     return 0

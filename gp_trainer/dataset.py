@@ -1,14 +1,18 @@
 """Training samples of eq. (8) from recorded plant states.
 
-A sample is ``z_k = (x_k, T_k, p_k, v_k) → x_{k+1}`` with ``x_k = state[k].area``,
-``T_k = state[k].t_ahead_k``, and ``p_k, v_k`` the inputs applied during the step k → k+1,
-which the plant echoes in ``state[k+1].power_w / speed_mm_s`` (see ``messages.types``). Units
-are converted to SI here, at the edge: mm² → m², mm/s → m/s.
+A sample is ``z_k = (x_k, T_k, p_k, v_k, x_k − x_{k-1}) → x_{k+1}`` with ``x_k = state[k].area``,
+``T_k = state[k].t_ahead_k``, ``p_k, v_k`` the inputs applied during the step k → k+1,
+which the plant echoes in ``state[k+1].power_w / speed_mm_s`` (see ``messages.types``), and
+the last area change with ``x_{k-1} = state[k-1].area`` (used by history models; the paper's
+model takes the first four columns). Units are converted to SI here, at the edge: mm² → m²,
+mm/s → m/s.
 
 Dropped pairs, counted in :class:`DropReport`:
 
 * ``gap``: states k and k+1 are not consecutive steps of the same track (track change, lost
-  message). The turn to a new track is not a one-step dynamics sample.
+  message), or, after start-up, state k-1 is not the step before k on the same track (the
+  first state of a recording, the state after a lost message). The turn to a new track is
+  not a one-step dynamics sample.
 * ``startup``: the pool of a track has not formed yet. A track's start-up is the prefix of its
   states before the first one whose area reaches ``startup_fraction`` × the median of the
   track's positive areas (a fixed fraction of the track's own level, so it works at any power);
@@ -79,8 +83,9 @@ class Samples:
 
     Attributes
     ----------
-    Z : np.ndarray, shape (n, 4)
-        ``(area_m2, t_ahead_k, power_w, speed_m_s)`` at step k.
+    Z : np.ndarray, shape (n, 5)
+        ``(area_m2, t_ahead_k, power_w, speed_m_s, area_change_m2)`` at step k (the order of
+        ``gp_trainer.model.HISTORY_INPUT_NAMES``).
     y : np.ndarray, shape (n,)
         ``area_m2`` at step k+1.
     source : np.ndarray of str, shape (n,)
@@ -174,16 +179,20 @@ def build_samples(states: Iterable[Any], source: str,
 
     k = np.arange(len(records) - 1)
     contiguous = (step[k + 1] == step[k] + 1) & (track[k + 1] == track[k])
+    has_history = np.zeros(k.size, dtype=bool)  # state k-1 is the previous step of the same track
+    has_history[1:] = (step[k[1:] - 1] == step[k[1:]] - 1) & (track[k[1:] - 1] == track[k[1:]])
     formed = contiguous & ~startup[k]
-    keep = formed & (area_m2[k] > 0.0) & (area_m2[k + 1] > 0.0)
+    usable = formed & has_history
+    keep = usable & (area_m2[k] > 0.0) & (area_m2[k + 1] > 0.0)
     kept = k[keep]
     Z = np.column_stack([area_m2[kept], data["t_ahead_k"][kept], data["power_w"][kept + 1],
-                         data["speed_mm_s"][kept + 1] * 1e-3])
+                         data["speed_mm_s"][kept + 1] * 1e-3, area_m2[kept] - area_m2[kept - 1]])
     samples = Samples(Z=Z, y=area_m2[kept + 1], source=np.full(kept.size, source), step=step[kept],
                       track=track[kept])
     report = DropReport(source=source, n_states=len(records), n_samples=int(kept.size),
                         dropped_startup=int(np.sum(contiguous & startup[k])),
-                        dropped_no_pool=int(np.sum(formed & ~keep)), dropped_gap=int(np.sum(~contiguous)))
+                        dropped_no_pool=int(np.sum(usable & ~keep)),
+                        dropped_gap=int(np.sum(~contiguous) + np.sum(formed & ~has_history)))
     return samples, report
 
 
@@ -258,7 +267,10 @@ def load_samples(path: str | os.PathLike[str]) -> tuple[Samples, dict[str, Any]]
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise DatasetError(f"dataset {path} is unreadable ({type(exc).__name__}: {exc})") from None
     n = len(samples)
-    if samples.Z.shape != (n, 4) or any(getattr(samples, f).shape != (n,) for f in ("source", "step", "track")):
+    if samples.Z.shape == (n, 4):
+        raise DatasetError(f"dataset {path} has no area-change column (an older format); rebuild it "
+                           "with `python -m gp_trainer dataset`")
+    if samples.Z.shape != (n, 5) or any(getattr(samples, f).shape != (n,) for f in ("source", "step", "track")):
         raise DatasetError(f"dataset {path} is inconsistent (array shapes)")
     if not (np.all(np.isfinite(samples.Z)) and np.all(np.isfinite(samples.y))):
         raise DatasetError(f"dataset {path} contains non-finite values")

@@ -4,8 +4,10 @@
   99.5 %, mean error 2.06 %), scatter of predicted vs recorded area (Fig. 4a).
 * Multi-step forward simulation of one case (paper: Table 2 case 2, Fig. 4b): start from the
   recorded first state, then feed the model its own prediction with the recorded T, p and v,
-  ``x̂[k+1] = mean(x̂_k, T_k, p_k, v_k)``. If the case's samples are not contiguous (a track
-  change in a double-track case), the rollout restarts from the recorded state after the gap.
+  ``x̂[k+1] = mean(x̂_k, T_k, p_k, v_k[, x̂_k − x̂_{k-1}])`` (a history model gets its own
+  previous prediction too, the recorded ``x_{k-1}`` only at the start). If the case's samples are not
+  contiguous (a track change in a double-track case), the rollout restarts from the recorded
+  state after the gap.
 """
 
 from __future__ import annotations
@@ -60,15 +62,16 @@ def mape_pct(y: np.ndarray, pred: np.ndarray) -> float:
 
 
 def held_out_mask(samples: Samples, model: GPModel) -> np.ndarray:
-    """True for samples that are not training points of ``model`` (exact match of z and y)."""
+    """True for samples that are not training points of ``model`` (exact match of its z and y)."""
     train = {tuple(z) + (y,) for z, y in zip(model.train_inputs.tolist(), model.train_targets.tolist())}
-    return np.array([tuple(z) + (y,) not in train for z, y in zip(samples.Z.tolist(), samples.y.tolist())],
+    inputs = samples.Z[:, : model.n_inputs]
+    return np.array([tuple(z) + (y,) not in train for z, y in zip(inputs.tolist(), samples.y.tolist())],
                     dtype=bool)
 
 
 def predict_means(model: GPModel, Z: np.ndarray) -> np.ndarray:
-    """Posterior means [m²] at the rows of ``Z`` (n, 4)."""
-    return np.array([model.predict(z)[0] for z in Z])
+    """Posterior means [m²] at the rows of ``Z`` (n, 5) (the model uses its first ``n_inputs`` columns)."""
+    return np.array([model.predict(z)[0] for z in Z[:, : model.n_inputs]])
 
 
 def rollout(model: GPModel, samples: Samples) -> Rollout:
@@ -81,11 +84,11 @@ def rollout(model: GPModel, samples: Samples) -> Rollout:
         One source, in step order (``Samples.of_source``), at least one sample.
     """
     simulated = np.empty(len(samples))
-    x = samples.Z[0, 0]
+    x, x_prev = samples.Z[0, 0], samples.Z[0, 0] - samples.Z[0, 4]
     for i, z in enumerate(samples.Z):
         if i > 0 and samples.step[i] != samples.step[i - 1] + 1:
-            x = z[0]  # gap: restart from the recorded state
-        x = model.predict(np.array([x, z[1], z[2], z[3]]))[0]
+            x, x_prev = z[0], z[0] - z[4]  # gap: restart from the recorded states
+        x, x_prev = model.predict(np.array([x, z[1], z[2], z[3], x - x_prev][: model.n_inputs]))[0], x
         simulated[i] = x
     return Rollout(step=samples.step, recorded=samples.y, simulated=simulated, power_w=samples.Z[:, 2])
 

@@ -1,7 +1,11 @@
-"""GP dynamics model of the melt pool, ``x[k+1] = f(x_k, T_k, p_k, v_k)`` (paper eq. 1-5, 8).
+"""GP dynamics model of the melt pool, ``x[k+1] = f(x_k, T_k, p_k, v_k[, x_k − x_{k-1}])`` (paper eq. 1-5, 8).
 
-Input ``z = (area_m2 [m²], t_ahead_k [K], power_w [W], speed_m_s [m/s])``, output the melt-pool
-top-surface area one step later [m²]. All public quantities are SI; normalisation is internal.
+Input ``z = (area_m2 [m²], t_ahead_k [K], power_w [W], speed_m_s [m/s])`` as in the paper, or
+with the last area change ``area_change_m2 = x_k − x_{k-1}`` [m²] as a fifth input
+(:data:`HISTORY_INPUT_NAMES`, the shipped model: the pool's shape carries memory its area alone
+does not, see docs/gp.md);
+output the melt-pool top-surface area one step later [m²]. All public quantities are SI;
+normalisation is internal.
 
 Structure
 ---------
@@ -17,7 +21,7 @@ Structure
   (∂x/∂p > 0, ∂x/∂v < 0, ∂x/∂T > 0) everywhere and is what a one-step melt-pool model is to
   first order; the GP only has to learn the (smaller, local) nonlinearity.
 * ``r(z) ~ GP(0, k)`` with the SE-ARD kernel of eq. (3) on ``u`` and the residual scaled to
-  unit standard deviation; hyper-parameters ``(σ_f, σ_n, ℓ_1..4)`` maximise the log marginal
+  unit standard deviation; hyper-parameters ``(σ_f, σ_n, ℓ_1..d)`` maximise the log marginal
   likelihood (:mod:`gp_trainer.kernel`).
 
 Far from the data ``k(z, X) → 0`` so the mean reverts to ``m(z)`` and the variance to
@@ -44,9 +48,13 @@ from gp_trainer.errors import ModelFormatError, ModelVersionError
 from gp_trainer.kernel import HyperBounds, fit_hyperparameters, gram, squared_differences
 
 FORMAT_NAME = "meltloop-gp-model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)  # version 1: the paper's four inputs only
 INPUT_NAMES = ("area_m2", "t_ahead_k", "power_w", "speed_m_s")
-N_INPUTS = len(INPUT_NAMES)
+"""The paper's inputs (eq. 1)."""
+HISTORY_INPUT_NAMES = (*INPUT_NAMES, "area_change_m2")
+"""The paper's inputs plus the last area change ``x_k − x_{k-1}`` (the shipped model)."""
+INPUT_SETS = (INPUT_NAMES, HISTORY_INPUT_NAMES)
 DEFAULT_RESTARTS = 8
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_gp.json"
 """The shipped model (``python -m gp_trainer train`` writes it; ``launch.py`` loads it)."""
@@ -73,19 +81,20 @@ class GPModel:
 
     Parameters
     ----------
-    train_inputs : np.ndarray, shape (n, 4)
-        Training inputs ``z`` in SI units (see :data:`INPUT_NAMES`).
+    train_inputs : np.ndarray, shape (n, d)
+        Training inputs ``z`` in SI units, ``d = 4`` (:data:`INPUT_NAMES`) or ``d = 5``
+        (:data:`HISTORY_INPUT_NAMES`).
     train_targets : np.ndarray, shape (n,)
         Training targets ``x[k+1]`` [m²].
-    input_mean, input_scale : np.ndarray, shape (4,)
+    input_mean, input_scale : np.ndarray, shape (d,)
         Normalisation ``u = (z - input_mean) / input_scale`` (SI units).
-    mean_coefficients : np.ndarray, shape (5,)
-        ``(β_0, β_1..4)`` of the linear mean ``m = β_0 + β·u`` [m²].
+    mean_coefficients : np.ndarray, shape (d + 1,)
+        ``(β_0, β_1..d)`` of the linear mean ``m = β_0 + β·u`` [m²].
     residual_scale : float
         Scale of the GP residual ``s_r`` [m²]; the GP is fitted to ``(y - m) / s_r``.
     signal_std, noise_std : float
         σ_f and σ_n in units of ``s_r`` [-].
-    length_scales : np.ndarray, shape (4,)
+    length_scales : np.ndarray, shape (d,)
         ℓ_j in units of ``input_scale`` [-].
     log_marginal_likelihood : float, optional
         Of the normalised residual at these hyper-parameters (for the record).
@@ -115,13 +124,16 @@ class GPModel:
         beta = np.array(mean_coefficients, dtype=float)
         ell = np.array(length_scales, dtype=float)
         n = y.shape[0] if y.ndim == 1 else -1
+        d = Z.shape[1] if Z.ndim == 2 else -1
+        if d not in (len(names) for names in INPUT_SETS):
+            raise ValueError(f"train_inputs has shape {Z.shape}, expected (n, 4) or (n, 5)")
         expected = {
-            "train_inputs": (Z, (n, N_INPUTS)),
+            "train_inputs": (Z, (n, d)),
             "train_targets": (y, (n,)),
-            "input_mean": (mu, (N_INPUTS,)),
-            "input_scale": (s, (N_INPUTS,)),
-            "mean_coefficients": (beta, (N_INPUTS + 1,)),
-            "length_scales": (ell, (N_INPUTS,)),
+            "input_mean": (mu, (d,)),
+            "input_scale": (s, (d,)),
+            "mean_coefficients": (beta, (d + 1,)),
+            "length_scales": (ell, (d,)),
         }
         for name, (array, shape) in expected.items():
             if array.shape != shape or n < 1:
@@ -134,6 +146,8 @@ class GPModel:
             if not np.all(np.isfinite(value)) or not np.all(np.asarray(value) > 0.0):
                 raise ValueError(f"{name} must be finite and positive, got {value}")
 
+        self.input_names = INPUT_SETS[d - 4]
+        self.n_inputs = d
         self.train_inputs, self.train_targets = Z, y
         self.input_mean, self.input_scale = mu, s
         self.mean_coefficients = beta
@@ -180,7 +194,7 @@ class GPModel:
 
     # ------------------------------------------------------------------ prediction (hot path)
     def _kernel_row(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``k̃`` (n,) and ``w`` (4,) at ``z`` (see the constants in ``__init__``)."""
+        """``k̃`` (n,) and ``w`` (d,) at ``z`` (see the constants in ``__init__``)."""
         w = (z - self.input_mean) * self._grad_scale
         k = self._scaled_inputs @ w
         k += self._half_sq_norms
@@ -188,17 +202,18 @@ class GPModel:
         return np.exp(k, out=k), w
 
     def _gradient(self, weights: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """``(weights @ W - Σ weights · w) ∘ g``, shape (4,)."""
+        """``(weights @ W - Σ weights · w) ∘ g``, shape (d,)."""
         v = weights @ self._scaled_inputs_1
-        return (v[:N_INPUTS] - v[N_INPUTS] * w) * self._grad_scale
+        return (v[:-1] - v[-1] * w) * self._grad_scale
 
     def predict(self, z: np.ndarray) -> tuple[float, float]:
         """Posterior mean and variance of ``x[k+1]`` at one point (eq. 5 over the linear mean).
 
         Parameters
         ----------
-        z : np.ndarray, shape (4,)
-            ``(area_m2 [m²], t_ahead_k [K], power_w [W], speed_m_s [m/s])``.
+        z : np.ndarray, shape (d,)
+            ``(area_m2 [m²], t_ahead_k [K], power_w [W], speed_m_s [m/s][, area_change_m2 [m²]])``
+            in the order of :attr:`input_names`.
 
         Returns
         -------
@@ -215,17 +230,18 @@ class GPModel:
         """Posterior mean and its gradient with respect to ``z``, both SI.
 
         For the MPC linearisation ``x[k+1] ≈ mean + J·(z' - z)`` (paper eq. 9: ``A_d = J[0]``,
-        ``B_d = J[2:4]``, ``J[1]`` the sensitivity to the measured disturbance T).
+        ``B_d = J[2:4]``, ``J[1]`` the sensitivity to the measured disturbance T, ``J[4]`` the
+        gain on the area change ``x_k − x_{k-1}`` of a history model).
 
         Parameters
         ----------
-        z : np.ndarray, shape (4,)
+        z : np.ndarray, shape (d,)
             As in :meth:`predict`.
 
         Returns
         -------
         tuple[float, np.ndarray]
-            Mean [m²] and ``J``, shape (4,): ``[-, m²/K, m²/W, m²/(m/s)]``.
+            Mean [m²] and ``J``, shape (d,): ``[-, m²/K, m²/W, m²/(m/s)[, -]]``.
         """
         k, w = self._kernel_row(z)
         weighted = self._mean_weights * k
@@ -237,20 +253,20 @@ class GPModel:
 
         Parameters
         ----------
-        z : np.ndarray, shape (4,)
+        z : np.ndarray, shape (d,)
             As in :meth:`predict`.
 
         Returns
         -------
         tuple[float, np.ndarray]
-            Variance [m⁴] and its gradient, shape (4,): ``[m², m⁴/K, m⁴/W, m⁴/(m/s)]``. Where the
+            Variance [m⁴] and its gradient, shape (d,): ``[m², m⁴/K, m⁴/W, m⁴/(m/s)[, m²]]``. Where the
             variance is clipped at 0 (numerically, at a training point) the gradient is 0.
         """
         k, w = self._kernel_row(z)
         v = self._variance_factor @ k
         variance = self._prior_variance - float(v @ v)
         if variance <= 0.0:
-            return 0.0, np.zeros(N_INPUTS)
+            return 0.0, np.zeros(self.n_inputs)
         return variance, -2.0 * self._gradient((self._variance_factor_t @ v) * k, w)
 
     def explicit_mean(self, z: np.ndarray) -> float:
@@ -288,8 +304,8 @@ class GPModel:
 
         Parameters
         ----------
-        Z : np.ndarray, shape (n, 4)
-            Training inputs, SI (see :data:`INPUT_NAMES`); ``n`` ≈ 100 (cost O(n³) per
+        Z : np.ndarray, shape (n, 4) or (n, 5)
+            Training inputs, SI (see :data:`INPUT_NAMES`, :data:`HISTORY_INPUT_NAMES`); ``n`` ≈ 100 (cost O(n³) per
             optimiser iteration).
         y : np.ndarray, shape (n,)
             Training targets ``x[k+1]`` [m²].
@@ -308,8 +324,8 @@ class GPModel:
         """
         Z = np.asarray(Z, dtype=float)
         y = np.asarray(y, dtype=float)
-        if Z.ndim != 2 or Z.shape[1] != N_INPUTS or y.shape != (Z.shape[0],) or Z.shape[0] < N_INPUTS + 2:
-            raise ValueError(f"need Z of shape (n, {N_INPUTS}) and y of shape (n,), n >= {N_INPUTS + 2}; "
+        if Z.ndim != 2 or Z.shape[1] not in (4, 5) or y.shape != (Z.shape[0],) or Z.shape[0] < Z.shape[1] + 2:
+            raise ValueError(f"need Z of shape (n, 4) or (n, 5) and y of shape (n,), n >= d + 2; "
                              f"got {Z.shape} and {y.shape}")
         if not (np.all(np.isfinite(Z)) and np.all(np.isfinite(y))):
             raise ValueError("training data contain non-finite values")
@@ -337,7 +353,7 @@ class GPModel:
         return {
             "format": FORMAT_NAME,
             "format_version": FORMAT_VERSION,
-            "inputs": list(INPUT_NAMES),
+            "inputs": list(self.input_names),
             "output": "area_m2 at step k+1",
             "kernel": "squared-exponential ARD (paper eq. 3), k = sf^2 exp(-0.5 sum((u-u')/l)^2)",
             "mean_model": "linear least squares in u = (z - input_mean) / input_scale",
@@ -386,9 +402,13 @@ class GPModel:
         """Build a model from the document of :meth:`to_dict`; errors as in :meth:`load`."""
         if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
             raise ModelFormatError(f"{source} is not a {FORMAT_NAME} file")
-        if doc.get("format_version") != FORMAT_VERSION:
+        if doc.get("format_version") not in READABLE_VERSIONS:
             raise ModelVersionError(f"{source} has format version {doc.get('format_version')!r}, "
-                                    f"this code reads version {FORMAT_VERSION}; retrain or convert it")
+                                    f"this code reads versions {', '.join(map(str, READABLE_VERSIONS))}; "
+                                    "retrain or convert it")
+        if tuple(doc.get("inputs", INPUT_NAMES)) not in INPUT_SETS:
+            raise ModelFormatError(f"{source} has unsupported inputs {doc.get('inputs')!r}; expected "
+                                   f"{list(INPUT_NAMES)} or {list(HISTORY_INPUT_NAMES)}")
         try:
             hyper, norm, training = doc["hyperparameters"], doc["normalisation"], doc["training"]
             return cls(

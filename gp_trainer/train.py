@@ -31,7 +31,7 @@ from gp_trainer.provenance import code_version
 from gp_trainer.selection import MAX_VARIANCE_CANDIDATES, farthest_point_indices, variance_reduction_indices
 
 SELECTIONS = ("variance", "maximin")
-TRAIN_BOUNDS = HyperBounds(signal_std=(1.0e-2, 1.0e1), noise_std=(1.0e-2, 1.0), length_scale=(0.25, 1.0e2))
+TRAIN_BOUNDS = HyperBounds(signal_std=(1.0e-2, 1.0e1), noise_std=(1.0e-2, 1.0), length_scale=(2.0, 1.0e2))
 """Hyper-parameter bounds of the training pipeline (normalised units).
 
 Tighter than :class:`~gp_trainer.kernel.HyperBounds`' defaults: ``ℓ ≥ 0.25`` standard deviations
@@ -61,6 +61,9 @@ class TrainSettings:
         ``"variance"`` (pilot + integrated-variance design) or ``"maximin"``.
     bounds : HyperBounds
         Hyper-parameter bounds of every fit.
+    history : bool
+        Fit on ``(x_k, T_k, p_k, v_k, x_{k-1})`` (default) or, if False, on the paper's four
+        inputs only.
     """
 
     n_train: int = 100
@@ -68,6 +71,7 @@ class TrainSettings:
     n_restarts: int = DEFAULT_RESTARTS
     selection: str = "variance"
     bounds: HyperBounds = field(default_factory=lambda: TRAIN_BOUNDS)
+    history: bool = True
 
 
 def _hyper(model: GPModel) -> dict[str, Any]:
@@ -136,6 +140,8 @@ def train(samples: Samples, dataset_meta: dict[str, Any], settings: TrainSetting
         Fewer samples than ``n_train`` + 1 (nothing left to validate on), or see
         :func:`select_training_points`.
     """
+    if not settings.history:
+        samples = Samples(samples.Z[:, :4], samples.y, samples.source, samples.step, samples.track)
     index, selection = select_training_points(samples, settings)
     provenance = {
         "data_source": dataset_meta.get("data_source", "unknown"),

@@ -32,7 +32,8 @@ def test_samples_pair_state_k_with_inputs_of_step_k_plus_1_in_si():
     samples, report = build_samples(states, "t", DatasetSettings(startup_fraction=0.5))
     # median of positive areas 0.07 -> formed from the first area >= 0.035, i.e. state 1
     assert report.dropped_startup == 1 and report.n_samples == 4 and report.dropped_gap == 0
-    np.testing.assert_allclose(samples.Z[0], [0.05e-6, 401.0, 252.0, 0.8])
+    np.testing.assert_allclose(samples.Z[0], [0.05e-6, 401.0, 252.0, 0.8, 0.05e-6])  # x_1 − x_0 (start-up history kept)
+    np.testing.assert_allclose(samples.Z[1:, 4], np.array([0.01, 0.01, 0.001]) * 1e-6)
     np.testing.assert_allclose(samples.y, np.array([0.06, 0.07, 0.071, 0.072]) * 1e-6)
     assert samples.step.tolist() == [1, 2, 3, 4]
 
@@ -41,10 +42,12 @@ def test_track_changes_gaps_and_vanished_pools_are_dropped_and_counted():
     states = (_track([0.0, 0.06, 0.07, 0.07]) + _track([0.0, 0.05, 0.07, 0.0, 0.07, 0.07], track=1, first_step=4)
               + _track([0.07, 0.07], track=1, first_step=20))
     samples, report = build_samples(states, "t")
-    assert report.dropped_gap == 2  # 3 -> 4 (new track) and 9 -> 20 (lost messages)
+    # 3 -> 4 (new track), 9 -> 20 (lost messages) and 20 -> 21 (state 19, its history, is lost)
+    assert report.dropped_gap == 3
     assert report.dropped_no_pool == 2  # 6 -> 7 and 7 -> 8 around the zero area
     assert report.dropped_startup == 2  # the first state of each track
-    assert report.n_samples == len(samples) == 5
+    assert report.n_samples == len(samples) == 4
+    assert samples.step.tolist() == [1, 2, 5, 8]  # 8 keeps its history x_7 = 0 (an input, not a target)
     assert report.n_samples + report.dropped_gap + report.dropped_no_pool + report.dropped_startup == len(states) - 1
     assert np.all(samples.Z[:, 0] > 0) and np.all(samples.y > 0)
 
@@ -74,8 +77,8 @@ def test_every_pair_is_either_a_sample_or_counted_as_dropped(rows):
 
 
 def test_too_few_samples_is_an_error():
-    samples, _ = build_samples(_track([0.07] * 20), "t")
-    with pytest.raises(DatasetError, match="only 19 usable samples"):
+    samples, _ = build_samples(_track([0.07] * 20), "t")  # 19 pairs; the first has no history
+    with pytest.raises(DatasetError, match="only 18 usable samples"):
         concatenate([samples], DatasetSettings(min_samples=120))
 
 

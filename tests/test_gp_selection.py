@@ -76,7 +76,7 @@ def test_variance_selection_is_deterministic_and_recorded(samples):
     b, _ = select_training_points(samples, settings)
     assert np.array_equal(a, b) and a.size == 100 and np.all(np.diff(a) > 0)
     assert "integrated-variance" in record["method"]
-    assert record["pilot_noise_ratio"] >= 1.0e-3 and len(record["pilot_hyperparameters"]["length_scales"]) == 4
+    assert record["pilot_noise_ratio"] >= 1.0e-3 and len(record["pilot_hyperparameters"]["length_scales"]) == 5
 
 
 def test_train_uses_pipeline_bounds_and_copies_data_source(samples):
