@@ -26,7 +26,7 @@ import numpy as np
 from gp_trainer.dataset import Samples
 from gp_trainer.errors import DatasetError
 from gp_trainer.kernel import HyperBounds
-from gp_trainer.model import DEFAULT_RESTARTS, GPModel
+from gp_trainer.model import DEFAULT_RESTARTS, HISTORY_INPUT_NAMES, GPModel
 from gp_trainer.provenance import code_version
 from gp_trainer.selection import MAX_VARIANCE_CANDIDATES, farthest_point_indices, variance_reduction_indices
 
@@ -119,6 +119,35 @@ def select_training_points(samples: Samples, settings: TrainSettings = TrainSett
     return index, record
 
 
+def check_design_spans_inputs(Z: np.ndarray, index: np.ndarray, min_fraction: float = 0.1) -> None:
+    """Refuse a training design that cannot identify an input.
+
+    A degenerate pilot fit (σ_f at its lower and σ_n at its upper bound: the GP explains
+    nothing) makes the variance design repeat a few points; seen on the FE campaign with
+    ``ℓ ≥ 8``, seed 3: all 100 points at one power and speed, a held-out R² of −153.
+
+    Parameters
+    ----------
+    Z : numpy.ndarray
+        All samples' inputs, shape (n, d).
+    index : numpy.ndarray
+        Indices of the training points.
+    min_fraction : float
+        Each input's standard deviation over the training points must be at least this
+        fraction of its standard deviation over all samples.
+
+    Raises
+    ------
+    DatasetError
+        Naming the input the design does not span.
+    """
+    spread_all, spread_design = Z.std(axis=0), Z[index].std(axis=0)
+    for j in np.flatnonzero(spread_design < min_fraction * spread_all):
+        raise DatasetError(f"the {len(index)} training points do not vary input {HISTORY_INPUT_NAMES[j]} "
+                           f"(std {spread_design[j]:.3g} vs {spread_all[j]:.3g} over all samples); "
+                           "try another --seed or --selection maximin")
+
+
 def train(samples: Samples, dataset_meta: dict[str, Any], settings: TrainSettings = TrainSettings()) -> GPModel:
     """Select ``n_train`` points (:func:`select_training_points`) and fit :class:`GPModel` on them.
 
@@ -139,12 +168,14 @@ def train(samples: Samples, dataset_meta: dict[str, Any], settings: TrainSetting
     Raises
     ------
     DatasetError
-        Fewer samples than ``n_train`` + 1 (nothing left to validate on), or see
+        Fewer samples than ``n_train`` + 1 (nothing left to validate on), a design that does not
+        vary an input the samples vary in (see :func:`check_design_spans_inputs`), or see
         :func:`select_training_points`.
     """
     if not settings.history:
         samples = Samples(samples.Z[:, :4], samples.y, samples.source, samples.step, samples.track)
     index, selection = select_training_points(samples, settings)
+    check_design_spans_inputs(samples.Z, index)
     provenance = {
         "data_source": dataset_meta.get("data_source", "unknown"),
         "dataset": dataset_meta,

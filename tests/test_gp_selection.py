@@ -11,7 +11,7 @@ from gp_trainer.dataset import build_samples, concatenate
 from gp_trainer.errors import DatasetError
 from gp_trainer.model import GPModel
 from gp_trainer.selection import farthest_point_indices, variance_reduction_indices
-from gp_trainer.train import TRAIN_BOUNDS, TrainSettings, select_training_points, train
+from gp_trainer.train import TRAIN_BOUNDS, TrainSettings, check_design_spans_inputs, select_training_points, train
 
 
 @pytest.fixture(scope="module")
@@ -119,3 +119,12 @@ def test_shipped_model_is_trained_on_the_fe_campaign():
     names = [r["name"] for r in prov["dataset"]["recordings"]]
     assert names == [f"table2-case{c}.mcap" for c in range(1, 10)]
     assert all("synthetic" not in name for name in names)
+
+
+def test_a_design_that_does_not_vary_an_input_is_refused():
+    rng = np.random.default_rng(0)
+    Z = rng.uniform(size=(200, 5))
+    check_design_spans_inputs(Z, np.arange(100))  # a spread design passes
+    Z[:100, 2] = 0.5  # the first 100 samples all at one power
+    with pytest.raises(DatasetError, match="do not vary input power_w"):
+        check_design_spans_inputs(Z, np.arange(100))
