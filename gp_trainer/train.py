@@ -142,7 +142,9 @@ def check_design_spans_inputs(Z: np.ndarray, index: np.ndarray, min_fraction: fl
         Naming the input the design does not span.
     """
     spread_all, spread_design = Z.std(axis=0), Z[index].std(axis=0)
-    for j in np.flatnonzero(spread_design < min_fraction * spread_all):
+    unspanned = np.flatnonzero(spread_design < min_fraction * spread_all)
+    if unspanned.size:
+        j = unspanned[0]
         raise DatasetError(f"the {len(index)} training points do not vary input {HISTORY_INPUT_NAMES[j]} "
                            f"(std {spread_design[j]:.3g} vs {spread_all[j]:.3g} over all samples); "
                            "try another --seed or --selection maximin")
