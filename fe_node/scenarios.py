@@ -22,10 +22,21 @@ Profile P (power, W, 1.5 ms each): 250, 180, 300, 200, 275, 150, 225, repeating 
 Double tracks are bidirectional.  Other names: ``single-track`` (5 mm), ``double-track``
 (2 x 5 mm, hatch 0.1 mm), ``layer`` (default; 4 x 10 mm, hatch 0.1 mm, the paper's MPC
 test), all at 250 W, 800 mm/s.
+
+Identification scenarios (GP training data beyond Table 2): ``ident-layer`` (the ``layer``
+geometry) and ``ident-double-track`` (the ``double-track`` geometry) play a seeded random
+power staircase at a constant 800 mm/s. Each level holds for a uniform random 3-30 steps of
+``dt_s`` and is uniform in ``[ident_mean_w - ident_amplitude_w, ident_mean_w + ident_amplitude_w]``
+(defaults 250 +- 60 W); ``ident_seed`` (default 0) seeds ``numpy.random.default_rng``, so the
+same seed gives the same profile. The levels are not clipped to the 150-300 W window above.
 """
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, replace
+
+import numpy as np
 
 from fe_node.scan import Profile, ScanPlan, Signal
 from fe_node.settings import Settings
@@ -51,9 +62,57 @@ _TABLE = {
     "table2-case7": (2, 5e-3, 0.5e-4, P_CONST, S_CONST),
     "table2-case8": (2, 5e-3, 1e-4, P_SINE, S_PROFILE),
     "table2-case9": (2, 5e-3, 1e-4, P_PROFILE, S_PROFILE),
+    # power None: a seeded random staircase (ident_power), built once the plan and dt are known
+    "ident-layer": (4, 10e-3, 1e-4, None, S_CONST),
+    "ident-double-track": (2, 5e-3, 1e-4, None, S_CONST),
 }
 NAMES = tuple(_TABLE)
 DEFAULT = "layer"
+
+# identification overrides and their defaults (ident-* scenarios only)
+IDENT_DEFAULTS = {"ident_seed": 0, "ident_mean_w": 250.0, "ident_amplitude_w": 60.0}
+IDENT_HOLD_STEPS = (3, 30)  # each power level holds this many steps (inclusive, uniform)
+
+
+def _ident_options(name: str, given: dict) -> dict:
+    """Validated ``ident_*`` overrides of scenario ``name`` merged into the defaults."""
+    if given and _TABLE[name][3] is not None:
+        key = sorted(given)[0]
+        raise ValueError(f"scenario override {key!r} is only valid for ident-* scenarios, not {name!r}")
+    opts = {**IDENT_DEFAULTS, **given}
+    seed = opts["ident_seed"]
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise ValueError(f"scenario override 'ident_seed' must be an integer >= 0, got {seed!r}")
+    for key in ("ident_mean_w", "ident_amplitude_w"):
+        value = opts[key]
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+            raise ValueError(f"scenario override {key!r} must be a finite number, got {value!r}")
+    mean, amplitude = float(opts["ident_mean_w"]), float(opts["ident_amplitude_w"])
+    if amplitude < 0:
+        raise ValueError(f"scenario override 'ident_amplitude_w' must be >= 0, got {amplitude:g}")
+    if mean - amplitude < 0:
+        raise ValueError(f"scenario override 'ident_mean_w' minus ident_amplitude_w must be >= 0 W, "
+                         f"got {mean:g} - {amplitude:g}")
+    return {"ident_seed": int(seed), "ident_mean_w": mean, "ident_amplitude_w": amplitude}
+
+
+def ident_power(seed: int, mean_w: float, amplitude_w: float, n_steps: int, dt_s: float) -> Signal:
+    """Seeded random power staircase covering at least ``n_steps`` steps of ``dt_s``.
+
+    Levels and holds are drawn in turn (hold, level, hold, level, ...) from
+    ``numpy.random.default_rng(seed)``, so a longer run extends a shorter one's profile.
+    Hold lengths are integers in :data:`IDENT_HOLD_STEPS`; a level starts at ``k * dt_s``, the
+    time the plant commands step ``k`` (:meth:`~fe_node.scan.Profile.command`).
+    """
+    rng = np.random.default_rng(seed)
+    lo, hi = IDENT_HOLD_STEPS
+    starts, levels, k = [], [], 0
+    while k < max(int(n_steps), 1):
+        hold = int(rng.integers(lo, hi + 1))
+        starts.append(k)
+        levels.append(float(rng.uniform(mean_w - amplitude_w, mean_w + amplitude_w)))
+        k += hold
+    return Signal(times_s=tuple(i * dt_s for i in starts), values=tuple(levels))
 
 
 @dataclass(frozen=True)
@@ -76,7 +135,9 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
     **overrides
         Any :class:`~fe_node.settings.Settings` field; ``n_tracks``, ``track_length_m``,
         ``hatch_m``, ``bidirectional`` for the plan; ``power_w`` and/or ``speed_m_s``
-        replace the open-loop signal by a constant.
+        replace the open-loop signal by a constant. ``ident_seed`` (int >= 0),
+        ``ident_mean_w`` and ``ident_amplitude_w`` [W] shape the random power staircase of
+        the ``ident-*`` scenarios (error for any other scenario, or together with ``power_w``).
 
     Raises
     ------
@@ -89,9 +150,11 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
     plan_kw = dict(n_tracks=n, length_m=length, hatch_m=hatch, bidirectional=True)
     keys = {"n_tracks": "n_tracks", "track_length_m": "length_m", "hatch_m": "hatch_m",
             "bidirectional": "bidirectional"}
-    settings_kw = {}
+    settings_kw, ident_kw = {}, {}
     for key, value in overrides.items():
-        if key in keys:
+        if key in IDENT_DEFAULTS:
+            ident_kw[key] = value
+        elif key in keys:
             plan_kw[keys[key]] = value
         elif key == "power_w":
             power = Signal(float(value))
@@ -101,6 +164,16 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
             settings_kw[key] = value
         else:
             raise ValueError(f"unknown scenario override {key!r}")
+    ident = _ident_options(name, ident_kw)
     settings = replace(Settings(), **settings_kw)
-    return Scenario(name=name, settings=settings, plan=ScanPlan.layer(**plan_kw),
-                    profile=Profile(power, speed, settings.dt_s))
+    plan = ScanPlan.layer(**plan_kw)
+    if "power_w" in overrides and ident_kw:
+        raise ValueError(f"scenario override {sorted(ident_kw)[0]!r} conflicts with 'power_w' (a constant power)")
+    if power is None:
+        v_min = speed.range()[0]
+        if not v_min > 0:
+            raise ValueError(f"profile: speed must be > 0, got min {v_min} m/s")
+        n_steps = math.ceil(plan.total_length / (v_min * settings.dt_s) - 1e-9)
+        power = ident_power(ident["ident_seed"], ident["ident_mean_w"], ident["ident_amplitude_w"],
+                            n_steps, settings.dt_s)
+    return Scenario(name=name, settings=settings, plan=plan, profile=Profile(power, speed, settings.dt_s))

@@ -1,8 +1,9 @@
-"""Command line: ``python -m gp_trainer {dataset,train,evaluate,campaign}``.
+"""Command line: ``python -m gp_trainer {dataset,train,evaluate,campaign,identify}``.
 
 Typical use::
 
     python -m gp_trainer campaign --workers 2      # nine Table 2 cases -> recordings/campaign/
+    python -m gp_trainer identify --workers 2      # six random-staircase runs -> recordings/identification/
     python -m gp_trainer dataset                   # -> out/gp/dataset.npz
     python -m gp_trainer train                     # -> gp_trainer/models/in625_gp.json
     python -m gp_trainer evaluate --json           # metrics + out/gp/gp_scatter.png, gp_rollout.png
@@ -79,6 +80,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cases", type=int, nargs="+", default=list(range(1, 10)), help="Table 2 case numbers")
     p.add_argument("--out-dir", type=Path, default=DEFAULT_RECORDINGS, help="recordings directory")
     p.add_argument("--timeout", type=float, default=None, help="wall-time limit per case [s]")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print a JSON summary (last line)")
+
+    from gp_trainer.campaign import DEFAULT_IDENT_DIR, IDENT_RUNS
+
+    p = sub.add_parser("identify", formatter_class=fmt, help="record the identification runs (random power staircases) open loop",
+                       description="Record seeded random power-staircase runs of ident-layer and ident-double-track "
+                                   "(launch.py --controller none), one MCAP each. Runs: " + ", ".join(r.name for r in IDENT_RUNS))
+    p.add_argument("--runs", nargs="+", metavar="NAME", default=argparse.SUPPRESS, help="only these runs (default: all six)")
+    p.add_argument("--workers", type=int, default=2, help="runs in parallel")
+    p.add_argument("--out-dir", type=Path, default=DEFAULT_IDENT_DIR, help="recordings directory")
+    p.add_argument("--timeout", type=float, default=None, help="wall-time limit per run [s]")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print a JSON summary (last line)")
     return parser
@@ -182,11 +195,25 @@ def _campaign(args: argparse.Namespace) -> int:
     return 1 if any(r.status == "failed" for r in results) else 0
 
 
+def _identify(args: argparse.Namespace) -> int:
+    from gp_trainer.campaign import IdentifySettings, run_identification, select_ident_runs, summary_json
+
+    settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None)), out_dir=args.out_dir, workers=args.workers,
+                                timeout_s=args.timeout)
+    results = run_identification(settings, progress=not args.no_progress)
+    for r in results:
+        print(f"{r.name}: {r.status} ({r.wall_s:.1f} s) {r.recording} {r.detail}".rstrip())
+    if args.json:
+        print(summary_json(results, key="runs"))
+    return 1 if any(r.status == "failed" for r in results) else 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one sub-command; return the exit status (2 for user errors, with a one-line reason)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    command = {"dataset": _dataset, "train": _train, "evaluate": _evaluate, "campaign": _campaign}[args.command]
+    command = {"dataset": _dataset, "train": _train, "evaluate": _evaluate, "campaign": _campaign,
+               "identify": _identify}[args.command]
     try:
         return command(args)
     except GPTrainerError as exc:

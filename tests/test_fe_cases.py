@@ -72,7 +72,9 @@ def test_profiles_stay_in_process_window():
     for name in NAMES:
         sc = scenario(name)
         p = [sc.profile.command(i) for i in range(400)]
-        assert all(150 <= pw <= 300 and 0.6 <= v <= 1.0 for pw, v in p)
+        # ident-* staircases leave the 150-300 W window by design (250 +- 60 W; tests/test_identify.py)
+        p_lo, p_hi = (0.0, 350.0) if name.startswith("ident-") else (150.0, 300.0)
+        assert all(p_lo <= pw <= p_hi and 0.6 <= v <= 1.0 for pw, v in p)
     assert scenario("table2-case2").profile.command(10)[0] != scenario("table2-case2").profile.command(0)[0]
 
 

@@ -1,0 +1,191 @@
+"""Identification runs: ident-* scenarios (seeded random power staircases) and ``gp_trainer identify``."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fe_node.scenarios import IDENT_DEFAULTS, IDENT_HOLD_STEPS, scenario
+from gp_trainer.campaign import (IDENT_RUNS, IdentifySettings, identify_jobs, job_command, job_recording, plant_toml,
+                                 run_identification, select_ident_runs)
+from gp_trainer.cli import main
+from gp_trainer.errors import CampaignError
+
+REPO = Path(__file__).resolve().parent.parent
+IDENT = ("ident-layer", "ident-double-track")
+
+
+def _steps(sc) -> int:
+    """Steps of the run (as the plant counts them: plan length at the constant speed)."""
+    return math.ceil(sc.plan.total_length / (sc.profile.speed_m_s.range()[0] * sc.settings.dt_s) - 1e-9)
+
+
+def _holds(sc) -> np.ndarray:
+    """Hold lengths [steps] of the staircase's levels (the last one ends with the run)."""
+    starts = np.array(sc.profile.power_w.times_s) / sc.settings.dt_s
+    np.testing.assert_allclose(starts, np.round(starts), atol=1e-9)  # levels change on step boundaries
+    return np.diff(np.round(starts).astype(int))
+
+
+@pytest.mark.parametrize("name", IDENT)
+def test_profile_is_deterministic_per_seed_and_differs_across_seeds(name):
+    a, b = scenario(name, ident_seed=7), scenario(name, ident_seed=7)
+    assert a.profile == b.profile
+    other = scenario(name, ident_seed=8).profile.power_w
+    assert other.values != a.profile.power_w.values and other.times_s != a.profile.power_w.times_s
+    assert scenario(name).profile == scenario(name, ident_seed=IDENT_DEFAULTS["ident_seed"]).profile
+    powers = [a.profile.command(k)[0] for k in range(_steps(a))]
+    assert len(set(powers)) >= 8  # a staircase, not a constant
+
+
+@pytest.mark.parametrize("name", IDENT)
+@pytest.mark.parametrize("mean, amp, seed", [(250.0, 60.0, 0), (200.0, 60.0, 1), (300.0, 60.0, 3), (100.0, 100.0, 9),
+                                             (150.0, 0.0, 2)])
+def test_levels_and_holds_stay_in_their_ranges(name, mean, amp, seed):
+    sc = scenario(name, ident_seed=seed, ident_mean_w=mean, ident_amplitude_w=amp)
+    values = np.array(sc.profile.power_w.values)
+    assert np.all((values >= mean - amp) & (values <= mean + amp))
+    holds = _holds(sc)
+    lo, hi = IDENT_HOLD_STEPS
+    assert (lo, hi) == (3, 30) and np.all((holds >= lo) & (holds <= hi))
+    n = _steps(sc)
+    assert sc.profile.power_w.times_s[-1] < n * sc.settings.dt_s  # the last level starts inside the run
+    assert n - round(sc.profile.power_w.times_s[-1] / sc.settings.dt_s) <= hi  # ... and no longer before its end
+    powers = np.array([sc.profile.command(k) for k in range(n)])
+    assert np.all((powers[:, 0] >= mean - amp) & (powers[:, 0] <= mean + amp)) and np.all(powers[:, 1] == 0.8)
+    if amp > 0 and name == "ident-layer":  # 1000 steps: the holds and levels spread over their ranges
+        assert holds.min() <= 6 and holds.max() >= 26 and np.ptp(values) > amp
+
+
+def test_geometry_speed_and_dt():
+    layer, ident = scenario("layer"), scenario("ident-layer")
+    assert ident.plan == layer.plan and len(ident.plan.tracks) == 4 and ident.plan.lengths == pytest.approx([10e-3] * 4)
+    double = scenario("ident-double-track")
+    assert double.plan == scenario("double-track").plan and double.plan.lengths == pytest.approx([5e-3] * 2)
+    assert _steps(ident) == 1000 and _steps(double) == 250
+    fine = scenario("ident-double-track", dt_s=25e-6)  # holds count steps of the settings' dt
+    assert fine.profile.dt_s == 25e-6 and _steps(fine) == 500
+    assert np.all((_holds(fine) >= 3) & (_holds(fine) <= 30)) and fine.profile.power_w.times_s[-1] >= 470 * 25e-6
+    # the same draws: a longer run extends a shorter one's staircase
+    short = scenario("ident-double-track", ident_seed=3).profile.power_w
+    long = scenario("ident-layer", ident_seed=3).profile.power_w
+    assert long.values[:len(short.values)] == short.values and long.times_s[:len(short.times_s)] == short.times_s
+    assert scenario("ident-layer", power_w=200.0).profile.command(123)[0] == 200.0  # power_w still means constant
+
+
+@pytest.mark.parametrize("name, kw, key", [
+    ("ident-layer", dict(ident_seed=-1), "ident_seed"),
+    ("ident-layer", dict(ident_seed=1.5), "ident_seed"),
+    ("ident-layer", dict(ident_seed=True), "ident_seed"),
+    ("ident-layer", dict(ident_amplitude_w=-1.0), "ident_amplitude_w"),
+    ("ident-layer", dict(ident_mean_w=50.0), "ident_mean_w"),  # 50 - 60 < 0
+    ("ident-double-track", dict(ident_mean_w=100.0, ident_amplitude_w=150.0), "ident_mean_w"),
+    ("ident-layer", dict(ident_mean_w=float("nan")), "ident_mean_w"),
+    ("ident-layer", dict(ident_amplitude_w="60"), "ident_amplitude_w"),
+    ("layer", dict(ident_seed=1), "ident_seed"),  # ident-* scenarios only
+    ("table2-case2", dict(ident_mean_w=250.0), "ident_mean_w"),
+    ("ident-layer", dict(ident_seed=2, power_w=250.0), "ident_seed"),
+])
+def test_bad_overrides_raise_one_line_value_error_naming_the_key(name, kw, key):
+    with pytest.raises(ValueError, match=key) as info:
+        scenario(name, **kw)
+    assert "\n" not in str(info.value)
+
+
+def test_identify_jobs_are_the_six_default_runs_with_their_command_lines(tmp_path):
+    assert [r.name for r in IDENT_RUNS] == [
+        "ident-layer-p200-s1", "ident-layer-p250-s2", "ident-layer-p300-s3",
+        "ident-double-track-p200-s4", "ident-double-track-p250-s5", "ident-double-track-p300-s6"]
+    assert IdentifySettings().out_dir == Path("recordings/identification") and IdentifySettings().workers == 2
+    settings = IdentifySettings(out_dir=tmp_path, python="PY", launcher=Path("/repo/launch.py"))
+    jobs = identify_jobs(settings)
+    assert len(jobs) == 6
+    for run, job in zip(IDENT_RUNS, jobs):
+        out, config = tmp_path / f"{job.name}.partial.mcap", tmp_path / "cfg.toml"
+        assert job_recording(settings, job) == tmp_path / f"{run.name}.mcap"
+        assert job_command(settings, job, out, config) == [
+            "PY", "/repo/launch.py", "--scenario", run.scenario, "--controller", "none", "--config", str(config),
+            "--no-progress", "--json", "--out", str(out), "--run-id", run.name]
+        assert dict(job.plant) == {"ident_seed": run.seed, "ident_mean_w": run.mean_w, "ident_amplitude_w": 60.0}
+        assert tomllib.loads(plant_toml(job.plant)) == {"plant": dict(job.plant)}
+    assert [(r.scenario, r.mean_w, r.seed) for r in IDENT_RUNS] == [
+        ("ident-layer", 200.0, 1), ("ident-layer", 250.0, 2), ("ident-layer", 300.0, 3),
+        ("ident-double-track", 200.0, 4), ("ident-double-track", 250.0, 5), ("ident-double-track", 300.0, 6)]
+    assert select_ident_runs(["ident-double-track-p200-s4", "ident-layer-p300-s3"]) == (IDENT_RUNS[2], IDENT_RUNS[3])
+    with pytest.raises(CampaignError, match="unknown identification run"):
+        select_ident_runs(["ident-layer-p999-s1"])
+
+
+def test_per_run_toml_is_accepted_by_the_launcher_and_reproduces_the_profile(tmp_path):
+    from launch import RunOptions, check_config
+
+    run = IDENT_RUNS[4]
+    path = tmp_path / "run.toml"
+    path.write_text(plant_toml(run.job().plant))
+    check_config(RunOptions(scenario=run.scenario, controller="none", config=path))  # as launch.py validates it
+    plant = tomllib.loads(path.read_text())["plant"]
+    assert scenario(run.scenario, **plant).profile == scenario(
+        run.scenario, ident_seed=run.seed, ident_mean_w=run.mean_w, ident_amplitude_w=run.amplitude_w).profile
+
+
+FAILING_LAUNCHER = '''
+import sys
+from pathlib import Path
+args = sys.argv[1:]
+Path(args[args.index("--out") + 1]).write_bytes(b"half a recording")
+print(Path(args[args.index("--config") + 1]).read_text().replace("\\n", " | "), file=sys.stderr)
+sys.exit(1)
+'''
+
+
+def test_failed_run_keeps_its_partial_recording(tmp_path):
+    launcher = tmp_path / "fake_launch.py"
+    launcher.write_text(FAILING_LAUNCHER)
+    settings = IdentifySettings(runs=select_ident_runs(["ident-layer-p250-s2"]), out_dir=tmp_path / "ident",
+                                launcher=launcher, python=sys.executable)
+    (result,) = run_identification(settings, progress=False)
+    assert result.status == "failed" and "exit status 1" in result.detail and "ident_seed = 2" in result.detail
+    assert Path(result.recording) == tmp_path / "ident" / "ident-layer-p250-s2.partial.mcap"
+    assert Path(result.recording).is_file() and not (tmp_path / "ident" / "ident-layer-p250-s2.mcap").exists()
+    assert sorted(p.name for p in (tmp_path / "ident").iterdir()) == ["ident-layer-p250-s2.partial.mcap"]  # config: temp
+
+
+def test_cli_user_errors_exit_2(tmp_path, capsys):
+    assert main(["identify", "--runs", "nope", "--out-dir", str(tmp_path)]) == 2
+    assert main(["identify", "--workers", "0", "--out-dir", str(tmp_path)]) == 2
+    assert main(["identify", "--timeout", "0", "--out-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and "unknown identification run(s) nope" in err[0] and "--workers" in err[1]
+    assert not any(tmp_path.iterdir())
+
+
+def test_identify_records_one_double_track_end_to_end(tmp_path):
+    """``python -m gp_trainer identify --runs ident-double-track-p250-s5``: 250 FE steps (~10 s)."""
+    from gp_trainer.dataset import read_states
+    from messages.recording import is_complete
+
+    name = "ident-double-track-p250-s5"
+    cmd = [sys.executable, "-m", "gp_trainer", "identify", "--runs", name, "--out-dir", str(tmp_path),
+           "--no-progress", "--json", "--timeout", "120"]
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert (summary["ok"], summary["failed"], summary["runs"][0]["name"]) == (1, 0, name)
+    recording = tmp_path / f"{name}.mcap"
+    assert is_complete(recording) and [p.name for p in tmp_path.iterdir()] == [recording.name]
+    states = read_states(recording)
+    assert len(states) == 251 and states[-1].step == 250
+    power = np.array([s.power_w for s in states[1:]])  # state k carries the power of step k - 1
+    expected = scenario("ident-double-track", ident_seed=5, ident_mean_w=250.0, ident_amplitude_w=60.0).profile
+    np.testing.assert_allclose(power, [expected.command(s.step - 1)[0] for s in states[1:]])
+    assert np.all((power >= 190.0) & (power <= 310.0))
+    assert len(np.unique(power)) >= 8 and np.ptp(power) > 40.0 and np.std(power) > 10.0  # it varies
+    again = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=60)  # complete: skipped
+    assert again.returncode == 0 and json.loads(again.stdout.strip().splitlines()[-1])["skipped"] == 1
