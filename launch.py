@@ -412,40 +412,67 @@ def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None
 
 
 def _summarise(out: Path, opts: RunOptions, status: int, wall_s: float) -> dict[str, Any]:
-    from controller_node.report import metrics, read_trace
+    """JSON-able summary of a default run: completeness and, closed loop, the Table-4 metrics
+    over the fixed window (``controller_node.report``); ``complete`` is false for a run that did
+    not finish or whose recording cannot be read."""
+    from controller_node.report import metrics, read_trace, recording_completeness
     from messages.recording import RecordingError
 
     summary: dict[str, Any] = {"status": status, "wall_s": round(wall_s, 2), "recording": str(out),
                                "scenario": opts.scenario, "controller": opts.controller}
     try:
         trace = read_trace(out)
+        done = recording_completeness(out, int(trace.time_s.size))
     except RecordingError as err:
-        summary["error"] = str(err)
+        summary.update(error=str(err), complete=False, incomplete_reason=f"unreadable recording: {err}")
         return summary
-    summary["steps"] = int(trace.time_s.size - 1)
+    summary.update(steps=int(trace.time_s.size - 1), complete=done.complete, incomplete_reason=done.reason)
     if opts.closed_loop:
         try:
             m = metrics(trace, opts.setpoint())
         except ValueError as err:
             summary["error"] = str(err)
             return summary
-        summary.update(setpoint_mm2=m.setpoint_mm2, overshoot_pct=round(m.overshoot_pct, 2),
-                       undershoot_pct=round(m.undershoot_pct, 2), steady_rmse_pct=round(m.steady_rmse_pct, 2))
+        summary.update(setpoint_mm2=m.setpoint_mm2, window_start_s=m.window_start_s,
+                       overshoot_pct=round(m.overshoot_pct, 2), undershoot_pct=round(m.undershoot_pct, 2),
+                       steady_rmse_pct=round(m.steady_rmse_pct, 2),
+                       rmse_turnaround_pct=_round(m.rmse_turnaround_pct), rmse_along_pct=_round(m.rmse_along_pct),
+                       turnaround_share_pct=_round(m.turnaround_share_pct, 1),
+                       n_turnaround=m.n_turnaround, n_along=m.n_along)
     return summary
 
 
+def _round(value: float | None, digits: int = 2) -> float | None:
+    return None if value is None else round(value, digits)
+
+
+def _cell(value: float | None, digits: int = 2) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f}"
+
+
 def _print_table(summary: dict[str, Any]) -> None:
-    if "steady_rmse_pct" in summary:
-        print(f"[launch] {summary['controller']} on {summary['scenario']}: set point {summary['setpoint_mm2']:.4f} mm² | "
+    """Print a run's Table-4 line, or ``INCOMPLETE (<reason>)`` for a run that did not finish."""
+    run = f"[launch] {summary['controller']} on {summary['scenario']}:"
+    if summary.get("complete") is False:
+        print(f"{run} INCOMPLETE ({summary['incomplete_reason']})")
+    elif "steady_rmse_pct" in summary:
+        print(f"{run} set point {summary['setpoint_mm2']:.4f} mm² | "
               f"max overshoot {summary['overshoot_pct']:.1f} % | max undershoot {summary['undershoot_pct']:.1f} % | "
-              f"steady-state RMSE {summary['steady_rmse_pct']:.2f} % | {summary['steps']} steps in {summary['wall_s']:.1f} s")
+              f"steady-state RMSE {summary['steady_rmse_pct']:.2f} % | "
+              f"turnaround RMSE {_cell(summary['rmse_turnaround_pct'])} % ({summary['n_turnaround']} states) | "
+              f"along-track RMSE {_cell(summary['rmse_along_pct'])} % ({summary['n_along']} states) | "
+              f"window from {summary['window_start_s'] * 1e3:g} ms after laser-on | "
+              f"{summary['steps']} steps in {summary['wall_s']:.1f} s")
     print(f"[launch] recording: {summary['recording']}")
 
 
 def compare(opts: RunOptions, folder: Path, hub: str | None, progress: bool,
             zenoh_config: Path | None = None) -> tuple[int, dict[str, Any]]:
-    """Run every compared controller on the same plant; write ``comparison.md`` and ``comparison.png``."""
-    from controller_node.report import plot, read_trace
+    """Run every compared controller on the same plant; write ``comparison.md`` and ``comparison.png``.
+
+    Stops at the first run that fails, does not finish or has no metrics (status 1 unless the
+    run's own status says otherwise)."""
+    from controller_node.report import TURNAROUND_STEPS, WINDOW_START_S, plot, read_trace
 
     folder.mkdir(parents=True, exist_ok=True)
     rows, traces = [], {}
@@ -455,18 +482,25 @@ def compare(opts: RunOptions, folder: Path, hub: str | None, progress: bool,
         status, wall_s = launch(default_nodes(run_opts, out), out, None, hub, progress, zenoh_config)
         summary = _summarise(out, run_opts, status, wall_s)
         _print_table(summary)
-        if status != 0 or "steady_rmse_pct" not in summary:
+        if status != 0 or summary.get("complete") is not True or "steady_rmse_pct" not in summary:
             return status or 1, {"failed": name, **summary}
         rows.append(summary)
         traces[name] = read_trace(out)
-    lines = ["| controller | max overshoot [%] | max undershoot [%] | steady-state RMSE [%] | wall time [s] |",
-             "|---|---:|---:|---:|---:|"]
-    lines += [f"| {r['controller']} | {r['overshoot_pct']:.1f} | {r['undershoot_pct']:.1f} | {r['steady_rmse_pct']:.2f} | {r['wall_s']:.1f} |" for r in rows]
+    lines = ["| controller | max overshoot [%] | max undershoot [%] | steady-state RMSE [%] | turnaround RMSE [%] "
+             "| along-track RMSE [%] | wall time [s] |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    lines += [f"| {r['controller']} | {r['overshoot_pct']:.1f} | {r['undershoot_pct']:.1f} | {r['steady_rmse_pct']:.2f} "
+              f"| {_cell(r['rmse_turnaround_pct'])} | {_cell(r['rmse_along_pct'])} | {r['wall_s']:.1f} |" for r in rows]
+    heading = (f"Scenario `{opts.scenario}`, set point {opts.setpoint():.4f} mm². Every figure in % of the set point, "
+               f"over one fixed window for every controller: from {WINDOW_START_S * 1e3:g} ms after laser-on to the "
+               f"end of the run; turnaround = the first {TURNAROUND_STEPS} states of every track after the first, "
+               "along-track = the rest of the window.")
     table = folder / "comparison.md"
-    table.write_text(f"Scenario `{opts.scenario}`, set point {opts.setpoint():.4f} mm²\n\n" + "\n".join(lines) + "\n")
+    table.write_text(heading + "\n\n" + "\n".join(lines) + "\n")
     figure = plot(traces, opts.setpoint(), folder / "comparison.png")
+    print(heading)
     print("\n".join(lines))
-    return 0, {"table": str(table), "figure": str(figure), "runs": rows}
+    return 0, {"table": str(table), "figure": str(figure), "window_start_s": WINDOW_START_S, "runs": rows}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -504,6 +538,9 @@ def main(argv: list[str] | None = None) -> int:
     summary = _summarise(out, opts, status, wall_s) if specs is None else {"status": status, "wall_s": round(wall_s, 2), "recording": str(out)}
     if specs is None:
         _print_table(summary)
+        if status == 0 and summary.get("complete") is False:
+            status = 1  # the supervisor saw a normal end, but the run did not finish
+            summary["status"] = status
     if args.json:
         print(json.dumps(summary))
     return status
