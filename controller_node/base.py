@@ -15,7 +15,7 @@ from typing import ClassVar
 
 from .safety import FallbackPlan, clamp_power
 from .settings import ControllerSettings
-from .types import Command, Diagnostics, Measurement
+from .types import Command, ConfigurationError, Diagnostics, Measurement
 
 __all__ = ["Controller", "Proposal"]
 
@@ -117,6 +117,8 @@ class Controller(ABC):
             try:
                 proposal = self._propose(measurement)
                 status = proposal.status
+            except ConfigurationError:
+                raise  # a plant this controller cannot serve: refused, not a fallback
             except Exception as exc:  # a controller must answer, whatever its model does
                 status = f"controller_error:{type(exc).__name__}"
             if status == "ok" and not math.isfinite(proposal.power_w):

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from controller_node.registry import CONTROLLERS, make_controller
 from controller_node.settings import ControllerSettings
-from controller_node.types import Measurement
+from controller_node.types import ConfigurationError, Measurement
 from messages import ControllerDiagnostics, LaserCommand, LogLevel, MeltPoolState
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
@@ -39,19 +39,27 @@ def measurement_from_state(state: MeltPoolState) -> Measurement:
         power_w=state.power_w,
         speed_m_s=state.speed_mm_s * 1e-3,
         track=state.track,
+        track_elapsed_s=state.track_elapsed_s,
+        track_remaining_s=state.track_remaining_s,
+        next_track=state.next_track,
     )
 
 
 def load_model(name: str, path: Path | None):
-    """The GP model for controllers that need one (``mpc``, ``feedforward``), else ``None``."""
-    if name not in ("mpc", "feedforward"):
+    """The model for controllers that need one (``mpc``, ``feedforward``: the one-step GP;
+    ``preview-mpc``: the delay-aware model), else ``None``."""
+    if name not in ("mpc", "feedforward", "preview-mpc"):
         return None
     from gp_trainer.errors import GPTrainerError
     from gp_trainer.model import GPModel
+    from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel
 
-    path = path or DEFAULT_MODEL
+    if name == "preview-mpc":
+        loader, path = NarxGPModel.load, path or DEFAULT_MODEL_PATH
+    else:
+        loader, path = GPModel.load, path or DEFAULT_MODEL
     try:
-        return GPModel.load(path)
+        return loader(path)
     except (GPTrainerError, OSError) as err:
         raise UsageError(f"cannot load GP model {path}: {' '.join(str(err).split())}") from None
 
@@ -72,7 +80,13 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
         for newer in states.drain():  # free-running plant: answer the newest state only
             state, n_skipped = newer, n_skipped + 1
         last_time_s = state.time_s
-        command, diag = controller.update(measurement_from_state(state))
+        try:
+            command, diag = controller.update(measurement_from_state(state))
+        except ConfigurationError as err:
+            bus.log(LogLevel.ERROR, str(err), time_s=state.time_s)
+            bus.end_detail(f"refused: {err}")
+            print(f"python -m controller_node: error: {err}", file=sys.stderr)
+            return 2
         power = command.power_w
         if not settings.power_min_w <= power <= settings.power_max_w:  # the core guarantees this; never trust it blindly
             bus.log(LogLevel.ERROR, f"controller produced {power} W outside bounds; not published", time_s=state.time_s)

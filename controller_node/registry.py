@@ -8,11 +8,12 @@ from .feedforward import FeedForwardController
 from .model import DynamicsModel
 from .mpc import MPCController
 from .pid import PIDController
+from .preview import PreviewMPC
 from .settings import ControllerSettings
 
 __all__ = ["CONTROLLERS", "make_controller"]
 
-CONTROLLERS: tuple[str, ...] = ("open-loop", "pid", "feedforward", "mpc")
+CONTROLLERS: tuple[str, ...] = ("open-loop", "pid", "feedforward", "mpc", "preview-mpc")
 
 
 def make_controller(
@@ -22,12 +23,12 @@ def make_controller(
 
     Parameters
     ----------
-    name : {"open-loop", "pid", "feedforward", "mpc"}
+    name : {"open-loop", "pid", "feedforward", "mpc", "preview-mpc"}
         Controller kind.
     settings : ControllerSettings, optional
         Defaults to ``ControllerSettings()``.
-    model : DynamicsModel, optional
-        Required by ``"mpc"``, and by ``"feedforward"`` unless
+    model : DynamicsModel or gp_trainer.narx.NarxGPModel, optional
+        Required by ``"mpc"`` (one-step model), by ``"preview-mpc"`` (delay-aware model), and by ``"feedforward"`` unless
         ``settings.feedforward.gain_w_per_k`` is set; ignored otherwise.
 
     Returns
@@ -50,4 +51,8 @@ def make_controller(
         if model is None:
             raise ValueError("the 'mpc' controller needs a model")
         return MPCController(settings, model)
+    if name == "preview-mpc":
+        if model is None or not hasattr(model, "turn_profile_k"):
+            raise ValueError("the 'preview-mpc' controller needs a delay-aware model (gp_trainer.narx.NarxGPModel)")
+        return PreviewMPC(settings, model)
     raise ValueError(f"unknown controller {name!r}; choose one of {', '.join(CONTROLLERS)}")

@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-__all__ = ["ControllerSettings", "MPCSettings", "PIDSettings", "FeedForwardSettings",
+__all__ = ["ControllerSettings", "MPCSettings", "PreviewSettings", "PIDSettings", "FeedForwardSettings",
            "FE_TEMPERATURE_GAIN_W_PER_K", "FE_MPC_TEMPERATURE_GAIN_W_PER_K", "FE_REFERENCE_TEMPERATURE_K"]
 
 # Temperature feed-forward gain K_T of the FE plant (IN625, 250 W, 0.8 m/s), measured, not
@@ -221,6 +221,71 @@ class MPCSettings:
 
 
 @dataclass(frozen=True)
+class PreviewSettings:
+    """Scan-plan preview MPC on the delay-aware model (:mod:`controller_node.preview`).
+
+    Normalisation: ``e = (x − x_sp)/x_sp`` (relative area error), ``v = p / P``.
+
+    Parameters
+    ----------
+    horizon : int
+        ``H`` [steps]: at least the power→area response (~15 steps) plus the turnaround
+        look-ahead (default 40 = 2 ms).
+    q, q_f : float
+        Weights of ``e²`` on steps 1..H−1 and on step H (Table 3: 1, 20).
+    r : float
+        Weight of the squared normalised moves ``(Δp/P)²``.
+    power_scale_w : float
+        ``P`` [W].
+    area_min_m2, area_max_m2 : float
+        Soft area bounds [m²] (Table 3: 0, 0.5 mm²).
+    slack_linear, slack_quadratic : float
+        Penalty ``ρ₁ s + ρ₂ s²`` on the normalised bound violation ``s >= 0``.
+    uncertainty_z : float
+        The area bounds are tightened by ``z σ_m`` (σ the GP's predictive std of step m);
+        0 disables the tightening.
+    observer_gain : float
+        ``L`` in (0, 1] of the output-disturbance observer ``d̂ += L (x − x̂ − d̂)``.
+    observer_start_steps : int
+        The observer starts this many steps after laser-on (the model is not fitted on the
+        pool build-up, ``gp_trainer.narx.BUILD_UP_STEPS``).
+    learn_turn_profile : bool
+        Forecast the next turnaround with the rise of T ahead seen at the last one in this run.
+    """
+
+    horizon: int = 40
+    q: float = 1.0
+    q_f: float = 20.0
+    r: float = 0.1
+    power_scale_w: float = 350.0
+    area_min_m2: float = 0.0
+    area_max_m2: float = 0.5e-6
+    slack_linear: float = 100.0
+    slack_quadratic: float = 1000.0
+    uncertainty_z: float = 0.0
+    observer_gain: float = 0.5
+    observer_start_steps: int = 20
+    learn_turn_profile: bool = True
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.horizon, int) and not isinstance(self.horizon, bool) and 1 <= self.horizon <= 400,
+               f"PreviewSettings.horizon must be an int in [1, 400], got {self.horizon!r}")
+        _finite(self, "q", "q_f", "r", "power_scale_w", "area_min_m2", "area_max_m2", "slack_linear",
+                "slack_quadratic", "uncertainty_z", "observer_gain")
+        _check(self.q >= 0 and self.q_f >= 0, "PreviewSettings.q and q_f must be >= 0")
+        _check(self.r > 0, f"PreviewSettings.r must be > 0 (strictly convex QP), got {self.r}")
+        _check(self.power_scale_w > 0, "PreviewSettings.power_scale_w must be > 0 W")
+        _check(0 <= self.area_min_m2 < self.area_max_m2, "PreviewSettings needs 0 <= area_min_m2 < area_max_m2")
+        _check(self.slack_linear >= 0 and self.slack_quadratic > 0,
+               "PreviewSettings.slack_linear must be >= 0 and slack_quadratic > 0")
+        _check(self.uncertainty_z >= 0, "PreviewSettings.uncertainty_z must be >= 0")
+        _check(0 < self.observer_gain <= 1, "PreviewSettings.observer_gain must be in (0, 1]")
+        _check(isinstance(self.observer_start_steps, int) and not isinstance(self.observer_start_steps, bool)
+               and self.observer_start_steps >= 1, "PreviewSettings.observer_start_steps must be an int >= 1")
+        _check(isinstance(self.learn_turn_profile, bool), "PreviewSettings.learn_turn_profile must be bool")
+
+
+@dataclass(frozen=True)
 class PIDSettings:
     """Discrete PID on the relative area error ``e = (x_sp − x) / x_sp``.
 
@@ -273,6 +338,7 @@ class ControllerSettings:
     nominal_speed_m_s: float = 0.8
     max_age_steps: int = 1
     mpc: MPCSettings = field(default_factory=MPCSettings)
+    preview: PreviewSettings = field(default_factory=PreviewSettings)
     pid: PIDSettings = field(default_factory=PIDSettings)
     feedforward: FeedForwardSettings = field(default_factory=lambda: FeedForwardSettings(
         enabled=True, direct_gain=1.0, differential_gain=0.0,
@@ -288,7 +354,7 @@ class ControllerSettings:
         _check(self.nominal_speed_m_s > 0, "ControllerSettings.nominal_speed_m_s must be > 0")
         _check(isinstance(self.max_age_steps, int) and not isinstance(self.max_age_steps, bool)
                and self.max_age_steps >= 0, "ControllerSettings.max_age_steps must be an int >= 0")
-        for name, cls in (("mpc", MPCSettings), ("pid", PIDSettings), ("feedforward", FeedForwardSettings)):
+        for name, cls in (("mpc", MPCSettings), ("preview", PreviewSettings), ("pid", PIDSettings), ("feedforward", FeedForwardSettings)):
             _check(isinstance(getattr(self, name), cls), f"ControllerSettings.{name} must be a {cls.__name__}")
         _check(self.mpc.area_min_m2 < self.set_point_m2 < self.mpc.area_max_m2,
                "ControllerSettings.set_point_m2 must lie inside the MPC area bounds")

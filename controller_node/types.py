@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Measurement", "Command", "Diagnostics"]
+__all__ = ["ConfigurationError", "Measurement", "Command", "Diagnostics"]
 
 
 def _real(name: str, value: object) -> float:
@@ -38,6 +38,11 @@ def _step(name: str, value: object) -> int:
     if value < 0:
         raise ValueError(f"{name} must be >= 0, got {value}")
     return int(value)
+
+
+class ConfigurationError(Exception):
+    """The controller cannot serve this plant as configured (e.g. another sample period); the
+    node refuses the run with this one-line message instead of falling back."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,6 +66,10 @@ class Measurement:
     track : int or None
         Track index, when the plant reports it (a history model only uses the previous
         sample of the same track).
+    track_elapsed_s, track_remaining_s : float or None
+        Scan-plan preview: time since the current track started and until it ends [s].
+    next_track : bool or None
+        Another track follows the current one (False on the layer's last track).
 
     Notes
     -----
@@ -77,9 +86,15 @@ class Measurement:
     power_w: float
     speed_m_s: float
     track: int | None = None
+    track_elapsed_s: float | None = None
+    track_remaining_s: float | None = None
+    next_track: bool | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "step", _step("step", self.step))
+        for name in ("track_elapsed_s", "track_remaining_s"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, _real(name, getattr(self, name)))
         if self.track is not None:
             object.__setattr__(self, "track", _step("track", self.track))
         for name in ("time_s", "area_m2", "t_ahead_k", "power_w", "speed_m_s"):
@@ -100,6 +115,7 @@ class Measurement:
             and self.t_ahead_k > 0.0
             and self.power_w >= 0.0
             and self.speed_m_s > 0.0
+            and all(v is None or (math.isfinite(v) and v >= 0.0) for v in (self.track_elapsed_s, self.track_remaining_s))
         )
 
 

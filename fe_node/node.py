@@ -87,8 +87,16 @@ def state_message(run_id: str, obs: Observation) -> MeltPoolState:
         scan_dir_x=obs.direction[0], scan_dir_y=obs.direction[1], track=obs.track, area_mm2=obs.area_m2 * 1e6,
         t_ahead_k=obs.t_ahead_k, power_w=obs.power_w, speed_mm_s=obs.speed_m_s * 1e3, width_um=obs.width_m * 1e6,
         length_um=obs.length_m * 1e6, depth_um=obs.depth_m * 1e6, cross_section_mm2=obs.cross_section_m2 * 1e6,
-        t_peak_k=obs.t_peak_k, source="fe",
+        t_peak_k=obs.t_peak_k, source="fe", **preview_fields(obs),
     )
+
+
+def preview_fields(obs: Observation) -> dict:
+    """Scan-plan preview of a state: track distances → times at the applied speed (none before laser-on)."""
+    if not obs.speed_m_s > 0:
+        return {"next_track": obs.next_track}
+    return {"track_elapsed_s": obs.track_travelled_m / obs.speed_m_s,
+            "track_remaining_s": obs.track_remaining_m / obs.speed_m_s, "next_track": obs.next_track}
 
 
 class CommandWaiter:

@@ -46,6 +46,10 @@ class Observation:
         (convection + radiation) since the start [J].
     energy_error_pct : float
         ``100 (absorbed - stored - lost) / absorbed`` (0 before any absorption).
+    track_travelled_m, track_remaining_m : float
+        Scan-plan preview: distance scanned on the current track and left to its end [m].
+    next_track : bool
+        Another track follows the current one.
     """
 
     step: int
@@ -67,6 +71,9 @@ class Observation:
     energy_stored_j: float
     energy_lost_j: float
     energy_error_pct: float
+    track_travelled_m: float = 0.0
+    track_remaining_m: float = 0.0
+    next_track: bool = False
 
 
 def interp_matrix(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:

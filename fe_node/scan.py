@@ -69,6 +69,15 @@ class ScanPlan:
         pts = np.array([p for t in self.tracks for p in t])
         return pts[:, 0].min(), pts[:, 0].max(), pts[:, 1].min(), pts[:, 1].max()
 
+    def preview(self, s: float) -> tuple[float, float, bool]:
+        """Scan-plan preview at arc length ``s`` [m]: distance travelled on the current track,
+        distance left to its end [m], and whether another track follows it."""
+        track, _, _ = self.locate(s)
+        k = int(track)
+        ends = np.cumsum(self.lengths)
+        start = ends[k] - self.lengths[k]
+        return float(min(s, ends[k]) - start), float(max(ends[k] - s, 0.0)), k + 1 < len(self.tracks)
+
     def locate(self, s):
         """Track index, position and unit direction at arc length(s) ``s`` [m].
 

@@ -188,7 +188,9 @@ class ThermalModel:
         stored = self._energy() - self._e0
         err = (100.0 * (self._absorbed - stored - self._lost) / self._absorbed
                if self._absorbed > 0 else 0.0)
+        travelled, remaining, follows = self.plan.preview(self._s)
         return Observation(
+            track_travelled_m=travelled, track_remaining_m=remaining, next_track=follows,
             step=self.step_index, time_s=self.time_s, x_m=float(xy[0]), y_m=float(xy[1]),
             direction=(float(d[0]), float(d[1])), track=int(track),
             power_w=float(power_w), speed_m_s=float(speed_m_s), **geo,

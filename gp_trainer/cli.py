@@ -30,6 +30,7 @@ PROG = "python -m gp_trainer"
 DEFAULT_DATASET = Path("out/gp/dataset.npz")
 DEFAULT_RECORDINGS = Path("recordings/campaign")
 DEFAULT_PLOTS = Path("out/gp")
+NARX_HELD_OUT = ("ident-layer-p250-s2", "ident-double-track-p250-s5")
 FE_SOURCE = "FE campaign: finite-element plant (fe_node) recordings, see dataset.recordings"
 RECORDED_SOURCE = "recordings whose plant is not identified as the FE node, see dataset.recordings"
 SYNTHETIC_SOURCE = "synthetic stand-in plant (gp_trainer.synthetic), NOT FE data"
@@ -74,6 +75,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plots-dir", type=Path, default=DEFAULT_PLOTS, help="where the PNG figures go")
     p.add_argument("--rollout-source", default="table2-case2", help="case of the multi-step forward simulation")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON (last line)")
+
+    p = sub.add_parser("narx", formatter_class=fmt,
+                       help="select, fit and evaluate the delay-aware model (FIR + residual GP) of the preview MPC")
+    p.add_argument("recordings", nargs="*", type=Path,
+                   help="MCAP recordings (default: every complete run in recordings/identification)")
+    p.add_argument("--held-out", nargs="+", default=list(NARX_HELD_OUT), help="recording stems held out for selection and evaluation")
+    p.add_argument("--out", type=Path, default=None, help="model file (default: gp_trainer/models/in625_narx_gp.json)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the GP point choice and optimiser restarts")
+    p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
 
     p = sub.add_parser("campaign", formatter_class=fmt, help="record the Table 2 cases open loop")
     p.add_argument("--workers", type=int, default=2, help="cases run in parallel")
@@ -208,11 +218,40 @@ def _identify(args: argparse.Namespace) -> int:
     return 1 if any(r.status == "failed" for r in results) else 0
 
 
+def _narx(args: argparse.Namespace) -> int:
+    from gp_trainer.dataset import read_states
+    from gp_trainer.narx import DEFAULT_MODEL_PATH, ROLLOUT_HORIZON, select_and_fit, series_from_states
+    from gp_trainer.provenance import REPO_ROOT
+
+    paths = args.recordings or sorted((REPO_ROOT / "recordings" / "identification").glob("*.mcap"))
+    paths = [p for p in paths if not p.name.endswith(".partial.mcap")]
+    if not paths:
+        raise DatasetError(f"no recordings given and none in recordings/identification (run `{PROG} identify`)")
+    runs = [series_from_states(read_states(p), p.stem) for p in paths]
+    held = [r for r in runs if r.name in args.held_out]
+    train = [r for r in runs if r.name not in args.held_out]
+    if not held or not train:
+        raise DatasetError(f"need both training and held-out runs; held out {[r.name for r in held]} of {[r.name for r in runs]}")
+    model, table = select_and_fit(train, held, seed=args.seed)
+    out = model.save(args.out or DEFAULT_MODEL_PATH)
+    best = next(row for row in table if row["n_power_lags"] == model.n_power_lags
+                and row["n_temperature_lags"] == model.n_temperature_lags
+                and row["length_scale_floor"] == model.provenance["bounds"]["length_scale"][0])
+    for row in table:
+        print(f"lags p {row['n_power_lags']:2d}, T {row['n_temperature_lags']:2d}, ℓ >= {row['length_scale_floor']}: "
+              f"{ROLLOUT_HORIZON}-step rollout {row[f'rollout_h{ROLLOUT_HORIZON}_mape_pct']:.2f} %, "
+              f"one-step MAPE {row['mape_pct']:.2f} %, coverage {row['coverage_95_pct']:.1f} %")
+    print(f"selected p {model.n_power_lags}, T {model.n_temperature_lags} lags -> {out}")
+    if args.json:
+        print(json.dumps({k: v for k, v in best.items()}))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one sub-command; return the exit status (2 for user errors, with a one-line reason)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    command = {"dataset": _dataset, "train": _train, "evaluate": _evaluate, "campaign": _campaign,
+    command = {"dataset": _dataset, "train": _train, "evaluate": _evaluate, "campaign": _campaign, "narx": _narx,
                "identify": _identify}[args.command]
     try:
         return command(args)

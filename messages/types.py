@@ -73,6 +73,12 @@ class MeltPoolState(Message, frozen=True, kw_only=True):
     depth_um: LengthUm | None = None
     cross_section_mm2: AreaMm2 | None = None
     t_peak_k: TempK | None = None
+    track_elapsed_s: Annotated[float, msgspec.Meta(ge=0.0, le=1.0e6, description=(
+        "Scan-plan preview: time since the current track started [s]."))] | None = None
+    track_remaining_s: Annotated[float, msgspec.Meta(ge=0.0, le=1.0e6, description=(
+        "Scan-plan preview: time until the laser reaches the end of the current track [s]."))] | None = None
+    next_track: Annotated[bool, msgspec.Meta(description=(
+        "Scan-plan preview: another track starts where this one ends (false on the last track)."))] | None = None
     source: Literal["fe", "sensor", "replay", "surrogate"] = "fe"
 
 

@@ -18,8 +18,10 @@ def _m(step: int, area: float = SET_POINT, t: float = 300.0, power: float = 250.
 
 
 def test_registry_builds_every_controller_with_its_name() -> None:
+    from tests.test_controller_safety import DELAY_MODEL
+
     for name in CONTROLLERS:
-        controller = make_controller(name, ControllerSettings(), MODEL)
+        controller = make_controller(name, ControllerSettings(), DELAY_MODEL if name == "preview-mpc" else MODEL)
         assert controller.name == name
         cmd, diag = controller.update(_m(0))
         assert cmd.step == 1 and not diag.fallback and cmd.speed_m_s == 0.8

@@ -1,0 +1,196 @@
+"""Scan-plan preview MPC on the delay-aware GP model (the default ``mpc`` controller).
+
+Each update at state k (:meth:`PreviewMPC.update`):
+
+1. **Estimate**: the output disturbance ``d̂`` (offset-free control) is a random-walk
+   observer on the model's one-step error, ``d̂ ← d̂ + L (x[k] − x̂[k|k−1] − d̂)``.
+2. **Forecast**: T ahead over the horizon from the scan-plan preview carried by the state
+   (``track_elapsed_s``, ``track_remaining_s``, ``next_track``) and the turnaround profile
+   (:func:`gp_trainer.narx.forecast_t_ahead`); the profile of the last turnaround seen in this
+   run replaces the trained one where it has been observed (learning from the run).
+3. **Predict**: ``x̂[k+m] = c₀ + Σ b_i p[k+m−i] + Σ c_j T[k+m−1−j] + r(ψ_{k+m−1}) + d̂``,
+   m = 1..H (model of :mod:`gp_trainer.narx`), affine in the planned powers.
+4. **Optimise**: the QP of :mod:`controller_node.preview_qp` (tracking of the set point,
+   move penalty, hard power bounds, soft area bounds tightened by the GP's predictive std).
+
+The first state (step 0, laser still off) is answered with the nominal power, like every
+controller. A plant whose sample period differs from the model's is refused
+(:class:`~controller_node.types.ConfigurationError`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .base import Controller, Proposal
+from .preview_qp import PreviewQP
+from .settings import ControllerSettings
+from .types import ConfigurationError, Measurement
+
+__all__ = ["PreviewMPC"]
+
+PERIOD_TOLERANCE = 0.01
+"""Relative difference between the plant's and the model's sample period that is refused."""
+
+
+class PreviewMPC(Controller):
+    """Preview MPC (module docstring).
+
+    Parameters
+    ----------
+    settings : ControllerSettings
+        ``settings.preview`` configures it.
+    model : gp_trainer.narx.NarxGPModel
+        Delay-aware model (FIR part, residual GP, turnaround profile, sample period).
+    """
+
+    name = "preview-mpc"
+
+    def __init__(self, settings: ControllerSettings, model) -> None:
+        from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_t_ahead
+
+        self._forecast, self._s_cap = forecast_t_ahead, STEPS_SINCE_START_CAP
+        self.model = model
+        ps = settings.preview
+        h, b, c = ps.horizon, model.power_coefficients, model.temperature_coefficients
+        self._nb, self._nc, self._h = b.size, c.size, h
+        m = np.arange(1, h + 1)[:, None]
+        # planned part: x̂[k+m] ∋ b_{m−l} u_l ;  known powers: b_{m+q} p[k−q], q = 0..n_b−1
+        lag = m - np.arange(1, h + 1)[None, :]
+        gain = np.where((lag >= 0) & (lag < b.size), b[np.clip(lag, 0, b.size - 1)], 0.0)
+        past = m + np.arange(b.size)[None, :]
+        self._b_past = np.where(past < b.size, b[np.clip(past, 0, b.size - 1)], 0.0)
+        # temperatures: sequence T[k−n_c+1 .. k+H−1]; x̂[k+m] uses T[k+m−1−j], j = 0..n_c−1
+        pos = (m - 1 - np.arange(c.size)[None, :]) + (c.size - 1)
+        self._c_seq = np.zeros((h, c.size + h - 1))
+        np.put_along_axis(self._c_seq, pos, c[None, :], axis=1)
+        self.qp = PreviewQP(gain, settings.set_point_m2, q=ps.q, q_f=ps.q_f, r=ps.r, power_scale_w=ps.power_scale_w,
+                            power_min_w=settings.power_min_w, power_max_w=settings.power_max_w,
+                            area_min_m2=ps.area_min_m2, area_max_m2=ps.area_max_m2,
+                            slack_linear=ps.slack_linear, slack_quadratic=ps.slack_quadratic)
+        super().__init__(settings)
+
+    def reset(self) -> None:
+        """Forget the run: histories, disturbance estimate, plan, learned turnaround profile."""
+        super().reset()
+        self._p = np.zeros(self._nb)             # p[k], p[k−1], ...
+        self._t: np.ndarray | None = None        # T[k−n_c+1 .. k]
+        self._prev: Measurement | None = None
+        self._first: Measurement | None = None
+        self._first_track: int | None = None
+        self._track_start_step = 0
+        self._turn_base_k: float | None = None   # T ahead in the state before the last turn
+        self._observed: list[float] = []        # T rise after the last turn, as seen
+        self._profile = np.array(self.model.turn_profile_k, dtype=float)
+        self._plan = np.full(self._h, self.settings.nominal_power_w)
+        self._base0_m2: float | None = None      # x̂[k+1|k] without p[k+1] and d̂, for the observer
+        self.disturbance_m2 = 0.0
+
+    # ------------------------------------------------------------------ bookkeeping
+    def _check_period(self, m: Measurement) -> None:
+        first = self._first
+        if first is None or m.step == first.step:
+            return
+        period = (m.time_s - first.time_s) / (m.step - first.step)
+        expected = self.model.sample_period_s
+        if not abs(period / expected - 1.0) <= PERIOD_TOLERANCE:
+            raise ConfigurationError(f"the plant's sample period is {period * 1e6:.4g} µs but the model was "
+                                     f"identified at {expected * 1e6:.4g} µs; retrain at the plant's period")
+
+    def _observe(self, m: Measurement) -> None:
+        """Push ``p[k]``, ``T[k]`` into the histories and follow tracks and turnarounds."""
+        prev = self._prev
+        gap = 1 if prev is None else max(1, m.step - prev.step)
+        fill = min(gap, self._nb)
+        self._p = np.r_[np.full(fill, m.power_w), self._p[:-fill]] if m.step > 0 else np.zeros(self._nb)
+        if self._t is None:
+            self._t = np.full(self._nc, m.t_ahead_k)
+        else:
+            fill = min(gap, self._nc)
+            self._t = np.r_[self._t[fill:], np.full(fill, m.t_ahead_k)]
+        if self._first_track is None:
+            self._first_track = m.track
+        new_track = prev is not None and m.track is not None and m.track != prev.track
+        if new_track:
+            self._learn_profile()
+            self._turn_base_k = prev.t_ahead_k
+            self._observed = []
+            self._track_start_step = m.step
+        if m.track_elapsed_s is not None:
+            self._track_start_step = m.step - round(m.track_elapsed_s / self.model.sample_period_s)
+        if self._turn_base_k is not None:
+            self._observed.append(m.t_ahead_k - self._turn_base_k)
+
+    def _learn_profile(self) -> None:
+        """Replace the trained turnaround profile by the one just observed, where observed."""
+        if self.settings.preview.learn_turn_profile and self._observed:
+            n = min(len(self._observed), self._profile.size)
+            self._profile[:n] = self._observed[:n]
+            self._profile[n:] = self._profile[n - 1] if n < self._profile.size and n > 0 else self._profile[n:]
+
+    def _current_profile(self) -> np.ndarray:
+        """The profile for this update: the trained/learned one, the current turn's rise where seen."""
+        return self._profile
+
+    # ------------------------------------------------------------------ control law
+    def _propose(self, m: Measurement) -> Proposal:
+        s, ps = self.settings, self.settings.preview
+        if self._first is None:
+            self._first = m
+        self._check_period(m)
+        consecutive = self._prev is not None and m.step == self._prev.step + 1
+        self._observe(m)
+        if consecutive and self._base0_m2 is not None and m.step >= ps.observer_start_steps:
+            predicted = self._base0_m2 + self.model.power_coefficients[0] * m.power_w  # x̂[k|k−1], applied p[k]
+            self.disturbance_m2 += ps.observer_gain * (m.area_m2 - predicted - self.disturbance_m2)
+        self._prev = m
+        self._base0_m2 = None
+        if m.step == 0:
+            return Proposal(s.nominal_power_w, status="ok")
+
+        h, dt = self._h, self.model.sample_period_s
+        since = m.step - self._track_start_step
+        to_end = None
+        if m.track_remaining_s is not None:
+            to_end = max(round(m.track_remaining_s / dt) - 1, 0)
+            if m.next_track is False:
+                to_end = None  # the layer ends: nothing after this track to forecast
+        on_first = m.track is None or m.track == self._first_track
+        forecast = self._forecast(m.t_ahead_k, since, on_first, to_end, self._current_profile(), h)
+        temps = np.r_[self._t, forecast[:-1]]
+        # GP residual at ψ_{k+m−1} = (T, steps since track start, mean power with the last plan)
+        t_psi = np.r_[m.t_ahead_k, forecast[:-1]]
+        j = np.arange(h)
+        if to_end is None:
+            s_psi = since + j
+        else:
+            s_psi = np.where(j <= to_end, since + j, j - to_end - 1)
+        plan_next = np.r_[self._plan[1:], self._plan[-1]]
+        powers = np.r_[self._p[::-1], plan_next]                      # p[k−n_b+1 .. k+H]
+        csum = np.cumsum(np.r_[0.0, powers])
+        nb = self._nb
+        mean_p = (csum[nb + 1 + j] - csum[1 + j]) / nb                 # mean of p[k+m−n_b+1 .. k+m]
+        psi = np.column_stack([t_psi, np.minimum(s_psi, self._s_cap), mean_p])
+        r_mean, r_var = self.model.residual.predict(psi, None if ps.uncertainty_z > 0 else 1)
+        base = self.model.intercept_m2 + self._b_past @ self._p + self._c_seq @ temps + r_mean
+        w = base + self.disturbance_m2
+        std = np.sqrt(r_var + self.model.residual.noise_variance)
+        margin = ps.uncertainty_z * std / s.set_point_m2 if ps.uncertainty_z > 0 else None
+        result = self.qp.solve(w, float(self._p[0]), margin)
+        if result.path.startswith("failed"):
+            return Proposal(math.nan, status=f"solver_{result.path}")
+        plan = result.power_w
+        self._plan = plan
+        self._base0_m2 = float(base[0])  # x̂[k+1] without p[k+1] and d̂, for the next observer update
+        areas = w + (self.qp.gamma * s.set_point_m2 / self.qp.scale) @ plan
+        return Proposal(
+            power_w=float(plan[0]),
+            plan_w=tuple(plan.tolist()),
+            predicted_area_m2=tuple(areas.tolist()),
+            model_std_m2=float(std[0]),
+            feedforward_w=0.0,
+            reference_power_w=None,
+            iterations=0 if result.path == "fast" else 1,
+        )

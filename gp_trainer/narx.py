@@ -1,0 +1,516 @@
+"""Delay-aware melt-pool model: a linear FIR part with the paper's SE-ARD GP on its residual.
+
+The power→area response of the plant is a ramp over one pool length (10–15 steps) and the
+temperature ahead acts with lags of 5–13 steps, so a one-step model ``x[k+1] = f(x[k], ...)``
+cannot represent it (docs/gp.md). This model keeps the pool's memory in its regressor:
+
+    x[k+1] = c₀ + Σ_{i<n_p} b_i p[k+1−i] + Σ_{j<n_T} c_j T[k−j] + r(ψ_k),   r ~ GP(0, k_SE-ARD)
+
+* ``p[j]`` [W] is the power applied during the step j−1 → j (``state[j].power_w``; 0 before
+  laser-on), ``T[j]`` [K] the temperature ahead in state j (before the first state: ``T[0]``).
+* The linear FIR part (least squares) is the delay; the GP of eq. (1)–(5) (SE-ARD kernel,
+  hyper-parameters by maximum marginal likelihood, :mod:`gp_trainer.kernel`) learns the
+  residual on ``ψ_k = (T[k] [K], min(s_k, S) [steps], mean(p[k+2−n_p..k+1]) [W])`` with
+  ``s_k`` the steps since the current track started, and gives the predictive variance.
+* Over a horizon the temperature ahead is forecast from the scan plan
+  (:func:`forecast_t_ahead`): after a turnaround it follows the learned turnaround profile
+  (:attr:`NarxGPModel.turn_profile_k`), the rise of T ahead over the state before the turn.
+
+Everything is SI; the model file records the sample period and the definition of every input.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+
+from gp_trainer.atomic import atomic_write_bytes
+from gp_trainer.errors import DatasetError, ModelFormatError, ModelVersionError
+from gp_trainer.kernel import HyperBounds, fit_hyperparameters, gram, squared_differences
+
+FORMAT_NAME = "meltloop-narx-gp-model"
+FORMAT_VERSION = 1
+RESIDUAL_INPUTS = ("t_ahead_k", "steps_since_track_start", "mean_power_w")
+STEPS_SINCE_START_CAP = 100
+BUILD_UP_STEPS = 20
+"""Samples whose target lies in the first 20 steps after laser-on (pool build-up) are not fitted."""
+DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_narx_gp.json"
+"""The shipped delay-aware model (``python -m gp_trainer train`` writes it; the MPC loads it)."""
+
+
+@dataclass(frozen=True)
+class RunSeries:
+    """One recorded run as aligned arrays (state order, consecutive steps), SI units.
+
+    Attributes
+    ----------
+    name : str
+        Source name (e.g. the recording stem).
+    area_m2, t_ahead_k, power_w : numpy.ndarray, shape (n,)
+        ``x[j]``, ``T[j]`` and the power ``p[j]`` applied during step j−1 → j (``p[0] = 0``).
+    track : numpy.ndarray of int, shape (n,)
+        Track index of each state.
+    sample_period_s : float
+        Step duration Δt [s].
+    """
+
+    name: str
+    area_m2: np.ndarray
+    t_ahead_k: np.ndarray
+    power_w: np.ndarray
+    track: np.ndarray
+    sample_period_s: float
+
+    def __len__(self) -> int:
+        return int(self.area_m2.shape[0])
+
+    def steps_since_track_start(self) -> np.ndarray:
+        """``s_j``: states since the first state of the current track, shape (n,)."""
+        start = np.r_[0, np.flatnonzero(np.diff(self.track) != 0) + 1]
+        index = np.arange(len(self))
+        return index - start[np.searchsorted(start, index, side="right") - 1]
+
+    def steps_to_track_end(self) -> np.ndarray:
+        """``e_j``: states until the last state of the current track (0 on it), shape (n,)."""
+        end = np.r_[np.flatnonzero(np.diff(self.track) != 0), len(self) - 1]
+        index = np.arange(len(self))
+        return end[np.searchsorted(end, index, side="left")] - index
+
+
+def series_from_states(states: Sequence[Any], name: str) -> RunSeries:
+    """A :class:`RunSeries` from ``MeltPoolState`` messages of one run (mm² → m², step order).
+
+    Raises
+    ------
+    DatasetError
+        Fewer than 2 states, missing steps, or an inconsistent sample period.
+    """
+    states = sorted(states, key=lambda s: s.step)
+    if len(states) < 2:
+        raise DatasetError(f"{name}: fewer than 2 plant states")
+    steps = np.array([s.step for s in states])
+    if np.any(np.diff(steps) != 1):
+        raise DatasetError(f"{name}: states are not consecutive steps (lost messages?)")
+    time_s = np.array([s.time_s for s in states])
+    periods = np.diff(time_s)
+    period = float(np.median(periods))
+    if not period > 0 or np.max(np.abs(periods - period)) > 0.01 * period:
+        raise DatasetError(f"{name}: the sample period varies ({periods.min():.3g}-{periods.max():.3g} s)")
+    power = np.array([s.power_w for s in states], dtype=float)
+    if steps[0] == 0:
+        power[0] = 0.0
+    return RunSeries(name=name, area_m2=np.array([s.area_mm2 for s in states]) * 1e-6,
+                     t_ahead_k=np.array([s.t_ahead_k for s in states], dtype=float), power_w=power,
+                     track=np.array([s.track for s in states], dtype=int), sample_period_s=period)
+
+
+def turn_profile(runs: Iterable[RunSeries], length: int) -> np.ndarray:
+    """Mean rise of T ahead after a turnaround, ``T[start+s] − T[start−1]`` for s = 0..length−1 [K].
+
+    Averaged over every track start after the first track of every run; where fewer states
+    exist the mean is over the tracks that have them (the last value is held if none do).
+    """
+    sums, counts = np.zeros(length), np.zeros(length)
+    for run in runs:
+        for start in np.flatnonzero(np.diff(run.track) != 0) + 1:
+            seg = run.t_ahead_k[start:start + length] - run.t_ahead_k[start - 1]
+            sums[:seg.size] += seg
+            counts[:seg.size] += 1
+    if counts[0] == 0:
+        return np.zeros(length)
+    profile = sums / np.maximum(counts, 1)
+    last = int(np.flatnonzero(counts)[-1])
+    profile[last + 1:] = profile[last]
+    return profile
+
+
+def forecast_t_ahead(t_now_k: float, steps_since_start: int, on_first_track: bool, steps_to_end: int | None,
+                     profile_k: np.ndarray, horizon: int) -> np.ndarray:
+    """Forecast ``T[k+1..k+H]`` [K] from the scan plan and a turnaround profile.
+
+    On the current track T follows the profile's shape from the current state (held on the
+    first track, which has no previous track beside it); after the track's last state (in
+    ``steps_to_end + 1`` steps) it rises by the profile over the forecast value at that state.
+    Beyond the next track, and beyond the profile, T is held.
+
+    Parameters
+    ----------
+    t_now_k : float
+        ``T[k]`` [K].
+    steps_since_start : int
+        ``s_k``, states since the current track's first state.
+    on_first_track : bool
+        The current track is the first of the layer (nothing scanned beside it).
+    steps_to_end : int or None
+        ``e_k``: states until the current track's last state (None: unknown, no turn foreseen).
+    profile_k : numpy.ndarray, shape (S,)
+        Turnaround profile [K] (:func:`turn_profile`).
+    horizon : int
+        ``H``.
+
+    Returns
+    -------
+    numpy.ndarray, shape (H,)
+    """
+    j = np.arange(1, horizon + 1)
+    last = profile_k.size - 1
+    if on_first_track:
+        current = np.full(horizon, float(t_now_k))
+    else:
+        s = np.minimum(steps_since_start + j, last)
+        current = t_now_k + profile_k[s] - profile_k[min(steps_since_start, last)]
+    if steps_to_end is None or steps_to_end >= horizon:
+        return current
+    t_end = current[steps_to_end - 1] if steps_to_end > 0 else float(t_now_k)
+    after = np.minimum(j - steps_to_end - 1, last)
+    return np.where(j > steps_to_end, t_end + profile_k[np.maximum(after, 0)], current)
+
+
+class ResidualGP:
+    """Zero-mean SE-ARD GP (eq. 1–5) on standardised inputs, target scaled to unit std.
+
+    Parameters
+    ----------
+    inputs : numpy.ndarray, shape (n, d)
+        Training inputs ψ (SI).
+    targets : numpy.ndarray, shape (n,)
+        Residuals [m²].
+    signal_std, noise_std : float
+        σ_f and σ_n in normalised units.
+    length_scales : numpy.ndarray, shape (d,)
+        ℓ_j in standard deviations of input j.
+    input_mean, input_scale : numpy.ndarray, shape (d,)
+        Standardisation of the inputs.
+    target_scale : float
+        Standard deviation of the residual [m²].
+    """
+
+    def __init__(self, *, inputs: np.ndarray, targets: np.ndarray, signal_std: float, noise_std: float,
+                 length_scales: np.ndarray, input_mean: np.ndarray, input_scale: np.ndarray,
+                 target_scale: float) -> None:
+        self.inputs = np.asarray(inputs, dtype=float)
+        self.targets = np.asarray(targets, dtype=float)
+        self.signal_std, self.noise_std = float(signal_std), float(noise_std)
+        self.length_scales = np.asarray(length_scales, dtype=float)
+        self.input_mean = np.asarray(input_mean, dtype=float)
+        self.input_scale = np.asarray(input_scale, dtype=float)
+        self.target_scale = float(target_scale)
+        n = self.targets.shape[0]
+        U = (self.inputs - self.input_mean) / self.input_scale
+        theta = np.log(np.r_[self.signal_std, self.noise_std, self.length_scales])
+        ky = gram(theta, squared_differences(U)) + self.noise_std**2 * np.eye(n)
+        try:
+            chol = scipy.linalg.cholesky(ky, lower=True)
+        except np.linalg.LinAlgError as exc:
+            raise ModelFormatError("residual GP covariance is not positive definite") from exc
+        alpha = scipy.linalg.cho_solve((chol, True), self.targets / self.target_scale)
+        self._g = 1.0 / (self.input_scale * self.length_scales)
+        self._W = np.ascontiguousarray(U / self.length_scales)
+        self._half = -0.5 * np.einsum("ij,ij->i", self._W, self._W)
+        sf2 = self.signal_std**2
+        self._mean_w = self.target_scale * sf2 * alpha
+        self._var_f = self.target_scale * sf2 * scipy.linalg.solve_triangular(chol, np.eye(n), lower=True)
+        self.prior_variance = (self.target_scale**2) * sf2
+        self.noise_variance = (self.target_scale * self.noise_std) ** 2
+
+    @classmethod
+    def fit(cls, inputs: np.ndarray, targets: np.ndarray, *, bounds: HyperBounds, seed: int,
+            n_restarts: int) -> ResidualGP:
+        """Hyper-parameters by maximum log marginal likelihood (L-BFGS-B, seeded restarts)."""
+        mu = inputs.mean(axis=0)
+        scale = np.where(inputs.std(axis=0) > 0, inputs.std(axis=0), 1.0)
+        t_scale = max(float(np.std(targets)), 1e-30)
+        theta, _ = fit_hyperparameters((inputs - mu) / scale, targets / t_scale, bounds=bounds,
+                                       n_restarts=n_restarts, seed=seed)
+        p = np.exp(theta)
+        return cls(inputs=inputs, targets=targets, signal_std=p[0], noise_std=p[1], length_scales=p[2:],
+                   input_mean=mu, input_scale=scale, target_scale=t_scale)
+
+    def predict(self, psi: np.ndarray, n_variance: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Mean [m²] and latent variance [m⁴] at the rows of ``psi``, shape (m, d) → (m,), (m,).
+
+        ``n_variance`` limits the variance (the O(m n²) part) to the first rows; the others are NaN.
+        """
+        w = (np.atleast_2d(psi) - self.input_mean) * self._g
+        k = np.exp(w @ self._W.T + self._half - 0.5 * np.einsum("ij,ij->i", w, w)[:, None])
+        rows = k.shape[0] if n_variance is None else min(n_variance, k.shape[0])
+        v = k[:rows] @ self._var_f.T
+        var = np.full(k.shape[0], np.nan)
+        var[:rows] = np.maximum(self.prior_variance - np.einsum("ij,ij->i", v, v), 0.0)
+        return k @ self._mean_w, var
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"inputs": self.inputs.tolist(), "targets": self.targets.tolist(), "signal_std": self.signal_std,
+                "noise_std": self.noise_std, "length_scales": self.length_scales.tolist(),
+                "input_mean": self.input_mean.tolist(), "input_scale": self.input_scale.tolist(),
+                "target_scale": self.target_scale}
+
+
+class NarxGPModel:
+    """The delay-aware model of the module docstring (construct with :meth:`fit` or :meth:`load`).
+
+    Parameters
+    ----------
+    sample_period_s : float
+        Δt the model was identified at [s].
+    intercept_m2 : float
+        ``c₀`` [m²].
+    power_coefficients : numpy.ndarray, shape (n_p,)
+        ``b_i`` [m²/W], i = 0 for ``p[k+1]``.
+    temperature_coefficients : numpy.ndarray, shape (n_T,)
+        ``c_j`` [m²/K], j = 0 for ``T[k]``.
+    residual : ResidualGP
+        GP on ψ (:data:`RESIDUAL_INPUTS`).
+    turn_profile_k : numpy.ndarray, shape (S,)
+        Mean rise of T ahead after a turnaround [K] (:func:`turn_profile`).
+    speed_m_s : float
+        The constant scan speed of the data [m/s] (power-only control).
+    provenance : Mapping, optional
+    """
+
+    def __init__(self, *, sample_period_s: float, intercept_m2: float, power_coefficients: np.ndarray,
+                 temperature_coefficients: np.ndarray, residual: ResidualGP, turn_profile_k: np.ndarray,
+                 speed_m_s: float, provenance: Mapping[str, Any] | None = None) -> None:
+        self.sample_period_s = float(sample_period_s)
+        self.intercept_m2 = float(intercept_m2)
+        self.power_coefficients = np.asarray(power_coefficients, dtype=float)
+        self.temperature_coefficients = np.asarray(temperature_coefficients, dtype=float)
+        self.residual = residual
+        self.turn_profile_k = np.asarray(turn_profile_k, dtype=float)
+        self.speed_m_s = float(speed_m_s)
+        self.provenance = dict(provenance or {})
+        arrays = (self.power_coefficients, self.temperature_coefficients, self.turn_profile_k)
+        if not (self.sample_period_s > 0 and self.speed_m_s > 0 and all(a.ndim == 1 and a.size for a in arrays)
+                and all(np.all(np.isfinite(a)) for a in arrays) and math.isfinite(self.intercept_m2)):
+            raise ModelFormatError("NARX model: non-finite or empty coefficients, or a period/speed <= 0")
+
+    @property
+    def n_power_lags(self) -> int:
+        return int(self.power_coefficients.size)
+
+    @property
+    def n_temperature_lags(self) -> int:
+        return int(self.temperature_coefficients.size)
+
+    @property
+    def static_power_gain_m2_per_w(self) -> float:
+        """Steady-state ``∂x/∂p`` of the linear part [m²/W]."""
+        return float(self.power_coefficients.sum())
+
+    def input_definitions(self) -> dict[str, str]:
+        """Definition of every input (recorded in the model file)."""
+        return {
+            "p[k+1-i], i=0..n_p-1": "laser power applied during step k-i -> k+1-i [W] (state[k+1-i].power_w; 0 before laser-on)",
+            "T[k-j], j=0..n_T-1": "temperature ahead of the laser in state k-j [K] (state.t_ahead_k; T[0] before the first state)",
+            "t_ahead_k": "GP input: T[k] [K]",
+            "steps_since_track_start": f"GP input: states since the current track's first state, capped at {STEPS_SINCE_START_CAP}",
+            "mean_power_w": "GP input: mean of p[k+1-i], i=0..n_p-1 [W]",
+            "output": "melt-pool area x[k+1] [m2] (state[k+1].area_mm2 * 1e-6)",
+            "sample_period_s": "duration of one step; the model is valid only at this period",
+        }
+
+    # ------------------------------------------------------------------ regressors
+    def _lagged(self, run: RunSeries) -> tuple[np.ndarray, np.ndarray]:
+        """Lag matrices for every target index j = 1..n−1: powers (n−1, n_p), temperatures (n−1, n_T)."""
+        n_p, n_t = self.n_power_lags, self.n_temperature_lags
+        p = np.r_[np.zeros(n_p), run.power_w]
+        t = np.r_[np.full(n_t, run.t_ahead_k[0]), run.t_ahead_k]
+        j = np.arange(1, len(run))
+        P = p[(j + n_p)[:, None] - np.arange(n_p)[None, :]]
+        T = t[(j - 1 + n_t)[:, None] - np.arange(n_t)[None, :]]
+        return P, T
+
+    def residual_inputs(self, run: RunSeries) -> np.ndarray:
+        """ψ for every target index j = 1..n−1, shape (n−1, 3)."""
+        P, _ = self._lagged(run)
+        s = np.minimum(run.steps_since_track_start()[:-1], STEPS_SINCE_START_CAP)
+        return np.column_stack([run.t_ahead_k[:-1], s, P.mean(axis=1)])
+
+    def linear_prediction(self, run: RunSeries) -> np.ndarray:
+        """FIR part of ``x[j]`` for j = 1..n−1 with measured T [m²]."""
+        P, T = self._lagged(run)
+        return self.intercept_m2 + P @ self.power_coefficients + T @ self.temperature_coefficients
+
+    def predict_run(self, run: RunSeries) -> tuple[np.ndarray, np.ndarray]:
+        """One-step mean [m²] and latent variance [m⁴] of ``x[j]``, j = 1..n−1, with measured T."""
+        mean, var = self.residual.predict(self.residual_inputs(run))
+        return self.linear_prediction(run) + mean, var
+
+    def rollout(self, run: RunSeries, k: int, horizon: int, profile_k: np.ndarray | None = None) -> np.ndarray:
+        """Predict ``x[k+1..k+H]`` [m²] from what is known at state k: the applied powers (as a
+        perfect plan) and T ahead measured up to k, forecast after it (:func:`forecast_t_ahead`).
+        """
+        profile = self.turn_profile_k if profile_k is None else profile_k
+        s, e = run.steps_since_track_start(), run.steps_to_track_end()
+        on_first = bool(run.track[k] == run.track[0])
+        forecast = forecast_t_ahead(run.t_ahead_k[k], int(s[k]), on_first, int(e[k]), profile, horizon)
+        t = np.r_[run.t_ahead_k[:k + 1], forecast]
+        future = RunSeries(run.name, run.area_m2[:k + horizon + 1], t[:k + horizon + 1],
+                           run.power_w[:k + horizon + 1], run.track[:k + horizon + 1], run.sample_period_s)
+        mean, _ = self.predict_run(future)
+        return mean[k:k + horizon]
+
+    # ------------------------------------------------------------------ fitting
+    @classmethod
+    def fit(cls, runs: Sequence[RunSeries], *, n_power_lags: int, n_temperature_lags: int,
+            n_train: int = 150, bounds: HyperBounds = HyperBounds(), seed: int = 0, n_restarts: int = 4,
+            profile_length: int = 200, provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
+        """Least-squares FIR part, then the residual GP on ``n_train`` seeded random samples.
+
+        Samples whose target is in the first :data:`BUILD_UP_STEPS` states of a run, or has no
+        pool (area 0), are not fitted (the lags still see their powers).
+
+        Raises
+        ------
+        DatasetError
+            No runs, mixed sample periods, or too few samples.
+        """
+        if not runs:
+            raise DatasetError("no runs to fit")
+        periods = {round(r.sample_period_s, 12) for r in runs}
+        if len(periods) != 1:
+            raise DatasetError(f"runs have different sample periods: {sorted(periods)} s")
+        probe = cls._probe(n_power_lags, n_temperature_lags, runs[0].sample_period_s)
+        P, T, Y, PSI = [], [], [], []
+        for run in runs:
+            p, t = probe._lagged(run)
+            keep = (np.arange(1, len(run)) >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
+            P.append(p[keep]), T.append(t[keep]), Y.append(run.area_m2[1:][keep])
+            PSI.append(probe.residual_inputs(run)[keep])
+        P, T, Y, PSI = (np.vstack(P), np.vstack(T), np.concatenate(Y), np.vstack(PSI))
+        if Y.size < max(n_train, n_power_lags + n_temperature_lags + 1) + 10:
+            raise DatasetError(f"only {Y.size} samples for {n_power_lags + n_temperature_lags + 1} coefficients "
+                               f"and {n_train} GP points")
+        design = np.column_stack([np.ones(Y.size), P, T])
+        theta = np.linalg.lstsq(design, Y, rcond=None)[0]
+        residual = Y - design @ theta
+        pick = np.sort(np.random.default_rng(seed).choice(Y.size, size=n_train, replace=False))
+        gp = ResidualGP.fit(PSI[pick], residual[pick], bounds=bounds, seed=seed, n_restarts=n_restarts)
+        record = dict(provenance or {})
+        record.update(seed=seed, n_train=n_train, n_samples=int(Y.size), runs=[r.name for r in runs],
+                      bounds={"signal_std": list(bounds.signal_std), "noise_std": list(bounds.noise_std),
+                              "length_scale": list(bounds.length_scale)})
+        return cls(sample_period_s=runs[0].sample_period_s, intercept_m2=theta[0],
+                   power_coefficients=theta[1:1 + n_power_lags], temperature_coefficients=theta[1 + n_power_lags:],
+                   residual=gp, turn_profile_k=turn_profile(runs, profile_length), speed_m_s=0.8, provenance=record)
+
+    @classmethod
+    def _probe(cls, n_p: int, n_t: int, period: float) -> NarxGPModel:
+        """A shell with the right lag counts (for building regressors before the fit)."""
+        if n_p < 1 or n_t < 1:
+            raise DatasetError(f"lag counts must be >= 1, got {n_p} powers and {n_t} temperatures")
+        obj = cls.__new__(cls)
+        obj.power_coefficients, obj.temperature_coefficients = np.zeros(n_p), np.zeros(n_t)
+        obj.sample_period_s = period
+        return obj
+
+    # ------------------------------------------------------------------ persistence
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": FORMAT_NAME, "format_version": FORMAT_VERSION,
+            "sample_period_s": self.sample_period_s, "speed_m_s": self.speed_m_s,
+            "inputs": self.input_definitions(),
+            "structure": "x[k+1] = c0 + sum_i b_i p[k+1-i] + sum_j c_j T[k-j] + r(psi_k), r ~ GP(0, SE-ARD)",
+            "intercept_m2": self.intercept_m2,
+            "power_coefficients_m2_per_w": self.power_coefficients.tolist(),
+            "temperature_coefficients_m2_per_k": self.temperature_coefficients.tolist(),
+            "residual_gp": {"inputs_names": list(RESIDUAL_INPUTS), **self.residual.to_dict()},
+            "turn_profile_k": self.turn_profile_k.tolist(),
+            "provenance": self.provenance,
+        }
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write the model as JSON, atomically."""
+        text = json.dumps(self.to_dict(), indent=1, sort_keys=True, allow_nan=False) + "\n"
+        return atomic_write_bytes(path, text.encode("utf-8"))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> NarxGPModel:
+        """Read a model written by :meth:`save` (``ModelFormatError`` with a one-line reason)."""
+        try:
+            doc = json.loads(Path(path).read_bytes())
+        except OSError as exc:
+            raise ModelFormatError(f"cannot read model file {path}: {exc.strerror or exc}") from exc
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ModelFormatError(f"model file {path} is not valid JSON ({exc})") from exc
+        if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
+            raise ModelFormatError(f"{path} is not a {FORMAT_NAME} file")
+        if doc.get("format_version") != FORMAT_VERSION:
+            raise ModelVersionError(f"{path} has format version {doc.get('format_version')!r}, "
+                                    f"this code reads {FORMAT_VERSION}; retrain it")
+        try:
+            g = doc["residual_gp"]
+            residual = ResidualGP(inputs=np.array(g["inputs"]), targets=np.array(g["targets"]),
+                                  signal_std=g["signal_std"], noise_std=g["noise_std"],
+                                  length_scales=np.array(g["length_scales"]), input_mean=np.array(g["input_mean"]),
+                                  input_scale=np.array(g["input_scale"]), target_scale=g["target_scale"])
+            return cls(sample_period_s=doc["sample_period_s"], intercept_m2=doc["intercept_m2"],
+                       power_coefficients=np.array(doc["power_coefficients_m2_per_w"]),
+                       temperature_coefficients=np.array(doc["temperature_coefficients_m2_per_k"]),
+                       residual=residual, turn_profile_k=np.array(doc["turn_profile_k"]),
+                       speed_m_s=doc["speed_m_s"], provenance=doc.get("provenance") or {})
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelFormatError(f"{path} is a corrupt model file: {exc}") from exc
+
+
+# ---------------------------------------------------------------------- evaluation and selection
+ROLLOUT_HORIZON = 40
+STRUCTURES = ((16, 20), (24, 30), (32, 40))
+"""Candidate (power lags, temperature lags) of the model selection."""
+LENGTH_SCALE_FLOORS = (0.5, 2.0)
+"""Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
+
+
+def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int = ROLLOUT_HORIZON,
+                   stride: int = 5) -> dict[str, Any]:
+    """Held-out metrics: one-step R² and MAPE, 95 % coverage, and the mean ``horizon``-step rollout error.
+
+    The rollout starts every ``stride`` states after the build-up and predicts ``x[k+1..k+H]`` from
+    what is known at k (:meth:`NarxGPModel.rollout`: applied powers as the plan, T forecast from the
+    scan plan); its error is the mean relative error over the horizon, averaged over the starts.
+    Coverage counts held-out one-step targets inside ``mean ± 1.96 sqrt(var + σ_n²)``.
+    """
+    ys, means, sds, rollouts = [], [], [], []
+    for run in runs:
+        mean, var = model.predict_run(run)
+        keep = (np.arange(1, len(run)) >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
+        ys.append(run.area_m2[1:][keep]), means.append(mean[keep])
+        sds.append(np.sqrt(var[keep] + model.residual.noise_variance))
+        for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride):
+            truth = run.area_m2[k + 1:k + horizon + 1]
+            if np.all(truth > 0):
+                rollouts.append(float(np.mean(np.abs(model.rollout(run, k, horizon) - truth) / truth)))
+    y, mean, sd = np.concatenate(ys), np.concatenate(means), np.concatenate(sds)
+    return {
+        "r2": float(1.0 - np.sum((y - mean) ** 2) / np.sum((y - y.mean()) ** 2)),
+        "mape_pct": float(100.0 * np.mean(np.abs(mean - y) / y)),
+        "n_valid": int(y.size),
+        f"rollout_h{horizon}_mape_pct": float(100.0 * np.mean(rollouts)) if rollouts else None,
+        "coverage_95_pct": float(100.0 * np.mean(np.abs(mean - y) <= 1.96 * sd)),
+        "held_out": [r.name for r in runs],
+    }
+
+
+def select_and_fit(train: Sequence[RunSeries], held_out: Sequence[RunSeries], *, seed: int = 0,
+                   n_train: int = 150) -> tuple[NarxGPModel, list[dict[str, Any]]]:
+    """Fit every candidate structure and length-scale floor on ``train``; keep the one with the
+    smallest 40-step rollout error on ``held_out`` (not the one-step fit). Returns it and the table."""
+    table, best = [], None
+    for n_p, n_t in STRUCTURES:
+        for floor in LENGTH_SCALE_FLOORS:
+            model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
+                                    bounds=HyperBounds(length_scale=(floor, 100.0)))
+            scores = evaluate_model(model, held_out)
+            row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "length_scale_floor": floor, **scores}
+            table.append(row)
+            if best is None or row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"] < best[0]:
+                best = (row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"], model)
+    return best[1], table

@@ -1,0 +1,140 @@
+"""Delay-aware model (gp_trainer.narx) and the scan-plan preview MPC (controller_node.preview)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controller_node.preview import PreviewMPC
+from controller_node.preview_qp import solve_reference
+from controller_node.registry import make_controller
+from controller_node.settings import ControllerSettings, PreviewSettings
+from controller_node.types import ConfigurationError, Measurement
+from fe_node.scan import ScanPlan
+from gp_trainer.narx import NarxGPModel, RunSeries, forecast_t_ahead
+
+DT = 50e-6
+B_TRUE = 1e-12 * np.array([5.0, 10.0, 20.0, 30.0, 30.0, 20.0, 10.0, 5.0])   # m²/W, a ramp over 8 steps
+C_TRUE = 1e-12 * np.array([2.0, 4.0, 6.0, 4.0, 2.0])                          # m²/K
+C0 = 1.0e-8
+
+
+def fir_area(p: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """x[j] = c0 + Σ b_i p[j−i] + Σ c_m T[j−1−m] of the synthetic FIR plant (T[0] before the start)."""
+    n = p.size
+    x = np.zeros(n)
+    for j in range(1, n):
+        x[j] = C0 + sum(B_TRUE[i] * p[j - i] for i in range(B_TRUE.size) if j - i >= 0)
+        x[j] += sum(C_TRUE[m] * t[max(j - 1 - m, 0)] for m in range(C_TRUE.size))
+    return x
+
+
+def synthetic_run(seed: int, n: int = 400, tracks: int = 2) -> RunSeries:
+    rng = np.random.default_rng(seed)
+    p = np.repeat(rng.uniform(150, 300, n // 10 + 1), 10)[:n]
+    p[0] = 0.0
+    track = (np.arange(n) * tracks) // n
+    t = 300.0 + 50.0 * rng.standard_normal(n).cumsum() * 0.1 + 400.0 * (track > 0)
+    return RunSeries(f"synthetic-{seed}", fir_area(p, t), t, p, track, DT)
+
+
+@pytest.fixture(scope="module")
+def model() -> NarxGPModel:
+    return NarxGPModel.fit([synthetic_run(s) for s in range(3)], n_power_lags=8, n_temperature_lags=5,
+                           n_train=60, n_restarts=2, profile_length=50)
+
+
+def test_fit_recovers_the_fir_plant(model):
+    assert np.allclose(model.power_coefficients, B_TRUE, rtol=1e-3, atol=1e-16)
+    assert np.allclose(model.temperature_coefficients, C_TRUE, rtol=1e-3, atol=1e-16)
+    run = synthetic_run(7)
+    mean, var = model.predict_run(run)
+    assert np.max(np.abs(mean - run.area_m2[1:])[20:]) < 1e-3 * C0
+    assert np.all(var >= 0)
+
+
+def test_model_file_round_trip(model, tmp_path):
+    path = model.save(tmp_path / "m.json")
+    again = NarxGPModel.load(path)
+    run = synthetic_run(5)
+    assert np.array_equal(again.predict_run(run)[0], model.predict_run(run)[0])
+    assert again.sample_period_s == DT
+    assert "sample_period_s" in again.input_definitions()
+
+
+def test_forecast_follows_the_scan_plan():
+    profile = np.array([0.0, 100.0, 300.0, 200.0, 150.0])
+    held = forecast_t_ahead(400.0, 3, True, None, profile, 4)
+    assert np.array_equal(held, np.full(4, 400.0))
+    # on the first track, the turn is after 2 more states: T rises by the profile over the held value
+    turn = forecast_t_ahead(400.0, 3, True, 2, profile, 6)
+    assert np.array_equal(turn, [400.0, 400.0, 400.0, 500.0, 700.0, 600.0])
+    # after a turn, the current track follows the profile's shape from its own position
+    after = forecast_t_ahead(900.0, 2, False, None, profile, 3)
+    assert np.array_equal(after, [800.0, 750.0, 750.0])
+
+
+def test_scan_plan_preview_at_the_turn():
+    plan = ScanPlan.layer(2, 1e-3, 1e-4)
+    assert plan.preview(0.0) == (0.0, 1e-3, True)
+    travelled, remaining, follows = plan.preview(1.5e-3)
+    assert (round(travelled, 12), round(remaining, 12), follows) == (0.5e-3, 0.5e-3, False)
+
+
+def _measurement(step, area, t=300.0, power=250.0, track=0, remaining=None, time_s=None):
+    return Measurement(step=step, time_s=step * DT if time_s is None else time_s, area_m2=area, t_ahead_k=t,
+                       power_w=power, speed_m_s=0.8, track=track, track_remaining_s=remaining,
+                       next_track=None if remaining is None else True)
+
+
+def test_first_state_gets_the_nominal_power(model):
+    ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=1.5e-8), model)
+    command, diag = ctrl.update(_measurement(0, 0.0, power=0.0))
+    assert command.power_w == ctrl.settings.nominal_power_w and not diag.fallback
+
+
+def test_other_sample_period_is_refused(model):
+    ctrl = PreviewMPC(ControllerSettings(set_point_m2=1.5e-8), model)
+    ctrl.update(_measurement(0, 0.0, power=0.0))
+    with pytest.raises(ConfigurationError, match="sample period is 100 µs .* 50 µs"):
+        ctrl.update(_measurement(1, 1e-8, time_s=100e-6))
+
+
+def _closed_loop(model, offset_m2, settings, steps=200, plan_turn_at=None):
+    ctrl = PreviewMPC(settings, model)
+    p = np.zeros(steps + 1)
+    t = np.full(steps + 1, 300.0)
+    x = np.zeros(steps + 1)
+    for k in range(steps):
+        remaining = None if plan_turn_at is None else max(plan_turn_at - k, 0) * DT
+        track = 0 if plan_turn_at is None or k < plan_turn_at else 1
+        cmd, diag = ctrl.update(_measurement(k, x[k], t[k], p[k], track, remaining))
+        assert settings.power_min_w <= cmd.power_w <= settings.power_max_w
+        p[k + 1] = cmd.power_w
+        x[k + 1] = fir_area(p[:k + 2], t[:k + 2])[k + 1] + offset_m2
+    return x, p, ctrl
+
+
+def test_observer_removes_a_constant_model_error(model):
+    sp = C0 + B_TRUE.sum() * 200.0 + C_TRUE.sum() * 300.0
+    settings = ControllerSettings(set_point_m2=sp, preview=PreviewSettings(horizon=20, r=1.0))
+    x, _, ctrl = _closed_loop(model, 0.05 * sp, settings)
+    assert abs(x[-20:].mean() / sp - 1.0) < 2e-3
+    assert ctrl.disturbance_m2 == pytest.approx(0.05 * sp, rel=0.02)
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_fast_path_equals_cvxpy(model, seed):
+    rng = np.random.default_rng(seed)
+    sp = 1.5e-8
+    settings = ControllerSettings(set_point_m2=sp, power_max_w=350.0,
+                                  preview=PreviewSettings(horizon=20, r=float(rng.uniform(0.01, 1.0)),
+                                                          area_max_m2=sp * float(rng.uniform(1.02, 3.0))))
+    ctrl = PreviewMPC(settings, model)
+    w = sp * (1.0 + rng.uniform(-0.6, 0.6)) + sp * 0.05 * rng.standard_normal(20).cumsum()
+    w -= ctrl.qp.gamma.sum(axis=1) * sp / ctrl.qp.scale * rng.uniform(0, 300)
+    previous = float(rng.uniform(0, 350))
+    fast = ctrl.qp.solve(w, previous)
+    reference = solve_reference(ctrl.qp, w, previous)
+    assert not fast.path.startswith("failed")
+    assert np.max(np.abs(fast.power_w - reference)) < 1e-3
