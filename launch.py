@@ -274,8 +274,8 @@ def load_node_list(path: Path) -> list[NodeSpec]:
     return specs
 
 
-CONTROLLER_CHOICES = ("mpc", "pid", "feedforward", "open-loop", "none")
-COMPARED = ("open-loop", "pid", "feedforward", "mpc")
+CONTROLLER_CHOICES = ("mpc", "preview-mpc", "pid", "feedforward", "open-loop", "none")
+COMPARED = ("open-loop", "pid", "feedforward", "mpc", "preview-mpc")
 DEFAULT_SETPOINT_MM2 = 0.063
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 from .safety import FallbackPlan, clamp_power
@@ -126,6 +126,8 @@ class Controller(ABC):
         if self._last_step is None or step > self._last_step:
             self._last_step = step
 
+        if status == "ok" and step == 0:
+            proposal = replace(proposal, power_w=s.nominal_power_w)  # laser-on: every controller starts at nominal
         fallback = status != "ok"
         if fallback:
             self.n_fallbacks += 1

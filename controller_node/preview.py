@@ -13,8 +13,8 @@ Each update at state k (:meth:`PreviewMPC.update`):
 4. **Optimise**: the QP of :mod:`controller_node.preview_qp` (tracking of the set point,
    move penalty, hard power bounds, soft area bounds tightened by the GP's predictive std).
 
-The first state (step 0, laser still off) is answered with the nominal power, like every
-controller. A plant whose sample period differs from the model's is refused
+During the pool build-up (the first ``observer_start_steps`` states, which the model is not
+fitted on) the answer is the nominal power; step 0 is, for every controller. A plant whose sample period differs from the model's is refused
 (:class:`~controller_node.types.ConfigurationError`).
 """
 
@@ -147,7 +147,7 @@ class PreviewMPC(Controller):
             self.disturbance_m2 += ps.observer_gain * (m.area_m2 - predicted - self.disturbance_m2)
         self._prev = m
         self._base0_m2 = None
-        if m.step == 0:
+        if m.step < ps.observer_start_steps:  # pool build-up: outside the fitted model, laser at nominal
             return Proposal(s.nominal_power_w, status="ok")
 
         h, dt = self._h, self.model.sample_period_s

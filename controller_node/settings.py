@@ -256,7 +256,7 @@ class PreviewSettings:
     horizon: int = 40
     q: float = 1.0
     q_f: float = 20.0
-    r: float = 0.1
+    r: float = 1.0
     power_scale_w: float = 350.0
     area_min_m2: float = 0.0
     area_max_m2: float = 0.5e-6

@@ -35,10 +35,11 @@ def test_open_loop_is_constant() -> None:
 
 def test_pid_direction_and_clamping() -> None:
     c = make_controller("pid", ControllerSettings(pid=PIDSettings(kp_w=100.0, ki_w=0.0, kd_w=0.0)))
-    assert c.update(_m(0, area=0.5 * SET_POINT))[0].power_w == pytest.approx(300.0)  # too small -> more power
-    assert c.update(_m(1, area=1.5 * SET_POINT))[0].power_w == pytest.approx(200.0)
-    assert c.update(_m(2, area=0.0))[0].power_w == pytest.approx(350.0)  # 250 + 100
-    assert c.update(_m(3, area=10 * SET_POINT))[0].power_w == 0.0  # clamped at p_l
+    assert c.update(_m(0, area=0.0))[0].power_w == 250.0  # laser-on: every controller starts at nominal
+    assert c.update(_m(1, area=0.5 * SET_POINT))[0].power_w == pytest.approx(300.0)  # too small -> more power
+    assert c.update(_m(2, area=1.5 * SET_POINT))[0].power_w == pytest.approx(200.0)
+    assert c.update(_m(3, area=0.0))[0].power_w == pytest.approx(350.0)  # 250 + 100
+    assert c.update(_m(4, area=10 * SET_POINT))[0].power_w == 0.0  # clamped at p_l
 
 
 def test_pid_anti_windup_recovers_immediately_after_saturation() -> None:

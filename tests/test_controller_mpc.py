@@ -132,10 +132,10 @@ def test_disturbance_estimate_removes_offset_under_strong_mismatch() -> None:
 
 def test_prediction_diagnostics_are_consistent() -> None:
     mpc = make_controller("mpc", SYNTHETIC, MODEL)
-    m = Measurement(0, 0.0, 0.05e-6, 800.0, 200.0, 0.8)
+    m = Measurement(1, 50e-6, 0.05e-6, 800.0, 200.0, 0.8)
     cmd, diag = mpc.update(m)
     h = ControllerSettings().mpc.horizon
-    assert diag.status == "ok" and not diag.fallback and cmd.step == 1
+    assert diag.status == "ok" and not diag.fallback and cmd.step == 2
     assert len(diag.predicted_area_m2) == h and len(diag.predicted_power_w) == h
     assert diag.predicted_power_w[0] == pytest.approx(cmd.power_w)
     assert diag.model_std_m2 == pytest.approx(MODEL.std_m2)
