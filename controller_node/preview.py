@@ -54,19 +54,21 @@ class PreviewMPC(Controller):
         self._forecast, self._s_cap = forecast_t_ahead, STEPS_SINCE_START_CAP
         self.model = model
         ps = settings.preview
-        h, b, c = ps.horizon, model.power_coefficients, model.temperature_coefficients
-        self._nb, self._nc, self._h = b.size, c.size, h
+        h, b = ps.horizon, model.power_coefficients
+        n_p, n_t = b.size, model.temperature_coefficients.size
+        self._nb, self._nc, self._h = n_p, n_t, h
         m = np.arange(1, h + 1)[:, None]
-        # planned part: x̂[k+m] ∋ b_{m−l} u_l ;  known powers: b_{m+q} p[k−q], q = 0..n_b−1
+        # x̂[k+m] sees p[k+m−i] (i < n_p) in S = [p[k−n_p+1..k], p[k+1..k+H]] and T[k+m−1−j] (j < n_T)
+        # in [T[k−n_T+1..k], T̂[k+1..k+H−1]]
+        self._p_index = (n_p - 1) + m - np.arange(n_p)[None, :]
+        self._t_index = (n_t - 1) + (m - 1) - np.arange(n_t)[None, :]
         lag = m - np.arange(1, h + 1)[None, :]
-        gain = np.where((lag >= 0) & (lag < b.size), b[np.clip(lag, 0, b.size - 1)], 0.0)
-        past = m + np.arange(b.size)[None, :]
-        self._b_past = np.where(past < b.size, b[np.clip(past, 0, b.size - 1)], 0.0)
-        # temperatures: sequence T[k−n_c+1 .. k+H−1]; x̂[k+m] uses T[k+m−1−j], j = 0..n_c−1
-        pos = (m - 1 - np.arange(c.size)[None, :]) + (c.size - 1)
-        self._c_seq = np.zeros((h, c.size + h - 1))
-        np.put_along_axis(self._c_seq, pos, c[None, :], axis=1)
-        self.qp = PreviewQP(gain, settings.set_point_m2, q=ps.q, q_f=ps.q_f, r=ps.r, power_scale_w=ps.power_scale_w,
+        inside = (lag >= 0) & (lag < n_p)
+        self._toeplitz_b = np.where(inside, b[np.clip(lag, 0, n_p - 1)], 0.0)
+        self._toeplitz_q = np.where(inside, model.power_square_coefficients[np.clip(lag, 0, n_p - 1)], 0.0)
+        self._theta_p = np.r_[b, model.power_square_coefficients]
+        self._n_tq = model.temperature_square_coefficients.size
+        self.qp = PreviewQP(h, settings.set_point_m2, q=ps.q, q_f=ps.q_f, r=ps.r, power_scale_w=ps.power_scale_w,
                             power_min_w=settings.power_min_w, power_max_w=settings.power_max_w,
                             area_min_m2=ps.area_min_m2, area_max_m2=ps.area_max_m2,
                             slack_linear=ps.slack_linear, slack_quadratic=ps.slack_quadratic)
@@ -130,10 +132,6 @@ class PreviewMPC(Controller):
             self._profile[:n] = self._observed[:n]
             self._profile[n:] = self._profile[n - 1] if n < self._profile.size and n > 0 else self._profile[n:]
 
-    def _current_profile(self) -> np.ndarray:
-        """The profile for this update: the trained/learned one, the current turn's rise where seen."""
-        return self._profile
-
     # ------------------------------------------------------------------ control law
     def _propose(self, m: Measurement) -> Proposal:
         s, ps = self.settings, self.settings.preview
@@ -143,7 +141,8 @@ class PreviewMPC(Controller):
         consecutive = self._prev is not None and m.step == self._prev.step + 1
         self._observe(m)
         if consecutive and self._base0_m2 is not None and m.step >= ps.observer_start_steps:
-            predicted = self._base0_m2 + self.model.power_coefficients[0] * m.power_w  # x̂[k|k−1], applied p[k]
+            z = self._base0_m2 + self._theta_p[0] * m.power_w + self._theta_p[self._nb] * m.power_w ** 2
+            predicted = float(self.model.to_area(z))  # x̂[k|k−1] with the applied p[k]
             self.disturbance_m2 += ps.observer_gain * (m.area_m2 - predicted - self.disturbance_m2)
         self._prev = m
         self._base0_m2 = None
@@ -158,36 +157,41 @@ class PreviewMPC(Controller):
             if m.next_track is False:
                 to_end = None  # the layer ends: nothing after this track to forecast
         on_first = m.track is None or m.track == self._first_track
-        forecast = self._forecast(m.t_ahead_k, since, on_first, to_end, self._current_profile(), h)
+        forecast = self._forecast(m.t_ahead_k, since, on_first, to_end, self._profile, h,
+                                  self._turn_base_k, self.model.forecast_persistence)
         temps = np.r_[self._t, forecast[:-1]]
-        # GP residual at ψ_{k+m−1} = (T, steps since track start, mean power with the last plan)
-        t_psi = np.r_[m.t_ahead_k, forecast[:-1]]
+        model, sp = self.model, s.set_point_m2
+        # GP residual at ψ_{k+m−1} = (T, steps since track start, mean power of the last plan)
         j = np.arange(h)
-        if to_end is None:
-            s_psi = since + j
-        else:
-            s_psi = np.where(j <= to_end, since + j, j - to_end - 1)
-        plan_next = np.r_[self._plan[1:], self._plan[-1]]
-        powers = np.r_[self._p[::-1], plan_next]                      # p[k−n_b+1 .. k+H]
-        csum = np.cumsum(np.r_[0.0, powers])
-        nb = self._nb
-        mean_p = (csum[nb + 1 + j] - csum[1 + j]) / nb                 # mean of p[k+m−n_b+1 .. k+m]
-        psi = np.column_stack([t_psi, np.minimum(s_psi, self._s_cap), mean_p])
-        r_mean, r_var = self.model.residual.predict(psi, None if ps.uncertainty_z > 0 else 1)
-        base = self.model.intercept_m2 + self._b_past @ self._p + self._c_seq @ temps + r_mean
-        w = base + self.disturbance_m2
-        std = np.sqrt(r_var + self.model.residual.noise_variance)
-        margin = ps.uncertainty_z * std / s.set_point_m2 if ps.uncertainty_z > 0 else None
-        result = self.qp.solve(w, float(self._p[0]), margin)
+        s_psi = since + j if to_end is None else np.where(j <= to_end, since + j, j - to_end - 1)
+        plan = np.r_[self._plan[1:], self._plan[-1]]                   # ū = p̄[k+1..k+H]
+        powers = np.r_[self._p[::-1], plan]                            # S = p[k−n_p+1 .. k+H]
+        window = powers[self._p_index]                                 # (H, n_p)
+        psi = np.column_stack([np.r_[m.t_ahead_k, forecast[:-1]], np.minimum(s_psi, self._s_cap),
+                               window.mean(axis=1)])
+        r_mean, r_var = model.residual.predict(psi, None if ps.uncertainty_z > 0 else 1)
+        tw = temps[self._t_index]                                      # (H, n_T)
+        z = (model.intercept + window @ model.power_coefficients + (window * window) @ model.power_square_coefficients
+             + tw @ model.temperature_coefficients + (tw[:, :self._n_tq] ** 2) @ model.temperature_square_coefficients
+             + r_mean)
+        slope = model.area_slope(z)
+        jac = slope[:, None] * (self._toeplitz_b + 2.0 * self._toeplitz_q * plan[None, :])   # ∂x̂/∂u, (H, H)
+        predicted = model.to_area(z) + self.disturbance_m2                                     # x̂ at u = ū
+        gamma = jac * (self.qp.scale / sp)
+        c = (predicted - jac @ plan - sp) / sp
+        std = slope * np.sqrt(r_var + model.residual.noise_variance)
+        margin = ps.uncertainty_z * std / sp if ps.uncertainty_z > 0 else None
+        result = self.qp.solve(gamma, c, float(self._p[0]), margin)
         if result.path.startswith("failed"):
             return Proposal(math.nan, status=f"solver_{result.path}")
-        plan = result.power_w
-        self._plan = plan
-        self._base0_m2 = float(base[0])  # x̂[k+1] without p[k+1] and d̂, for the next observer update
-        areas = w + (self.qp.gamma * s.set_point_m2 / self.qp.scale) @ plan
+        new_plan = result.power_w
+        self._plan = new_plan
+        # z of x̂[k+1] without the p[k+1] terms, for the next observer update
+        self._base0_m2 = float(z[0] - self._theta_p[0] * plan[0] - self._theta_p[self._nb] * plan[0] ** 2)
+        areas = predicted + jac @ (new_plan - plan)
         return Proposal(
-            power_w=float(plan[0]),
-            plan_w=tuple(plan.tolist()),
+            power_w=float(new_plan[0]),
+            plan_w=tuple(new_plan.tolist()),
             predicted_area_m2=tuple(areas.tolist()),
             model_std_m2=float(std[0]),
             feedforward_w=0.0,

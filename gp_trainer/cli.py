@@ -232,16 +232,15 @@ def _narx(args: argparse.Namespace) -> int:
     train = [r for r in runs if r.name not in args.held_out]
     if not held or not train:
         raise DatasetError(f"need both training and held-out runs; held out {[r.name for r in held]} of {[r.name for r in runs]}")
-    model, table = select_and_fit(train, held, seed=args.seed)
+    model, best, table = select_and_fit(train, held, seed=args.seed)
     out = model.save(args.out or DEFAULT_MODEL_PATH)
-    best = next(row for row in table if row["n_power_lags"] == model.n_power_lags
-                and row["n_temperature_lags"] == model.n_temperature_lags
-                and row["length_scale_floor"] == model.provenance["bounds"]["length_scale"][0])
     for row in table:
-        print(f"lags p {row['n_power_lags']:2d}, T {row['n_temperature_lags']:2d}, ℓ >= {row['length_scale_floor']}: "
+        print(f"lags p {row['n_power_lags']:2d}, T {row['n_temperature_lags']:2d}, output {row['output']:8s}, "
+              f"squares {str(row['quadratic']):5s}, ℓ >= {row['length_scale_floor']}: "
               f"{ROLLOUT_HORIZON}-step rollout {row[f'rollout_h{ROLLOUT_HORIZON}_mape_pct']:.2f} %, "
               f"one-step MAPE {row['mape_pct']:.2f} %, coverage {row['coverage_95_pct']:.1f} %")
-    print(f"selected p {model.n_power_lags}, T {model.n_temperature_lags} lags -> {out}")
+    print(f"selected: {model.n_power_lags} power and {model.n_temperature_lags} temperature lags, output "
+          f"{model.output}, squares {best['quadratic']}, forecast persistence {model.forecast_persistence} -> {out}")
     if args.json:
         print(json.dumps({k: v for k, v in best.items()}))
     return 0

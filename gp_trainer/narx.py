@@ -21,6 +21,7 @@ Everything is SI; the model file records the sample period and the definition of
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -37,7 +38,8 @@ from gp_trainer.errors import DatasetError, ModelFormatError, ModelVersionError
 from gp_trainer.kernel import HyperBounds, fit_hyperparameters, gram, squared_differences
 
 FORMAT_NAME = "meltloop-narx-gp-model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+OUTPUTS = ("log", "identity")
 RESIDUAL_INPUTS = ("t_ahead_k", "steps_since_track_start", "mean_power_w")
 STEPS_SINCE_START_CAP = 100
 BUILD_UP_STEPS = 20
@@ -133,13 +135,16 @@ def turn_profile(runs: Iterable[RunSeries], length: int) -> np.ndarray:
 
 
 def forecast_t_ahead(t_now_k: float, steps_since_start: int, on_first_track: bool, steps_to_end: int | None,
-                     profile_k: np.ndarray, horizon: int) -> np.ndarray:
+                     profile_k: np.ndarray, horizon: int, t_base_k: float | None = None,
+                     persistence: float = 1.0) -> np.ndarray:
     """Forecast ``T[k+1..k+H]`` [K] from the scan plan and a turnaround profile.
 
-    On the current track T follows the profile's shape from the current state (held on the
-    first track, which has no previous track beside it); after the track's last state (in
-    ``steps_to_end + 1`` steps) it rises by the profile over the forecast value at that state.
-    Beyond the next track, and beyond the profile, T is held.
+    * First track (nothing scanned beside it): T is held.
+    * A track after a turn: ``T̂[k+j] = T_b + P[s_k+j] + ρ^j (T[k] − T_b − P[s_k])`` with ``T_b``
+      the temperature in the state before the turn, ``P`` the profile and ρ the persistence
+      of the current deviation from it (fitted on the training runs).
+    * After the current track's last state (in ``steps_to_end + 1`` steps), T rises by the
+      profile over the forecast value at that state. Beyond the profile's end it is held.
 
     Parameters
     ----------
@@ -148,13 +153,17 @@ def forecast_t_ahead(t_now_k: float, steps_since_start: int, on_first_track: boo
     steps_since_start : int
         ``s_k``, states since the current track's first state.
     on_first_track : bool
-        The current track is the first of the layer (nothing scanned beside it).
+        The current track is the first of the layer.
     steps_to_end : int or None
-        ``e_k``: states until the current track's last state (None: unknown, no turn foreseen).
+        ``e_k``: states until the current track's last state (None: no turn foreseen).
     profile_k : numpy.ndarray, shape (S,)
         Turnaround profile [K] (:func:`turn_profile`).
     horizon : int
         ``H``.
+    t_base_k : float or None
+        ``T_b`` [K]; None: the current deviation from the profile is taken as 0.
+    persistence : float
+        ρ in [0, 1].
 
     Returns
     -------
@@ -165,13 +174,45 @@ def forecast_t_ahead(t_now_k: float, steps_since_start: int, on_first_track: boo
     if on_first_track:
         current = np.full(horizon, float(t_now_k))
     else:
-        s = np.minimum(steps_since_start + j, last)
-        current = t_now_k + profile_k[s] - profile_k[min(steps_since_start, last)]
+        here = profile_k[min(steps_since_start, last)]
+        base = t_now_k - here if t_base_k is None else t_base_k
+        deviation = t_now_k - base - here
+        current = base + profile_k[np.minimum(steps_since_start + j, last)] + deviation * persistence ** j
     if steps_to_end is None or steps_to_end >= horizon:
         return current
     t_end = current[steps_to_end - 1] if steps_to_end > 0 else float(t_now_k)
     after = np.minimum(j - steps_to_end - 1, last)
     return np.where(j > steps_to_end, t_end + profile_k[np.maximum(after, 0)], current)
+
+
+def turn_bases(run: RunSeries) -> np.ndarray:
+    """``T_b`` of every state: T ahead in the state before its track's first state (NaN on the first track)."""
+    base = np.full(len(run), np.nan)
+    starts = np.r_[np.flatnonzero(np.diff(run.track) != 0) + 1, len(run)]
+    for a, b in zip(starts[:-1], starts[1:]):
+        base[a:b] = run.t_ahead_k[a - 1]
+    return base
+
+
+def run_forecast(run: RunSeries, k: int, horizon: int, profile_k: np.ndarray, persistence: float) -> np.ndarray:
+    """:func:`forecast_t_ahead` at state k of a recorded run (scan plan from its track indices)."""
+    s, e = run.steps_since_track_start(), run.steps_to_track_end()
+    base = turn_bases(run)[k]
+    last_track = run.track[k] == run.track[-1]
+    return forecast_t_ahead(run.t_ahead_k[k], int(s[k]), bool(run.track[k] == run.track[0]),
+                            None if last_track else int(e[k]), profile_k, horizon,
+                            None if np.isnan(base) else float(base), persistence)
+
+
+def fit_persistence(runs: Sequence[RunSeries], profile_k: np.ndarray, horizon: int = 40, stride: int = 5) -> float:
+    """ρ of :func:`forecast_t_ahead` with the smallest mean absolute forecast error on ``runs``."""
+    grid = (0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 1.0)
+    errors = []
+    for rho in grid:
+        err = [np.mean(np.abs(run_forecast(run, k, horizon, profile_k, rho) - run.t_ahead_k[k + 1:k + horizon + 1]))
+               for run in runs for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride)]
+        errors.append(np.mean(err) if err else 0.0)
+    return float(grid[int(np.argmin(errors))])
 
 
 class ResidualGP:
@@ -257,40 +298,62 @@ class ResidualGP:
 class NarxGPModel:
     """The delay-aware model of the module docstring (construct with :meth:`fit` or :meth:`load`).
 
+    ``z[k+1] = c₀ + Σ b_i p_i + Σ q_i p_i² + Σ c_j T_j + Σ d_j T_j² + r(ψ_k)`` with the lagged
+    powers ``p_i = p[k+1−i]`` and temperatures ``T_j = T[k−j]``, and ``x[k+1] = exp(z)`` for the
+    ``"log"`` output (``z`` the log of the area in m²) or ``x = z`` for ``"identity"``.
+
     Parameters
     ----------
     sample_period_s : float
         Δt the model was identified at [s].
-    intercept_m2 : float
-        ``c₀`` [m²].
-    power_coefficients : numpy.ndarray, shape (n_p,)
-        ``b_i`` [m²/W], i = 0 for ``p[k+1]``.
+    intercept : float
+        ``c₀`` (units of z).
+    power_coefficients, power_square_coefficients : numpy.ndarray, shape (n_p,)
+        ``b_i`` [z/W] and ``q_i`` [z/W²], i = 0 for ``p[k+1]``.
     temperature_coefficients : numpy.ndarray, shape (n_T,)
-        ``c_j`` [m²/K], j = 0 for ``T[k]``.
+        ``c_j`` [z/K], j = 0 for ``T[k]``.
+    temperature_square_coefficients : numpy.ndarray, shape (n_Tq,), n_Tq <= n_T
+        ``d_j`` [z/K²].
+    output : {"log", "identity"}
+        Output map.
     residual : ResidualGP
-        GP on ψ (:data:`RESIDUAL_INPUTS`).
+        GP on ψ (:data:`RESIDUAL_INPUTS`), in units of z.
     turn_profile_k : numpy.ndarray, shape (S,)
         Mean rise of T ahead after a turnaround [K] (:func:`turn_profile`).
+    forecast_persistence : float
+        ρ of :func:`forecast_t_ahead`.
     speed_m_s : float
         The constant scan speed of the data [m/s] (power-only control).
     provenance : Mapping, optional
     """
 
-    def __init__(self, *, sample_period_s: float, intercept_m2: float, power_coefficients: np.ndarray,
-                 temperature_coefficients: np.ndarray, residual: ResidualGP, turn_profile_k: np.ndarray,
-                 speed_m_s: float, provenance: Mapping[str, Any] | None = None) -> None:
+    def __init__(self, *, sample_period_s: float, intercept: float, power_coefficients: np.ndarray,
+                 power_square_coefficients: np.ndarray, temperature_coefficients: np.ndarray,
+                 temperature_square_coefficients: np.ndarray, output: str, residual: ResidualGP,
+                 turn_profile_k: np.ndarray, forecast_persistence: float, speed_m_s: float,
+                 provenance: Mapping[str, Any] | None = None) -> None:
         self.sample_period_s = float(sample_period_s)
-        self.intercept_m2 = float(intercept_m2)
+        self.intercept = float(intercept)
         self.power_coefficients = np.asarray(power_coefficients, dtype=float)
+        self.power_square_coefficients = np.asarray(power_square_coefficients, dtype=float)
         self.temperature_coefficients = np.asarray(temperature_coefficients, dtype=float)
+        self.temperature_square_coefficients = np.asarray(temperature_square_coefficients, dtype=float)
+        self.output = output
         self.residual = residual
         self.turn_profile_k = np.asarray(turn_profile_k, dtype=float)
+        self.forecast_persistence = float(forecast_persistence)
         self.speed_m_s = float(speed_m_s)
         self.provenance = dict(provenance or {})
-        arrays = (self.power_coefficients, self.temperature_coefficients, self.turn_profile_k)
-        if not (self.sample_period_s > 0 and self.speed_m_s > 0 and all(a.ndim == 1 and a.size for a in arrays)
-                and all(np.all(np.isfinite(a)) for a in arrays) and math.isfinite(self.intercept_m2)):
-            raise ModelFormatError("NARX model: non-finite or empty coefficients, or a period/speed <= 0")
+        arrays = (self.power_coefficients, self.power_square_coefficients, self.temperature_coefficients,
+                  self.temperature_square_coefficients, self.turn_profile_k)
+        if output not in OUTPUTS:
+            raise ModelFormatError(f"NARX model: output must be one of {OUTPUTS}, got {output!r}")
+        if not (self.sample_period_s > 0 and self.speed_m_s > 0 and all(a.ndim == 1 for a in arrays)
+                and self.power_square_coefficients.size == self.power_coefficients.size > 0
+                and 0 <= self.temperature_square_coefficients.size <= self.temperature_coefficients.size > 0
+                and self.turn_profile_k.size > 0 and 0.0 <= self.forecast_persistence <= 1.0
+                and all(np.all(np.isfinite(a)) for a in arrays) and math.isfinite(self.intercept)):
+            raise ModelFormatError("NARX model: non-finite or inconsistent coefficients, or a period/speed <= 0")
 
     @property
     def n_power_lags(self) -> int:
@@ -300,20 +363,23 @@ class NarxGPModel:
     def n_temperature_lags(self) -> int:
         return int(self.temperature_coefficients.size)
 
-    @property
-    def static_power_gain_m2_per_w(self) -> float:
-        """Steady-state ``∂x/∂p`` of the linear part [m²/W]."""
-        return float(self.power_coefficients.sum())
+    def to_area(self, z: np.ndarray) -> np.ndarray:
+        """``x = exp(z)`` or ``z`` [m²]."""
+        return np.exp(z) if self.output == "log" else z
+
+    def area_slope(self, z: np.ndarray) -> np.ndarray:
+        """``∂x/∂z`` at ``z`` [m² per unit of z]."""
+        return np.exp(z) if self.output == "log" else np.ones_like(z)
 
     def input_definitions(self) -> dict[str, str]:
         """Definition of every input (recorded in the model file)."""
         return {
-            "p[k+1-i], i=0..n_p-1": "laser power applied during step k-i -> k+1-i [W] (state[k+1-i].power_w; 0 before laser-on)",
-            "T[k-j], j=0..n_T-1": "temperature ahead of the laser in state k-j [K] (state.t_ahead_k; T[0] before the first state)",
+            "p[k+1-i], i=0..n_p-1": "laser power applied during step k-i -> k+1-i [W] (state[k+1-i].power_w; 0 before laser-on); linear and squared",
+            "T[k-j], j=0..n_T-1": "temperature ahead of the laser in state k-j [K] (state.t_ahead_k; T[0] before the first state); linear, squared for j < n_Tq",
             "t_ahead_k": "GP input: T[k] [K]",
             "steps_since_track_start": f"GP input: states since the current track's first state, capped at {STEPS_SINCE_START_CAP}",
             "mean_power_w": "GP input: mean of p[k+1-i], i=0..n_p-1 [W]",
-            "output": "melt-pool area x[k+1] [m2] (state[k+1].area_mm2 * 1e-6)",
+            "output": "melt-pool area x[k+1] [m2] (state[k+1].area_mm2 * 1e-6) = exp(z) for output 'log', z for 'identity'",
             "sample_period_s": "duration of one step; the model is valid only at this period",
         }
 
@@ -328,45 +394,51 @@ class NarxGPModel:
         T = t[(j - 1 + n_t)[:, None] - np.arange(n_t)[None, :]]
         return P, T
 
+    def design(self, P: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """Regressor rows ``[1, p, p², T, T²]`` for lag matrices ``P`` (m, n_p) and ``T`` (m, n_T)."""
+        n_tq = self.temperature_square_coefficients.size
+        return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2])
+
+    def coefficients(self) -> np.ndarray:
+        """All coefficients in the order of :meth:`design`."""
+        return np.r_[self.intercept, self.power_coefficients, self.power_square_coefficients,
+                     self.temperature_coefficients, self.temperature_square_coefficients]
+
     def residual_inputs(self, run: RunSeries) -> np.ndarray:
         """ψ for every target index j = 1..n−1, shape (n−1, 3)."""
         P, _ = self._lagged(run)
         s = np.minimum(run.steps_since_track_start()[:-1], STEPS_SINCE_START_CAP)
         return np.column_stack([run.t_ahead_k[:-1], s, P.mean(axis=1)])
 
-    def linear_prediction(self, run: RunSeries) -> np.ndarray:
-        """FIR part of ``x[j]`` for j = 1..n−1 with measured T [m²]."""
-        P, T = self._lagged(run)
-        return self.intercept_m2 + P @ self.power_coefficients + T @ self.temperature_coefficients
-
     def predict_run(self, run: RunSeries) -> tuple[np.ndarray, np.ndarray]:
-        """One-step mean [m²] and latent variance [m⁴] of ``x[j]``, j = 1..n−1, with measured T."""
+        """One-step mean [m²] and latent variance [m⁴] of ``x[j]``, j = 1..n−1, with measured T
+        (variance mapped from z by the output's slope)."""
+        P, T = self._lagged(run)
         mean, var = self.residual.predict(self.residual_inputs(run))
-        return self.linear_prediction(run) + mean, var
+        z = self.design(P, T) @ self.coefficients() + mean
+        slope = self.area_slope(z)
+        return self.to_area(z), slope * slope * var
 
-    def rollout(self, run: RunSeries, k: int, horizon: int, profile_k: np.ndarray | None = None) -> np.ndarray:
+    def rollout(self, run: RunSeries, k: int, horizon: int) -> np.ndarray:
         """Predict ``x[k+1..k+H]`` [m²] from what is known at state k: the applied powers (as a
-        perfect plan) and T ahead measured up to k, forecast after it (:func:`forecast_t_ahead`).
-        """
-        profile = self.turn_profile_k if profile_k is None else profile_k
-        s, e = run.steps_since_track_start(), run.steps_to_track_end()
-        on_first = bool(run.track[k] == run.track[0])
-        forecast = forecast_t_ahead(run.t_ahead_k[k], int(s[k]), on_first, int(e[k]), profile, horizon)
-        t = np.r_[run.t_ahead_k[:k + 1], forecast]
-        future = RunSeries(run.name, run.area_m2[:k + horizon + 1], t[:k + horizon + 1],
-                           run.power_w[:k + horizon + 1], run.track[:k + horizon + 1], run.sample_period_s)
-        mean, _ = self.predict_run(future)
-        return mean[k:k + horizon]
+        perfect plan) and T ahead measured up to k, forecast after it (:func:`run_forecast`)."""
+        forecast = run_forecast(run, k, horizon, self.turn_profile_k, self.forecast_persistence)
+        n = k + horizon + 1
+        future = RunSeries(run.name, run.area_m2[:n], np.r_[run.t_ahead_k[:k + 1], forecast][:n],
+                           run.power_w[:n], run.track[:n], run.sample_period_s)
+        return self.predict_run(future)[0][k:k + horizon]
 
     # ------------------------------------------------------------------ fitting
     @classmethod
     def fit(cls, runs: Sequence[RunSeries], *, n_power_lags: int, n_temperature_lags: int,
+            n_temperature_square_lags: int | None = None, quadratic: bool = True, output: str = "log",
             n_train: int = 150, bounds: HyperBounds = HyperBounds(), seed: int = 0, n_restarts: int = 4,
             profile_length: int = 200, provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
-        """Least-squares FIR part, then the residual GP on ``n_train`` seeded random samples.
+        """Least squares in z for the lag part, then the residual GP on ``n_train`` seeded random samples.
 
         Samples whose target is in the first :data:`BUILD_UP_STEPS` states of a run, or has no
-        pool (area 0), are not fitted (the lags still see their powers).
+        pool (area 0), are not fitted (the lags still see their powers). ``quadratic=False``
+        leaves out the squared lags (a plain FIR part).
 
         Raises
         ------
@@ -375,40 +447,52 @@ class NarxGPModel:
         """
         if not runs:
             raise DatasetError("no runs to fit")
+        if output not in OUTPUTS:
+            raise DatasetError(f"output must be one of {OUTPUTS}, got {output!r}")
         periods = {round(r.sample_period_s, 12) for r in runs}
         if len(periods) != 1:
             raise DatasetError(f"runs have different sample periods: {sorted(periods)} s")
-        probe = cls._probe(n_power_lags, n_temperature_lags, runs[0].sample_period_s)
-        P, T, Y, PSI = [], [], [], []
+        n_tq = (n_temperature_lags // 2 if n_temperature_square_lags is None else n_temperature_square_lags) if quadratic else 0
+        probe = cls._probe(n_power_lags, n_temperature_lags, n_tq, runs[0].sample_period_s)
+        X, Y, PSI = [], [], []
         for run in runs:
             p, t = probe._lagged(run)
             keep = (np.arange(1, len(run)) >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
-            P.append(p[keep]), T.append(t[keep]), Y.append(run.area_m2[1:][keep])
+            X.append(probe.design(p[keep], t[keep])), Y.append(run.area_m2[1:][keep])
             PSI.append(probe.residual_inputs(run)[keep])
-        P, T, Y, PSI = (np.vstack(P), np.vstack(T), np.concatenate(Y), np.vstack(PSI))
-        if Y.size < max(n_train, n_power_lags + n_temperature_lags + 1) + 10:
-            raise DatasetError(f"only {Y.size} samples for {n_power_lags + n_temperature_lags + 1} coefficients "
-                               f"and {n_train} GP points")
-        design = np.column_stack([np.ones(Y.size), P, T])
-        theta = np.linalg.lstsq(design, Y, rcond=None)[0]
-        residual = Y - design @ theta
+        X, Y, PSI = np.vstack(X), np.concatenate(Y), np.vstack(PSI)
+        if not quadratic:
+            X[:, 1 + n_power_lags:1 + 2 * n_power_lags] = 0.0
+        if Y.size < max(n_train, X.shape[1]) + 10:
+            raise DatasetError(f"only {Y.size} samples for {X.shape[1]} coefficients and {n_train} GP points")
+        target = np.log(Y) if output == "log" else Y
+        scale = np.linalg.norm(X, axis=0)
+        scale[scale == 0] = 1.0
+        theta = np.linalg.lstsq(X / scale, target, rcond=None)[0] / scale
+        residual = target - X @ theta
         pick = np.sort(np.random.default_rng(seed).choice(Y.size, size=n_train, replace=False))
         gp = ResidualGP.fit(PSI[pick], residual[pick], bounds=bounds, seed=seed, n_restarts=n_restarts)
+        profile = turn_profile(runs, profile_length)
         record = dict(provenance or {})
         record.update(seed=seed, n_train=n_train, n_samples=int(Y.size), runs=[r.name for r in runs],
                       bounds={"signal_std": list(bounds.signal_std), "noise_std": list(bounds.noise_std),
                               "length_scale": list(bounds.length_scale)})
-        return cls(sample_period_s=runs[0].sample_period_s, intercept_m2=theta[0],
-                   power_coefficients=theta[1:1 + n_power_lags], temperature_coefficients=theta[1 + n_power_lags:],
-                   residual=gp, turn_profile_k=turn_profile(runs, profile_length), speed_m_s=0.8, provenance=record)
+        n_p, n_t = n_power_lags, n_temperature_lags
+        return cls(sample_period_s=runs[0].sample_period_s, intercept=theta[0], power_coefficients=theta[1:1 + n_p],
+                   power_square_coefficients=theta[1 + n_p:1 + 2 * n_p],
+                   temperature_coefficients=theta[1 + 2 * n_p:1 + 2 * n_p + n_t],
+                   temperature_square_coefficients=theta[1 + 2 * n_p + n_t:], output=output, residual=gp,
+                   turn_profile_k=profile, forecast_persistence=fit_persistence(runs, profile), speed_m_s=0.8,
+                   provenance=record)
 
     @classmethod
-    def _probe(cls, n_p: int, n_t: int, period: float) -> NarxGPModel:
+    def _probe(cls, n_p: int, n_t: int, n_tq: int, period: float) -> NarxGPModel:
         """A shell with the right lag counts (for building regressors before the fit)."""
-        if n_p < 1 or n_t < 1:
-            raise DatasetError(f"lag counts must be >= 1, got {n_p} powers and {n_t} temperatures")
+        if n_p < 1 or n_t < 1 or not 0 <= n_tq <= n_t:
+            raise DatasetError(f"lag counts must be >= 1 (squared T lags <= T lags), got {n_p}, {n_t}, {n_tq}")
         obj = cls.__new__(cls)
         obj.power_coefficients, obj.temperature_coefficients = np.zeros(n_p), np.zeros(n_t)
+        obj.temperature_square_coefficients = np.zeros(n_tq)
         obj.sample_period_s = period
         return obj
 
@@ -418,12 +502,17 @@ class NarxGPModel:
             "format": FORMAT_NAME, "format_version": FORMAT_VERSION,
             "sample_period_s": self.sample_period_s, "speed_m_s": self.speed_m_s,
             "inputs": self.input_definitions(),
-            "structure": "x[k+1] = c0 + sum_i b_i p[k+1-i] + sum_j c_j T[k-j] + r(psi_k), r ~ GP(0, SE-ARD)",
-            "intercept_m2": self.intercept_m2,
-            "power_coefficients_m2_per_w": self.power_coefficients.tolist(),
-            "temperature_coefficients_m2_per_k": self.temperature_coefficients.tolist(),
+            "structure": ("z[k+1] = c0 + sum_i (b_i p[k+1-i] + q_i p[k+1-i]^2) + sum_j c_j T[k-j] + sum_{j<n_Tq} d_j T[k-j]^2"
+                          " + r(psi_k), r ~ GP(0, SE-ARD); x[k+1] = exp(z) (output 'log') or z"),
+            "output": self.output,
+            "intercept": self.intercept,
+            "power_coefficients": self.power_coefficients.tolist(),
+            "power_square_coefficients": self.power_square_coefficients.tolist(),
+            "temperature_coefficients": self.temperature_coefficients.tolist(),
+            "temperature_square_coefficients": self.temperature_square_coefficients.tolist(),
             "residual_gp": {"inputs_names": list(RESIDUAL_INPUTS), **self.residual.to_dict()},
             "turn_profile_k": self.turn_profile_k.tolist(),
+            "forecast_persistence": self.forecast_persistence,
             "provenance": self.provenance,
         }
 
@@ -452,19 +541,24 @@ class NarxGPModel:
                                   signal_std=g["signal_std"], noise_std=g["noise_std"],
                                   length_scales=np.array(g["length_scales"]), input_mean=np.array(g["input_mean"]),
                                   input_scale=np.array(g["input_scale"]), target_scale=g["target_scale"])
-            return cls(sample_period_s=doc["sample_period_s"], intercept_m2=doc["intercept_m2"],
-                       power_coefficients=np.array(doc["power_coefficients_m2_per_w"]),
-                       temperature_coefficients=np.array(doc["temperature_coefficients_m2_per_k"]),
-                       residual=residual, turn_profile_k=np.array(doc["turn_profile_k"]),
-                       speed_m_s=doc["speed_m_s"], provenance=doc.get("provenance") or {})
+            return cls(sample_period_s=doc["sample_period_s"], intercept=doc["intercept"],
+                       power_coefficients=np.array(doc["power_coefficients"]),
+                       power_square_coefficients=np.array(doc["power_square_coefficients"]),
+                       temperature_coefficients=np.array(doc["temperature_coefficients"]),
+                       temperature_square_coefficients=np.array(doc["temperature_square_coefficients"]),
+                       output=doc["output"], residual=residual, turn_profile_k=np.array(doc["turn_profile_k"]),
+                       forecast_persistence=doc["forecast_persistence"], speed_m_s=doc["speed_m_s"],
+                       provenance=doc.get("provenance") or {})
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelFormatError(f"{path} is a corrupt model file: {exc}") from exc
 
 
 # ---------------------------------------------------------------------- evaluation and selection
 ROLLOUT_HORIZON = 40
-STRUCTURES = ((16, 20), (24, 30), (32, 40))
+STRUCTURES = ((24, 30), (32, 40))
 """Candidate (power lags, temperature lags) of the model selection."""
+FORMS = (("log", True), ("log", False), ("identity", True), ("identity", False))
+"""Candidate (output map, squared lags) of the model selection."""
 LENGTH_SCALE_FLOORS = (0.5, 2.0)
 """Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
 
@@ -500,17 +594,18 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int =
 
 
 def select_and_fit(train: Sequence[RunSeries], held_out: Sequence[RunSeries], *, seed: int = 0,
-                   n_train: int = 150) -> tuple[NarxGPModel, list[dict[str, Any]]]:
-    """Fit every candidate structure and length-scale floor on ``train``; keep the one with the
-    smallest 40-step rollout error on ``held_out`` (not the one-step fit). Returns it and the table."""
+                   n_train: int = 150) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
+    """Fit every candidate (lags, output map, squared lags, length-scale floor) on ``train``; keep the
+    one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
+    Returns it, its row and the whole table."""
     table, best = [], None
-    for n_p, n_t in STRUCTURES:
-        for floor in LENGTH_SCALE_FLOORS:
+    for (n_p, n_t), (output, quadratic), floor in itertools.product(STRUCTURES, FORMS, LENGTH_SCALE_FLOORS):
             model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
-                                    bounds=HyperBounds(length_scale=(floor, 100.0)))
+                                    output=output, quadratic=quadratic, bounds=HyperBounds(length_scale=(floor, 100.0)))
             scores = evaluate_model(model, held_out)
-            row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "length_scale_floor": floor, **scores}
+            row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
+                   "length_scale_floor": floor, **scores}
             table.append(row)
             if best is None or row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"] < best[0]:
-                best = (row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"], model)
-    return best[1], table
+                best = (row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"], model, row)
+    return best[1], best[2], table

@@ -41,7 +41,7 @@ def synthetic_run(seed: int, n: int = 400, tracks: int = 2) -> RunSeries:
 @pytest.fixture(scope="module")
 def model() -> NarxGPModel:
     return NarxGPModel.fit([synthetic_run(s) for s in range(3)], n_power_lags=8, n_temperature_lags=5,
-                           n_train=60, n_restarts=2, profile_length=50)
+                           quadratic=False, output="identity", n_train=60, n_restarts=2, profile_length=50)
 
 
 def test_fit_recovers_the_fir_plant(model):
@@ -72,6 +72,26 @@ def test_forecast_follows_the_scan_plan():
     # after a turn, the current track follows the profile's shape from its own position
     after = forecast_t_ahead(900.0, 2, False, None, profile, 3)
     assert np.array_equal(after, [800.0, 750.0, 750.0])
+    # anchored on the temperature before the turn: the deviation from the profile decays with ρ
+    anchored = forecast_t_ahead(600.0, 1, False, None, profile, 3, t_base_k=400.0, persistence=0.5)
+    assert np.allclose(anchored, [400.0 + 300.0 + 50.0, 400.0 + 200.0 + 25.0, 400.0 + 150.0 + 12.5])
+
+
+def test_log_output_with_squared_lags_fits_a_multiplicative_plant():
+    rng = np.random.default_rng(3)
+    runs = []
+    for seed in range(3):
+        run = synthetic_run(seed)
+        area = np.exp(np.log(1e-8) + (run.area_m2 - C0) / 2e-8) * (run.area_m2 > 0)
+        runs.append(RunSeries(run.name, area, run.t_ahead_k, run.power_w, run.track, DT))
+    model = NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, n_temperature_square_lags=2,
+                            output="log", n_train=60, n_restarts=1, profile_length=50, seed=int(rng.integers(9)))
+    mean, _ = model.predict_run(runs[0])
+    truth = runs[0].area_m2[1:]
+    assert np.max(np.abs(mean / truth - 1.0)[20:]) < 1e-3
+    linear = NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity",
+                             n_train=60, n_restarts=1, profile_length=50)
+    assert np.max(np.abs(linear.predict_run(runs[0])[0] / truth - 1.0)[20:]) > 1e-2
 
 
 def test_scan_plan_preview_at_the_turn():
@@ -101,6 +121,7 @@ def test_other_sample_period_is_refused(model):
 
 
 def _closed_loop(model, offset_m2, settings, steps=200, plan_turn_at=None):
+    """The preview MPC against the synthetic FIR plant plus a constant area offset."""
     ctrl = PreviewMPC(settings, model)
     p = np.zeros(steps + 1)
     t = np.full(steps + 1, 300.0)
@@ -130,11 +151,12 @@ def test_fast_path_equals_cvxpy(model, seed):
     settings = ControllerSettings(set_point_m2=sp, power_max_w=350.0,
                                   preview=PreviewSettings(horizon=20, r=float(rng.uniform(0.01, 1.0)),
                                                           area_max_m2=sp * float(rng.uniform(1.02, 3.0))))
-    ctrl = PreviewMPC(settings, model)
-    w = sp * (1.0 + rng.uniform(-0.6, 0.6)) + sp * 0.05 * rng.standard_normal(20).cumsum()
-    w -= ctrl.qp.gamma.sum(axis=1) * sp / ctrl.qp.scale * rng.uniform(0, 300)
+    qp = PreviewMPC(settings, model).qp
+    gain = np.tril(rng.uniform(0.0, 2e-11, (20, 20))) * rng.uniform(0.5, 2.0, 20)[:, None]
+    gamma = gain * qp.scale / sp
+    c = rng.uniform(-0.6, 0.6) + 0.05 * rng.standard_normal(20).cumsum() - gamma.sum(axis=1) * rng.uniform(0, 300) / qp.scale
     previous = float(rng.uniform(0, 350))
-    fast = ctrl.qp.solve(w, previous)
-    reference = solve_reference(ctrl.qp, w, previous)
+    fast = qp.solve(gamma, c, previous)
+    reference = solve_reference(qp, gamma, c, previous)
     assert not fast.path.startswith("failed")
     assert np.max(np.abs(fast.power_w - reference)) < 1e-3
