@@ -66,6 +66,11 @@ class PreviewMPC(Controller):
         inside = (lag >= 0) & (lag < n_p)
         self._toeplitz_b = np.where(inside, b[np.clip(lag, 0, n_p - 1)], 0.0)
         self._toeplitz_q = np.where(inside, model.power_square_coefficients[np.clip(lag, 0, n_p - 1)], 0.0)
+        e = np.zeros(n_p)
+        self._n_x = model.power_temperature_coefficients.size
+        e[:self._n_x] = model.power_temperature_coefficients
+        self._e0 = float(e[0])
+        self._toeplitz_e = np.where(inside, e[np.clip(lag, 0, n_p - 1)], 0.0)
         self._theta_p = np.r_[b, model.power_square_coefficients]
         self._n_tq = model.temperature_square_coefficients.size
         self.qp = PreviewQP(h, settings.set_point_m2, q=ps.q, q_f=ps.q_f, r=ps.r, power_scale_w=ps.power_scale_w,
@@ -106,12 +111,17 @@ class PreviewMPC(Controller):
         prev = self._prev
         gap = 1 if prev is None else max(1, m.step - prev.step)
         fill = min(gap, self._nb)
-        self._p = np.r_[np.full(fill, m.power_w), self._p[:-fill]] if m.step > 0 else np.zeros(self._nb)
+        if m.step > 0:
+            self._p[fill:] = self._p[:-fill].copy()
+            self._p[:fill] = m.power_w
+        else:
+            self._p[:] = 0.0
         if self._t is None:
             self._t = np.full(self._nc, m.t_ahead_k)
         else:
             fill = min(gap, self._nc)
-            self._t = np.r_[self._t[fill:], np.full(fill, m.t_ahead_k)]
+            self._t[:-fill] = self._t[fill:].copy()
+            self._t[-fill:] = m.t_ahead_k
         if self._first_track is None:
             self._first_track = m.track
         new_track = prev is not None and m.track is not None and m.track != prev.track
@@ -141,7 +151,8 @@ class PreviewMPC(Controller):
         consecutive = self._prev is not None and m.step == self._prev.step + 1
         self._observe(m)
         if consecutive and self._base0_m2 is not None and m.step >= ps.observer_start_steps:
-            z = self._base0_m2 + self._theta_p[0] * m.power_w + self._theta_p[self._nb] * m.power_w ** 2
+            z = (self._base0_m2 + self._theta_p[0] * m.power_w + self._theta_p[self._nb] * m.power_w ** 2
+                 + self._e0 * m.power_w * self._base_t0)
             predicted = float(self.model.to_area(z))  # x̂[k|k−1] with the applied p[k]
             self.disturbance_m2 += ps.observer_gain * (m.area_m2 - predicted - self.disturbance_m2)
         self._prev = m
@@ -159,23 +170,24 @@ class PreviewMPC(Controller):
         on_first = m.track is None or m.track == self._first_track
         forecast = self._forecast(m.t_ahead_k, since, on_first, to_end, self._profile, h,
                                   self._turn_base_k, self.model.forecast_persistence)
-        temps = np.r_[self._t, forecast[:-1]]
+        temps = np.concatenate((self._t, forecast[:-1]))
         model, sp = self.model, s.set_point_m2
         # GP residual at ψ_{k+m−1} = (T, steps since track start, mean power of the last plan)
         j = np.arange(h)
         s_psi = since + j if to_end is None else np.where(j <= to_end, since + j, j - to_end - 1)
-        plan = np.r_[self._plan[1:], self._plan[-1]]                   # ū = p̄[k+1..k+H]
-        powers = np.r_[self._p[::-1], plan]                            # S = p[k−n_p+1 .. k+H]
+        plan = np.concatenate((self._plan[1:], self._plan[-1:]))       # ū = p̄[k+1..k+H]
+        powers = np.concatenate((self._p[::-1], plan))                 # S = p[k−n_p+1 .. k+H]
         window = powers[self._p_index]                                 # (H, n_p)
-        psi = np.column_stack([np.r_[m.t_ahead_k, forecast[:-1]], np.minimum(s_psi, self._s_cap),
+        psi = np.column_stack([np.concatenate(((m.t_ahead_k,), forecast[:-1])), np.minimum(s_psi, self._s_cap),
                                window.mean(axis=1)])
         r_mean, r_var = model.residual.predict(psi, None if ps.uncertainty_z > 0 else 1)
         tw = temps[self._t_index]                                      # (H, n_T)
         z = (model.intercept + window @ model.power_coefficients + (window * window) @ model.power_square_coefficients
              + tw @ model.temperature_coefficients + (tw[:, :self._n_tq] ** 2) @ model.temperature_square_coefficients
-             + r_mean)
+             + (window[:, :self._n_x] * tw[:, :1]) @ model.power_temperature_coefficients + r_mean)
         slope = model.area_slope(z)
-        jac = slope[:, None] * (self._toeplitz_b + 2.0 * self._toeplitz_q * plan[None, :])   # ∂x̂/∂u, (H, H)
+        dz = self._toeplitz_b + 2.0 * self._toeplitz_q * plan[None, :] + self._toeplitz_e * tw[:, :1]
+        jac = slope[:, None] * dz                                                              # ∂x̂/∂u, (H, H)
         predicted = model.to_area(z) + self.disturbance_m2                                     # x̂ at u = ū
         gamma = jac * (self.qp.scale / sp)
         c = (predicted - jac @ plan - sp) / sp
@@ -187,7 +199,9 @@ class PreviewMPC(Controller):
         new_plan = result.power_w
         self._plan = new_plan
         # z of x̂[k+1] without the p[k+1] terms, for the next observer update
-        self._base0_m2 = float(z[0] - self._theta_p[0] * plan[0] - self._theta_p[self._nb] * plan[0] ** 2)
+        self._base0_m2 = float(z[0] - self._theta_p[0] * plan[0] - self._theta_p[self._nb] * plan[0] ** 2
+                               - self._e0 * plan[0] * tw[0, 0])
+        self._base_t0 = float(tw[0, 0])
         areas = predicted + jac @ (new_plan - plan)
         return Proposal(
             power_w=float(new_plan[0]),

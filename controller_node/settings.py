@@ -256,14 +256,14 @@ class PreviewSettings:
     horizon: int = 40
     q: float = 1.0
     q_f: float = 20.0
-    r: float = 1.0
+    r: float = 10.0
     power_scale_w: float = 350.0
     area_min_m2: float = 0.0
     area_max_m2: float = 0.5e-6
     slack_linear: float = 100.0
     slack_quadratic: float = 1000.0
     uncertainty_z: float = 0.0
-    observer_gain: float = 0.5
+    observer_gain: float = 0.2
     observer_start_steps: int = 20
     learn_turn_profile: bool = True
 

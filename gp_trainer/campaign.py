@@ -105,12 +105,15 @@ class Job:
         after the run (the plant records its resolved scenario, profile included, in the MCAP).
     args : tuple[str, ...]
         Further launch.py arguments.
+    controller : str or None
+        launch.py's ``--controller`` for this job (None: the runner's, ``none`` by default).
     """
 
     name: str
     scenario: str
     plant: tuple[tuple[str, Any], ...] = ()
     args: tuple[str, ...] = ()
+    controller: str | None = None
 
 
 @dataclass(frozen=True)
@@ -166,7 +169,8 @@ def job_command(settings: RunnerSettings, job: Job, out: Path, config: Path | No
     """Command line that records ``job`` to ``out``, with ``--config config`` if given (the job's
     ``[plant]`` table as TOML). The launcher runs in the repository root: the runner passes
     absolute paths."""
-    return [settings.python, str(settings.launcher), "--scenario", job.scenario, "--controller", settings.controller,
+    return [settings.python, str(settings.launcher), "--scenario", job.scenario,
+            "--controller", job.controller or settings.controller,
             *(("--config", str(config)) if config is not None else ()), *job.args,
             "--no-progress", "--json", "--out", str(out), "--run-id", job.name]
 
@@ -364,11 +368,35 @@ class IdentRun:
                                                     ("ident_amplitude_w", float(self.amplitude_w))))
 
 
+@dataclass(frozen=True)
+class FeedbackRun:
+    """A closed-loop identification run: one of the project's controllers at one set point.
+
+    It excites what open-loop steps rarely reach: the power drop at every turnaround onto the hot
+    previous track, the regime the preview MPC works in.
+    """
+
+    scenario: str
+    controller: str
+    setpoint_mm2: float
+
+    @property
+    def name(self) -> str:
+        """Run id and recording stem, e.g. ``ident-mpc-layer-a0.058``."""
+        return f"ident-{self.controller}-{self.scenario}-a{self.setpoint_mm2:g}"
+
+    def job(self) -> Job:
+        """The launcher job: the scenario under the controller."""
+        return Job(self.name, self.scenario, args=("--setpoint-mm2", repr(self.setpoint_mm2)), controller=self.controller)
+
+
 IDENT_RUNS = tuple(
     IdentRun(scenario, mean, 60.0, seed)
     for scenario, seeds in (("ident-layer", (1, 2, 3)), ("ident-double-track", (4, 5, 6)))
     for mean, seed in zip((200.0, 250.0, 300.0), seeds)
-)
+) + tuple(FeedbackRun("double-track", "mpc", a) for a in (0.055, 0.063, 0.07)) + tuple(
+    FeedbackRun("layer", "mpc", a) for a in (0.058, 0.068)) + tuple(
+    FeedbackRun(scenario, "feedforward", 0.063) for scenario in ("double-track", "layer"))
 
 
 @dataclass(frozen=True)
@@ -378,11 +406,13 @@ class IdentifySettings:
     Attributes
     ----------
     runs : tuple[IdentRun, ...]
-        Default :data:`IDENT_RUNS` (6 runs: ident-layer and ident-double-track at 200, 250 and
-        300 W mean, 60 W amplitude, seeds 1-6).
+        Default :data:`IDENT_RUNS`: 6 open-loop runs (ident-layer and ident-double-track at 200,
+        250 and 300 W mean, 60 W amplitude, seeds 1-6) and 7 closed-loop runs: the one-step
+        GP-MPC on the double track at 0.055, 0.063, 0.07 mm² and on the layer at 0.058, 0.068 mm²,
+        and the feed-forward baseline on both (its power does not depend on the set point).
     """
 
-    runs: tuple[IdentRun, ...] = IDENT_RUNS
+    runs: tuple[IdentRun | FeedbackRun, ...] = IDENT_RUNS
     out_dir: Path = DEFAULT_IDENT_DIR
     workers: int = 2
     launcher: Path = REPO_ROOT / "launch.py"

@@ -298,7 +298,7 @@ class ResidualGP:
 class NarxGPModel:
     """The delay-aware model of the module docstring (construct with :meth:`fit` or :meth:`load`).
 
-    ``z[k+1] = c₀ + Σ b_i p_i + Σ q_i p_i² + Σ c_j T_j + Σ d_j T_j² + r(ψ_k)`` with the lagged
+    ``z[k+1] = c₀ + Σ b_i p_i + Σ q_i p_i² + Σ c_j T_j + Σ d_j T_j² + Σ e_i p_i T_0 + r(ψ_k)`` with the lagged
     powers ``p_i = p[k+1−i]`` and temperatures ``T_j = T[k−j]``, and ``x[k+1] = exp(z)`` for the
     ``"log"`` output (``z`` the log of the area in m²) or ``x = z`` for ``"identity"``.
 
@@ -316,6 +316,8 @@ class NarxGPModel:
         ``d_j`` [z/K²].
     output : {"log", "identity"}
         Output map.
+    power_temperature_coefficients : numpy.ndarray, shape (n_x,), n_x <= n_p, optional
+        ``e_i`` [z/(W K)] of the interactions ``p[k+1−i] T[k]`` (hot substrate, other power gain).
     residual : ResidualGP
         GP on ψ (:data:`RESIDUAL_INPUTS`), in units of z.
     turn_profile_k : numpy.ndarray, shape (S,)
@@ -330,6 +332,7 @@ class NarxGPModel:
     def __init__(self, *, sample_period_s: float, intercept: float, power_coefficients: np.ndarray,
                  power_square_coefficients: np.ndarray, temperature_coefficients: np.ndarray,
                  temperature_square_coefficients: np.ndarray, output: str, residual: ResidualGP,
+                 power_temperature_coefficients: np.ndarray | None = None,
                  turn_profile_k: np.ndarray, forecast_persistence: float, speed_m_s: float,
                  provenance: Mapping[str, Any] | None = None) -> None:
         self.sample_period_s = float(sample_period_s)
@@ -338,6 +341,8 @@ class NarxGPModel:
         self.power_square_coefficients = np.asarray(power_square_coefficients, dtype=float)
         self.temperature_coefficients = np.asarray(temperature_coefficients, dtype=float)
         self.temperature_square_coefficients = np.asarray(temperature_square_coefficients, dtype=float)
+        self.power_temperature_coefficients = np.asarray(
+            () if power_temperature_coefficients is None else power_temperature_coefficients, dtype=float)
         self.output = output
         self.residual = residual
         self.turn_profile_k = np.asarray(turn_profile_k, dtype=float)
@@ -345,12 +350,13 @@ class NarxGPModel:
         self.speed_m_s = float(speed_m_s)
         self.provenance = dict(provenance or {})
         arrays = (self.power_coefficients, self.power_square_coefficients, self.temperature_coefficients,
-                  self.temperature_square_coefficients, self.turn_profile_k)
+                  self.temperature_square_coefficients, self.turn_profile_k, self.power_temperature_coefficients)
         if output not in OUTPUTS:
             raise ModelFormatError(f"NARX model: output must be one of {OUTPUTS}, got {output!r}")
         if not (self.sample_period_s > 0 and self.speed_m_s > 0 and all(a.ndim == 1 for a in arrays)
                 and self.power_square_coefficients.size == self.power_coefficients.size > 0
                 and 0 <= self.temperature_square_coefficients.size <= self.temperature_coefficients.size > 0
+                and self.power_temperature_coefficients.size <= self.power_coefficients.size
                 and self.turn_profile_k.size > 0 and 0.0 <= self.forecast_persistence <= 1.0
                 and all(np.all(np.isfinite(a)) for a in arrays) and math.isfinite(self.intercept)):
             raise ModelFormatError("NARX model: non-finite or inconsistent coefficients, or a period/speed <= 0")
@@ -376,6 +382,7 @@ class NarxGPModel:
         return {
             "p[k+1-i], i=0..n_p-1": "laser power applied during step k-i -> k+1-i [W] (state[k+1-i].power_w; 0 before laser-on); linear and squared",
             "T[k-j], j=0..n_T-1": "temperature ahead of the laser in state k-j [K] (state.t_ahead_k; T[0] before the first state); linear, squared for j < n_Tq",
+            "p[k+1-i] T[k], i=0..n_x-1": "interaction of the lagged powers with the current temperature ahead [W K]",
             "t_ahead_k": "GP input: T[k] [K]",
             "steps_since_track_start": f"GP input: states since the current track's first state, capped at {STEPS_SINCE_START_CAP}",
             "mean_power_w": "GP input: mean of p[k+1-i], i=0..n_p-1 [W]",
@@ -396,13 +403,14 @@ class NarxGPModel:
 
     def design(self, P: np.ndarray, T: np.ndarray) -> np.ndarray:
         """Regressor rows ``[1, p, p², T, T²]`` for lag matrices ``P`` (m, n_p) and ``T`` (m, n_T)."""
-        n_tq = self.temperature_square_coefficients.size
-        return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2])
+        n_tq, n_x = self.temperature_square_coefficients.size, self.power_temperature_coefficients.size
+        return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2, P[:, :n_x] * T[:, :1]])
 
     def coefficients(self) -> np.ndarray:
         """All coefficients in the order of :meth:`design`."""
         return np.r_[self.intercept, self.power_coefficients, self.power_square_coefficients,
-                     self.temperature_coefficients, self.temperature_square_coefficients]
+                     self.temperature_coefficients, self.temperature_square_coefficients,
+                     self.power_temperature_coefficients]
 
     def residual_inputs(self, run: RunSeries) -> np.ndarray:
         """ψ for every target index j = 1..n−1, shape (n−1, 3)."""
@@ -431,7 +439,8 @@ class NarxGPModel:
     # ------------------------------------------------------------------ fitting
     @classmethod
     def fit(cls, runs: Sequence[RunSeries], *, n_power_lags: int, n_temperature_lags: int,
-            n_temperature_square_lags: int | None = None, quadratic: bool = True, output: str = "log",
+            n_temperature_square_lags: int | None = None, quadratic: bool = True, interaction: bool = False,
+            output: str = "log",
             n_train: int = 150, bounds: HyperBounds = HyperBounds(), seed: int = 0, n_restarts: int = 4,
             profile_length: int = 200, provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
         """Least squares in z for the lag part, then the residual GP on ``n_train`` seeded random samples.
@@ -453,7 +462,8 @@ class NarxGPModel:
         if len(periods) != 1:
             raise DatasetError(f"runs have different sample periods: {sorted(periods)} s")
         n_tq = (n_temperature_lags // 2 if n_temperature_square_lags is None else n_temperature_square_lags) if quadratic else 0
-        probe = cls._probe(n_power_lags, n_temperature_lags, n_tq, runs[0].sample_period_s)
+        n_x = n_power_lags if interaction else 0
+        probe = cls._probe(n_power_lags, n_temperature_lags, n_tq, runs[0].sample_period_s, n_x)
         X, Y, PSI = [], [], []
         for run in runs:
             p, t = probe._lagged(run)
@@ -481,18 +491,20 @@ class NarxGPModel:
         return cls(sample_period_s=runs[0].sample_period_s, intercept=theta[0], power_coefficients=theta[1:1 + n_p],
                    power_square_coefficients=theta[1 + n_p:1 + 2 * n_p],
                    temperature_coefficients=theta[1 + 2 * n_p:1 + 2 * n_p + n_t],
-                   temperature_square_coefficients=theta[1 + 2 * n_p + n_t:], output=output, residual=gp,
+                   temperature_square_coefficients=theta[1 + 2 * n_p + n_t:1 + 2 * n_p + n_t + n_tq],
+                   power_temperature_coefficients=theta[1 + 2 * n_p + n_t + n_tq:], output=output, residual=gp,
                    turn_profile_k=profile, forecast_persistence=fit_persistence(runs, profile), speed_m_s=0.8,
                    provenance=record)
 
     @classmethod
-    def _probe(cls, n_p: int, n_t: int, n_tq: int, period: float) -> NarxGPModel:
+    def _probe(cls, n_p: int, n_t: int, n_tq: int, period: float, n_x: int = 0) -> NarxGPModel:
         """A shell with the right lag counts (for building regressors before the fit)."""
         if n_p < 1 or n_t < 1 or not 0 <= n_tq <= n_t:
             raise DatasetError(f"lag counts must be >= 1 (squared T lags <= T lags), got {n_p}, {n_t}, {n_tq}")
         obj = cls.__new__(cls)
         obj.power_coefficients, obj.temperature_coefficients = np.zeros(n_p), np.zeros(n_t)
         obj.temperature_square_coefficients = np.zeros(n_tq)
+        obj.power_temperature_coefficients = np.zeros(n_x)
         obj.sample_period_s = period
         return obj
 
@@ -503,13 +515,14 @@ class NarxGPModel:
             "sample_period_s": self.sample_period_s, "speed_m_s": self.speed_m_s,
             "inputs": self.input_definitions(),
             "structure": ("z[k+1] = c0 + sum_i (b_i p[k+1-i] + q_i p[k+1-i]^2) + sum_j c_j T[k-j] + sum_{j<n_Tq} d_j T[k-j]^2"
-                          " + r(psi_k), r ~ GP(0, SE-ARD); x[k+1] = exp(z) (output 'log') or z"),
+                          " + sum_{i<n_x} e_i p[k+1-i] T[k] + r(psi_k), r ~ GP(0, SE-ARD); x[k+1] = exp(z) (output 'log') or z"),
             "output": self.output,
             "intercept": self.intercept,
             "power_coefficients": self.power_coefficients.tolist(),
             "power_square_coefficients": self.power_square_coefficients.tolist(),
             "temperature_coefficients": self.temperature_coefficients.tolist(),
             "temperature_square_coefficients": self.temperature_square_coefficients.tolist(),
+            "power_temperature_coefficients": self.power_temperature_coefficients.tolist(),
             "residual_gp": {"inputs_names": list(RESIDUAL_INPUTS), **self.residual.to_dict()},
             "turn_profile_k": self.turn_profile_k.tolist(),
             "forecast_persistence": self.forecast_persistence,
@@ -546,6 +559,7 @@ class NarxGPModel:
                        power_square_coefficients=np.array(doc["power_square_coefficients"]),
                        temperature_coefficients=np.array(doc["temperature_coefficients"]),
                        temperature_square_coefficients=np.array(doc["temperature_square_coefficients"]),
+                       power_temperature_coefficients=np.array(doc["power_temperature_coefficients"]),
                        output=doc["output"], residual=residual, turn_profile_k=np.array(doc["turn_profile_k"]),
                        forecast_persistence=doc["forecast_persistence"], speed_m_s=doc["speed_m_s"],
                        provenance=doc.get("provenance") or {})
@@ -557,8 +571,11 @@ class NarxGPModel:
 ROLLOUT_HORIZON = 40
 STRUCTURES = ((24, 30), (32, 40))
 """Candidate (power lags, temperature lags) of the model selection."""
-FORMS = (("log", True), ("log", False), ("identity", True), ("identity", False))
-"""Candidate (output map, squared lags) of the model selection."""
+FORMS = (("log", True, False), ("log", False, False), ("identity", True, False), ("identity", False, False))
+"""Candidate (output map, squared lags, power × temperature interactions) of the model selection."""
+INTERACTION_FORMS = (("log", True, True), ("identity", True, True))
+"""Added by ``select_and_fit(..., interaction=True)`` (``narx --interaction``): better held-out rollouts,
+worse closed loop (docs/gp.md)."""
 LENGTH_SCALE_FLOORS = (0.5, 2.0)
 """Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
 
@@ -594,16 +611,19 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int =
 
 
 def select_and_fit(train: Sequence[RunSeries], held_out: Sequence[RunSeries], *, seed: int = 0,
-                   n_train: int = 150) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
+                   n_train: int = 150, interaction: bool = False) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
     """Fit every candidate (lags, output map, squared lags, length-scale floor) on ``train``; keep the
     one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
     Returns it, its row and the whole table."""
     table, best = [], None
-    for (n_p, n_t), (output, quadratic), floor in itertools.product(STRUCTURES, FORMS, LENGTH_SCALE_FLOORS):
+    forms = FORMS + (INTERACTION_FORMS if interaction else ())
+    for (n_p, n_t), (output, quadratic, with_x), floor in itertools.product(STRUCTURES, forms, LENGTH_SCALE_FLOORS):
             model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
-                                    output=output, quadratic=quadratic, bounds=HyperBounds(length_scale=(floor, 100.0)))
+                                    output=output, quadratic=quadratic, interaction=with_x,
+                                    bounds=HyperBounds(length_scale=(floor, 100.0)))
             scores = evaluate_model(model, held_out)
             row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
+                   "interaction": with_x,
                    "length_scale_floor": floor, **scores}
             table.append(row)
             if best is None or row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"] < best[0]:

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from fe_node.scenarios import IDENT_DEFAULTS, IDENT_HOLD_STEPS, scenario
-from gp_trainer.campaign import (IDENT_RUNS, IdentifySettings, identify_jobs, job_command, job_recording, plant_toml,
-                                 run_identification, select_ident_runs)
+from gp_trainer.campaign import (IDENT_RUNS, FeedbackRun, IdentifySettings, IdentRun, identify_jobs, job_command,
+                                 job_recording, plant_toml, run_identification, select_ident_runs)
 from gp_trainer.cli import main
 from gp_trainer.errors import CampaignError
 
@@ -99,15 +99,21 @@ def test_bad_overrides_raise_one_line_value_error_naming_the_key(name, kw, key):
     assert "\n" not in str(info.value)
 
 
-def test_identify_jobs_are_the_six_default_runs_with_their_command_lines(tmp_path):
-    assert [r.name for r in IDENT_RUNS] == [
+def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
+    open_loop = [r for r in IDENT_RUNS if isinstance(r, IdentRun)]
+    feedback = [r for r in IDENT_RUNS if isinstance(r, FeedbackRun)]
+    assert [r.name for r in open_loop] == [
         "ident-layer-p200-s1", "ident-layer-p250-s2", "ident-layer-p300-s3",
         "ident-double-track-p200-s4", "ident-double-track-p250-s5", "ident-double-track-p300-s6"]
+    assert [r.name for r in feedback] == [
+        "ident-mpc-double-track-a0.055", "ident-mpc-double-track-a0.063", "ident-mpc-double-track-a0.07",
+        "ident-mpc-layer-a0.058", "ident-mpc-layer-a0.068",
+        "ident-feedforward-double-track-a0.063", "ident-feedforward-layer-a0.063"]
     assert IdentifySettings().out_dir == Path("recordings/identification") and IdentifySettings().workers == 2
     settings = IdentifySettings(out_dir=tmp_path, python="PY", launcher=Path("/repo/launch.py"))
     jobs = identify_jobs(settings)
-    assert len(jobs) == 6
-    for run, job in zip(IDENT_RUNS, jobs):
+    assert len(jobs) == 13
+    for run, job in zip(open_loop, jobs):
         out, config = tmp_path / f"{job.name}.partial.mcap", tmp_path / "cfg.toml"
         assert job_recording(settings, job) == tmp_path / f"{run.name}.mcap"
         assert job_command(settings, job, out, config) == [
@@ -115,7 +121,12 @@ def test_identify_jobs_are_the_six_default_runs_with_their_command_lines(tmp_pat
             "--no-progress", "--json", "--out", str(out), "--run-id", run.name]
         assert dict(job.plant) == {"ident_seed": run.seed, "ident_mean_w": run.mean_w, "ident_amplitude_w": 60.0}
         assert tomllib.loads(plant_toml(job.plant)) == {"plant": dict(job.plant)}
-    assert [(r.scenario, r.mean_w, r.seed) for r in IDENT_RUNS] == [
+    for run, job in zip(feedback, jobs[6:]):
+        out = tmp_path / f"{job.name}.partial.mcap"
+        assert job_command(settings, job, out) == [
+            "PY", "/repo/launch.py", "--scenario", run.scenario, "--controller", run.controller,
+            "--setpoint-mm2", repr(run.setpoint_mm2), "--no-progress", "--json", "--out", str(out), "--run-id", run.name]
+    assert [(r.scenario, r.mean_w, r.seed) for r in open_loop] == [
         ("ident-layer", 200.0, 1), ("ident-layer", 250.0, 2), ("ident-layer", 300.0, 3),
         ("ident-double-track", 200.0, 4), ("ident-double-track", 250.0, 5), ("ident-double-track", 300.0, 6)]
     assert select_ident_runs(["ident-double-track-p200-s4", "ident-layer-p300-s3"]) == (IDENT_RUNS[2], IDENT_RUNS[3])
