@@ -93,7 +93,11 @@ class PreviewMPC(Controller):
         self._profile = np.array(self.model.turn_profile_k, dtype=float)
         self._plan = np.full(self._h, self.settings.nominal_power_w)
         self._base0_m2: float | None = None      # x̂[k+1|k] without p[k+1] and d̂, for the observer
+        self._base0_correction = 0.0             # the learned turnaround correction in that prediction
         self.disturbance_m2 = 0.0
+        n = self.settings.preview.turn_learning_steps
+        self.turn_correction_m2 = np.zeros(n)    # learned model error after a turnaround, by state since the turn
+        self._turn_errors = np.full(n, np.nan)   # one-step errors seen after the current turn
 
     # ------------------------------------------------------------------ bookkeeping
     def _check_period(self, m: Measurement) -> None:
@@ -127,6 +131,7 @@ class PreviewMPC(Controller):
         new_track = prev is not None and m.track is not None and m.track != prev.track
         if new_track:
             self._learn_profile()
+            self._learn_turn_correction()
             self._turn_base_k = prev.t_ahead_k
             self._observed = []
             self._track_start_step = m.step
@@ -134,6 +139,19 @@ class PreviewMPC(Controller):
             self._track_start_step = m.step - round(m.track_elapsed_s / self.model.sample_period_s)
         if self._turn_base_k is not None:
             self._observed.append(m.t_ahead_k - self._turn_base_k)
+
+    def _learn_turn_correction(self) -> None:
+        """Iterative learning over turnarounds: ``c(s) += κ ε(s)`` with the one-step errors ε seen
+        after the last turn (where seen); ``c`` is added to the prediction of every post-turn state."""
+        seen = ~np.isnan(self._turn_errors)
+        self.turn_correction_m2[seen] += self.settings.preview.turn_learning_gain * self._turn_errors[seen]
+        self._turn_errors[:] = np.nan
+
+    def _correction(self, s: np.ndarray, post_turn: np.ndarray) -> np.ndarray:
+        """``c(s)`` for states ``s`` since their track's start, 0 on the first track and beyond ``c``."""
+        n = self.turn_correction_m2.size
+        inside = post_turn & (s < n)
+        return np.where(inside, self.turn_correction_m2[np.clip(s, 0, max(n - 1, 0))], 0.0) if n else np.zeros(s.size)
 
     def _learn_profile(self) -> None:
         """Replace the trained turnaround profile by the one just observed, where observed."""
@@ -153,8 +171,12 @@ class PreviewMPC(Controller):
         if consecutive and self._base0_m2 is not None and m.step >= ps.observer_start_steps:
             z = (self._base0_m2 + self._theta_p[0] * m.power_w + self._theta_p[self._nb] * m.power_w ** 2
                  + self._e0 * m.power_w * self._base_t0)
-            predicted = float(self.model.to_area(z))  # x̂[k|k−1] with the applied p[k]
-            self.disturbance_m2 += ps.observer_gain * (m.area_m2 - predicted - self.disturbance_m2)
+            predicted = float(self.model.to_area(z)) + self._base0_correction  # x̂[k|k−1], applied p[k]
+            error = m.area_m2 - predicted - self.disturbance_m2
+            since_now = m.step - self._track_start_step
+            if self._turn_base_k is not None and 0 <= since_now < self._turn_errors.size:
+                self._turn_errors[since_now] = error
+            self.disturbance_m2 += ps.observer_gain * error
         self._prev = m
         self._base0_m2 = None
         if m.step < ps.observer_start_steps:  # pool build-up: outside the fitted model, laser at nominal
@@ -188,7 +210,11 @@ class PreviewMPC(Controller):
         slope = model.area_slope(z)
         dz = self._toeplitz_b + 2.0 * self._toeplitz_q * plan[None, :] + self._toeplitz_e * tw[:, :1]
         jac = slope[:, None] * dz                                                              # ∂x̂/∂u, (H, H)
-        predicted = model.to_area(z) + self.disturbance_m2                                     # x̂ at u = ū
+        # the target of row m is state k+m: its states since its track's start, and whether it is past a turn
+        s_target = since + j + 1 if to_end is None else np.where(j + 1 <= to_end, since + j + 1, j - to_end)
+        post_turn = np.full(h, not on_first) if to_end is None else np.where(j + 1 <= to_end, not on_first, True)
+        correction = self._correction(s_target, post_turn)
+        predicted = model.to_area(z) + self.disturbance_m2 + correction                        # x̂ at u = ū
         gamma = jac * (self.qp.scale / sp)
         c = (predicted - jac @ plan - sp) / sp
         std = slope * np.sqrt(r_var + model.residual.noise_variance)
@@ -202,6 +228,7 @@ class PreviewMPC(Controller):
         self._base0_m2 = float(z[0] - self._theta_p[0] * plan[0] - self._theta_p[self._nb] * plan[0] ** 2
                                - self._e0 * plan[0] * tw[0, 0])
         self._base_t0 = float(tw[0, 0])
+        self._base0_correction = float(correction[0])
         areas = predicted + jac @ (new_plan - plan)
         return Proposal(
             power_w=float(new_plan[0]),

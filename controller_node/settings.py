@@ -251,12 +251,18 @@ class PreviewSettings:
         pool build-up, ``gp_trainer.narx.BUILD_UP_STEPS``).
     learn_turn_profile : bool
         Forecast the next turnaround with the rise of T ahead seen at the last one in this run.
+    turn_learning_gain : float
+        κ in [0, 1] of the iterative learning over turnarounds (:meth:`PreviewMPC._learn_turn_correction`):
+        the model error seen after one turn, times κ, is added to the prediction after the next ones.
+        0 disables it.
+    turn_learning_steps : int
+        States after a turn that the learned correction covers.
     """
 
     horizon: int = 40
     q: float = 1.0
     q_f: float = 20.0
-    r: float = 10.0
+    r: float = 3.0
     power_scale_w: float = 350.0
     area_min_m2: float = 0.0
     area_max_m2: float = 0.5e-6
@@ -266,6 +272,8 @@ class PreviewSettings:
     observer_gain: float = 0.2
     observer_start_steps: int = 20
     learn_turn_profile: bool = True
+    turn_learning_gain: float = 0.5
+    turn_learning_steps: int = 60
 
     def __post_init__(self) -> None:
         _check(isinstance(self.horizon, int) and not isinstance(self.horizon, bool) and 1 <= self.horizon <= 400,
@@ -283,6 +291,10 @@ class PreviewSettings:
         _check(isinstance(self.observer_start_steps, int) and not isinstance(self.observer_start_steps, bool)
                and self.observer_start_steps >= 1, "PreviewSettings.observer_start_steps must be an int >= 1")
         _check(isinstance(self.learn_turn_profile, bool), "PreviewSettings.learn_turn_profile must be bool")
+        _finite(self, "turn_learning_gain")
+        _check(0 <= self.turn_learning_gain <= 1, "PreviewSettings.turn_learning_gain must be in [0, 1]")
+        _check(isinstance(self.turn_learning_steps, int) and not isinstance(self.turn_learning_steps, bool)
+               and 0 <= self.turn_learning_steps <= 1000, "PreviewSettings.turn_learning_steps must be an int in [0, 1000]")
 
 
 @dataclass(frozen=True)

@@ -160,3 +160,44 @@ def test_fast_path_equals_cvxpy(model, seed):
     reference = solve_reference(qp, gamma, c, previous)
     assert not fast.path.startswith("failed")
     assert np.max(np.abs(fast.power_w - reference)) < 1e-3
+
+
+def test_trainer_builds_a_model_at_the_period_of_its_runs():
+    runs = [synthetic_run(s) for s in range(2)]
+    slow = [RunSeries(r.name, r.area_m2, r.t_ahead_k, r.power_w, r.track, 100e-6) for r in runs]
+    model = NarxGPModel.fit(slow, n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity",
+                            n_train=40, n_restarts=1, profile_length=20)
+    assert model.sample_period_s == 100e-6
+    with pytest.raises(Exception, match="different sample periods"):
+        NarxGPModel.fit(runs + slow, n_power_lags=8, n_temperature_lags=5, n_train=40, n_restarts=1)
+
+
+def test_prediction_matches_the_model_along_the_previous_plan():
+    """With the plan unchanged, the controller's prediction is the model's own (log output, squared
+    lags, interactions): the condensed prediction indexes lags and temperatures as the model does."""
+    runs = []
+    for seed in range(3):
+        run = synthetic_run(seed)
+        area = np.exp(np.log(1e-8) + (run.area_m2 - C0) / 2e-8) * (run.area_m2 > 0)
+        runs.append(RunSeries(run.name, area, run.t_ahead_k, run.power_w, run.track, DT))
+    fitted = NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, n_temperature_square_lags=2,
+                             interaction=True, output="log", n_train=40, n_restarts=1, profile_length=50)
+    model = NarxGPModel(  # every term made visible: squares and interactions of a size that matters
+        sample_period_s=DT, intercept=fitted.intercept, power_coefficients=fitted.power_coefficients,
+        power_square_coefficients=np.full(8, 2e-6), temperature_coefficients=fitted.temperature_coefficients + 1e-3,
+        temperature_square_coefficients=np.full(2, 1e-6), power_temperature_coefficients=np.full(8, -2e-6),
+        output="log", residual=fitted.residual, turn_profile_k=fitted.turn_profile_k, forecast_persistence=1.0,
+        speed_m_s=0.8)
+    settings = ControllerSettings(set_point_m2=2e-8, preview=PreviewSettings(horizon=12, r=1e6, turn_learning_gain=0.0))
+    ctrl = PreviewMPC(settings, model)
+    run = runs[0]
+    for k in range(40):
+        _, diag = ctrl.update(_measurement(k, run.area_m2[k], run.t_ahead_k[k], run.power_w[k]))
+    plan = np.array(diag.predicted_power_w)
+    # the model on the same history, the plan as future powers and T held (the first track, no turn)
+    n = 40 + 12
+    p = np.r_[run.power_w[:40], plan]
+    t = np.r_[run.t_ahead_k[:40], np.full(12, run.t_ahead_k[39])]
+    future = RunSeries("f", np.ones(n), t, p, np.zeros(n, dtype=int), DT)
+    expected = model.predict_run(future)[0][39:39 + 12] + ctrl.disturbance_m2
+    assert np.allclose(diag.predicted_area_m2, expected, rtol=1e-4, atol=0.0)
