@@ -219,6 +219,7 @@ class PreviewMPC(Controller):
         c = (predicted - jac @ plan - sp) / sp
         std = slope * np.sqrt(r_var + model.residual.noise_variance)
         margin = ps.uncertainty_z * std / sp if ps.uncertainty_z > 0 else None
+        self.last_qp = (gamma, c, float(self._p[0]), margin)  # the problem just solved (benchmarks, tests)
         result = self.qp.solve(gamma, c, float(self._p[0]), margin)
         if result.path.startswith("failed"):
             return Proposal(math.nan, status=f"solver_{result.path}")

@@ -254,9 +254,8 @@ def recording_completeness(path: Path, n_states: int) -> Completeness:
     plant = next((e for e in events if e.event == "start" and e.total_steps is not None), None)
     finished_at = None
     for event in events:
-        if plant is not None and event.event == "end" and event.node == plant.node:
-            if m := _FINISHED.match(event.detail):
-                finished_at = int(m.group(1))
+        if plant is not None and event.event == "end" and event.node == plant.node and (m := _FINISHED.match(event.detail)):
+            finished_at = int(m.group(1))
     states = read_messages(path, "/plant/state")
     first = next(states, None)
     states.close()  # only the first state is needed

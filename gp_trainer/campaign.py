@@ -27,6 +27,7 @@ further launcher arguments.
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -188,7 +189,7 @@ def _toml_value(key: str, value: Any) -> str:
     if isinstance(value, int):
         return str(value)
     if isinstance(value, float):
-        if value != value or value in (float("inf"), float("-inf")):
+        if not math.isfinite(value):
             raise CampaignError(f"[plant] {key}: not a finite number: {value}")
         return repr(value)
     if isinstance(value, str):

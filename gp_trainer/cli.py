@@ -39,7 +39,7 @@ SYNTHETIC_SOURCE = "synthetic stand-in plant (gp_trainer.synthetic), NOT FE data
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors and exit status 2."""
 
-    def error(self, message: str) -> NoReturn:  # noqa: D102 - argparse hook
+    def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
@@ -208,7 +208,12 @@ def _campaign(args: argparse.Namespace) -> int:
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from gp_trainer.campaign import IdentifySettings, run_identification, select_ident_runs, summary_json
+    from gp_trainer.campaign import (
+        IdentifySettings,
+        run_identification,
+        select_ident_runs,
+        summary_json,
+    )
 
     settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None)), out_dir=args.out_dir, workers=args.workers,
                                 timeout_s=args.timeout)
@@ -222,7 +227,12 @@ def _identify(args: argparse.Namespace) -> int:
 
 def _narx(args: argparse.Namespace) -> int:
     from gp_trainer.dataset import read_states
-    from gp_trainer.narx import DEFAULT_MODEL_PATH, ROLLOUT_HORIZON, select_and_fit, series_from_states
+    from gp_trainer.narx import (
+        DEFAULT_MODEL_PATH,
+        ROLLOUT_HORIZON,
+        select_and_fit,
+        series_from_states,
+    )
     from gp_trainer.provenance import REPO_ROOT
 
     paths = args.recordings or sorted((REPO_ROOT / "recordings" / "identification").glob("*.mcap"))
@@ -238,7 +248,7 @@ def _narx(args: argparse.Namespace) -> int:
     out = model.save(args.out or DEFAULT_MODEL_PATH)
     for row in table:
         print(f"lags p {row['n_power_lags']:2d}, T {row['n_temperature_lags']:2d}, output {row['output']:8s}, "
-              f"squares {str(row['quadratic']):5s}, p×T {str(row['interaction']):5s}, ℓ >= {row['length_scale_floor']}: "
+              f"squares {row['quadratic']!s:5s}, p×T {row['interaction']!s:5s}, ℓ >= {row['length_scale_floor']}: "
               f"{ROLLOUT_HORIZON}-step rollout {row[f'rollout_h{ROLLOUT_HORIZON}_mape_pct']:.2f} %, "
               f"one-step MAPE {row['mape_pct']:.2f} %, coverage {row['coverage_95_pct']:.1f} %")
     print(f"selected: {model.n_power_lags} power and {model.n_temperature_lags} temperature lags, output "

@@ -35,7 +35,12 @@ import scipy.linalg
 
 from gp_trainer.atomic import atomic_write_bytes
 from gp_trainer.errors import DatasetError, ModelFormatError, ModelVersionError
-from gp_trainer.kernel import HyperBounds, fit_hyperparameters, gram, squared_differences
+from gp_trainer.kernel import (
+    HyperBounds,
+    fit_hyperparameters,
+    gram,
+    squared_differences,
+)
 
 FORMAT_NAME = "meltloop-narx-gp-model"
 FORMAT_VERSION = 2
@@ -44,6 +49,7 @@ RESIDUAL_INPUTS = ("t_ahead_k", "steps_since_track_start", "mean_power_w")
 STEPS_SINCE_START_CAP = 100
 BUILD_UP_STEPS = 20
 """Samples whose target lies in the first 20 steps after laser-on (pool build-up) are not fitted."""
+DEFAULT_BOUNDS = HyperBounds()
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_narx_gp.json"
 """The shipped delay-aware model (``python -m gp_trainer train`` writes it; the MPC loads it)."""
 
@@ -189,7 +195,7 @@ def turn_bases(run: RunSeries) -> np.ndarray:
     """``T_b`` of every state: T ahead in the state before its track's first state (NaN on the first track)."""
     base = np.full(len(run), np.nan)
     starts = np.r_[np.flatnonzero(np.diff(run.track) != 0) + 1, len(run)]
-    for a, b in zip(starts[:-1], starts[1:]):
+    for a, b in itertools.pairwise(starts):
         base[a:b] = run.t_ahead_k[a - 1]
     return base
 
@@ -441,7 +447,7 @@ class NarxGPModel:
     def fit(cls, runs: Sequence[RunSeries], *, n_power_lags: int, n_temperature_lags: int,
             n_temperature_square_lags: int | None = None, quadratic: bool = True, interaction: bool = False,
             output: str = "log",
-            n_train: int = 150, bounds: HyperBounds = HyperBounds(), seed: int = 0, n_restarts: int = 4,
+            n_train: int = 150, bounds: HyperBounds = DEFAULT_BOUNDS, seed: int = 0, n_restarts: int = 4,
             profile_length: int = 200, provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
         """Least squares in z for the lag part, then the residual GP on ``n_train`` seeded random samples.
 

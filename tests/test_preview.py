@@ -129,7 +129,7 @@ def _closed_loop(model, offset_m2, settings, steps=200, plan_turn_at=None):
     for k in range(steps):
         remaining = None if plan_turn_at is None else max(plan_turn_at - k, 0) * DT
         track = 0 if plan_turn_at is None or k < plan_turn_at else 1
-        cmd, diag = ctrl.update(_measurement(k, x[k], t[k], p[k], track, remaining))
+        cmd, _ = ctrl.update(_measurement(k, x[k], t[k], p[k], track, remaining))
         assert settings.power_min_w <= cmd.power_w <= settings.power_max_w
         p[k + 1] = cmd.power_w
         x[k + 1] = fir_area(p[:k + 2], t[:k + 2])[k + 1] + offset_m2
