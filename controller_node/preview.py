@@ -72,6 +72,9 @@ class PreviewMPC(Controller):
         self._e0 = float(e[0])
         self._toeplitz_e = np.where(inside, e[np.clip(lag, 0, n_p - 1)], 0.0)
         self._theta_p = np.r_[b, model.power_square_coefficients]
+        self._mean_weights = np.full(n_p, 1.0 / n_p)
+        self._psi = np.empty((h, 3))
+        self._no_correction = np.zeros(h)
         self._n_tq = model.temperature_square_coefficients.size
         self.qp = PreviewQP(h, settings.set_point_m2, q=ps.q, q_f=ps.q_f, r=ps.r, power_scale_w=ps.power_scale_w,
                             power_min_w=settings.power_min_w, power_max_w=settings.power_max_w,
@@ -98,6 +101,7 @@ class PreviewMPC(Controller):
         n = self.settings.preview.turn_learning_steps
         self.turn_correction_m2 = np.zeros(n)    # learned model error after a turnaround, by state since the turn
         self._turn_errors = np.full(n, np.nan)   # one-step errors seen after the current turn
+        self._learned = False
 
     # ------------------------------------------------------------------ bookkeeping
     def _check_period(self, m: Measurement) -> None:
@@ -145,6 +149,7 @@ class PreviewMPC(Controller):
         after the last turn (where seen); ``c`` is added to the prediction of every post-turn state."""
         seen = ~np.isnan(self._turn_errors)
         self.turn_correction_m2[seen] += self.settings.preview.turn_learning_gain * self._turn_errors[seen]
+        self._learned = bool(np.any(self.turn_correction_m2))
         self._turn_errors[:] = np.nan
 
     def _correction(self, s: np.ndarray, post_turn: np.ndarray) -> np.ndarray:
@@ -200,9 +205,12 @@ class PreviewMPC(Controller):
         plan = np.concatenate((self._plan[1:], self._plan[-1:]))       # ū = p̄[k+1..k+H]
         powers = np.concatenate((self._p[::-1], plan))                 # S = p[k−n_p+1 .. k+H]
         window = powers[self._p_index]                                 # (H, n_p)
-        psi = np.column_stack([np.concatenate(((m.t_ahead_k,), forecast[:-1])), np.minimum(s_psi, self._s_cap),
-                               window.mean(axis=1)])
-        r_mean, r_var = model.residual.predict(psi, None if ps.uncertainty_z > 0 else 1)
+        psi = self._psi
+        psi[0, 0] = m.t_ahead_k
+        psi[1:, 0] = forecast[:-1]
+        psi[:, 1] = np.minimum(s_psi, self._s_cap)
+        psi[:, 2] = window @ self._mean_weights
+        r_mean, r_var = model.residual.predict(psi, None if ps.uncertainty_z > 0 else 1, single_precision_kernel=True)
         tw = temps[self._t_index]                                      # (H, n_T)
         z = (model.intercept + window @ model.power_coefficients + (window * window) @ model.power_square_coefficients
              + tw @ model.temperature_coefficients + (tw[:, :self._n_tq] ** 2) @ model.temperature_square_coefficients
@@ -213,7 +221,7 @@ class PreviewMPC(Controller):
         # the target of row m is state k+m: its states since its track's start, and whether it is past a turn
         s_target = since + j + 1 if to_end is None else np.where(j + 1 <= to_end, since + j + 1, j - to_end)
         post_turn = np.full(h, not on_first) if to_end is None else np.where(j + 1 <= to_end, not on_first, True)
-        correction = self._correction(s_target, post_turn)
+        correction = self._correction(s_target, post_turn) if self._learned else self._no_correction
         predicted = model.to_area(z) + self.disturbance_m2 + correction                        # x̂ at u = ū
         gamma = jac * (self.qp.scale / sp)
         c = (predicted - jac @ plan - sp) / sp

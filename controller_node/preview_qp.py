@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import daqp
 import numpy as np
+from scipy.linalg.lapack import dposv
 
 __all__ = ["PreviewQP", "QPResult", "solve_reference"]
 
@@ -104,16 +105,20 @@ class PreviewQP:
         h = self.horizon
         hess = self.hessian(gamma)
         f = self.gradient(gamma, c, previous_power_w)
-        margin = np.zeros(h) if margin is None else margin
-        v = -np.linalg.solve(hess, f)
+        _, v, info = dposv(hess, -f)  # LAPACK Cholesky solve: the Hessian is positive definite (r > 0)
         path = "fast"
-        if v.min() < self.v_lo or v.max() > self.v_hi:
+        if info != 0 or v.min() < self.v_lo or v.max() > self.v_hi:
             v, _, flag, _ = daqp.solve(hess, f, self._A_empty, self._hi, self._lo)
             if flag < 1:
                 return QPResult(np.full(h, np.nan), f"failed:{flag}")
             path = "box"
         e = gamma @ v + c
-        if np.any(e - margin < self.e_lo) or np.any(e + margin > self.e_hi):
+        if margin is None:
+            violated = e.min() < self.e_lo or e.max() > self.e_hi
+        else:
+            violated = (e - margin).min() < self.e_lo or (e + margin).max() > self.e_hi
+        if violated:
+            margin = np.zeros(h) if margin is None else margin
             hs = np.zeros((h + 1, h + 1))
             hs[:h, :h] = hess
             hs[h, h] = 2.0 * self.rho2

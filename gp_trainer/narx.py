@@ -281,13 +281,17 @@ class ResidualGP:
         return cls(inputs=inputs, targets=targets, signal_std=p[0], noise_std=p[1], length_scales=p[2:],
                    input_mean=mu, input_scale=scale, target_scale=t_scale)
 
-    def predict(self, psi: np.ndarray, n_variance: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Mean [m²] and latent variance [m⁴] at the rows of ``psi``, shape (m, d) → (m,), (m,).
+    def predict(self, psi: np.ndarray, n_variance: int | None = None,
+                single_precision_kernel: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and latent variance at the rows of ``psi``, shape (m, d) → (m,), (m,), in target units.
 
         ``n_variance`` limits the variance (the O(m n²) part) to the first rows; the others are NaN.
+        ``single_precision_kernel`` evaluates the kernel's exponential in float32 (relative error
+        ~1e-7 of each kernel value; the controller's hot path, where it is 3× faster).
         """
         w = (np.atleast_2d(psi) - self.input_mean) * self._g
-        k = np.exp(w @ self._W.T + self._half - 0.5 * np.einsum("ij,ij->i", w, w)[:, None])
+        exponent = w @ self._W.T + self._half - 0.5 * np.einsum("ij,ij->i", w, w)[:, None]
+        k = np.exp(exponent.astype(np.float32)).astype(float) if single_precision_kernel else np.exp(exponent)
         rows = k.shape[0] if n_variance is None else min(n_variance, k.shape[0])
         v = k[:rows] @ self._var_f.T
         var = np.full(k.shape[0], np.nan)
