@@ -274,6 +274,7 @@ def load_node_list(path: Path) -> list[NodeSpec]:
     return specs
 
 
+DEFAULT_CONTROLLER = "preview-mpc"
 CONTROLLER_CHOICES = ("mpc", "preview-mpc", "pid", "feedforward", "open-loop", "none")
 COMPARED = ("open-loop", "pid", "feedforward", "mpc", "preview-mpc")
 DEFAULT_SETPOINT_MM2 = 0.063
@@ -284,7 +285,7 @@ class RunOptions:
     """What one default run consists of (validated command-line options)."""
 
     scenario: str = "layer"
-    controller: str = "mpc"
+    controller: str = DEFAULT_CONTROLLER
     setpoint_mm2: float | None = None
     config: Path | None = None
     max_steps: int | None = None
@@ -379,10 +380,10 @@ def build_parser() -> argparse.ArgumentParser:
         "800 mm/s, nominal 250 W — under GP-MPC, recorded to recordings/.",
     )
     parser.add_argument("--scenario", default="layer", help="plant scenario: layer, single-track, double-track, table2-case1..9")
-    parser.add_argument("--controller", default="mpc", help=f"one of {', '.join(CONTROLLER_CHOICES)} ('none': the plant plays the scenario's open-loop profile)")
+    parser.add_argument("--controller", default=DEFAULT_CONTROLLER, help=f"one of {', '.join(CONTROLLER_CHOICES)} ('none': the plant plays the scenario's open-loop profile)")
     parser.add_argument("--setpoint-mm2", type=float, help=f"melt-pool area set point [mm²] (default {DEFAULT_SETPOINT_MM2})")
     parser.add_argument("--config", type=Path, help="TOML run configuration: [plant] and [controller] tables of settings")
-    parser.add_argument("--model", type=Path, help="GP model file (default: the shipped gp_trainer/models/in625_gp.json)")
+    parser.add_argument("--model", type=Path, help="model file (default: the shipped one of the controller: gp_trainer/models/in625_narx_gp.json for preview-mpc, in625_gp.json for mpc and feedforward)")
     parser.add_argument("--max-steps", type=int, help="end the run after this many plant steps")
     parser.add_argument("--h-um", type=float, help="fine FE element size [µm]")
     parser.add_argument("--out", type=Path, help="MCAP recording to write (with --compare: the output folder)")

@@ -115,7 +115,7 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
 def build_parser() -> argparse.ArgumentParser:
     """Command line of ``python -m controller_node``."""
     parser = ArgumentParser(prog="python -m controller_node", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--controller", default="mpc", choices=CONTROLLERS, help="control law (default: %(default)s)")
+    parser.add_argument("--controller", default="preview-mpc", choices=CONTROLLERS, help="control law (default: %(default)s)")
     parser.add_argument("--model", type=Path, help=f"GP model file (default: {DEFAULT_MODEL.relative_to(DEFAULT_MODEL.parents[2])})")
     parser.add_argument("--setpoint-mm2", type=float, help="melt-pool area set point [mm²]")
     parser.add_argument("--config", type=Path, help="TOML run configuration; its [controller] table holds ControllerSettings fields")
