@@ -201,3 +201,22 @@ def test_prediction_matches_the_model_along_the_previous_plan():
     future = RunSeries("f", np.ones(n), t, p, np.zeros(n, dtype=int), DT)
     expected = model.predict_run(future)[0][39:39 + 12] + ctrl.disturbance_m2
     assert np.allclose(diag.predicted_area_m2, expected, rtol=1e-4, atol=0.0)
+
+
+def test_launch_refuses_a_plant_of_another_sample_period(tmp_path):
+    """End to end: the FE plant at 100 µs against the 50 µs shipped model ends the run with the
+    controller's one-line reason (exit 2 of the node, run failure 1 of the launcher)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    config = tmp_path / "dt.toml"
+    config.write_text("[plant]\ndt_s = 1e-4\n")
+    root = Path(__file__).resolve().parent.parent
+    proc = subprocess.run([sys.executable, "launch.py", "--scenario", "single-track", "--config", str(config),
+                           "--no-progress", "--out", str(tmp_path / "run.mcap")], cwd=root, capture_output=True,
+                          text=True, timeout=300)
+    output = proc.stdout + proc.stderr
+    assert proc.returncode == 1
+    assert "sample period is 100 µs but the model was identified at 50 µs" in output
+    assert "Traceback" not in output
