@@ -23,13 +23,17 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import NoReturn
 
+import numpy as np
+
 from gp_trainer.errors import DatasetError, GPTrainerError
 from gp_trainer.model import DEFAULT_MODEL_PATH, DEFAULT_RESTARTS
+from gp_trainer.narx import DEFAULT_MODEL_PATH as NARX_MODEL_PATH
 
 PROG = "python -m gp_trainer"
 DEFAULT_DATASET = Path("out/gp/dataset.npz")
 DEFAULT_RECORDINGS = Path("recordings/campaign")
 DEFAULT_PLOTS = Path("out/gp")
+DEFAULT_IDENT_RECORDINGS = Path("recordings/identification")
 NARX_HELD_OUT = ("ident-layer-p250-s2", "ident-double-track-p250-s5", "ident-mpc-double-track-a0.063")
 FE_SOURCE = "FE campaign: finite-element plant (fe_node) recordings, see dataset.recordings"
 RECORDED_SOURCE = "recordings whose plant is not identified as the FE node, see dataset.recordings"
@@ -69,8 +73,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-history", action="store_true",
                    help="the paper's four inputs (x, T, p, v) only, without the area change x[k] - x[k-1]")
 
-    p = sub.add_parser("evaluate", formatter_class=fmt, help="validate a model on the held-out samples")
-    p.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH, help="model file")
+    p = sub.add_parser("evaluate", formatter_class=fmt,
+                       help="validate a model: the delay-aware one on held-out identification runs, a one-step one on the dataset")
+    p.add_argument("--model", type=Path, default=NARX_MODEL_PATH,
+                   help="model file (a delay-aware model is evaluated on --recordings-dir, a one-step GP on --dataset)")
+    p.add_argument("--recordings-dir", type=Path, default=DEFAULT_IDENT_RECORDINGS,
+                   help="identification recordings (delay-aware model)")
     p.add_argument("--dataset", type=Path, default=DEFAULT_DATASET, help="dataset file")
     p.add_argument("--plots-dir", type=Path, default=DEFAULT_PLOTS, help="where the PNG figures go")
     p.add_argument("--rollout-source", default="table2-case2", help="case of the multi-step forward simulation")
@@ -171,11 +179,44 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate_narx(args: argparse.Namespace) -> int:
+    """Held-out metrics of a delay-aware model (the keys of the one-step evaluation plus
+    ``rollout_h40_mape_pct`` and ``coverage_95_pct``)."""
+    from gp_trainer.dataset import read_states
+    from gp_trainer.narx import NarxGPModel, evaluate_model, series_from_states
+
+    model = NarxGPModel.load(args.model)
+    paths = [args.recordings_dir / f"{name}.mcap" for name in NARX_HELD_OUT]
+    missing = [p.name for p in paths if not p.is_file()]
+    if missing:
+        raise DatasetError(f"held-out identification recordings missing in {args.recordings_dir} "
+                           f"({', '.join(missing)}): run `{PROG} identify`")
+    result = evaluate_model(model, [series_from_states(read_states(p), p.stem) for p in paths])
+    case2 = DEFAULT_RECORDINGS / f"{args.rollout_source}.mcap"
+    result["rollout_case2_mape_pct"] = None
+    if case2.is_file():  # the paper's Fig. 4b: the whole case predicted from its powers and measured T
+        run = series_from_states(read_states(case2), case2.stem)
+        mean, _ = model.predict_run(run)
+        y, keep = run.area_m2[1:], (np.arange(1, len(run)) >= 20) & (run.area_m2[1:] > 0)
+        result["rollout_case2_mape_pct"] = float(100.0 * np.mean(np.abs(mean[keep] - y[keep]) / y[keep]))
+    else:
+        print(f"warning: no {case2} (run `{PROG} campaign`): no case-2 rollout", file=sys.stderr)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"R² = {result['r2']:.5f}, MAPE = {result['mape_pct']:.3f} % on {result['n_valid']} held-out samples; "
+              f"40-step rollout MAPE = {result['rollout_h40_mape_pct']:.3f} %; 95 % coverage {result['coverage_95_pct']:.1f} %")
+    return 0
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     from gp_trainer.dataset import load_samples
     from gp_trainer.evaluate import evaluate
     from gp_trainer.model import GPModel
+    from gp_trainer.narx import is_model_file
 
+    if is_model_file(args.model):
+        return _evaluate_narx(args)
     model = GPModel.load(args.model)
     samples, _ = load_samples(args.dataset)
     result = evaluate(model, samples, args.plots_dir, rollout_source=args.rollout_source)

@@ -54,6 +54,15 @@ DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_narx_gp
 """The shipped delay-aware model (``python -m gp_trainer train`` writes it; the MPC loads it)."""
 
 
+def is_model_file(path: str | os.PathLike[str]) -> bool:
+    """True if ``path`` is a readable JSON file of this model's format (any version)."""
+    try:
+        doc = json.loads(Path(path).read_bytes())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == FORMAT_NAME
+
+
 @dataclass(frozen=True)
 class RunSeries:
     """One recorded run as aligned arrays (state order, consecutive steps), SI units.

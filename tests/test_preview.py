@@ -215,8 +215,18 @@ def test_launch_refuses_a_plant_of_another_sample_period(tmp_path):
     root = Path(__file__).resolve().parent.parent
     proc = subprocess.run([sys.executable, "launch.py", "--scenario", "single-track", "--config", str(config),
                            "--no-progress", "--out", str(tmp_path / "run.mcap")], cwd=root, capture_output=True,
-                          text=True, timeout=300)
+                          text=True, timeout=300, check=False)
     output = proc.stdout + proc.stderr
     assert proc.returncode == 1
     assert "sample period is 100 µs but the model was identified at 50 µs" in output
     assert "Traceback" not in output
+
+
+def test_evaluate_of_the_delay_aware_model_names_the_command_when_data_are_missing(tmp_path, capsys):
+    from gp_trainer.cli import main
+    from gp_trainer.narx import DEFAULT_MODEL_PATH, is_model_file
+
+    assert is_model_file(DEFAULT_MODEL_PATH) and not is_model_file(tmp_path / "none.json")
+    assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "run `python -m gp_trainer identify`" in err[0]
