@@ -390,7 +390,10 @@ class NarxGPModel:
 
     def to_area(self, z: np.ndarray) -> np.ndarray:
         """``x = exp(z)`` or ``z`` [m²]."""
-        return np.exp(z) if self.output == "log" else z
+        if self.output != "log":
+            return z
+        with np.errstate(over="ignore"):  # an absurd input gives inf, which the controller's safety layer rejects
+            return np.exp(z)
 
     def area_slope(self, z: np.ndarray) -> np.ndarray:
         """``∂x/∂z`` at ``z`` [m² per unit of z]."""
