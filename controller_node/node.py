@@ -64,6 +64,25 @@ def load_model(name: str, path: Path | None):
         raise UsageError(f"cannot load GP model {path}: {' '.join(str(err).split())}") from None
 
 
+MAX_STEP = 2**31 - 1  # the contract's largest step (messages.types.Step)
+MAX_STEPS_AHEAD = 1000  # a state further ahead of the last answered one is not believed (50 ms at 50 µs)
+
+
+def inadmissible(step: int, last_step: int | None) -> str | None:
+    """Why a schema-valid state with this step cannot be answered, or None.
+
+    Its answer ``step + 1`` must exist in the contract, and a state more than
+    :data:`MAX_STEPS_AHEAD` after the last answered one is impossible for a plant in lockstep or
+    free-running at its frame period (a forged or corrupted step); both are dropped and counted,
+    never passed to the controller.
+    """
+    if step >= MAX_STEP:
+        return f"step {step} has no next step in the contract"
+    if last_step is not None and step > last_step + MAX_STEPS_AHEAD:
+        return f"step {step} is more than {MAX_STEPS_AHEAD} steps after the last answered step {last_step}"
+    return None
+
+
 def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, plant: str, config: dict) -> int:
     """Answer plant states until the plant goes away or a stop is requested."""
     states = bus.inbox(PLANT_STATE)
@@ -71,7 +90,8 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
     diagnostics = bus.publisher(CONTROLLER_DIAGNOSTICS)
     plant_gone = bus.watch_presence(plant)
     bus.ready(config=config, stop=stop)
-    n_skipped = 0
+    n_skipped = n_impossible = 0
+    last_step: int | None = None
     last_time_s = 0.0
     while not stop.is_set() and not plant_gone.is_set():
         state = states.get(timeout=0.05)
@@ -79,6 +99,12 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
             continue
         for newer in states.drain():  # free-running plant: answer the newest state only
             state, n_skipped = newer, n_skipped + 1
+        reason = inadmissible(state.step, last_step)
+        if reason is not None:
+            n_impossible += 1
+            if n_impossible == 1:
+                bus.log(LogLevel.WARNING, f"state dropped: {reason} (further ones are only counted)", time_s=state.time_s)
+            continue
         last_time_s = state.time_s
         try:
             command, diag = controller.update(measurement_from_state(state))
@@ -87,6 +113,7 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
             bus.end_detail(f"refused: {err}")
             print(f"python -m controller_node: error: {err}", file=sys.stderr)
             return 2
+        last_step = state.step
         power = command.power_w
         if not settings.power_min_w <= power <= settings.power_max_w:  # the core guarantees this; never trust it blindly
             bus.log(LogLevel.ERROR, f"controller produced {power} W outside bounds; not published", time_s=state.time_s)
@@ -98,7 +125,7 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
         diagnostics.put(ControllerDiagnostics(
             run_id=bus.run_id, step=command.step, time_s=state.time_s, controller=controller.name,
             status=diag.status[:64], solve_time_us=diag.solve_time_s * 1e6, fallback=diag.fallback,
-            n_fallbacks=diag.n_fallbacks, n_dropped=states.n_invalid + n_skipped,
+            n_fallbacks=diag.n_fallbacks, n_dropped=states.n_invalid + n_skipped + n_impossible,
             setpoint_mm2=settings.set_point_m2 * 1e6,
             predicted_area_mm2=[a * 1e6 for a in diag.predicted_area_m2],
             predicted_power_w=list(diag.predicted_power_w),
@@ -106,7 +133,7 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
             feedforward_w=diag.feedforward_w,
         ))
     reason = "stopped" if stop.is_set() else f"plant '{plant}' went away"
-    summary = f"{reason}; {controller.n_fallbacks} fallbacks, {states.n_invalid} invalid states dropped, {n_skipped} skipped"
+    summary = f"{reason}; {controller.n_fallbacks} fallbacks, {states.n_invalid} invalid and {n_impossible} impossible states dropped, {n_skipped} skipped"
     bus.log(LogLevel.INFO, summary, time_s=last_time_s)
     bus.end_detail(summary)
     return 0

@@ -1,0 +1,82 @@
+"""The controller node drops schema-valid states it cannot answer, instead of crashing (issue 13)."""
+
+from __future__ import annotations
+
+import threading
+
+from controller_node.node import MAX_STEP, MAX_STEPS_AHEAD, inadmissible, run
+from controller_node.registry import make_controller
+from controller_node.settings import ControllerSettings
+from messages import MeltPoolState
+
+
+def test_inadmissible_steps():
+    assert inadmissible(0, None) is None
+    assert inadmissible(MAX_STEP - 1, None) is None
+    assert "no next step" in inadmissible(MAX_STEP, None)
+    assert inadmissible(10 + MAX_STEPS_AHEAD, 10) is None
+    assert "more than" in inadmissible(11 + MAX_STEPS_AHEAD, 10)
+
+
+class _Inbox:
+    def __init__(self, states, stop):
+        self.states, self.stop, self.n_invalid = list(states), stop, 0
+
+    def get(self, timeout=None):
+        if not self.states:
+            self.stop.set()
+            return None
+        return self.states.pop(0)
+
+    def drain(self):
+        return []
+
+
+class _Publisher:
+    def __init__(self):
+        self.sent = []
+
+    def put(self, message):
+        self.sent.append(message)
+
+
+class _Bus:
+    run_id = "t"
+
+    def __init__(self, states, stop):
+        self._inbox, self.pubs, self.logs = _Inbox(states, stop), {}, []
+
+    def inbox(self, topic):
+        return self._inbox
+
+    def publisher(self, topic):
+        return self.pubs.setdefault(topic.suffix if hasattr(topic, "suffix") else str(topic), _Publisher())
+
+    def watch_presence(self, name):
+        return threading.Event()
+
+    def ready(self, **_):
+        pass
+
+    def log(self, level, text, time_s=0.0):
+        self.logs.append(text)
+
+    def end_detail(self, text):
+        self.logs.append(text)
+
+
+def _state(step):
+    return MeltPoolState(run_id="t", step=step, time_s=step * 50e-6, laser_x_mm=0.0, laser_y_mm=0.0, scan_dir_x=1.0,
+                         scan_dir_y=0.0, track=0, area_mm2=0.06, t_ahead_k=300.0, power_w=250.0, speed_mm_s=800.0)
+
+
+def test_node_drops_a_state_without_a_next_step_and_keeps_answering():
+    stop = threading.Event()
+    states = [_state(0), _state(1), _state(MAX_STEP), _state(2), _state(2 + MAX_STEPS_AHEAD + 1), _state(3)]
+    bus = _Bus(states, stop)
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+    assert run(bus, make_controller("pid", settings), settings, stop, "plant", {}) == 0
+    commands = [m for p in bus.pubs.values() for m in p.sent if type(m).__name__ == "LaserCommand"]
+    assert [c.step for c in commands] == [1, 2, 3, 4]
+    assert any("no next step" in line for line in bus.logs)
+    assert "2 impossible states dropped" in bus.logs[-1]
