@@ -71,13 +71,16 @@ MAX_STEPS_AHEAD = 1000  # a state further ahead of the last answered one is not 
 def inadmissible(step: int, last_step: int | None) -> str | None:
     """Why a schema-valid state with this step cannot be answered, or None.
 
-    Its answer ``step + 1`` must exist in the contract, and a state more than
+    Its answer ``step + 1`` must exist in the contract; a state not newer than the last answered
+    one (a duplicate, or late) was answered already and gets no second command; and a state more than
     :data:`MAX_STEPS_AHEAD` after the last answered one is impossible for a plant in lockstep or
     free-running at its frame period (a forged or corrupted step); both are dropped and counted,
     never passed to the controller.
     """
     if step >= MAX_STEP:
         return f"step {step} has no next step in the contract"
+    if last_step is not None and step <= last_step:
+        return f"step {step} is not newer than the last answered step {last_step} (duplicate or late)"
     if last_step is not None and step > last_step + MAX_STEPS_AHEAD:
         return f"step {step} is more than {MAX_STEPS_AHEAD} steps after the last answered step {last_step}"
     return None

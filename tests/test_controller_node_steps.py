@@ -16,6 +16,7 @@ def test_inadmissible_steps():
     assert "no next step" in inadmissible(MAX_STEP, None)
     assert inadmissible(10 + MAX_STEPS_AHEAD, 10) is None
     assert "more than" in inadmissible(11 + MAX_STEPS_AHEAD, 10)
+    assert "not newer" in inadmissible(10, 10) and "not newer" in inadmissible(9, 10)
 
 
 class _Inbox:
@@ -70,13 +71,13 @@ def _state(step):
                          scan_dir_y=0.0, track=0, area_mm2=0.06, t_ahead_k=300.0, power_w=250.0, speed_mm_s=800.0)
 
 
-def test_node_drops_a_state_without_a_next_step_and_keeps_answering():
+def test_node_drops_impossible_and_duplicate_states_and_keeps_answering():
     stop = threading.Event()
-    states = [_state(0), _state(1), _state(MAX_STEP), _state(2), _state(2 + MAX_STEPS_AHEAD + 1), _state(3)]
+    states = [_state(0), _state(1), _state(MAX_STEP), _state(2), _state(2), _state(2 + MAX_STEPS_AHEAD + 1), _state(3)]
     bus = _Bus(states, stop)
     settings = ControllerSettings(set_point_m2=0.063e-6)
     assert run(bus, make_controller("pid", settings), settings, stop, "plant", {}) == 0
     commands = [m for p in bus.pubs.values() for m in p.sent if type(m).__name__ == "LaserCommand"]
     assert [c.step for c in commands] == [1, 2, 3, 4]
     assert any("no next step" in line for line in bus.logs)
-    assert "2 impossible states dropped" in bus.logs[-1]
+    assert "3 impossible states dropped" in bus.logs[-1]  # the duplicate of state 2 gets no second command
