@@ -225,7 +225,7 @@ class PreviewMPC(Controller):
         predicted = model.to_area(z) + self.disturbance_m2 + correction                        # x̂ at u = ū
         gamma = jac * (self.qp.scale / sp)
         c = (predicted - jac @ plan - sp) / sp
-        std = slope * np.sqrt(r_var + model.residual.noise_variance)
+        std = slope[:r_var.size] * np.sqrt(r_var + model.residual.noise_variance)  # all H rows only if used
         margin = ps.uncertainty_z * std / sp if ps.uncertainty_z > 0 else None
         self.last_qp = (gamma, c, float(self._p[0]), margin)  # the problem just solved (benchmarks, tests)
         result = self.qp.solve(gamma, c, float(self._p[0]), margin)

@@ -103,8 +103,10 @@ class PreviewQP:
             ``z σ_m`` in normalised units (bound tightening); zeros by default.
         """
         h = self.horizon
-        hess = self.hessian(gamma)
-        f = self.gradient(gamma, c, previous_power_w)
+        gw = 2.0 * gamma.T * self.weights
+        hess = gw @ gamma + self._moves
+        f = gw @ c
+        f[0] -= 2.0 * self.r * previous_power_w / self.scale
         _, v, info = dposv(hess, -f)  # LAPACK Cholesky solve: the Hessian is positive definite (r > 0)
         path = "fast"
         if info != 0 or v.min() < self.v_lo or v.max() > self.v_hi:

@@ -45,6 +45,7 @@ from gp_trainer.kernel import (
 FORMAT_NAME = "meltloop-narx-gp-model"
 FORMAT_VERSION = 2
 OUTPUTS = ("log", "identity")
+_LOG_AREA_MAX = 700.0  # exp overflows beyond ~709
 RESIDUAL_INPUTS = ("t_ahead_k", "steps_since_track_start", "mean_power_w")
 STEPS_SINCE_START_CAP = 100
 BUILD_UP_STEPS = 20
@@ -292,9 +293,9 @@ class ResidualGP:
 
     def predict(self, psi: np.ndarray, n_variance: int | None = None,
                 single_precision_kernel: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and latent variance at the rows of ``psi``, shape (m, d) → (m,), (m,), in target units.
+        """Mean and latent variance at the rows of ``psi``, shape (m, d) → (m,), (r,), in target units.
 
-        ``n_variance`` limits the variance (the O(m n²) part) to the first rows; the others are NaN.
+        ``n_variance`` limits the variance (the O(m n²) part) to the first r rows (default: all).
         ``single_precision_kernel`` evaluates the kernel's exponential in float32 (relative error
         ~1e-7 of each kernel value; the controller's hot path, where it is 3× faster).
         """
@@ -303,9 +304,7 @@ class ResidualGP:
         k = np.exp(exponent.astype(np.float32)).astype(float) if single_precision_kernel else np.exp(exponent)
         rows = k.shape[0] if n_variance is None else min(n_variance, k.shape[0])
         v = k[:rows] @ self._var_f.T
-        var = np.full(k.shape[0], np.nan)
-        var[:rows] = np.maximum(self.prior_variance - np.einsum("ij,ij->i", v, v), 0.0)
-        return k @ self._mean_w, var
+        return k @ self._mean_w, np.maximum(self.prior_variance - np.einsum("ij,ij->i", v, v), 0.0)
 
     def to_dict(self) -> dict[str, Any]:
         return {"inputs": self.inputs.tolist(), "targets": self.targets.tolist(), "signal_std": self.signal_std,
@@ -392,8 +391,9 @@ class NarxGPModel:
         """``x = exp(z)`` or ``z`` [m²]."""
         if self.output != "log":
             return z
-        with np.errstate(over="ignore"):  # an absurd input gives inf, which the controller's safety layer rejects
-            return np.exp(z)
+        if np.max(z) > _LOG_AREA_MAX:  # an absurd input: inf, which the controller's safety layer rejects
+            return np.full_like(np.asarray(z, dtype=float), np.inf)
+        return np.exp(z)
 
     def area_slope(self, z: np.ndarray) -> np.ndarray:
         """``∂x/∂z`` at ``z`` [m² per unit of z]."""
