@@ -21,7 +21,7 @@ import threading
 import time
 import tomllib
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -291,6 +291,7 @@ class RunOptions:
     max_steps: int | None = None
     h_um: float | None = None
     model: Path | None = None
+    learning_state: Path | None = None
 
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLER_CHOICES:
@@ -303,6 +304,8 @@ class RunOptions:
             raise UsageError(f"config file not found: {self.config}")
         if self.model is not None and not self.model.is_file():
             raise UsageError(f"model file not found: {self.model}")
+        if self.learning_state is not None and self.controller != "preview-mpc":
+            raise UsageError("--learning-state needs --controller preview-mpc")
 
     @property
     def closed_loop(self) -> bool:
@@ -353,6 +356,8 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
                            "--require", "recorder", *common]
         if opts.model:
             controller_args += ["--model", str(opts.model)]
+        if opts.learning_state:
+            controller_args += ["--learning-state", str(opts.learning_state)]
         nodes.append(NodeSpec("controller", "controller_node", tuple(controller_args)))
         plant_args += ["--require", "controller"]
     else:
@@ -367,7 +372,7 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
 
 def default_recording(scenario: str, controller: str) -> Path:
     """``recordings/<date>-<scenario>-<controller>.mcap``."""
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
     return Path("recordings") / f"{stamp}-{scenario}-{controller}.mcap"
 
 
@@ -383,6 +388,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--controller", default=DEFAULT_CONTROLLER, help=f"one of {', '.join(CONTROLLER_CHOICES)} ('none': the plant plays the scenario's open-loop profile)")
     parser.add_argument("--setpoint-mm2", type=float, help=f"melt-pool area set point [mm²] (default {DEFAULT_SETPOINT_MM2})")
     parser.add_argument("--config", type=Path, help="TOML run configuration: [plant] and [controller] tables of settings")
+    parser.add_argument("--learning-state", type=Path, metavar="FILE",
+                        help="preview-mpc learns over layers: start from FILE if it exists, write what this run learned to it")
     parser.add_argument("--model", type=Path, help="model file (default: the shipped one of the controller: gp_trainer/models/in625_narx_gp.json for preview-mpc, in625_gp.json for mpc and feedforward)")
     parser.add_argument("--max-steps", type=int, help="end the run after this many plant steps")
     parser.add_argument("--h-um", type=float, help="fine FE element size [µm]")
@@ -473,7 +480,12 @@ def compare(opts: RunOptions, folder: Path, hub: str | None, progress: bool,
 
     Stops at the first run that fails, does not finish or has no metrics (status 1 unless the
     run's own status says otherwise)."""
-    from controller_node.report import TURNAROUND_STEPS, WINDOW_START_S, plot, read_trace
+    from controller_node.report import (
+        TURNAROUND_STEPS,
+        WINDOW_START_S,
+        plot,
+        read_trace,
+    )
 
     folder.mkdir(parents=True, exist_ok=True)
     rows, traces = [], {}
@@ -487,8 +499,8 @@ def compare(opts: RunOptions, folder: Path, hub: str | None, progress: bool,
             return status or 1, {"failed": name, **summary}
         rows.append(summary)
         traces[name] = read_trace(out)
-    lines = ["| controller | max overshoot [%] | max undershoot [%] | steady-state RMSE [%] | turnaround RMSE [%] "
-             "| along-track RMSE [%] | wall time [s] |",
+    lines = [("| controller | max overshoot [%] | max undershoot [%] | steady-state RMSE [%] | turnaround RMSE [%] "
+              "| along-track RMSE [%] | wall time [s] |"),
              "|---|---:|---:|---:|---:|---:|---:|"]
     lines += [f"| {r['controller']} | {r['overshoot_pct']:.1f} | {r['undershoot_pct']:.1f} | {r['steady_rmse_pct']:.2f} "
               f"| {_cell(r['rmse_turnaround_pct'])} | {_cell(r['rmse_along_pct'])} | {r['wall_s']:.1f} |" for r in rows]
@@ -513,7 +525,8 @@ def main(argv: list[str] | None = None) -> int:
             from controller_node.report import main as report_main
 
             return report_main([str(args.report), "--json"] + (["--setpoint-mm2", str(args.setpoint_mm2)] if args.setpoint_mm2 else []))
-        opts = RunOptions(args.scenario, args.controller, args.setpoint_mm2, args.config, args.max_steps, args.h_um, args.model)
+        opts = RunOptions(args.scenario, args.controller, args.setpoint_mm2, args.config, args.max_steps, args.h_um, args.model,
+                          args.learning_state)
         if args.nodes is not None:
             specs = load_node_list(args.nodes)
         else:
@@ -529,7 +542,7 @@ def main(argv: list[str] | None = None) -> int:
         return exit_usage(parser.prog, err)
     progress = not args.no_progress and sys.stderr.isatty()  # a bar only on a terminal, not in logs
     if args.compare:
-        folder = args.out or Path("recordings") / f"{datetime.now(timezone.utc):%Y%m%d-%H%M%S}-compare-{opts.scenario}"
+        folder = args.out or Path("recordings") / f"{datetime.now(UTC):%Y%m%d-%H%M%S}-compare-{opts.scenario}"
         status, result = compare(opts, folder, args.hub, progress, args.zenoh_config)
         if args.json:
             print(json.dumps(result))

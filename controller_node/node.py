@@ -13,12 +13,14 @@ plant's liveliness token disappears (the plant ended or died), or on SIGINT/SIGT
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
 from controller_node.registry import CONTROLLERS, make_controller
 from controller_node.settings import ControllerSettings
 from controller_node.types import ConfigurationError, Measurement
+from gp_trainer.atomic import atomic_write_bytes
 from messages import ControllerDiagnostics, LaserCommand, LogLevel, MeltPoolState
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
@@ -150,6 +152,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--setpoint-mm2", type=float, help="melt-pool area set point [mm²]")
     parser.add_argument("--config", type=Path, help="TOML run configuration; its [controller] table holds ControllerSettings fields")
     parser.add_argument("--plant", default="plant", help="name of the plant node to follow (default: %(default)s)")
+    parser.add_argument("--learning-state", type=Path, metavar="FILE",
+                        help="preview-mpc: start from what a previous layer learned (if FILE exists) and write "
+                             "what this one learned to FILE at the end")
     add_bus_arguments(parser)
     return parser
 
@@ -169,15 +174,36 @@ def main(argv: list[str] | None = None) -> int:
             controller = make_controller(args.controller, settings, model)
         except ValueError as err:
             raise UsageError(str(err)) from None
+        if args.learning_state is not None:
+            load_learning_state(controller, args.learning_state)
     except UsageError as err:
         return exit_usage(parser.prog, err)
     config = {"controller": args.controller, "model": str(args.model or DEFAULT_MODEL) if model else None, **as_dict(settings)}
     stop = StopFlag()
     try:
         with NodeBus(NODE_NAME, bus_settings) as bus:
-            return run(bus, controller, settings, stop, args.plant, config)
+            status = run(bus, controller, settings, stop, args.plant, config)
     except TimeoutError as err:  # a --require node never appeared
         return exit_error(parser.prog, err)
+    if args.learning_state is not None and status == 0:
+        controller.finish_run()
+        try:
+            atomic_write_bytes(args.learning_state, json.dumps(controller.learning_state()).encode("utf-8"))
+        except OSError as err:
+            return exit_error(parser.prog, f"cannot write {args.learning_state}: {err.strerror or err}")
+    return status
+
+
+def load_learning_state(controller, path: Path) -> None:
+    """Load a previous layer's learning into a ``preview-mpc`` (missing file: start fresh)."""
+    if not hasattr(controller, "load_learning_state"):
+        raise UsageError("--learning-state needs the preview-mpc controller")
+    if not path.is_file():
+        return
+    try:
+        controller.load_learning_state(json.loads(path.read_bytes()))
+    except (OSError, ValueError) as err:
+        raise UsageError(f"--learning-state {path}: {' '.join(str(err).split())}") from None
 
 
 if __name__ == "__main__":

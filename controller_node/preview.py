@@ -31,6 +31,7 @@ from .types import ConfigurationError, Measurement
 
 __all__ = ["PreviewMPC"]
 
+LEARNING_FORMAT = "meltloop-preview-learning-1"
 PERIOD_TOLERANCE = 0.01
 """Relative difference between the plant's and the model's sample period that is refused."""
 
@@ -151,6 +152,33 @@ class PreviewMPC(Controller):
         self.turn_correction_m2[seen] += self.settings.preview.turn_learning_gain * self._turn_errors[seen]
         self._learned = bool(np.any(self.turn_correction_m2))
         self._turn_errors[:] = np.nan
+
+    def finish_run(self) -> None:
+        """Fold the errors after the last turn of the run into the learned correction."""
+        self._learn_turn_correction()
+
+    def learning_state(self) -> dict:
+        """What the controller learned in this run (turnaround correction and T-rise profile),
+        JSON-able, to start the next layer with (:meth:`load_learning_state`)."""
+        return {"format": LEARNING_FORMAT, "sample_period_s": self.model.sample_period_s,
+                "turn_correction_m2": self.turn_correction_m2.tolist(), "turn_profile_k": self._profile.tolist()}
+
+    def load_learning_state(self, doc: object) -> None:
+        """Start from a previous run's :meth:`learning_state` (``ValueError`` with one line if it does not fit)."""
+        if not isinstance(doc, dict) or doc.get("format") != LEARNING_FORMAT:
+            raise ValueError(f"not a {LEARNING_FORMAT} document")
+        correction = np.asarray(doc.get("turn_correction_m2"), dtype=float)
+        profile = np.asarray(doc.get("turn_profile_k"), dtype=float)
+        if doc.get("sample_period_s") != self.model.sample_period_s:
+            raise ValueError(f"learned at a sample period of {doc.get('sample_period_s')} s, the model's is "
+                             f"{self.model.sample_period_s} s")
+        if correction.shape != self.turn_correction_m2.shape or profile.shape != self._profile.shape:
+            raise ValueError("learned with another turn_learning_steps or turnaround profile length")
+        if not (np.all(np.isfinite(correction)) and np.all(np.isfinite(profile))):
+            raise ValueError("non-finite values")
+        self.turn_correction_m2[:] = correction
+        self._profile[:] = profile
+        self._learned = bool(np.any(correction))
 
     def _correction(self, s: np.ndarray, post_turn: np.ndarray) -> np.ndarray:
         """``c(s)`` for states ``s`` since their track's start, 0 on the first track and beyond ``c``."""

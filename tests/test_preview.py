@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -230,3 +232,29 @@ def test_evaluate_of_the_delay_aware_model_names_the_command_when_data_are_missi
     assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "run `python -m gp_trainer identify`" in err[0]
+
+
+def test_learning_state_round_trip_and_refusal(model):
+    settings = ControllerSettings(set_point_m2=1.5e-8, preview=PreviewSettings(horizon=10, turn_learning_steps=5))
+    first = PreviewMPC(settings, model)
+    first.turn_correction_m2[:] = [1e-9, 2e-9, 0.0, -1e-9, 0.0]
+    first._profile[:3] = [10.0, 20.0, 30.0]
+    doc = json.loads(json.dumps(first.learning_state()))
+    second = PreviewMPC(settings, model)
+    second.load_learning_state(doc)
+    assert np.array_equal(second.turn_correction_m2, first.turn_correction_m2)
+    assert np.array_equal(second._profile, first._profile)
+    other = PreviewMPC(ControllerSettings(set_point_m2=1.5e-8, preview=PreviewSettings(horizon=10)), model)
+    with pytest.raises(ValueError, match="turn_learning_steps"):
+        other.load_learning_state(doc)
+    with pytest.raises(ValueError, match="sample period"):
+        second.load_learning_state({**doc, "sample_period_s": 1e-4})
+
+
+def test_node_learning_state_option_errors(tmp_path):
+    from controller_node.node import main
+
+    path = tmp_path / "learn.json"
+    path.write_text("{not json")
+    assert main(["--controller", "pid", "--learning-state", str(path)]) == 2
+    assert main(["--controller", "preview-mpc", "--learning-state", str(path)]) == 2
