@@ -388,8 +388,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--controller", default=DEFAULT_CONTROLLER, help=f"one of {', '.join(CONTROLLER_CHOICES)} ('none': the plant plays the scenario's open-loop profile)")
     parser.add_argument("--setpoint-mm2", type=float, help=f"melt-pool area set point [mm²] (default {DEFAULT_SETPOINT_MM2})")
     parser.add_argument("--config", type=Path, help="TOML run configuration: [plant] and [controller] tables of settings")
-    parser.add_argument("--learning-state", type=Path, metavar="FILE",
-                        help="preview-mpc learns over layers: start from FILE if it exists, write what this run learned to it")
+    parser.add_argument(
+        "--learning-state",
+        type=Path,
+        metavar="FILE",
+        help="preview-mpc learns over layers: start from FILE if it exists, write what this run learned to it",
+    )
     parser.add_argument("--model", type=Path, help="model file (default: the shipped one of the controller: gp_trainer/models/in625_narx_gp.json for preview-mpc, in625_gp.json for mpc and feedforward)")
     parser.add_argument("--max-steps", type=int, help="end the run after this many plant steps")
     parser.add_argument("--h-um", type=float, help="fine FE element size [µm]")

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 
-
 from .base import Controller, Proposal
 from .model import DynamicsModel, linearise, operating_point
 from .settings import ControllerSettings, FeedForwardSettings

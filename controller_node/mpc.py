@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 
-
 from .base import Controller, Proposal
 from .feedforward import temperature_feedforward_w
 from .model import DynamicsModel, Linearisation, guard, linearise, operating_point

@@ -188,8 +188,23 @@ class MPCSettings:
             isinstance(self.horizon, int) and not isinstance(self.horizon, bool) and 1 <= self.horizon <= 500,
             f"MPCSettings.horizon must be an int in [1, 500], got {self.horizon!r}",
         )
-        _finite(self, "q", "r", "q_f", "rate_min_w", "rate_max_w", "area_min_m2", "area_max_m2",
-                "slack_linear", "slack_quadratic", "disturbance_gain", "integral_gain", "integral_band", "eps_abs", "eps_rel")
+        _finite(
+            self,
+            "q",
+            "r",
+            "q_f",
+            "rate_min_w",
+            "rate_max_w",
+            "area_min_m2",
+            "area_max_m2",
+            "slack_linear",
+            "slack_quadratic",
+            "disturbance_gain",
+            "integral_gain",
+            "integral_band",
+            "eps_abs",
+            "eps_rel",
+        )
         _check(self.q >= 0 and self.q_f >= 0, "MPCSettings.q and q_f must be >= 0")
         _check(self.r > 0, f"MPCSettings.r must be > 0 (strictly convex QP), got {self.r}")
         _check(self.input_penalty in ("steady_state", "move"),
@@ -293,8 +308,12 @@ class PreviewSettings:
         _check(isinstance(self.learn_turn_profile, bool), "PreviewSettings.learn_turn_profile must be bool")
         _finite(self, "turn_learning_gain")
         _check(0 <= self.turn_learning_gain <= 1, "PreviewSettings.turn_learning_gain must be in [0, 1]")
-        _check(isinstance(self.turn_learning_steps, int) and not isinstance(self.turn_learning_steps, bool)
-               and 0 <= self.turn_learning_steps <= 1000, "PreviewSettings.turn_learning_steps must be an int in [0, 1000]")
+        _check(
+            isinstance(self.turn_learning_steps, int)
+            and not isinstance(self.turn_learning_steps, bool)
+            and 0 <= self.turn_learning_steps <= 1000,
+            "PreviewSettings.turn_learning_steps must be an int in [0, 1000]",
+        )
 
 
 @dataclass(frozen=True)

@@ -115,7 +115,9 @@ class Measurement:
             and self.t_ahead_k > 0.0
             and self.power_w >= 0.0
             and self.speed_m_s > 0.0
-            and all(v is None or (math.isfinite(v) and v >= 0.0) for v in (self.track_elapsed_s, self.track_remaining_s))
+            and all(
+                v is None or (math.isfinite(v) and v >= 0.0) for v in (self.track_elapsed_s, self.track_remaining_s)
+            )
         )
 
 

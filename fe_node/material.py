@@ -81,13 +81,13 @@ class Material:
                 raise ValueError(f"material: {what} must stay positive")
 
     @classmethod
-    def in625(cls) -> "Material":
+    def in625(cls) -> Material:
         """Temperature-dependent IN625 (Penn State linear set, module docstring)."""
         return cls()
 
     @classmethod
     def constant(cls, k: float, rho: float, cp: float, latent: float = 0.0,
-                 t_solidus: float = 1563.0, t_liquidus: float = 1623.0) -> "Material":
+                 t_solidus: float = 1563.0, t_liquidus: float = 1623.0) -> Material:
         """Constant k [W/(m K)], rho [kg/m³], cp [J/(kg K)]; optional latent heat [J/kg]."""
         return cls(name="constant", rho=rho, cp_a=cp, cp_b=0.0, k_a=k, k_b=0.0,
                    latent=latent, t_solidus=t_solidus, t_liquidus=t_liquidus)

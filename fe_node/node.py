@@ -23,7 +23,8 @@ from pathlib import Path
 
 from fe_node.image import temperature_image
 from fe_node.observe import Observation
-from fe_node.scenarios import NAMES, Scenario, scenario as build_scenario
+from fe_node.scenarios import NAMES, Scenario
+from fe_node.scenarios import scenario as build_scenario
 from fe_node.solver import ThermalModel
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
 from messages.bus import Inbox, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args

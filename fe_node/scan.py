@@ -31,13 +31,13 @@ class ScanPlan:
                 raise ValueError("scan plan: tracks must be non-empty and parallel to x")
 
     @classmethod
-    def single(cls, length_m: float = 5e-3) -> "ScanPlan":
+    def single(cls, length_m: float = 5e-3) -> ScanPlan:
         """One track from (0, 0) to (length, 0)."""
         return cls.layer(1, length_m, 1e-4)
 
     @classmethod
     def layer(cls, n_tracks: int, length_m: float, hatch_m: float,
-              bidirectional: bool = True) -> "ScanPlan":
+              bidirectional: bool = True) -> ScanPlan:
         """``n_tracks`` parallel tracks of ``length_m`` spaced ``hatch_m``, centred on y = 0.
 
         Bidirectional (serpentine) by default: odd tracks run in -x.
@@ -155,7 +155,7 @@ class Profile:
             raise ValueError(f"profile: speed must be > 0, got min {self.speed_m_s.range()[0]} m/s")
 
     @classmethod
-    def constant(cls, power_w: float, speed_m_s: float, dt_s: float = 50e-6) -> "Profile":
+    def constant(cls, power_w: float, speed_m_s: float, dt_s: float = 50e-6) -> Profile:
         return cls(Signal(power_w), Signal(speed_m_s), dt_s)
 
     def command(self, step: int) -> tuple[float, float]:

@@ -14,10 +14,10 @@ import numpy as np
 from fe_node.driver import run_open_loop
 from fe_node.eagar_tsai import EagarTsai, EagarTsaiCase
 from fe_node.material import Material
-from fe_node.scenarios import scenario
-from fe_node.solver import ThermalModel
 from fe_node.scan import ScanPlan
+from fe_node.scenarios import scenario
 from fe_node.settings import Settings
+from fe_node.solver import ThermalModel
 
 
 def fe_eagar_tsai_area(case: EagarTsaiCase, h_fine_m: float, track_m: float = 3e-3,

@@ -422,7 +422,9 @@ class IdentifySettings:
     controller: str = "none"
 
 
-def select_ident_runs(names: list[str] | tuple[str, ...] | None, runs: tuple[IdentRun, ...] = IDENT_RUNS) -> tuple[IdentRun, ...]:
+def select_ident_runs(
+    names: list[str] | tuple[str, ...] | None, runs: tuple[IdentRun, ...] = IDENT_RUNS
+) -> tuple[IdentRun, ...]:
     """The runs named in ``names`` (all of ``runs`` for ``None``), in the order of ``runs``.
 
     Raises

@@ -68,13 +68,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the point selection and optimiser restarts")
     p.add_argument("--n-train", type=int, default=100, help="training points")
     p.add_argument("--restarts", type=int, default=DEFAULT_RESTARTS, help="optimiser starts")
-    p.add_argument("--selection", choices=("variance", "maximin"), default="variance",
-                   help="training-point design: integrated-variance reduction after a maximin pilot fit, or maximin alone")
+    p.add_argument(
+        "--selection",
+        choices=("variance", "maximin"),
+        default="variance",
+        help="training-point design: integrated-variance reduction after a maximin pilot fit, or maximin alone",
+    )
     p.add_argument("--no-history", action="store_true",
                    help="the paper's four inputs (x, T, p, v) only, without the area change x[k] - x[k-1]")
 
-    p = sub.add_parser("evaluate", formatter_class=fmt,
-                       help="validate a model: the delay-aware one on held-out identification runs, a one-step one on the dataset")
+    p = sub.add_parser(
+        "evaluate",
+        formatter_class=fmt,
+        help="validate a model: the delay-aware one on held-out identification runs, a one-step one on the dataset",
+    )
     p.add_argument("--model", type=Path, default=NARX_MODEL_PATH,
                    help="model file (a delay-aware model is evaluated on --recordings-dir, a one-step GP on --dataset)")
     p.add_argument("--recordings-dir", type=Path, default=DEFAULT_IDENT_RECORDINGS,
@@ -91,8 +98,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--held-out", nargs="+", default=list(NARX_HELD_OUT), help="recording stems held out for selection and evaluation")
     p.add_argument("--out", type=Path, default=None, help="model file (default: gp_trainer/models/in625_narx_gp.json)")
     p.add_argument("--seed", type=int, default=0, help="seed of the GP point choice and optimiser restarts")
-    p.add_argument("--interaction", action="store_true",
-                   help="also try power x temperature interaction terms (better rollouts, worse closed loop: docs/gp.md)")
+    p.add_argument(
+        "--interaction",
+        action="store_true",
+        help="also try power x temperature interaction terms (better rollouts, worse closed loop: docs/gp.md)",
+    )
     p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
 
     p = sub.add_parser("campaign", formatter_class=fmt, help="record the Table 2 cases open loop")
@@ -105,9 +115,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     from gp_trainer.campaign import DEFAULT_IDENT_DIR, IDENT_RUNS
 
-    p = sub.add_parser("identify", formatter_class=fmt, help="record the identification runs (random power staircases) open loop",
-                       description="Record seeded random power-staircase runs of ident-layer and ident-double-track "
-                                   "(launch.py --controller none), one MCAP each. Runs: " + ", ".join(r.name for r in IDENT_RUNS))
+    p = sub.add_parser(
+        "identify",
+        formatter_class=fmt,
+        help="record the identification runs (random power staircases) open loop",
+        description="Record seeded random power-staircase runs of ident-layer and ident-double-track "
+        "(launch.py --controller none), one MCAP each. Runs: " + ", ".join(r.name for r in IDENT_RUNS),
+    )
     p.add_argument("--runs", nargs="+", metavar="NAME", default=argparse.SUPPRESS, help="only these runs (default: all six)")
     p.add_argument("--workers", type=int, default=2, help="runs in parallel")
     p.add_argument("--out-dir", type=Path, default=DEFAULT_IDENT_DIR, help="recordings directory")
@@ -204,8 +218,10 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result))
     else:
-        print(f"R² = {result['r2']:.5f}, MAPE = {result['mape_pct']:.3f} % on {result['n_valid']} held-out samples; "
-              f"40-step rollout MAPE = {result['rollout_h40_mape_pct']:.3f} %; 95 % coverage {result['coverage_95_pct']:.1f} %")
+        print(
+            f"R² = {result['r2']:.5f}, MAPE = {result['mape_pct']:.3f} % on {result['n_valid']} held-out samples; "
+            f"40-step rollout MAPE = {result['rollout_h40_mape_pct']:.3f} %; 95 % coverage {result['coverage_95_pct']:.1f} %"
+        )
     return 0
 
 
@@ -292,8 +308,10 @@ def _narx(args: argparse.Namespace) -> int:
               f"squares {row['quadratic']!s:5s}, p×T {row['interaction']!s:5s}, ℓ >= {row['length_scale_floor']}: "
               f"{ROLLOUT_HORIZON}-step rollout {row[f'rollout_h{ROLLOUT_HORIZON}_mape_pct']:.2f} %, "
               f"one-step MAPE {row['mape_pct']:.2f} %, coverage {row['coverage_95_pct']:.1f} %")
-    print(f"selected: {model.n_power_lags} power and {model.n_temperature_lags} temperature lags, output "
-          f"{model.output}, squares {best['quadratic']}, p×T {best['interaction']}, forecast persistence {model.forecast_persistence} -> {out}")
+    print(
+        f"selected: {model.n_power_lags} power and {model.n_temperature_lags} temperature lags, output "
+        f"{model.output}, squares {best['quadratic']}, p×T {best['interaction']}, forecast persistence {model.forecast_persistence} -> {out}"
+    )
     if args.json:
         print(json.dumps({k: v for k, v in best.items()}))
     return 0

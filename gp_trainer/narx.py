@@ -533,11 +533,15 @@ class NarxGPModel:
     # ------------------------------------------------------------------ persistence
     def to_dict(self) -> dict[str, Any]:
         return {
-            "format": FORMAT_NAME, "format_version": FORMAT_VERSION,
-            "sample_period_s": self.sample_period_s, "speed_m_s": self.speed_m_s,
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "sample_period_s": self.sample_period_s,
+            "speed_m_s": self.speed_m_s,
             "inputs": self.input_definitions(),
-            "structure": ("z[k+1] = c0 + sum_i (b_i p[k+1-i] + q_i p[k+1-i]^2) + sum_j c_j T[k-j] + sum_{j<n_Tq} d_j T[k-j]^2"
-                          " + sum_{i<n_x} e_i p[k+1-i] T[k] + r(psi_k), r ~ GP(0, SE-ARD); x[k+1] = exp(z) (output 'log') or z"),
+            "structure": (
+                "z[k+1] = c0 + sum_i (b_i p[k+1-i] + q_i p[k+1-i]^2) + sum_j c_j T[k-j] + sum_{j<n_Tq} d_j T[k-j]^2"
+                " + sum_{i<n_x} e_i p[k+1-i] T[k] + r(psi_k), r ~ GP(0, SE-ARD); x[k+1] = exp(z) (output 'log') or z"
+            ),
             "output": self.output,
             "intercept": self.intercept,
             "power_coefficients": self.power_coefficients.tolist(),
@@ -632,8 +636,14 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int =
     }
 
 
-def select_and_fit(train: Sequence[RunSeries], held_out: Sequence[RunSeries], *, seed: int = 0,
-                   n_train: int = 150, interaction: bool = False) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
+def select_and_fit(
+    train: Sequence[RunSeries],
+    held_out: Sequence[RunSeries],
+    *,
+    seed: int = 0,
+    n_train: int = 150,
+    interaction: bool = False,
+) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
     """Fit every candidate (lags, output map, squared lags, length-scale floor) on ``train``; keep the
     one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
     Returns it, its row and the whole table."""

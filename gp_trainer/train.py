@@ -81,7 +81,9 @@ def _hyper(model: GPModel) -> dict[str, Any]:
             "length_scales": model.length_scales.tolist()}
 
 
-def select_training_points(samples: Samples, settings: TrainSettings = TrainSettings()) -> tuple[np.ndarray, dict[str, Any]]:
+def select_training_points(
+    samples: Samples, settings: TrainSettings = TrainSettings()
+) -> tuple[np.ndarray, dict[str, Any]]:
     """Indices (sorted) of the training points and a JSON-serialisable record of how they were chosen.
 
     Uses the inputs of all samples; targets only of the pilot points (for the pilot fit's kernel

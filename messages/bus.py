@@ -22,9 +22,10 @@ import queue
 import signal
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import zenoh
 
@@ -173,7 +174,7 @@ class StopFlag:
 class TopicPublisher:
     """Publishes validated messages of one topic and counts them."""
 
-    def __init__(self, bus: "NodeBus", topic: Topic, publisher: zenoh.Publisher) -> None:
+    def __init__(self, bus: NodeBus, topic: Topic, publisher: zenoh.Publisher) -> None:
         self.topic = topic
         self._bus = bus
         self._publisher = publisher
@@ -252,7 +253,7 @@ class NodeBus:
     _end_detail: str = ""
     _last_time_s: float = 0.0
 
-    def __enter__(self) -> "NodeBus":
+    def __enter__(self) -> NodeBus:
         zenoh.try_init_log_from_env()
         self.session = zenoh.open(zenoh_config(self.settings))
         return self

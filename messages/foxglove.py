@@ -33,7 +33,7 @@ class Timestamp(Message, frozen=True, kw_only=True):
     nsec: Annotated[int, msgspec.Meta(ge=0, le=999_999_999)]
 
     @classmethod
-    def from_seconds(cls, t_s: float) -> "Timestamp":
+    def from_seconds(cls, t_s: float) -> Timestamp:
         """Build from a time in seconds (``t_s >= 0``)."""
         ns = int(round(t_s * 1e9))
         return cls(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)

@@ -21,7 +21,7 @@ import queue
 import sys
 import time
 from collections import Counter
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -69,7 +69,7 @@ class McapRecorder:
             {
                 "run_id": run_id,
                 "git_revision": git_revision(),
-                "started_utc": datetime.now(timezone.utc).isoformat(),
+                "started_utc": datetime.now(UTC).isoformat(),
                 "log_time": "process (simulated) time since the start of the run",
                 "publish_time": "recorder wall clock on receipt, UNIX epoch",
                 **{f"version.{k}": v for k, v in package_versions().items()},
@@ -204,7 +204,7 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
 
 def default_path(run_id: str) -> Path:
     """``recordings/<UTC date-time>-<run id>.mcap``."""
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
     return Path("recordings") / f"{stamp}-{run_id}.mcap"
 
 

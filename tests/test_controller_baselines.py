@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controller_node import CONTROLLERS, ControllerSettings, FeedForwardSettings, Measurement, PIDSettings, make_controller
+from controller_node import (
+    CONTROLLERS,
+    ControllerSettings,
+    FeedForwardSettings,
+    Measurement,
+    PIDSettings,
+    make_controller,
+)
 from controller_node.model import linearise
 from controller_node.synthetic import AnalyticMeltPoolModel, multitrack_temperature, run_closed_loop
 

@@ -24,7 +24,9 @@ MODEL = AnalyticMeltPoolModel(alpha=0.25, n_p=1.1, n_t=0.55)
 # Tuning for the synthetic plant, whose power acts on the area within one step (no
 # distributed delay as in the FE plant): one-step prediction-error disturbance estimate,
 # power normalised by its range, no temperature feed-forward (the defaults are the FE tuning).
-SYNTHETIC_MPC = MPCSettings(disturbance_gain=0.2, integral_gain=0.0, power_scale_w=None, feedforward=FeedForwardSettings())
+SYNTHETIC_MPC = MPCSettings(
+    disturbance_gain=0.2, integral_gain=0.0, power_scale_w=None, feedforward=FeedForwardSettings()
+)
 SYNTHETIC = ControllerSettings(mpc=SYNTHETIC_MPC)
 
 SETTING_VARIANTS = {

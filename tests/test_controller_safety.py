@@ -11,16 +11,16 @@ from hypothesis import strategies as st
 
 from controller_node import CONTROLLERS, ControllerSettings, Measurement, MPCSettings, make_controller
 from controller_node.mpc import MPCController
-from controller_node.types import ConfigurationError
 from controller_node.qp import QPSolution
 from controller_node.synthetic import AnalyticMeltPoolModel
+from controller_node.types import ConfigurationError
 
 MODEL = AnalyticMeltPoolModel()
 
 
 def _delay_model():
-    from tests.test_preview import synthetic_run
     from gp_trainer.narx import NarxGPModel
+    from tests.test_preview import synthetic_run
 
     return NarxGPModel.fit([synthetic_run(s) for s in range(2)], n_power_lags=8, n_temperature_lags=5,
                            n_train=40, n_restarts=1, profile_length=20)

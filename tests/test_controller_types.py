@@ -45,7 +45,9 @@ def test_measurement_rejects_bad_types(kwargs: dict) -> None:
         Measurement(**base)
 
 
-@pytest.mark.parametrize("power,speed", [(-1.0, 0.8), (math.nan, 0.8), (math.inf, 0.8), (100.0, 0.0), (100.0, math.nan)])
+@pytest.mark.parametrize(
+    "power,speed", [(-1.0, 0.8), (math.nan, 0.8), (math.inf, 0.8), (100.0, 0.0), (100.0, math.nan)]
+)
 def test_command_rejects_unsafe_values(power: float, speed: float) -> None:
     with pytest.raises(ValueError):
         Command(1, power, speed)

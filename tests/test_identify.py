@@ -13,8 +13,18 @@ import numpy as np
 import pytest
 
 from fe_node.scenarios import IDENT_DEFAULTS, IDENT_HOLD_STEPS, scenario
-from gp_trainer.campaign import (IDENT_RUNS, FeedbackRun, IdentifySettings, IdentRun, identify_jobs, job_command,
-                                 job_recording, plant_toml, run_identification, select_ident_runs)
+from gp_trainer.campaign import (
+    IDENT_RUNS,
+    FeedbackRun,
+    IdentifySettings,
+    IdentRun,
+    identify_jobs,
+    job_command,
+    job_recording,
+    plant_toml,
+    run_identification,
+    select_ident_runs,
+)
 from gp_trainer.cli import main
 from gp_trainer.errors import CampaignError
 
@@ -124,8 +134,21 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
     for run, job in zip(feedback, jobs[6:]):
         out = tmp_path / f"{job.name}.partial.mcap"
         assert job_command(settings, job, out) == [
-            "PY", "/repo/launch.py", "--scenario", run.scenario, "--controller", run.controller,
-            "--setpoint-mm2", repr(run.setpoint_mm2), "--no-progress", "--json", "--out", str(out), "--run-id", run.name]
+            "PY",
+            "/repo/launch.py",
+            "--scenario",
+            run.scenario,
+            "--controller",
+            run.controller,
+            "--setpoint-mm2",
+            repr(run.setpoint_mm2),
+            "--no-progress",
+            "--json",
+            "--out",
+            str(out),
+            "--run-id",
+            run.name,
+        ]
     assert [(r.scenario, r.mean_w, r.seed) for r in open_loop] == [
         ("ident-layer", 200.0, 1), ("ident-layer", 250.0, 2), ("ident-layer", 300.0, 3),
         ("ident-double-track", 200.0, 4), ("ident-double-track", 250.0, 5), ("ident-double-track", 300.0, 6)]

@@ -232,7 +232,9 @@ def test_launch_summary_and_table_of_an_incomplete_run(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("n_states, expected_status", [(40, 1), (61, 0)])
-def test_launch_exits_1_when_a_normally_ended_run_did_not_finish(tmp_path, monkeypatch, capsys, n_states, expected_status):
+def test_launch_exits_1_when_a_normally_ended_run_did_not_finish(
+    tmp_path, monkeypatch, capsys, n_states, expected_status
+):
     import launch
 
     out = tmp_path / "run.mcap"

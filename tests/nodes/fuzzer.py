@@ -32,13 +32,26 @@ NON_FINITE = (b"NaN", b"Infinity", b"-Infinity", b"1e999", b"-1e999", b"nan", b"
 def valid_example(topic: Topic, run_id: str) -> dict:
     """A valid message of ``topic`` as a JSON object (the base of most mutations)."""
     msg = {
-        "plant/state": MeltPoolState(run_id=run_id, step=3, time_s=1.5e-4, laser_x_mm=0.1, laser_y_mm=0.0, scan_dir_x=1.0,
-                                     scan_dir_y=0.0, track=0, area_mm2=0.06, t_ahead_k=500.0, power_w=250.0,
-                                     speed_mm_s=800.0),
-        "controller/command": LaserCommand(run_id=run_id, step=4, time_s=1.5e-4, power_w=250.0, speed_mm_s=800.0,
-                                           controller="fuzz"),
-        "controller/diagnostics": ControllerDiagnostics(run_id=run_id, step=4, time_s=0.0, controller="fuzz",
-                                                        status="ok", solve_time_us=1.0),
+        "plant/state": MeltPoolState(
+            run_id=run_id,
+            step=3,
+            time_s=1.5e-4,
+            laser_x_mm=0.1,
+            laser_y_mm=0.0,
+            scan_dir_x=1.0,
+            scan_dir_y=0.0,
+            track=0,
+            area_mm2=0.06,
+            t_ahead_k=500.0,
+            power_w=250.0,
+            speed_mm_s=800.0,
+        ),
+        "controller/command": LaserCommand(
+            run_id=run_id, step=4, time_s=1.5e-4, power_w=250.0, speed_mm_s=800.0, controller="fuzz"
+        ),
+        "controller/diagnostics": ControllerDiagnostics(
+            run_id=run_id, step=4, time_s=0.0, controller="fuzz", status="ok", solve_time_us=1.0
+        ),
         "run/events": RunEvent(run_id=run_id, node="fuzz", event="end", time_s=0.0, published={"plant/state": 10**6}),
     }[topic.suffix]
     return json.loads(encode(msg))
