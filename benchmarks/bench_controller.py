@@ -82,8 +82,8 @@ def main() -> None:
     fast_powers, fast_times = run.power_w, np.array(times)
 
     def variant(solver: str):
-        return make_controller("mpc", dataclasses.replace(settings, mpc=dataclasses.replace(settings.mpc, solver=solver)),
-                               model)
+        mpc = dataclasses.replace(settings.mpc, solver=solver)
+        return make_controller("mpc", dataclasses.replace(settings, mpc=mpc), model)
 
     osqp_powers, osqp_times = timed_replay(variant("osqp"), run.measurements)
     ref_powers, ref_times = timed_replay(variant("cvxpy"), run.measurements)

@@ -105,7 +105,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--h-um", type=float, default=25.0)
     ap.add_argument("--baseline-steps", type=int, default=5)
-    ap.add_argument("--baseline-mem-gb", type=float, default=16.0, help="address-space limit of the splu baseline (it needs ~11 GB at 25 µm)")
+    ap.add_argument("--baseline-mem-gb", type=float, default=16.0,
+                    help="address-space limit of the splu baseline (it needs ~11 GB at 25 µm)")
     ap.add_argument("--baseline-timeout-s", type=float, default=600.0)
     ap.add_argument("--child-baseline", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()

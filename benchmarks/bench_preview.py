@@ -79,7 +79,8 @@ def main() -> None:
         "scenario": args.scenario,
         "model": "gp_trainer/models/in625_narx_gp.json",
     }
-    print(f"{result['n_updates']} updates on {args.scenario}: median {result['median_us']} us, p99 {result['p99_us']} us; "
+    print(f"{result['n_updates']} updates on {args.scenario}: "
+          f"median {result['median_us']} us, p99 {result['p99_us']} us; "
           f"cvxpy solve median {result['cvxpy_median_us']} us; max |p - p_cvxpy| = {result['max_abs_diff_w']:.3g} W")
     print(json.dumps(result))
 

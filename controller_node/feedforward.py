@@ -39,7 +39,8 @@ def temperature_feedforward_w(ff: FeedForwardSettings, gain_w_per_k: float, t_k:
     float
         ``Δp`` clamped to ``±ff.max_abs_w`` [W].
     """
-    delta = gain_w_per_k * (ff.direct_gain * (t_k - ff.reference_temperature_k) + ff.differential_gain * (t_k - t_prev_k))
+    delta = gain_w_per_k * (ff.direct_gain * (t_k - ff.reference_temperature_k)
+                            + ff.differential_gain * (t_k - t_prev_k))
     if not math.isfinite(delta):
         return 0.0
     return min(max(delta, -ff.max_abs_w), ff.max_abs_w)

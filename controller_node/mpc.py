@@ -123,7 +123,8 @@ class MPCController(Controller):
             self.disturbance_m2 += mpc.disturbance_gain * (m.area_m2 - predicted - self.disturbance_m2)
         if previous is not None and mpc.integral_gain > 0.0:
             error = m.area_m2 - s.set_point_m2
-            if abs(error) <= mpc.integral_band * s.set_point_m2:  # conditional integration: no wind-up at hot track starts
+            # conditional integration: no wind-up at hot track starts
+            if abs(error) <= mpc.integral_band * s.set_point_m2:
                 self.disturbance_m2 += mpc.integral_gain * (1.0 - lin.a - lin.a_prev) * error
         self._previous = (m, lin)
 

@@ -95,4 +95,5 @@ class CvxpyBackend:
         if self.problem.status != cp.OPTIMAL:
             return QPSolution(str(self.problem.status), np.full(h, np.nan), np.full(h, np.nan), 0)
         iterations = int(self.problem.solver_stats.num_iters or 0)
-        return QPSolution("solved", np.array(self._u.value, dtype=float), np.array(self._e.value[2:], dtype=float), iterations)
+        return QPSolution("solved", np.array(self._u.value, dtype=float), np.array(self._e.value[2:], dtype=float),
+                          iterations)

@@ -108,7 +108,8 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
         if reason is not None:
             n_impossible += 1
             if n_impossible == 1:
-                bus.log(LogLevel.WARNING, f"state dropped: {reason} (further ones are only counted)", time_s=state.time_s)
+                bus.log(LogLevel.WARNING, f"state dropped: {reason} (further ones are only counted)",
+                        time_s=state.time_s)
             continue
         last_time_s = state.time_s
         try:
@@ -120,7 +121,8 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
             return 2
         last_step = state.step
         power = command.power_w
-        if not settings.power_min_w <= power <= settings.power_max_w:  # the core guarantees this; never trust it blindly
+        # the core guarantees this; never trust it blindly
+        if not settings.power_min_w <= power <= settings.power_max_w:
             bus.log(LogLevel.ERROR, f"controller produced {power} W outside bounds; not published", time_s=state.time_s)
             continue
         commands.put(LaserCommand(
@@ -138,7 +140,8 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
             feedforward_w=diag.feedforward_w,
         ))
     reason = "stopped" if stop.is_set() else f"plant '{plant}' went away"
-    summary = f"{reason}; {controller.n_fallbacks} fallbacks, {states.n_invalid} invalid and {n_impossible} impossible states dropped, {n_skipped} skipped"
+    summary = (f"{reason}; {controller.n_fallbacks} fallbacks, {states.n_invalid} invalid and "
+               f"{n_impossible} impossible states dropped, {n_skipped} skipped")
     bus.log(LogLevel.INFO, summary, time_s=last_time_s)
     bus.end_detail(summary)
     return 0
@@ -147,10 +150,13 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
 def build_parser() -> argparse.ArgumentParser:
     """Command line of ``python -m controller_node``."""
     parser = ArgumentParser(prog="python -m controller_node", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--controller", default="preview-mpc", choices=CONTROLLERS, help="control law (default: %(default)s)")
-    parser.add_argument("--model", type=Path, help=f"GP model file (default: {DEFAULT_MODEL.relative_to(DEFAULT_MODEL.parents[2])})")
+    parser.add_argument("--controller", default="preview-mpc", choices=CONTROLLERS,
+                        help="control law (default: %(default)s)")
+    parser.add_argument("--model", type=Path,
+                        help=f"GP model file (default: {DEFAULT_MODEL.relative_to(DEFAULT_MODEL.parents[2])})")
     parser.add_argument("--setpoint-mm2", type=float, help="melt-pool area set point [mm²]")
-    parser.add_argument("--config", type=Path, help="TOML run configuration; its [controller] table holds ControllerSettings fields")
+    parser.add_argument("--config", type=Path,
+                        help="TOML run configuration; its [controller] table holds ControllerSettings fields")
     parser.add_argument("--plant", default="plant", help="name of the plant node to follow (default: %(default)s)")
     parser.add_argument("--learning-state", type=Path, metavar="FILE",
                         help="preview-mpc: start from what a previous layer learned (if FILE exists) and write "
@@ -178,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
             load_learning_state(controller, args.learning_state)
     except UsageError as err:
         return exit_usage(parser.prog, err)
-    config = {"controller": args.controller, "model": str(args.model or DEFAULT_MODEL) if model else None, **as_dict(settings)}
+    config = {"controller": args.controller, "model": str(args.model or DEFAULT_MODEL) if model else None,
+              **as_dict(settings)}
     stop = StopFlag()
     try:
         with NodeBus(NODE_NAME, bus_settings) as bus:

@@ -14,8 +14,8 @@ Each update at state k (:meth:`PreviewMPC.update`):
    move penalty, hard power bounds, soft area bounds tightened by the GP's predictive std).
 
 During the pool build-up (the first ``observer_start_steps`` states, which the model is not
-fitted on) the answer is the nominal power; step 0 is, for every controller. A plant whose sample period differs from the model's is refused
-(:class:`~controller_node.types.ConfigurationError`).
+fitted on) the answer is the nominal power; step 0 is, for every controller. A plant whose sample
+period differs from the model's is refused (:class:`~controller_node.types.ConfigurationError`).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ Scaling (chosen so that Table 3's ``Q = 1, R = 0.1, Q_f = 20`` are meaningful):
 
 * state  ``e = (x − x_sp) / x_sp``       — relative melt-pool area error [-];
 * input  ``u = (p − p_ref) / P`` — power as a fraction of ``P`` = ``mpc.power_scale_w``
-  (default ``p_u − p_l``, the power range) [-].
+  (default 4 W; when set to None, ``p_u − p_l``, the power range) [-].
 
 With the affine linearisation (eq. 8 plus the offset ``f0``) held over the horizon and
 the temperature held at ``T[k]``, the prediction model is ::
@@ -15,8 +15,9 @@ the temperature held at ``T[k]``, the prediction model is ::
 (``d̂`` is the optional output-disturbance estimate; ``a⁻ = ∂f/∂x[k−1]`` of a history model,
 0 for the paper's model, and ``e[−1]`` the previous area's error).  ``p_ref`` is the model's
 steady-state power ``p_ss`` for the set point, clamped to the bounds; then ``g = 0``
-unless ``p_ss`` is out of reach.  The QP, solved by :mod:`controller_node.mpc` (OSQP)
-and :mod:`controller_node.mpc_reference` (cvxpy), is ::
+unless ``p_ss`` is out of reach.  The QP, solved by :mod:`controller_node.qp_daqp` (DAQP,
+the default), :mod:`controller_node.qp_osqp` (OSQP) and :mod:`controller_node.mpc_reference`
+(cvxpy) — chosen by ``mpc.solver`` in :func:`controller_node.mpc.make_backend` — is ::
 
     min  Σ_{i=1}^{H-1} Q e[i]² + Q_f e[H]² + R Σ_{i=0}^{H-1} w[i]² + Σ_{i=1}^{H} (ρ₁ s[i] + ρ₂ s[i]²)
     s.t. e[i+1] = a e[i] + a⁻ e[i−1] + β u[i] + g,   e[0], e[−1] given
@@ -110,7 +111,7 @@ class QPBackend(Protocol):
 
 
 def power_scale_w(settings: ControllerSettings) -> float:
-    """Power normalisation [W]: ``mpc.power_scale_w``, default ``p_u − p_l``."""
+    """Power normalisation [W]: ``mpc.power_scale_w`` (default 4 W), or ``p_u − p_l`` when it is None."""
     scale = settings.mpc.power_scale_w
     return settings.power_max_w - settings.power_min_w if scale is None else scale
 

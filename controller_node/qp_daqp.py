@@ -89,7 +89,8 @@ class DaqpBackend:
         self._h2 = np.zeros((2 * h, 2 * h))
         self._h2[h:, h:] = 2.0 * m.slack_quadratic * np.eye(h)
         self._f2 = np.concatenate([np.zeros(h), np.full(h, m.slack_linear)])
-        self._bu2 = np.concatenate([np.zeros(h), np.full(h, _INF), np.full(h, self._du[1]), np.full(h, _INF), np.zeros(h)])
+        self._bu2 = np.concatenate([np.zeros(h), np.full(h, _INF), np.full(h, self._du[1]), np.full(h, _INF),
+                                    np.zeros(h)])
         self._bl2 = np.concatenate([np.zeros(h), np.zeros(h), np.full(h, self._du[0]), np.zeros(h), np.full(h, -_INF)])
         self._sense2 = np.zeros(5 * h, dtype=np.int32)
 

@@ -28,8 +28,8 @@ def make_controller(
     settings : ControllerSettings, optional
         Defaults to ``ControllerSettings()``.
     model : DynamicsModel or gp_trainer.narx.NarxGPModel, optional
-        Required by ``"mpc"`` (one-step model), by ``"preview-mpc"`` (delay-aware model), and by ``"feedforward"`` unless
-        ``settings.feedforward.gain_w_per_k`` is set; ignored otherwise.
+        Required by ``"mpc"`` (one-step model), by ``"preview-mpc"`` (delay-aware model), and by
+        ``"feedforward"`` unless ``settings.feedforward.gain_w_per_k`` is set; ignored otherwise.
 
     Returns
     -------

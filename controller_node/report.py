@@ -195,7 +195,8 @@ def metrics(trace: Trace, setpoint_mm2: float) -> Metrics:
         raise ValueError(f"set point must be > 0 mm², got {setpoint_mm2}")
     window = window_mask(trace)
     if not window.any():
-        raise ValueError(f"the run ended before the evaluation window opened ({WINDOW_START_S * 1e3:g} ms after laser-on)")
+        raise ValueError("the run ended before the evaluation window opened "
+                         f"({WINDOW_START_S * 1e3:g} ms after laser-on)")
     err = trace.area_mm2 / setpoint_mm2 - 1
     turn = turnaround_mask(trace.track) & window
     along = window & ~turn
@@ -254,7 +255,8 @@ def recording_completeness(path: Path, n_states: int) -> Completeness:
     plant = next((e for e in events if e.event == "start" and e.total_steps is not None), None)
     finished_at = None
     for event in events:
-        if plant is not None and event.event == "end" and event.node == plant.node and (m := _FINISHED.match(event.detail)):
+        if (plant is not None and event.event == "end" and event.node == plant.node
+                and (m := _FINISHED.match(event.detail))):
             finished_at = int(m.group(1))
     states = read_messages(path, "/plant/state")
     first = next(states, None)

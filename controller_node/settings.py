@@ -227,7 +227,8 @@ class MPCSettings:
         _check(isinstance(self.report_model_std, bool), "MPCSettings.report_model_std must be bool")
         _finite(self, "state_gain_max", "power_gain_min_m2_per_w")
         _check(0 < self.state_gain_max <= 1.5, "MPCSettings.state_gain_max must be in (0, 1.5]")
-        _check(0 <= self.power_gain_min_m2_per_w <= 1e-6, "MPCSettings.power_gain_min_m2_per_w must be in [0, 1e-6] m²/W")
+        _check(0 <= self.power_gain_min_m2_per_w <= 1e-6,
+               "MPCSettings.power_gain_min_m2_per_w must be in [0, 1e-6] m²/W")
         if self.power_scale_w is not None:
             _finite(self, "power_scale_w")
             _check(self.power_scale_w > 0, "MPCSettings.power_scale_w must be > 0 W")
@@ -385,7 +386,8 @@ class ControllerSettings:
         _check(self.nominal_speed_m_s > 0, "ControllerSettings.nominal_speed_m_s must be > 0")
         _check(isinstance(self.max_age_steps, int) and not isinstance(self.max_age_steps, bool)
                and self.max_age_steps >= 0, "ControllerSettings.max_age_steps must be an int >= 0")
-        for name, cls in (("mpc", MPCSettings), ("preview", PreviewSettings), ("pid", PIDSettings), ("feedforward", FeedForwardSettings)):
+        for name, cls in (("mpc", MPCSettings), ("preview", PreviewSettings), ("pid", PIDSettings),
+                          ("feedforward", FeedForwardSettings)):
             _check(isinstance(getattr(self, name), cls), f"ControllerSettings.{name} must be a {cls.__name__}")
         _check(self.mpc.area_min_m2 < self.set_point_m2 < self.mpc.area_max_m2,
                "ControllerSettings.set_point_m2 must lie inside the MPC area bounds")

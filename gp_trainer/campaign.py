@@ -365,7 +365,8 @@ class IdentRun:
 
     def job(self) -> Job:
         """The launcher job: the scenario with its ``[plant]`` ``ident_*`` overrides."""
-        return Job(self.name, self.scenario, plant=(("ident_seed", int(self.seed)), ("ident_mean_w", float(self.mean_w)),
+        return Job(self.name, self.scenario, plant=(("ident_seed", int(self.seed)),
+                                                    ("ident_mean_w", float(self.mean_w)),
                                                     ("ident_amplitude_w", float(self.amplitude_w))))
 
 
@@ -388,7 +389,8 @@ class FeedbackRun:
 
     def job(self) -> Job:
         """The launcher job: the scenario under the controller."""
-        return Job(self.name, self.scenario, args=("--setpoint-mm2", repr(self.setpoint_mm2)), controller=self.controller)
+        return Job(self.name, self.scenario, args=("--setpoint-mm2", repr(self.setpoint_mm2)),
+                   controller=self.controller)
 
 
 IDENT_RUNS = tuple(

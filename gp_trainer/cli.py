@@ -49,17 +49,21 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of :func:`main`."""
-    parser = _Parser(prog=PROG, description="Build the dataset, train and validate the melt-pool GP model (paper eq. 1-5, IV.A).",
+    parser = _Parser(prog=PROG,
+                     description="Build the dataset, train and validate the melt-pool GP model (paper eq. 1-5, IV.A).",
                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     fmt = argparse.ArgumentDefaultsHelpFormatter
 
     p = sub.add_parser("dataset", formatter_class=fmt, help="build training samples from recordings")
-    p.add_argument("recordings", nargs="*", type=Path, help="MCAP recordings (default: table2-case*.mcap in --recordings-dir)")
+    p.add_argument("recordings", nargs="*", type=Path,
+                   help="MCAP recordings (default: table2-case*.mcap in --recordings-dir)")
     p.add_argument("--recordings-dir", type=Path, default=DEFAULT_RECORDINGS, help="campaign directory")
-    p.add_argument("--synthetic", action="store_true", help="use the synthetic stand-in plant (gp_trainer.synthetic) instead of recordings")
+    p.add_argument("--synthetic", action="store_true",
+                   help="use the synthetic stand-in plant (gp_trainer.synthetic) instead of recordings")
     p.add_argument("--out", type=Path, default=DEFAULT_DATASET, help="dataset file (.npz)")
-    p.add_argument("--startup-fraction", type=float, default=0.5, help="a track's pool is formed once its area reaches this fraction of the track median")
+    p.add_argument("--startup-fraction", type=float, default=0.5,
+                   help="a track's pool is formed once its area reaches this fraction of the track median")
     p.add_argument("--min-samples", type=int, default=120, help="fewer usable samples is an error")
 
     p = sub.add_parser("train", formatter_class=fmt, help="select training points and fit the GP")
@@ -95,7 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="select, fit and evaluate the delay-aware model (FIR + residual GP) of the preview MPC")
     p.add_argument("recordings", nargs="*", type=Path,
                    help="MCAP recordings (default: every complete run in recordings/identification)")
-    p.add_argument("--held-out", nargs="+", default=list(NARX_HELD_OUT), help="recording stems held out for selection and evaluation")
+    p.add_argument("--held-out", nargs="+", default=list(NARX_HELD_OUT),
+                   help="recording stems held out for selection and evaluation")
     p.add_argument("--out", type=Path, default=None, help="model file (default: gp_trainer/models/in625_narx_gp.json)")
     p.add_argument("--seed", type=int, default=0, help="seed of the GP point choice and optimiser restarts")
     p.add_argument(
@@ -122,7 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Record seeded random power-staircase runs of ident-layer and ident-double-track "
         "(launch.py --controller none), one MCAP each. Runs: " + ", ".join(r.name for r in IDENT_RUNS),
     )
-    p.add_argument("--runs", nargs="+", metavar="NAME", default=argparse.SUPPRESS, help="only these runs (default: all six)")
+    p.add_argument("--runs", nargs="+", metavar="NAME", default=argparse.SUPPRESS,
+                   help="only these runs (default: all six)")
     p.add_argument("--workers", type=int, default=2, help="runs in parallel")
     p.add_argument("--out-dir", type=Path, default=DEFAULT_IDENT_DIR, help="recordings directory")
     p.add_argument("--timeout", type=float, default=None, help="wall-time limit per run [s]")
@@ -171,7 +177,8 @@ def _dataset(args: argparse.Namespace) -> int:
         reports.append(report)
         print(report.summary())
     samples = dataset.concatenate(parts, settings)
-    meta = {"data_source": data_source, "recordings": recordings, "reports": [asdict(r) for r in reports], "settings": asdict(settings)}
+    meta = {"data_source": data_source, "recordings": recordings, "reports": [asdict(r) for r in reports],
+            "settings": asdict(settings)}
     out = dataset.save_samples(args.out, samples, meta)
     dropped = sum(r.dropped_startup + r.dropped_no_pool + r.dropped_gap for r in reports)
     print(f"{len(samples)} samples from {len(reports)} sources ({dropped} pairs dropped) -> {out}")
@@ -220,7 +227,8 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
     else:
         print(
             f"R² = {result['r2']:.5f}, MAPE = {result['mape_pct']:.3f} % on {result['n_valid']} held-out samples; "
-            f"40-step rollout MAPE = {result['rollout_h40_mape_pct']:.3f} %; 95 % coverage {result['coverage_95_pct']:.1f} %"
+            f"40-step rollout MAPE = {result['rollout_h40_mape_pct']:.3f} %; "
+            f"95 % coverage {result['coverage_95_pct']:.1f} %"
         )
     return 0
 
@@ -272,8 +280,8 @@ def _identify(args: argparse.Namespace) -> int:
         summary_json,
     )
 
-    settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None)), out_dir=args.out_dir, workers=args.workers,
-                                timeout_s=args.timeout)
+    settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None)), out_dir=args.out_dir,
+                                workers=args.workers, timeout_s=args.timeout)
     results = run_identification(settings, progress=not args.no_progress)
     for r in results:
         print(f"{r.name}: {r.status} ({r.wall_s:.1f} s) {r.recording} {r.detail}".rstrip())
@@ -300,7 +308,8 @@ def _narx(args: argparse.Namespace) -> int:
     held = [r for r in runs if r.name in args.held_out]
     train = [r for r in runs if r.name not in args.held_out]
     if not held or not train:
-        raise DatasetError(f"need both training and held-out runs; held out {[r.name for r in held]} of {[r.name for r in runs]}")
+        raise DatasetError("need both training and held-out runs; "
+                           f"held out {[r.name for r in held]} of {[r.name for r in runs]}")
     model, best, table = select_and_fit(train, held, seed=args.seed, interaction=args.interaction)
     out = model.save(args.out or DEFAULT_MODEL_PATH)
     for row in table:
@@ -310,7 +319,8 @@ def _narx(args: argparse.Namespace) -> int:
               f"one-step MAPE {row['mape_pct']:.2f} %, coverage {row['coverage_95_pct']:.1f} %")
     print(
         f"selected: {model.n_power_lags} power and {model.n_temperature_lags} temperature lags, output "
-        f"{model.output}, squares {best['quadratic']}, p×T {best['interaction']}, forecast persistence {model.forecast_persistence} -> {out}"
+        f"{model.output}, squares {best['quadratic']}, p×T {best['interaction']}, "
+        f"forecast persistence {model.forecast_persistence} -> {out}"
     )
     if args.json:
         print(json.dumps({k: v for k, v in best.items()}))

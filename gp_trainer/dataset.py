@@ -173,7 +173,8 @@ def build_samples(states: Iterable[Any], source: str,
     data = {name: _field_array(records, name, source) for name in FIELDS}
     step, track = data["step"].astype(np.int64), data["track"].astype(np.int64)
     if np.any(np.diff(step) <= 0):
-        raise DatasetError(f"{source}: plant-state steps do not increase (record {int(np.argmax(np.diff(step) <= 0)) + 1})")
+        raise DatasetError(f"{source}: plant-state steps do not increase "
+                           f"(record {int(np.argmax(np.diff(step) <= 0)) + 1})")
     area_m2 = data["area_mm2"] * 1e-6
     startup = _startup_mask(area_m2, track, settings.startup_fraction)
 

@@ -402,13 +402,17 @@ class NarxGPModel:
     def input_definitions(self) -> dict[str, str]:
         """Definition of every input (recorded in the model file)."""
         return {
-            "p[k+1-i], i=0..n_p-1": "laser power applied during step k-i -> k+1-i [W] (state[k+1-i].power_w; 0 before laser-on); linear and squared",
-            "T[k-j], j=0..n_T-1": "temperature ahead of the laser in state k-j [K] (state.t_ahead_k; T[0] before the first state); linear, squared for j < n_Tq",
+            "p[k+1-i], i=0..n_p-1": "laser power applied during step k-i -> k+1-i [W] "
+                                    "(state[k+1-i].power_w; 0 before laser-on); linear and squared",
+            "T[k-j], j=0..n_T-1": "temperature ahead of the laser in state k-j [K] "
+                                  "(state.t_ahead_k; T[0] before the first state); linear, squared for j < n_Tq",
             "p[k+1-i] T[k], i=0..n_x-1": "interaction of the lagged powers with the current temperature ahead [W K]",
             "t_ahead_k": "GP input: T[k] [K]",
-            "steps_since_track_start": f"GP input: states since the current track's first state, capped at {STEPS_SINCE_START_CAP}",
+            "steps_since_track_start": "GP input: states since the current track's first state, "
+                                       f"capped at {STEPS_SINCE_START_CAP}",
             "mean_power_w": "GP input: mean of p[k+1-i], i=0..n_p-1 [W]",
-            "output": "melt-pool area x[k+1] [m2] (state[k+1].area_mm2 * 1e-6) = exp(z) for output 'log', z for 'identity'",
+            "output": "melt-pool area x[k+1] [m2] (state[k+1].area_mm2 * 1e-6) "
+                      "= exp(z) for output 'log', z for 'identity'",
             "sample_period_s": "duration of one step; the model is valid only at this period",
         }
 
@@ -483,7 +487,12 @@ class NarxGPModel:
         periods = {round(r.sample_period_s, 12) for r in runs}
         if len(periods) != 1:
             raise DatasetError(f"runs have different sample periods: {sorted(periods)} s")
-        n_tq = (n_temperature_lags // 2 if n_temperature_square_lags is None else n_temperature_square_lags) if quadratic else 0
+        if not quadratic:
+            n_tq = 0
+        elif n_temperature_square_lags is None:
+            n_tq = n_temperature_lags // 2
+        else:
+            n_tq = n_temperature_square_lags
         n_x = n_power_lags if interaction else 0
         probe = cls._probe(n_power_lags, n_temperature_lags, n_tq, runs[0].sample_period_s, n_x)
         X, Y, PSI = [], [], []

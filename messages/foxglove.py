@@ -68,4 +68,5 @@ class RawImage(Message, frozen=True, kw_only=True):
     def __post_init__(self) -> None:
         super().__post_init__()
         if len(self.data) != self.step * self.height:
-            raise ValueError(f"image data holds {len(self.data)} bytes, expected step*height = {self.step * self.height}")
+            raise ValueError(f"image data holds {len(self.data)} bytes, "
+                             f"expected step*height = {self.step * self.height}")

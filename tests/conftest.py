@@ -46,5 +46,5 @@ def finish(proc: subprocess.Popen[str], timeout: float = 30) -> tuple[int, str]:
     except subprocess.TimeoutExpired:
         proc.kill()
         out, _ = proc.communicate()
-        raise AssertionError(f"process did not end in {timeout} s; output:\n{out}")
+        raise AssertionError(f"process did not end in {timeout} s; output:\n{out}") from None
     return proc.returncode, out

@@ -97,7 +97,8 @@ def test_feedforward_beats_open_loop_on_multitrack_preheat() -> None:
     rmse = {}
     for name in ("open-loop", "feedforward"):
         # the synthetic plant's own K_T (the default fixed gain is the FE plant's)
-        settings = ControllerSettings(feedforward=FeedForwardSettings(enabled=True, direct_gain=1.0, differential_gain=0.0))
+        feedforward = FeedForwardSettings(enabled=True, direct_gain=1.0, differential_gain=0.0)
+        settings = ControllerSettings(feedforward=feedforward)
         run = run_closed_loop(make_controller(name, settings, MODEL), MODEL, temps)
         rmse[name] = float(np.sqrt(np.mean((run.area_m2 / SET_POINT - 1.0) ** 2)))
     assert rmse["feedforward"] < 0.5 * rmse["open-loop"]

@@ -91,7 +91,8 @@ def test_controller_solvers_agree_over_a_closed_loop_replay() -> None:
     run = run_closed_loop(make_controller("mpc", base, MODEL), PLANT, temps, area0_m2=0.03e-6, power0_w=100.0,
                           noise_std_m2=1.4e-9)
     for solver in ("osqp", "cvxpy"):
-        other = make_controller("mpc", dataclasses.replace(base, mpc=dataclasses.replace(base.mpc, solver=solver)), MODEL)
+        mpc = dataclasses.replace(base.mpc, solver=solver)
+        other = make_controller("mpc", dataclasses.replace(base, mpc=mpc), MODEL)
         powers = np.array([other.update(m)[0].power_w for m in run.measurements])
         assert np.max(np.abs(powers - run.power_w)) <= 0.5, solver
 

@@ -18,7 +18,8 @@ def state(run_id: str, step: int, area_mm2: float = 0.05) -> MeltPoolState:
 
 
 def test_pid_node_answers_each_state_and_exits_when_the_plant_goes(hub, run_id):
-    node = spawn("controller_node", "--controller", "pid", "--setpoint-mm2", "0.07", "--run-id", run_id, "--connect", hub)
+    node = spawn("controller_node", "--controller", "pid", "--setpoint-mm2", "0.07",
+                 "--run-id", run_id, "--connect", hub)
     stop = StopFlag()
     with NodeBus("plant", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         commands = bus.inbox(LASER_COMMAND)

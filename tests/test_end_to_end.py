@@ -19,7 +19,8 @@ def run_launch(*args: str, timeout: float = 240) -> tuple[int, str]:
 
 def test_short_mpc_run_is_complete_valid_and_reported(tmp_path):
     out = tmp_path / "e2e.mcap"
-    status, output = run_launch("--controller", "mpc", "--max-steps", "200", "--h-um", "40", "--out", str(out), "--json")
+    status, output = run_launch("--controller", "mpc", "--max-steps", "200", "--h-um", "40",
+                                "--out", str(out), "--json")
     assert status == 0, output
     summary = json.loads(output.strip().splitlines()[-1])
     assert summary["steps"] == 200 and summary["recording"] == str(out)
@@ -46,14 +47,15 @@ def test_short_mpc_run_is_complete_valid_and_reported(tmp_path):
                           cwd=REPO, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert report["steady_rmse_pct"] == summary["steady_rmse_pct"] or abs(report["steady_rmse_pct"] - summary["steady_rmse_pct"]) < 0.01
+    assert (report["steady_rmse_pct"] == summary["steady_rmse_pct"]
+            or abs(report["steady_rmse_pct"] - summary["steady_rmse_pct"]) < 0.01)
     assert figure.stat().st_size > 10_000
 
 
 def test_open_loop_profile_run(tmp_path):
     out = tmp_path / "case2.mcap"
-    status, output = run_launch("--scenario", "table2-case2", "--controller", "none", "--max-steps", "60", "--h-um", "40",
-                                "--out", str(out), "--json")
+    status, output = run_launch("--scenario", "table2-case2", "--controller", "none", "--max-steps", "60",
+                                "--h-um", "40", "--out", str(out), "--json")
     assert status == 0, output
     powers = [s.power_w for s in read_messages(out, "/plant/state")][1:]
     assert len(powers) == 60 and max(powers) - min(powers) > 10  # the sinusoidal power profile is played

@@ -36,12 +36,14 @@ args = ["--controller", "mpc", "--setpoint-mm2", "0.063", "--require", "recorder
 [[node]]
 name = "fuzzer"
 module = "tests.nodes.fuzzer"
-args = ["--require", "recorder", "--count", "{count}", "--seed", "7", "--topic", "plant/state", "--topic", "controller/command", "--topic", "run/events"]
+args = ["--require", "recorder", "--count", "{count}", "--seed", "7",
+        "--topic", "plant/state", "--topic", "controller/command", "--topic", "run/events"]
 
 [[node]]
 name = "plant"
 module = "fe_node"
-args = ["--h-um", "40", "--max-steps", "{STEPS}", "--command-timeout-s", "30", "--require", "recorder", "--require", "controller", "--require", "fuzzer"]
+args = ["--h-um", "40", "--max-steps", "{STEPS}", "--command-timeout-s", "30",
+        "--require", "recorder", "--require", "controller", "--require", "fuzzer"]
 main = true
 """)
     out = tmp_path / f"{name}.mcap"
@@ -82,8 +84,13 @@ def test_every_malformed_payload_is_rejected_and_counted(runs):
 
 def test_fuzzed_run_gives_the_clean_result(runs):
     (_, clean), (_, fuzzed) = runs
-    trace = lambda path: [(s.step, s.area_mm2, s.t_ahead_k, s.power_w) for s in read_messages(path, "/plant/state")]
-    commands = lambda path: [(c.step, c.power_w) for c in read_messages(path, "/controller/command")]
+
+    def trace(path):
+        return [(s.step, s.area_mm2, s.t_ahead_k, s.power_w) for s in read_messages(path, "/plant/state")]
+
+    def commands(path):
+        return [(c.step, c.power_w) for c in read_messages(path, "/controller/command")]
+
     assert len(trace(clean)) == STEPS + 1
     assert trace(fuzzed) == trace(clean)
     assert commands(fuzzed) == commands(clean)

@@ -24,7 +24,8 @@ State = synthetic.SyntheticState
 
 
 def _track(areas, track=0, first_step=0, power=250.0, speed=800.0):
-    return [State(first_step + i, (first_step + i) * 50e-6, track, a, 400.0 + i, power + i, speed) for i, a in enumerate(areas)]
+    return [State(first_step + i, (first_step + i) * 50e-6, track, a, 400.0 + i, power + i, speed)
+            for i, a in enumerate(areas)]
 
 
 def test_samples_pair_state_k_with_inputs_of_step_k_plus_1_in_si():
@@ -129,7 +130,8 @@ def test_cli_dataset_train_evaluate_end_to_end_on_recordings(tmp_path, capsys):
     assert [r["name"] for r in prov["dataset"]["recordings"]][:2] == ["table2-case1.mcap", "table2-case2.mcap"]
     assert len(prov["dataset"]["recordings"][0]["sha256"]) == 64 and prov["seed"] == 0
     capsys.readouterr()
-    assert main(["evaluate", "--model", str(model_a), "--dataset", str(data), "--plots-dir", str(tmp_path), "--json"]) == 0
+    assert main(["evaluate", "--model", str(model_a), "--dataset", str(data),
+                 "--plots-dir", str(tmp_path), "--json"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert result["n_train"] == 100 and result["n_valid"] > 1400
     assert result["r2"] >= 0.995 and result["mape_pct"] <= 2.0 and result["rollout_case2_mape_pct"] < 2.0

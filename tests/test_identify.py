@@ -188,7 +188,8 @@ def test_failed_run_keeps_its_partial_recording(tmp_path):
     assert result.status == "failed" and "exit status 1" in result.detail and "ident_seed = 2" in result.detail
     assert Path(result.recording) == tmp_path / "ident" / "ident-layer-p250-s2.partial.mcap"
     assert Path(result.recording).is_file() and not (tmp_path / "ident" / "ident-layer-p250-s2.mcap").exists()
-    assert sorted(p.name for p in (tmp_path / "ident").iterdir()) == ["ident-layer-p250-s2.partial.mcap"]  # config: temp
+    # only the partial recording: the job config went to a temporary directory
+    assert sorted(p.name for p in (tmp_path / "ident").iterdir()) == ["ident-layer-p250-s2.partial.mcap"]
 
 
 def test_cli_user_errors_exit_2(tmp_path, capsys):

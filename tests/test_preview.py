@@ -156,7 +156,8 @@ def test_fast_path_equals_cvxpy(model, seed):
     qp = PreviewMPC(settings, model).qp
     gain = np.tril(rng.uniform(0.0, 2e-11, (20, 20))) * rng.uniform(0.5, 2.0, 20)[:, None]
     gamma = gain * qp.scale / sp
-    c = rng.uniform(-0.6, 0.6) + 0.05 * rng.standard_normal(20).cumsum() - gamma.sum(axis=1) * rng.uniform(0, 300) / qp.scale
+    c = (rng.uniform(-0.6, 0.6) + 0.05 * rng.standard_normal(20).cumsum()
+         - gamma.sum(axis=1) * rng.uniform(0, 300) / qp.scale)
     previous = float(rng.uniform(0, 350))
     fast = qp.solve(gamma, c, previous)
     reference = solve_reference(qp, gamma, c, previous)

@@ -107,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(prog="fuzzer")
     parser.add_argument("--count", type=int, default=10_000)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--topic", action="append", default=[], help="topic suffix (default: plant/state, controller/command)")
+    parser.add_argument("--topic", action="append", default=[],
+                        help="topic suffix (default: plant/state, controller/command)")
     parser.add_argument("--after-step", type=int, default=2)
     parser.add_argument("--settle-states", type=int, default=5)
     add_bus_arguments(parser)
