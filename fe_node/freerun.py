@@ -2,11 +2,15 @@
 
 A free-running plant behaves like a camera or pyrometer: it publishes ``MeltPoolState`` at a
 fixed rate and never waits for the controller. Between two publishes it takes whatever
-``LaserCommand`` arrives; at each tick it applies the newest accepted command and echoes the
-applied power in the state it publishes. The command answering state k (``step = k + 1``) is
-*on time* if it arrives before state k+1 is published; otherwise that step is a deadline miss.
-If no command at all arrived for ``timeout_s``, the configured fallback (hold or safe power)
-applies, as in the lockstep FE node.
+``LaserCommand`` arrives; at each tick it applies the newest applicable command and echoes the
+applied power in the state it publishes. A command is applicable (:class:`~fe_node.commands.CommandGate`)
+if its step is newer than the last applied one, at most one after the newest published state (no
+controller can answer a state not yet published) and not more than ``RING`` − 1 steps late, and
+its power and speed lie within the bounds; every other command is dropped and counted. The
+command answering state k (``step = k + 1``) is *on time* if it arrives before state k+1 is
+published; otherwise that step is a deadline miss. The fallback (default: the safe power) applies
+as soon as the controller's liveliness token is gone, or when no command was applied for
+``timeout_s``.
 
 Functional core: :class:`CommandLatch` (which command applies, deadline and round-trip
 bookkeeping; no I/O, time passed in). Thin shell: :func:`run_free` (zenoh, clock, loop).
@@ -16,19 +20,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
-from fe_node.node import CommandPolicy
+from fe_node.commands import FALLBACKS, CommandGate, CommandPolicy, Verdict
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
 from messages.bus import BusSettings, NodeBus, StopFlag
 from messages.cli import UsageError, exit_error
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
 
-RING = 1 << 14  # publish times kept for round-trip matching (steps)
+RING = 1 << 14  # publish times kept for round-trip matching; older commands are stale (steps)
+FREE_RUN_TIMEOUT_S = 0.5  # default fallback timeout of a free-running plant [s]
 
 
 @dataclass(frozen=True)
@@ -84,6 +90,8 @@ class FreeRunSettings:
     dt_s : float or None
         Process time per step [s] (``None``: the wall period ``1 / rate_hz``, as a sensor;
         a model with its own time step, e.g. the GP surrogate, sets it).
+    controller : str
+        Node name of the controller whose liveliness the plant follows.
     """
 
     rate_hz: float = 1000.0
@@ -91,6 +99,7 @@ class FreeRunSettings:
     duration_s: float | None = None
     diagnostics_every: int = 100
     dt_s: float | None = None
+    controller: str = "controller"
 
     @property
     def step_s(self) -> float:
@@ -108,6 +117,8 @@ class FreeRunSettings:
             raise UsageError("--diagnostics-every must be >= 1")
         if self.dt_s is not None and not 0 < self.dt_s < 1:
             raise UsageError(f"process time step must be in (0, 1) s, got {self.dt_s}")
+        if not self.controller:
+            raise UsageError("--controller must name a node")
 
 
 @dataclass
@@ -119,21 +130,24 @@ class CommandLatch:
     policy : CommandPolicy
         Bounds (never apply a power outside them), timeout and fallback.
     power_w, speed_m_s : float
-        Initial (nominal) command, applied until the first command arrives [W], [m/s].
+        Initial (nominal) command, step 0, applied until the first command arrives [W], [m/s].
     """
 
     policy: CommandPolicy
     power_w: float
     speed_m_s: float
-    newest_step: int = -1
+    gate: CommandGate = field(init=False)
+    newest_step: int = 0
     last_command_t: float | None = None
     on_time_step: int = -1
-    n_rejected: int = 0
     n_late: int = 0
     n_fallbacks: int = 0
     rtt_s: list[float] = field(default_factory=list)
     _published_t: np.ndarray = field(default_factory=lambda: np.full(RING, np.nan))
     _published_step: int = -1
+
+    def __post_init__(self) -> None:
+        self.gate = CommandGate(self.policy)
 
     def published(self, step: int, t: float) -> None:
         """State ``step`` was published at monotonic time ``t`` [s]."""
@@ -141,31 +155,31 @@ class CommandLatch:
         self._published_step = step
 
     def offer(self, cmd: LaserCommand, t: float) -> None:
-        """A decoded command received at monotonic time ``t`` [s]."""
-        if not self.policy.accepts(cmd):
-            self.n_rejected += 1
+        """A decoded command received at monotonic time ``t`` [s]: applied if the gate admits it."""
+        first = max(self.newest_step + 1, self._published_step + 2 - RING)
+        if self.gate.admit(cmd, first, self._published_step + 1) is not Verdict.APPLY:
             return
-        answered = cmd.step - 1
-        if 0 <= answered <= self._published_step and self._published_step - answered < RING:
-            self.rtt_s.append(t - float(self._published_t[answered % RING]))
+        self.rtt_s.append(t - float(self._published_t[(cmd.step - 1) % RING]))
         if cmd.step <= self._published_step:
             self.n_late += 1  # its state's successor is already out: too late for its step
         else:
-            self.on_time_step = max(self.on_time_step, cmd.step)
-        if cmd.step > self.newest_step:
-            self.newest_step = cmd.step
-            self.power_w, self.speed_m_s = cmd.power_w, cmd.speed_mm_s * 1e-3
-            self.last_command_t = t
+            self.on_time_step = cmd.step
+        self.newest_step = cmd.step
+        self.power_w, self.speed_m_s = cmd.power_w, cmd.speed_mm_s * 1e-3
+        self.last_command_t = t
 
-    def command_for(self, t: float, started_t: float) -> tuple[float, float, str]:
-        """(power [W], speed [m/s], source) to apply now; fallback after ``timeout_s`` without commands."""
+    def command_for(self, t: float, started_t: float, controller_gone: bool) -> tuple[float, float, str]:
+        """(power [W], speed [m/s], ``command_source``) to apply at monotonic time ``t`` [s].
+
+        The fallback applies once the controller is gone or ``timeout_s`` passed without an
+        applied command (since ``started_t`` before the first); the initial command before the
+        first one arrives is ``open-loop``.
+        """
         last = self.last_command_t if self.last_command_t is not None else started_t
-        if t - last > self.policy.timeout_s:
+        if controller_gone or t - last > self.policy.timeout_s:
             self.n_fallbacks += 1
-            if self.policy.fallback == "safe":
-                return self.policy.safe_power_w, self.speed_m_s, "fallback-safe"
-            return self.power_w, self.speed_m_s, "fallback-hold"
-        return self.power_w, self.speed_m_s, "controller"
+            return self.policy.fallback_power(self.power_w), self.speed_m_s, self.policy.fallback_source
+        return self.power_w, self.speed_m_s, "open-loop" if self.last_command_t is None else "controller"
 
     def missed(self, step: int) -> bool:
         """Whether the command for ``step`` had not arrived when state ``step`` was published."""
@@ -174,19 +188,20 @@ class CommandLatch:
 
 @dataclass(frozen=True)
 class FreeRunStats:
-    """Outcome of a free-running session (times in s)."""
+    """Outcome of a free-running session (times in s; command counts by what became of them)."""
 
     steps: int
     wall_s: float
     misses: int
     late: int
+    dropped: int
     rejected: int
     invalid: int
     fallbacks: int
     rtt_s: tuple[float, ...]
 
     def summary(self) -> dict[str, float | int]:
-        """JSON-able figures: achieved rate [Hz], deadline misses [%], round trip [µs]."""
+        """JSON-able figures: achieved rate [Hz], deadline misses [%], round trip [µs], command counts."""
         rtt = np.asarray(self.rtt_s) * 1e6
         return {
             "steps": self.steps,
@@ -196,6 +211,7 @@ class FreeRunStats:
             "rtt_p99_us": round(float(np.percentile(rtt, 99)), 1) if rtt.size else None,
             "commands": int(rtt.size),
             "late_commands": self.late,
+            "dropped_commands": self.dropped,
             "rejected_commands": self.rejected,
             "invalid_commands": self.invalid,
             "fallback_steps": self.fallbacks,
@@ -213,12 +229,13 @@ def state_message(run_id: str, step: int, time_s: float, s: PlantSample, power_w
 
 
 def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: FreeRunSettings, stop: StopFlag,
-             source: str) -> FreeRunStats:
+             source: str, controller_gone: threading.Event) -> FreeRunStats:
     """Publish states at ``settings.rate_hz`` until the step/time limit or a stop; apply the newest command.
 
     The node must have announced readiness (``bus.ready``) before; the loop never blocks on
     the controller. Ticks follow a fixed schedule; an overrun by more than one period restarts
-    it from now (no burst to catch up). The achieved rate is reported.
+    it from now (no burst to catch up). The achieved rate is reported. Each switch to the
+    fallback is logged once (``controller_gone``: the controller's liveliness token is gone).
     """
     states = bus.publisher(PLANT_STATE)
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
@@ -227,6 +244,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     sample = plant.initial()
     power, speed = latch.power_w, latch.speed_m_s
     step = misses = 0
+    command_source = "open-loop"
     started = next_tick = time.monotonic()
     states.put(state_message(bus.run_id, 0, 0.0, sample, power, speed, source))
     latch.published(0, time.monotonic())
@@ -245,7 +263,14 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
             latch.offer(cmd, time.monotonic())
         step += 1
         now = time.monotonic()
-        power, speed, command_source = latch.command_for(now, started)
+        gone = controller_gone.is_set()
+        power, speed, new_source = latch.command_for(now, started, gone)
+        if new_source.startswith("fallback") and not command_source.startswith("fallback"):
+            reason = (f"controller {settings.controller!r} gone (liveliness lost)" if gone
+                      else f"no command for {latch.policy.timeout_s} s")
+            bus.log(LogLevel.WARNING, f"{reason}: applying {new_source} {power:.1f} W from step {step}",
+                    time_s=step * dt)
+        command_source = new_source
         misses += latch.missed(step)
         sample = plant.step(power, speed, dt)
         states.put(state_message(bus.run_id, step, step * dt, sample, power, speed, source))
@@ -253,33 +278,42 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
         if step % settings.diagnostics_every == 0:
             diagnostics.put(PlantDiagnostics(
                 run_id=bus.run_id, step=step, time_s=step * dt, step_wall_ms=(time.monotonic() - now) * 1e3,
-                n_fallbacks=latch.n_fallbacks, n_stale_commands=latch.n_late,
-                n_dropped=latch.n_rejected + inbox.n_invalid, command_source=command_source,
+                n_fallbacks=latch.n_fallbacks, n_stale_commands=latch.gate.n_stale,
+                n_dropped=latch.gate.n_dropped + inbox.n_invalid, command_source=command_source,
             ))
     wall = time.monotonic() - started
     for cmd in inbox.drain():  # count what is still queued
         latch.offer(cmd, time.monotonic())
-    stats = FreeRunStats(step, wall, misses, latch.n_late, latch.n_rejected, inbox.n_invalid, latch.n_fallbacks,
+    stats = FreeRunStats(step, wall, misses, latch.n_late, latch.gate.n_dropped + inbox.n_invalid,
+                         latch.gate.counts[Verdict.OUT_OF_BOUNDS], inbox.n_invalid, latch.n_fallbacks,
                          tuple(latch.rtt_s))
     bus.log(LogLevel.INFO, f"{'stopped' if stop.is_set() else 'finished'} after {step} steps in {wall:.2f} s; "
-            f"{misses} deadline misses, {latch.n_rejected} rejected, {inbox.n_invalid} invalid commands, "
+            f"{misses} deadline misses, {stats.dropped} dropped commands ({latch.gate.n_stale} stale, "
+            f"{latch.gate.counts[Verdict.AHEAD]} ahead, {stats.rejected} out of bounds, {stats.invalid} invalid), "
             f"{latch.n_fallbacks} fallback steps", time_s=step * dt)
     return stats
 
 
 def add_free_run_arguments(parser: argparse.ArgumentParser, rate_hz: float) -> None:
     """Options of every free-running plant: rate, limits, command bounds and fallback."""
+    defaults, policy = FreeRunSettings(), CommandPolicy()
     parser.add_argument("--rate-hz", type=float, default=rate_hz, help="publish rate [Hz] (default: %(default)s)")
     parser.add_argument("--max-steps", type=int, help="stop after this many steps")
     parser.add_argument("--duration-s", type=float, help="stop after this wall time [s]")
-    parser.add_argument("--diagnostics-every", type=int, default=100, help="PlantDiagnostics every N steps")
+    parser.add_argument("--diagnostics-every", type=int, default=defaults.diagnostics_every,
+                        help="PlantDiagnostics every N steps (default: %(default)s)")
     parser.add_argument("--power-w", type=float, default=250.0, help="power until the first command [W]")
     parser.add_argument("--speed-mm-s", type=float, default=800.0, help="speed until the first command [mm/s]")
-    parser.add_argument("--power-min-w", type=float, default=0.0, help="lowest power ever applied [W]")
-    parser.add_argument("--power-max-w", type=float, default=350.0, help="highest power ever applied [W]")
-    parser.add_argument("--command-timeout-s", type=float, default=0.5, help="fallback after this long without commands [s]")
-    parser.add_argument("--fallback", choices=("hold", "safe"), default="safe", help="hold the last power or apply --safe-power-w")
-    parser.add_argument("--safe-power-w", type=float, default=0.0, help="power of the 'safe' fallback [W]")
+    parser.add_argument("--power-min-w", type=float, default=policy.power_min_w, help="lowest power ever applied [W]")
+    parser.add_argument("--power-max-w", type=float, default=policy.power_max_w, help="highest power ever applied [W]")
+    parser.add_argument("--command-timeout-s", type=float, default=FREE_RUN_TIMEOUT_S,
+                        help="fallback after this long without an applied command [s] (default: %(default)s)")
+    parser.add_argument("--fallback", choices=FALLBACKS, default=policy.fallback,
+                        help="apply --safe-power-w or hold the last power (default: %(default)s)")
+    parser.add_argument("--safe-power-w", type=float, default=policy.safe_power_w,
+                        help="power of the 'safe' fallback [W] (default: %(default)s)")
+    parser.add_argument("--controller", default=defaults.controller,
+                        help="controller node whose liveliness the plant follows (default: %(default)s)")
     parser.add_argument("--json", action="store_true", help="print the timing summary as JSON (last line)")
 
 
@@ -288,12 +322,11 @@ def settings_from_args(args: argparse.Namespace, dt_s: float | None = None) -> t
 
     Raises :class:`UsageError`.
     """
-    settings = FreeRunSettings(args.rate_hz, args.max_steps, args.duration_s, args.diagnostics_every, dt_s)
+    settings = FreeRunSettings(args.rate_hz, args.max_steps, args.duration_s, args.diagnostics_every, dt_s,
+                               args.controller)
     policy = CommandPolicy(args.power_min_w, args.power_max_w, timeout_s=args.command_timeout_s,
                            fallback=args.fallback, safe_power_w=args.safe_power_w)
-    probe = LaserCommand(run_id="x", step=0, time_s=0.0, power_w=max(args.power_w, 0.0),
-                         speed_mm_s=max(args.speed_mm_s, 1e-9), controller="initial")
-    if not (args.power_w >= 0 and args.speed_mm_s > 0 and policy.accepts(probe)):
+    if not policy.within_bounds(args.power_w, args.speed_mm_s * 1e-3):
         raise UsageError("--power-w/--speed-mm-s must lie within the command bounds")
     return settings, policy
 
@@ -305,9 +338,10 @@ def serve(node: str, plant: FreePlant, bus_settings: BusSettings, args: argparse
     latch = CommandLatch(policy, args.power_w, args.speed_mm_s * 1e-3)
     try:
         with NodeBus(node, bus_settings) as bus:
+            controller_gone = bus.watch_presence(settings.controller)
             bus.ready(config={**config, "rate_hz": settings.rate_hz, "policy": vars(policy)},
                       total_steps=settings.max_steps, stop=stop)
-            stats = run_free(bus, plant, latch, settings, stop, source)
+            stats = run_free(bus, plant, latch, settings, stop, source, controller_gone)
             summary = stats.summary()
             bus.end_detail(json.dumps(summary))
     except TimeoutError as err:  # a --require node never appeared

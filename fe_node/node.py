@@ -2,12 +2,13 @@
 
 After each step it publishes ``MeltPoolState`` (and ``PlantDiagnostics``, every few steps a
 ``foxglove.RawImage`` of the top surface), then waits for the ``LaserCommand`` whose step id is
-the next step. Commands for other steps are stale and ignored (counted); invalid ones and
-powers outside the configured bounds are dropped (counted) and never applied. If no valid
-command arrives within ``--command-timeout-s``, the configured fallback (hold the last power,
-or a safe power) is applied and logged; if the controller has gone away the run ends with exit
-status 1 after that step. ``--open-loop`` plays the scenario's power/speed profile instead and
-needs no controller.
+the next step. Every other command — another step (past, duplicated or ahead, up to 2³¹ − 1), a
+power or speed outside the plant's own bounds, an invalid payload or another run's — is dropped
+and counted (``PlantDiagnostics.n_dropped``) and never extends the wait. The configured fallback
+(default: the safe power, 0 W) applies as soon as the controller's liveliness token is gone —
+then the run ends with exit status 1 after that step — or when no applicable command arrived
+within ``--command-timeout-s``. ``--open-loop`` plays the scenario's power/speed profile instead
+and needs no controller.
 """
 
 from __future__ import annotations
@@ -17,10 +18,12 @@ import dataclasses
 import json
 import math
 import sys
+import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
+from fe_node.commands import FALLBACKS, CommandGate, CommandPolicy, Verdict
 from fe_node.image import temperature_image
 from fe_node.observe import Observation
 from fe_node.scenarios import NAMES, Scenario
@@ -33,38 +36,48 @@ from messages.config import load_toml
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE, PLANT_TEMPERATURE
 
 NODE_NAME = "plant"
+POLL_S = 0.005  # a waiting plant looks at the controller's liveliness this often [s]
 
 
 @dataclass(frozen=True)
-class CommandPolicy:
-    """How the plant accepts commands (all powers in W, speeds in m/s, times in s)."""
+class PlantSettings:
+    """How the lockstep plant node runs.
 
-    power_min_w: float = 0.0
-    power_max_w: float = 350.0
-    speed_min_m_s: float = 0.05
-    speed_max_m_s: float = 5.0
-    timeout_s: float = 5.0
-    fallback: str = "hold"
-    safe_power_w: float = 0.0
+    Attributes
+    ----------
+    policy : CommandPolicy
+        Command bounds, timeout and fallback.
+    open_loop : bool
+        Play the scenario's power/speed profile; no controller.
+    max_steps : int or None
+        Stop after this many steps (``None``: at the end of the scan plan).
+    image_every : int
+        Publish the temperature image every N steps.
+    controller : str
+        Node name of the controller whose liveliness the plant follows.
+
+    Raises
+    ------
+    UsageError
+        On construction, naming the option of an invalid value.
+    """
+
+    policy: CommandPolicy = field(default_factory=CommandPolicy)
+    open_loop: bool = False
+    max_steps: int | None = None
+    image_every: int = 10
+    controller: str = "controller"
 
     def __post_init__(self) -> None:
-        if not 0 <= self.power_min_w < self.power_max_w:
-            raise UsageError("power bounds need 0 <= --power-min-w < --power-max-w")
-        if not 0 < self.speed_min_m_s < self.speed_max_m_s:
-            raise UsageError("speed bounds need 0 < min < max")
-        if not self.timeout_s > 0:
-            raise UsageError("--command-timeout-s must be > 0")
-        if self.fallback not in ("hold", "safe"):
-            raise UsageError("--fallback must be 'hold' or 'safe'")
-        if not self.power_min_w <= self.safe_power_w <= self.power_max_w:
-            raise UsageError("--safe-power-w must lie within the power bounds")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise UsageError(f"--max-steps must be >= 1, got {self.max_steps}")
+        if self.image_every < 1:
+            raise UsageError(f"--image-every must be >= 1, got {self.image_every}")
+        if not self.controller:
+            raise UsageError("--controller must name a node")
 
-    def accepts(self, cmd: LaserCommand) -> bool:
-        """Whether a command may be applied (never apply a power outside the bounds)."""
-        return (
-            self.power_min_w <= cmd.power_w <= self.power_max_w
-            and self.speed_min_m_s <= cmd.speed_mm_s * 1e-3 <= self.speed_max_m_s
-        )
+
+DEFAULTS = PlantSettings()
 
 
 def n_steps(scenario: Scenario) -> int:
@@ -101,42 +114,50 @@ def preview_fields(obs: Observation) -> dict:
 
 
 class CommandWaiter:
-    """Waits for the command of a given step; counts stale and rejected commands."""
+    """Waits for the command of one step; drops and counts every other one (:class:`CommandGate`)."""
 
     def __init__(self, inbox: Inbox, policy: CommandPolicy) -> None:
         self.inbox, self.policy = inbox, policy
-        self.n_stale = 0
-        self.n_rejected = 0
+        self.gate = CommandGate(policy)
 
-    def wait(self, step: int, stop: StopFlag) -> LaserCommand | None:
-        """The valid command for ``step``, or ``None`` after the timeout (or on stop)."""
+    @property
+    def n_dropped(self) -> int:
+        """Commands dropped so far: not applicable (any reason) or invalid."""
+        return self.gate.n_dropped + self.inbox.n_invalid
+
+    def wait(self, step: int, stop: StopFlag, gone: threading.Event) -> LaserCommand | None:
+        """The applicable command for ``step``; ``None`` after the timeout, once ``gone`` is set, or on stop.
+
+        Dropped commands never extend the wait: the deadline is fixed when it starts.
+        """
         deadline = time.monotonic() + self.policy.timeout_s
-        while not stop.is_set():
+        while not (stop.is_set() or gone.is_set()):
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return None
-            cmd = self.inbox.get(timeout=min(remaining, 0.1))
-            if cmd is None:
-                continue
-            if cmd.step != step:
-                self.n_stale += 1
-            elif not self.policy.accepts(cmd):
-                self.n_rejected += 1
-            else:
+            cmd = self.inbox.get(timeout=min(remaining, POLL_S))
+            if cmd is not None and self.gate.admit(cmd, step, step) is Verdict.APPLY:
                 return cmd
         return None
 
+    def summary(self) -> str:
+        """Dropped commands by reason, for the end-of-run line."""
+        counts = self.gate.counts
+        return (f"{self.n_dropped} dropped commands ({counts[Verdict.STALE]} stale, {counts[Verdict.AHEAD]} ahead, "
+                f"{counts[Verdict.OUT_OF_BOUNDS]} out of bounds, {self.inbox.n_invalid} invalid)")
 
-def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, policy: CommandPolicy, args: argparse.Namespace,
-        stop: StopFlag, setup_s: float) -> int:
-    """Step the plant until the scan plan ends (or ``--max-steps``); returns the exit status."""
+
+def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSettings, stop: StopFlag,
+        setup_s: float) -> int:
+    """Step the plant until the scan plan ends (or ``settings.max_steps``); returns the exit status."""
+    policy = settings.policy
     states = bus.publisher(PLANT_STATE)
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
     images = bus.publisher(PLANT_TEMPERATURE, express=False)
-    waiter = CommandWaiter(bus.inbox(LASER_COMMAND), policy) if not args.open_loop else None
-    controller_gone = bus.watch_presence(args.controller) if waiter else None
-    total = n_steps(scenario) if args.max_steps is None else min(n_steps(scenario), args.max_steps)
-    bus.ready(config={**describe(scenario), "policy": vars(policy), "open_loop": args.open_loop,
+    waiter = None if settings.open_loop else CommandWaiter(bus.inbox(LASER_COMMAND), policy)
+    gone = threading.Event() if waiter is None else bus.watch_presence(settings.controller)
+    total = n_steps(scenario) if settings.max_steps is None else min(n_steps(scenario), settings.max_steps)
+    bus.ready(config={**describe(scenario), "policy": vars(policy), "open_loop": settings.open_loop,
                       "setup_s": round(setup_s, 3), "nodes": model.grid.n_nodes}, total_steps=total, stop=stop)
     bus.log(LogLevel.INFO, f"{scenario.name}: {total} steps, {model.grid.n_nodes} nodes, setup {setup_s:.1f} s")
     power_w, speed_m_s = scenario.profile.command(0)
@@ -146,7 +167,7 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, policy: CommandPo
     t_min, t_max = scenario.settings.t0_k, scenario.settings.material.t_liquidus + 600.0
     while not stop.is_set():
         states.put(state_message(bus.run_id, obs))
-        if obs.step % args.image_every == 0:
+        if obs.step % settings.image_every == 0:
             image, _ = model.temperature_image()
             images.put(temperature_image(image, obs.time_s, t_min, t_max))
         if obs.step >= total or model.done:
@@ -154,38 +175,35 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, policy: CommandPo
         source = "open-loop"
         if waiter is None:
             power_w, speed_m_s = scenario.profile.command(obs.step)
+        elif (cmd := waiter.wait(obs.step + 1, stop, gone)) is not None:
+            power_w, speed_m_s, source = cmd.power_w, cmd.speed_mm_s * 1e-3, "controller"
+        elif stop.is_set():
+            break
         else:
-            cmd = waiter.wait(obs.step + 1, stop)
-            if cmd is not None:
-                power_w, speed_m_s, source = cmd.power_w, cmd.speed_mm_s * 1e-3, "controller"
-            elif stop.is_set():
-                break
+            n_fallbacks += 1
+            power_w, source = policy.fallback_power(power_w), policy.fallback_source
+            if gone.is_set():
+                status = 1
+                bus.log(LogLevel.WARNING, f"controller {settings.controller!r} gone (liveliness lost): applying "
+                        f"{source} {power_w:.1f} W to step {obs.step + 1} at wall {time.time():.6f} s; "
+                        "ending the run after that step", time_s=obs.time_s)
             else:
-                n_fallbacks += 1
-                if policy.fallback == "safe":
-                    power_w = policy.safe_power_w
-                source = f"fallback-{policy.fallback}"
-                gone = controller_gone is not None and controller_gone.is_set()
-                bus.log(LogLevel.ERROR if gone else LogLevel.WARNING,
-                        f"no command for step {obs.step + 1} within {policy.timeout_s} s"
-                        f"{' (controller gone)' if gone else ''}; applying {source} {power_w:.1f} W", time_s=obs.time_s)
-                if gone:
-                    status = 1
+                bus.log(LogLevel.WARNING, f"no command for step {obs.step + 1} within {policy.timeout_s} s; "
+                        f"applying {source} {power_w:.1f} W", time_s=obs.time_s)
         t0 = time.perf_counter()
         obs = model.step(power_w, speed_m_s)
         diagnostics.put(PlantDiagnostics(
             run_id=bus.run_id, step=obs.step, time_s=obs.time_s, step_wall_ms=(time.perf_counter() - t0) * 1e3,
             absorbed_j=obs.energy_absorbed_j, stored_j=obs.energy_stored_j, lost_j=obs.energy_lost_j,
             energy_error_pct=obs.energy_error_pct, n_fallbacks=n_fallbacks,
-            n_stale_commands=waiter.n_stale if waiter else 0,
-            n_dropped=(waiter.n_rejected + waiter.inbox.n_invalid) if waiter else 0, command_source=source,
+            n_stale_commands=waiter.gate.n_stale if waiter else 0,
+            n_dropped=waiter.n_dropped if waiter else 0, command_source=source,
         ))
         if status:
             states.put(state_message(bus.run_id, obs))
             break
     summary = (f"{'stopped' if stop.is_set() else 'finished'} at step {obs.step}; {n_fallbacks} fallbacks"
-               + (f", {waiter.n_stale} stale, {waiter.n_rejected} rejected, {waiter.inbox.n_invalid} invalid commands"
-                  if waiter else ""))
+               + (f", {waiter.summary()}" if waiter else ""))
     bus.log(LogLevel.ERROR if status else LogLevel.INFO,
             summary + ("; ending the run: controller lost" if status else ""), time_s=obs.time_s)
     bus.end_detail(summary)
@@ -193,24 +211,39 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, policy: CommandPo
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Command line of ``python -m fe_node`` (node mode)."""
+    """Command line of ``python -m fe_node`` (node mode); defaults from :data:`DEFAULTS`."""
+    policy = DEFAULTS.policy
     parser = ArgumentParser(prog="python -m fe_node", description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", default="layer", help=f"one of {', '.join(NAMES)} (default: %(default)s)")
     parser.add_argument("--power-w", type=float, help="nominal / open-loop power [W] (scenario default)")
     parser.add_argument("--speed-mm-s", type=float, help="scan speed [mm/s] (scenario default)")
     parser.add_argument("--h-um", type=float, help="fine element size [µm] (default: converged 25 µm)")
-    parser.add_argument("--config", type=Path, help="TOML run configuration; its [plant] table overrides plant settings")
-    parser.add_argument("--open-loop", action="store_true", help="play the scenario's power/speed profile; no controller")
+    parser.add_argument("--config", type=Path,
+                        help="TOML run configuration; its [plant] table overrides plant settings")
+    parser.add_argument("--open-loop", action="store_true",
+                        help="play the scenario's power/speed profile; no controller")
     parser.add_argument("--max-steps", type=int, help="stop after this many steps (short runs)")
-    parser.add_argument("--command-timeout-s", type=float, default=5.0, help="wait this long for each command (default: %(default)s)")
-    parser.add_argument("--fallback", choices=("hold", "safe"), default="hold", help="on timeout hold the last power or apply --safe-power-w")
-    parser.add_argument("--safe-power-w", type=float, default=0.0, help="power of the 'safe' fallback [W] (default: %(default)s)")
-    parser.add_argument("--power-min-w", type=float, default=0.0, help="lowest power ever applied [W]")
-    parser.add_argument("--power-max-w", type=float, default=350.0, help="highest power ever applied [W]")
-    parser.add_argument("--image-every", type=int, default=10, help="publish the temperature image every N steps")
-    parser.add_argument("--controller", default="controller", help="controller node to follow (default: %(default)s)")
+    parser.add_argument("--command-timeout-s", type=float, default=policy.timeout_s,
+                        help="fallback when no applicable command came within this time [s] (default: %(default)s)")
+    parser.add_argument("--fallback", choices=FALLBACKS, default=policy.fallback,
+                        help="without a command apply --safe-power-w or hold the last power (default: %(default)s)")
+    parser.add_argument("--safe-power-w", type=float, default=policy.safe_power_w,
+                        help="power of the 'safe' fallback [W] (default: %(default)s)")
+    parser.add_argument("--power-min-w", type=float, default=policy.power_min_w, help="lowest power ever applied [W]")
+    parser.add_argument("--power-max-w", type=float, default=policy.power_max_w, help="highest power ever applied [W]")
+    parser.add_argument("--image-every", type=int, default=DEFAULTS.image_every,
+                        help="publish the temperature image every N steps (default: %(default)s)")
+    parser.add_argument("--controller", default=DEFAULTS.controller,
+                        help="controller node whose liveliness the plant follows (default: %(default)s)")
     add_bus_arguments(parser)
     return parser
+
+
+def settings_from_args(args: argparse.Namespace) -> PlantSettings:
+    """Validated :class:`PlantSettings` from parsed arguments (raises :class:`UsageError`)."""
+    policy = CommandPolicy(args.power_min_w, args.power_max_w, timeout_s=args.command_timeout_s,
+                           fallback=args.fallback, safe_power_w=args.safe_power_w)
+    return PlantSettings(policy, args.open_loop, args.max_steps, args.image_every, args.controller)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -219,12 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         bus_settings = bus_settings_from_args(args)
-        if args.max_steps is not None and args.max_steps < 1:
-            raise UsageError("--max-steps must be >= 1")
-        if args.image_every < 1:
-            raise UsageError("--image-every must be >= 1")
-        policy = CommandPolicy(args.power_min_w, args.power_max_w, timeout_s=args.command_timeout_s,
-                               fallback=args.fallback, safe_power_w=args.safe_power_w)
+        settings = settings_from_args(args)
         plant_table = load_toml(args.config).get("plant", {})
         try:
             overrides = {k: v for k, v in {
@@ -243,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     setup_s = time.perf_counter() - t0
     try:
         with NodeBus(NODE_NAME, bus_settings) as bus:
-            return run(bus, scenario, model, policy, args, stop, setup_s)
+            return run(bus, scenario, model, settings, stop, setup_s)
     except TimeoutError as err:  # a --require node never appeared
         return exit_error(parser.prog, err)
 

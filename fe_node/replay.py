@@ -66,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m fe_node.replay``."""
     parser = ArgumentParser(prog="python -m fe_node.replay", description=__doc__.split("\n\n")[0])
     parser.add_argument("recording", type=Path, help="MCAP recording with /plant/state")
-    parser.add_argument("--rate-scale", type=float, default=1.0, help="playback speed; 1 = real time (default: %(default)s)")
+    parser.add_argument("--rate-scale", type=float, default=1.0,
+                        help="playback speed; 1 = real time (default: %(default)s)")
     add_bus_arguments(parser)
     args = parser.parse_args(argv)
     try:

@@ -88,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = ArgumentParser(prog="python -m fe_node.surrogate", description=__doc__.split("\n\n")[0])
     add_free_run_arguments(parser, rate_hz=2000.0)
-    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH, help="GP model file (default: the shipped one)")
+    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
+                        help="GP model file (default: the shipped one)")
     add_bus_arguments(parser)
     args = parser.parse_args(argv)
     try:

@@ -36,7 +36,7 @@ def test_plant_applies_only_the_matching_in_bounds_command(hub, run_id):
     status, out = finish(plant, timeout=30)
     assert status == 0, out
     assert applied == [150.0 + 10 * k for k in range(6)]
-    assert diag.n_stale_commands == 6 and diag.n_dropped == 6 and diag.n_fallbacks == 0
+    assert diag.n_stale_commands == 6 and diag.n_dropped == 12 and diag.n_fallbacks == 0  # stale + out of bounds
 
 
 def test_missing_commands_trigger_the_safe_fallback_and_are_logged(hub, run_id):

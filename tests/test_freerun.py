@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from fe_node.freerun import CommandLatch, FreeRunSettings
-from fe_node.node import CommandPolicy
+from fe_node.commands import CommandPolicy, Verdict
+from fe_node.freerun import RING, CommandLatch, FreeRunSettings
 from fe_node.surrogate import TrackProfile
 from messages import LaserCommand
 from messages.cli import UsageError
@@ -28,7 +28,7 @@ def test_on_time_command_applies_and_counts_round_trip():
     lt.published(0, 10.0)
     lt.offer(cmd(1), 10.0002)
     assert not lt.missed(1)
-    assert lt.command_for(10.0005, started_t=10.0) == (200.0, 0.8, "controller")
+    assert lt.command_for(10.0005, started_t=10.0, controller_gone=False) == (200.0, 0.8, "controller")
     assert lt.rtt_s == [pytest.approx(2e-4)]
 
 
@@ -38,27 +38,59 @@ def test_late_command_is_a_miss_but_still_the_newest_applied():
     assert lt.missed(1)  # nothing arrived before state 1
     lt.published(1, 0.001)
     lt.offer(cmd(1, 220.0), 0.0012)  # answers state 0, arrives after state 1 was published
-    assert lt.n_late == 1 and lt.command_for(0.0013, 0.0)[0] == 220.0
+    assert lt.n_late == 1 and lt.command_for(0.0013, 0.0, False)[0] == 220.0
     lt.offer(cmd(2, 230.0), 0.0014)
     lt.offer(cmd(1, 100.0), 0.0015)  # an older step never overrides a newer command
-    assert not lt.missed(2) and lt.command_for(0.0016, 0.0)[0] == 230.0
+    assert not lt.missed(2) and lt.command_for(0.0016, 0.0, False)[0] == 230.0
+    assert lt.gate.n_stale == 1
 
 
 def test_out_of_bounds_command_is_rejected_never_applied():
     lt = latch()
     lt.published(0, 0.0)
     lt.offer(cmd(1, 340.0), 0.0001)
-    assert lt.n_rejected == 1 and lt.missed(1) and lt.command_for(0.0002, 0.0)[0] == 250.0
+    assert lt.gate.counts[Verdict.OUT_OF_BOUNDS] == 1 and lt.missed(1)
+    assert lt.command_for(0.0002, 0.0, False) == (250.0, 0.8, "open-loop")  # the initial command, not a controller's
 
 
 def test_fallback_after_timeout_without_commands():
     lt = latch(safe_power_w=20.0)
     lt.published(0, 0.0)
+    assert lt.command_for(0.5, 0.0, False)[2] == "open-loop"
     lt.offer(cmd(1), 0.1)
-    assert lt.command_for(1.0, 0.0)[2] == "controller"
-    assert lt.command_for(1.2, 0.0) == (20.0, 0.8, "fallback-safe") and lt.n_fallbacks == 1
+    assert lt.command_for(1.0, 0.0, False)[2] == "controller"
+    assert lt.command_for(1.2, 0.0, False) == (20.0, 0.8, "fallback-safe") and lt.n_fallbacks == 1
     hold = latch(fallback="hold")
-    assert hold.command_for(1.5, 0.0) == (250.0, 0.8, "fallback-hold")
+    assert hold.command_for(1.5, 0.0, False) == (250.0, 0.8, "fallback-hold")
+
+
+def test_fallback_as_soon_as_the_controller_is_gone():
+    lt = latch(safe_power_w=20.0)
+    lt.published(0, 0.0)
+    lt.offer(cmd(1), 0.0001)
+    assert lt.command_for(0.0002, 0.0, controller_gone=True) == (20.0, 0.8, "fallback-safe")  # long before the timeout
+
+
+def test_steps_the_plant_cannot_have_asked_for_are_dropped():
+    lt = latch()
+    lt.published(0, 0.0)
+    for step in (2, 1000, 2**31 - 1):  # ahead of the newest published state + 1
+        lt.offer(cmd(step, 123.0), 0.0001)
+    assert lt.gate.counts[Verdict.AHEAD] == 3 and lt.command_for(0.0002, 0.0, False)[0] == 250.0
+    lt.offer(cmd(0, 123.0), 0.0003)  # step 0 is the initial command, answers no state
+    assert lt.gate.n_stale == 1 and lt.command_for(0.0004, 0.0, False)[0] == 250.0
+    lt.offer(cmd(1), 0.0005)
+    lt.offer(cmd(1, 123.0), 0.0006)  # a duplicate
+    assert lt.gate.n_stale == 2 and lt.command_for(0.0007, 0.0, False)[0] == 200.0
+
+
+def test_a_command_older_than_the_window_is_stale():
+    lt = latch()
+    for step in range(RING + 1):
+        lt.published(step, step * 1e-3)
+    lt.offer(cmd(1, 123.0), RING * 1e-3)  # answers state 0, RING steps ago
+    lt.offer(cmd(2, 124.0), RING * 1e-3)  # answers state 1, RING - 1 steps ago: late but applied
+    assert lt.gate.n_stale == 1 and lt.n_late == 1 and lt.command_for(RING * 1e-3, 0.0, False)[0] == 124.0
 
 
 @pytest.mark.parametrize("kwargs", [{"rate_hz": 0}, {"rate_hz": 2e5}, {"max_steps": 0}, {"duration_s": -1},
