@@ -6,12 +6,27 @@ Foxglove plots directly. Time base: ``log_time`` is the message's **process time
 time for the FE plant, ``time_s`` or ``timestamp``), ``publish_time`` is the recorder's **wall
 clock** (UNIX ns) on receipt. Metadata ``meltloop`` holds run id, code revision and package
 versions; each node's resolved configuration (from its ``start`` event) is attached as
-``config/<node>.json``; metadata ``meltloop.counts`` holds recorded, invalid and published
-counts at the end.
+``config/<node>.json``; metadata ``meltloop.counts`` holds recorded, published, missing, extra
+and dropped counts at the end.
+
+What is recorded (:class:`Intake`): schema-valid messages of this run only; a state or command
+whose step is not newer than the last recorded one of its topic, or more than
+:data:`MAX_STEPS_AHEAD` ahead of it, is dropped and counted. An ``end`` event counts only for a
+node that sent a ``start`` and whose liveliness token disappears within the drain time of it
+(:class:`RunTracker`); a second ``end`` of a node is dropped. At the end, published and
+recorded counts are reconciled both ways (:func:`reconcile`).
+
+Crash safety: the MCAP chunk is closed and the file flushed every :data:`FLUSH_PERIOD_S`, so a
+killed recorder loses at most that much; ``python -m messages.recording recover`` makes such a
+file whole again. A write error (full disk, read-only file system) ends the recorder with one
+line, exit status 1, the file readable up to the fault.
 
 Run: ``python -m messages.recorder --run-id RUN --out recordings/run.mcap``. It finishes the
-file when every expected node has sent its ``end`` event and every message it reported
-published has arrived, and on SIGINT/SIGTERM. Exit status 1 if messages were missing.
+file when every expected node has ended and every message it reported published has arrived
+(or the drain time has passed), and on SIGINT/SIGTERM. ``complete = "true"`` only when the run
+ended by its nodes' own end events with nothing missing or extra; exit status 1 if messages
+were missing or extra, or the file could not be written; 2 for a bad command line or an
+unwritable ``--out``.
 """
 
 from __future__ import annotations
@@ -21,6 +36,9 @@ import queue
 import sys
 import time
 from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -32,10 +50,17 @@ from messages.cli import ArgumentParser, UsageError, exit_usage
 from messages.codec import MessageError, decode, encode, json_schema
 from messages.foxglove import Log, LogLevel, Timestamp
 from messages.provenance import git_revision, package_versions
-from messages.topics import LOG, RUN_EVENTS, TOPICS, Topic, run_prefix, topic_for_key
+from messages.topics import LASER_COMMAND, LOG, PLANT_STATE, RUN_EVENTS, TOPICS, Topic, run_prefix, topic_for_key
 from messages.types import RunEvent
 
 NODE_NAME = "recorder"
+MAX_STEPS_AHEAD = 1000
+"""Largest step advance over the last recorded state/command of a topic that is still possible."""
+STEP_TOPICS = (PLANT_STATE, LASER_COMMAND)
+FLUSH_PERIOD_S = 0.5
+"""Wall time [s] between chunk closes and file flushes (while messages arrive and when idle)."""
+POLL_S = 0.05
+WARNINGS_LOGGED = 20
 
 
 def log_time_ns(msg: Any) -> int:
@@ -45,167 +70,446 @@ def log_time_ns(msg: Any) -> int:
     return msg.timestamp.to_ns()
 
 
-class McapRecorder:
-    """Writes contract messages of one run into one MCAP file (no transport inside)."""
+class RecordingWriteError(Exception):
+    """The output file cannot be written any more (full disk, read-only file system, ...)."""
 
-    def __init__(self, path: Path, run_id: str) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
+    def __init__(self, path: Path, err: OSError) -> None:
+        super().__init__(f"cannot write {path}: {err.strerror or err}")
+
+
+class McapRecorder:
+    """Writes contract messages of one run into one MCAP stream (no transport inside).
+
+    Parameters
+    ----------
+    path : Path
+        The file ``stream`` writes to (named in errors).
+    run_id : str
+        The run recorded.
+    stream : binary file object
+        Where the MCAP goes: ``path.open("wb")`` in production, a fault-injecting wrapper in tests.
+    """
+
+    def __init__(self, path: Path, run_id: str, stream: BinaryIO) -> None:
         self.path = path
         self.run_id = run_id
-        self._stream: BinaryIO = path.open("wb")
-        self._writer = Writer(self._stream, compression=CompressionType.ZSTD)
-        self._writer.start(profile="", library="meltloop")
-        self._channels: dict[str, int] = {}
-        for topic in TOPICS.values():
-            schema_id = self._writer.register_schema(
-                name=topic.schema_name, encoding="jsonschema", data=json.dumps(json_schema(topic)).encode()
-            )
-            self._channels[topic.suffix] = self._writer.register_channel(
-                topic=topic.channel, message_encoding="json", schema_id=schema_id
-            )
+        self._stream = stream
         self.recorded: Counter[str] = Counter()
-        self._writer.add_metadata(
-            "meltloop",
-            {
-                "run_id": run_id,
-                "git_revision": git_revision(),
-                "started_utc": datetime.now(UTC).isoformat(),
-                "log_time": "process (simulated) time since the start of the run",
-                "publish_time": "recorder wall clock on receipt, UNIX epoch",
-                **{f"version.{k}": v for k, v in package_versions().items()},
-            },
-        )
+        self.failed = False
         self.finished = False
+        self._last_flush = time.monotonic()
+        with self._writing():
+            self._writer = Writer(self._stream, compression=CompressionType.ZSTD)
+            self._writer.start(profile="", library="meltloop")
+            self._channels: dict[str, int] = {}
+            for topic in TOPICS.values():
+                schema_id = self._writer.register_schema(
+                    name=topic.schema_name, encoding="jsonschema", data=json.dumps(json_schema(topic)).encode()
+                )
+                self._channels[topic.suffix] = self._writer.register_channel(
+                    topic=topic.channel, message_encoding="json", schema_id=schema_id
+                )
+            self._writer.add_metadata(
+                "meltloop",
+                {
+                    "run_id": run_id,
+                    "git_revision": git_revision(),
+                    "started_utc": datetime.now(UTC).isoformat(),
+                    "log_time": "process (simulated) time since the start of the run",
+                    "publish_time": "recorder wall clock on receipt, UNIX epoch",
+                    **{f"version.{k}": v for k, v in package_versions().items()},
+                },
+            )
+
+    @contextmanager
+    def _writing(self) -> Iterator[None]:
+        """Turn an ``OSError`` of the stream into :class:`RecordingWriteError`; no writing after one."""
+        if self.failed:
+            raise RecordingWriteError(self.path, OSError("an earlier write failed"))
+        try:
+            yield
+        except OSError as err:
+            self.failed = True
+            raise RecordingWriteError(self.path, err) from None
 
     def write(self, topic: Topic, payload: bytes, msg: Any, publish_time_ns: int) -> None:
         """Append one validated message (its original JSON bytes) to the topic's channel."""
-        self._writer.add_message(
-            channel_id=self._channels[topic.suffix],
-            log_time=log_time_ns(msg),
-            data=payload,
-            publish_time=publish_time_ns,
-            sequence=self.recorded[topic.suffix],
-        )
+        with self._writing():
+            self._writer.add_message(
+                channel_id=self._channels[topic.suffix],
+                log_time=log_time_ns(msg),
+                data=payload,
+                publish_time=publish_time_ns,
+                sequence=self.recorded[topic.suffix],
+            )
         self.recorded[topic.suffix] += 1
 
     def attach(self, name: str, data: bytes, media_type: str = "application/json") -> None:
         """Add an attachment (e.g. a node's resolved configuration)."""
         now = time.time_ns()
-        self._writer.add_attachment(create_time=now, log_time=now, name=name, media_type=media_type, data=data)
+        with self._writing():
+            self._writer.add_attachment(create_time=now, log_time=now, name=name, media_type=media_type, data=data)
 
     def log(self, level: LogLevel, text: str, time_s: float) -> None:
         """Write one of the recorder's own log lines to ``/log``."""
-        msg = Log(timestamp=Timestamp.from_seconds(time_s), level=level, message=text, name=NODE_NAME)
+        msg = Log(timestamp=Timestamp.from_seconds(time_s), level=level, message=text[:8000], name=NODE_NAME)
         self.write(LOG, encode(msg), msg, time.time_ns())
 
+    def flush(self) -> None:
+        """Close the current chunk and flush the stream, so that everything so far is on disk.
+
+        ``mcap.writer.Writer.flush`` (public since mcap 1.2) finishes the chunk in progress and
+        flushes the output stream; ``tests/test_recorder_crash.py`` fails if it stops doing so.
+        """
+        with self._writing():
+            self._writer.flush()
+        self._last_flush = time.monotonic()
+
+    def flush_due(self, now: float) -> None:
+        """:meth:`flush` if :data:`FLUSH_PERIOD_S` has passed since the last one (``now``: monotonic s)."""
+        if now - self._last_flush >= FLUSH_PERIOD_S:
+            self.flush()
+
     def finish(self, summary: dict[str, str]) -> None:
-        """Write the closing metadata and the MCAP summary; close the file."""
+        """Write the closing metadata and the MCAP summary; close the file.
+
+        After a write error only closes the stream (what reached the file stays recoverable).
+        """
         if self.finished:
             return
-        self._writer.add_metadata("meltloop.counts", summary)
-        self._writer.finish()
-        self._stream.close()
         self.finished = True
+        if self.failed:
+            with suppress(OSError):
+                self._stream.close()
+            return
+        with self._writing():
+            self._writer.add_metadata("meltloop.counts", summary)
+            self._writer.finish()
+            self._stream.close()
 
 
+class Admission:
+    """Which schema-valid messages may be recorded: this run's, with possible steps.
+
+    A state or command (:data:`STEP_TOPICS`) must be newer than the last admitted one of its
+    topic and at most :data:`MAX_STEPS_AHEAD` ahead of it; before the first, the reference is
+    step −1 (a run starts at step 0).
+    """
+
+    def __init__(self, run_id: str) -> None:
+        self.run_id = run_id
+        self.last_step: dict[str, int] = {t.suffix: -1 for t in STEP_TOPICS}
+
+    def reason_to_drop(self, topic: Topic, msg: Any) -> str | None:
+        """``None`` if ``msg`` may be recorded (and then takes its step as the topic's last), else the reason."""
+        if getattr(msg, "run_id", self.run_id) != self.run_id:
+            return "other_run"
+        last = self.last_step.get(topic.suffix)
+        if last is not None:
+            if msg.step <= last:
+                return "step_not_newer"
+            if msg.step > last + MAX_STEPS_AHEAD:
+                return "step_too_far_ahead"
+            self.last_step[topic.suffix] = msg.step
+        return None
+
+
+@dataclass
+class _PendingEnd:
+    event: RunEvent
+    received_s: float
+    item: Any
+
+
+@dataclass
 class RunTracker:
-    """Follows nodes' start/end events and reconciles published against recorded counts."""
+    """Follows nodes' start/end events; an ``end`` counts only when the node's liveliness agrees.
 
-    def __init__(self, expected_nodes: tuple[str, ...]) -> None:
-        self.expected = set(expected_nodes)
-        self.started: set[str] = set()
-        self.ended: set[str] = set()
-        self.published: Counter[str] = Counter()
+    An ``end`` of a node that sent a ``start`` is held until the node's liveliness token is seen
+    gone within ``drain_s`` of it (before or after); then it is confirmed and its publish counts
+    taken. Held longer than ``drain_s`` with the token still there, it is dropped as
+    ``unconfirmed_end``. Times are wall-clock seconds.
 
-    def on_event(self, event: RunEvent) -> None:
-        """Take one life-cycle event into account."""
+    Parameters
+    ----------
+    expected : tuple of str
+        Nodes whose end finishes the run (none: every node that started).
+    drain_s : float
+        Largest time [s] between an ``end`` event and its node's token disappearing.
+    own_node : str
+        The recorder's name: its own ``start`` is recorded once, it never ends through an event.
+    """
+
+    expected: tuple[str, ...]
+    drain_s: float
+    own_node: str = NODE_NAME
+    started: set[str] = field(default_factory=set)
+    ended: dict[str, RunEvent] = field(default_factory=dict)
+    gone_at: dict[str, float] = field(default_factory=dict)
+    _pending: dict[str, _PendingEnd] = field(default_factory=dict)
+
+    def on_event(self, event: RunEvent, received_s: float, item: Any = None) -> str | None:
+        """Take one life-cycle event; ``None`` if it is recorded now, ``"held"`` for an ``end``
+        waiting for confirmation (``item`` comes back from :meth:`poll`), else the reason to drop it."""
+        node = event.node
         if event.event == "start":
-            self.started.add(event.node)
-        elif event.event == "end":
-            self.ended.add(event.node)
-            self.published.update(event.published)
+            if node in self.started:
+                return "duplicate_start"
+            self.started.add(node)
+            return None
+        if event.event == "fault":
+            return None
+        if node not in self.started or node == self.own_node:
+            return "end_without_start"
+        if node in self.ended or node in self._pending:
+            return "duplicate_end"
+        self._pending[node] = _PendingEnd(event, received_s, item)
+        return "held"
+
+    def gone(self, node: str, at_s: float) -> None:
+        """``node``'s liveliness token was seen gone at ``at_s`` (the first time counts)."""
+        self.gone_at.setdefault(node, at_s)
+
+    def poll(self, now_s: float) -> tuple[list[Any], int]:
+        """Decide held ``end`` events: returns the items of the confirmed ones and how many were dropped."""
+        confirmed, dropped = [], 0
+        for node, held in list(self._pending.items()):
+            gone = self.gone_at.get(node)
+            if gone is not None and abs(gone - held.received_s) <= self.drain_s:
+                self.ended[node] = held.event
+                confirmed.append(held.item)
+            elif gone is not None or now_s - held.received_s > self.drain_s:
+                dropped += 1
+            else:
+                continue
+            del self._pending[node]
+        return confirmed, dropped
+
+    def waiting_for(self) -> set[str]:
+        """Nodes whose confirmed end is still needed (expected ones, or all started but the recorder)."""
+        nodes = set(self.expected) or self.started - {self.own_node}
+        return nodes - set(self.ended)
 
     def all_ended(self) -> bool:
-        """Whether every expected node (or, with none expected, every started node) has ended."""
-        waiting_for = self.expected or self.started
-        return bool(waiting_for) and waiting_for <= self.ended
+        """Whether the run ended by its nodes' own (confirmed) end events."""
+        return bool(self.expected or self.started - {self.own_node}) and not self.waiting_for()
 
-    def missing(self, recorded: Counter[str]) -> dict[str, int]:
-        """Per topic, how many reported-published messages were not recorded.
+    def published(self) -> Counter[str]:
+        """Per topic, what the ended nodes reported published."""
+        total: Counter[str] = Counter()
+        for event in self.ended.values():
+            total.update(event.published)
+        return total
 
-        ``recorded`` must count only messages of the tracked nodes (not the recorder's own
-        events and logs), or a lost message could hide behind one of the recorder's.
-        """
-        return {t: n - recorded[t] for t, n in self.published.items() if recorded[t] < n}
+
+def reconcile(published: Counter[str], recorded: Counter[str], every_node_reported: bool) -> tuple[dict, dict]:
+    """Per topic, messages published but not recorded (missing) and recorded but not published (extra).
+
+    Parameters
+    ----------
+    published : Counter
+        What the ended nodes reported in their ``end`` events.
+    recorded : Counter
+        Recorded messages of other nodes (not the recorder's own start event and logs), or a lost
+        message could hide behind one of the recorder's.
+    every_node_reported : bool
+        Whether every node of the run ended; if not, the recorded messages of the others have no
+        published count to match and ``extra`` is not computed (the run is incomplete anyway).
+    """
+    missing = {t: n - recorded[t] for t, n in sorted(published.items()) if recorded[t] < n}
+    if not every_node_reported:
+        return missing, {}
+    return missing, {t: n - published[t] for t, n in sorted(recorded.items()) if n > published[t]}
+
+
+def sender(msg: Any) -> str | None:
+    """The node a message claims to come from, where the message says (events and logs)."""
+    if isinstance(msg, RunEvent):
+        return msg.node
+    if isinstance(msg, Log):
+        return msg.name
+    return None
+
+
+@dataclass
+class Accepted:
+    """A message to write: its topic, original bytes, decoded form and receipt time (UNIX ns)."""
+
+    topic: Topic
+    payload: bytes
+    msg: Any
+    received_ns: int
+
+
+class Intake:
+    """What the recorder does with each received sample, without any I/O.
+
+    :meth:`receive` returns the messages to write now; :meth:`poll` the ``end`` events confirmed
+    since. Everything dropped is counted per reason in :attr:`dropped`; the first
+    :data:`WARNINGS_LOGGED` reasons are queued in :attr:`warnings` for the recorder's log.
+    """
+
+    def __init__(self, run_id: str, tracker: RunTracker) -> None:
+        self.run_id = run_id
+        self.tracker = tracker
+        self.admission = Admission(run_id)
+        self.dropped: Counter[str] = Counter()
+        self.invalid: Counter[str] = Counter()
+        self.from_nodes: Counter[str] = Counter()
+        self.warnings: list[str] = []
+        self.last_time_s = 0.0
+
+    def _drop(self, reason: str, text: str) -> list[Accepted]:
+        self.dropped[reason] += 1
+        if sum(self.dropped.values()) <= WARNINGS_LOGGED:
+            self.warnings.append(f"dropped ({reason}): {text}")
+        return []
+
+    def _accept(self, item: Accepted) -> list[Accepted]:
+        if sender(item.msg) != self.tracker.own_node:
+            self.from_nodes[item.topic.suffix] += 1
+        self.last_time_s = max(self.last_time_s, log_time_ns(item.msg) / 1e9)
+        return [item]
+
+    def receive(self, key: str, payload: bytes, received_ns: int) -> list[Accepted]:
+        """Decide one sample of the run's key space; returns what to write now."""
+        topic = topic_for_key(self.run_id, key)
+        if topic is None:
+            return self._drop("unknown_key", key[:200])
+        try:
+            msg = decode(topic, payload)
+        except MessageError as err:
+            self.invalid[topic.suffix] += 1
+            return self._drop("invalid", str(err))
+        reason = self.admission.reason_to_drop(topic, msg)
+        if reason is not None:
+            step = getattr(msg, "step", None)
+            return self._drop(reason, f"{topic.channel} run_id={getattr(msg, 'run_id', None)!r} step={step}")
+        item = Accepted(topic, payload, msg, received_ns)
+        if topic is LOG and msg.name == self.tracker.own_node:
+            return self._drop("claims_recorder", f"{topic.channel} log named {msg.name!r}")
+        if topic is RUN_EVENTS:
+            reason = self.tracker.on_event(msg, received_ns / 1e9, item)
+            if reason == "held":
+                return []
+            if reason is not None:
+                return self._drop(reason, f"{msg.event} event of node {msg.node!r}")
+        return self._accept(item)
+
+    def poll(self, now_s: float) -> list[Accepted]:
+        """The ``end`` events confirmed by now (to write), counting the ones dropped unconfirmed."""
+        confirmed, unconfirmed = self.tracker.poll(now_s)
+        for _ in range(unconfirmed):
+            self._drop("unconfirmed_end", "end event not followed by its node's liveliness token disappearing")
+        return [accepted for item in confirmed for accepted in self._accept(item)]
+
+    def summary(self, stopped_by: str | None) -> tuple[dict[str, str], str]:
+        """The closing ``meltloop.counts`` metadata (without ``recorded``) and, if incomplete, why."""
+        ended = self.tracker.all_ended()
+        published = self.tracker.published()
+        missing, extra = reconcile(published, self.from_nodes, ended)
+        reasons = []
+        if stopped_by:
+            reasons.append(f"stopped by {stopped_by}")
+        elif not ended:
+            reasons.append(f"no confirmed end of {', '.join(sorted(self.tracker.waiting_for()))}")
+        if missing:
+            reasons.append(f"messages published but not recorded: {missing}")
+        if extra:
+            reasons.append(f"messages recorded but not published: {extra}")
+        counts = {
+            "complete": "false" if reasons else "true",
+            "incomplete_reason": "; ".join(reasons),
+            "stopped_by": stopped_by or "run end",
+            "published": json.dumps(dict(published), sort_keys=True),
+            "missing": json.dumps(missing, sort_keys=True),
+            "extra": json.dumps(extra, sort_keys=True),
+            "dropped": json.dumps(dict(self.dropped), sort_keys=True),
+            "invalid_dropped": json.dumps(dict(self.invalid), sort_keys=True),
+            "unknown_keys_dropped": str(self.dropped["unknown_key"]),
+        }
+        return counts, "; ".join(r for r in reasons if not r.startswith("stopped by"))
+
+
+class _Presence:
+    """Liveliness watches of the run's nodes, turned into :meth:`RunTracker.gone` calls."""
+
+    def __init__(self, bus: Any, tracker: RunTracker) -> None:
+        self._bus = bus
+        self._tracker = tracker
+        self._watches = {node: bus.watch_presence(node) for node in tracker.expected}
+
+    def update(self, now_s: float) -> None:
+        for node in self._tracker.started - set(self._watches) - {self._tracker.own_node}:
+            self._watches[node] = self._bus.watch_presence(node)
+        for node, gone in self._watches.items():
+            if gone.is_set():
+                self._tracker.gone(node, now_s)
 
 
 def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTracker, drain_s: float,
            config: dict[str, Any]) -> int:
-    """Receive everything under the run's prefix until the run ends; returns the exit status."""
+    """Receive everything under the run's prefix until the run ends; returns the exit status.
+
+    ``bus`` needs ``run_id``, ``subscribe_raw``, ``watch_presence`` and ``ready`` only (a fake in
+    the in-process tests).
+    """
     inbox: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
-    bus.subscribe_raw(run_prefix(bus.run_id), lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes(), time.time_ns())))
+    bus.subscribe_raw(run_prefix(bus.run_id),
+                      lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes(), time.time_ns())))
+    intake = Intake(bus.run_id, tracker)
+    presence = _Presence(bus, tracker)
     bus.ready(config=config)
-    invalid: Counter[str] = Counter()
-    from_nodes: Counter[str] = Counter()  # recorded messages of other nodes (what their end events count)
-    unknown = 0
-    last_time_s = 0.0
     end_since: float | None = None
-    while True:
-        try:
-            key, payload, wall_ns = inbox.get(timeout=0.05)
-        except queue.Empty:
-            if stop.is_set():
+    try:
+        while not stop.is_set():
+            try:
+                accepted = intake.receive(*inbox.get(timeout=POLL_S))
+            except queue.Empty:
+                accepted = []
+            presence.update(time.time())
+            for item in accepted + intake.poll(time.time()):
+                recorder.write(item.topic, item.payload, item.msg, item.received_ns)
+                if item.topic is RUN_EVENTS and item.msg.event == "start" and item.msg.config_json:
+                    recorder.attach(f"config/{item.msg.node}.json", item.msg.config_json.encode())
+            for text in intake.warnings:
+                recorder.log(LogLevel.WARNING, text, intake.last_time_s)
+            intake.warnings.clear()
+            recorder.flush_due(time.monotonic())
+            if accepted or not tracker.all_ended():
+                continue
+            end_since = end_since or time.monotonic()
+            missing, _ = reconcile(tracker.published(), intake.from_nodes, True)
+            if not missing or time.monotonic() - end_since > drain_s:
                 break
-            if tracker.all_ended():
-                end_since = end_since or time.monotonic()
-                if not tracker.missing(from_nodes) or time.monotonic() - end_since > drain_s:
-                    break
-            continue
-        topic = topic_for_key(bus.run_id, key)
-        if topic is None:
-            unknown += 1
-            continue
-        try:
-            msg = decode(topic, payload)
-        except MessageError as err:
-            invalid[topic.suffix] += 1
-            if sum(invalid.values()) <= 20:
-                recorder.log(LogLevel.WARNING, f"dropped invalid message: {err}", last_time_s)
-            continue
-        recorder.write(topic, payload, msg, wall_ns)
-        if getattr(msg, "node", getattr(msg, "name", None)) != NODE_NAME:
-            from_nodes[topic.suffix] += 1
-        last_time_s = max(last_time_s, log_time_ns(msg) / 1e9)
-        if topic is RUN_EVENTS:
-            if msg.node != NODE_NAME:
-                tracker.on_event(msg)
-            if msg.event == "start" and msg.config_json:
-                recorder.attach(f"config/{msg.node}.json", msg.config_json.encode())
-    missing = tracker.missing(from_nodes)
-    status = 0
-    if missing:
-        recorder.log(LogLevel.ERROR, f"messages published but not recorded: {missing}", last_time_s)
-        print(f"error: messages published but not recorded: {missing}", file=sys.stderr, flush=True)
-        status = 1
-    recorder.finish(
-        {
-            "complete": "true" if not missing and tracker.all_ended() else "false",
-            "stopped_by": stop.signal_name or "run end",
-            "recorded": json.dumps(dict(recorder.recorded), sort_keys=True),
-            "published": json.dumps(dict(tracker.published), sort_keys=True),
-            "invalid_dropped": json.dumps(dict(invalid), sort_keys=True),
-            "unknown_keys_dropped": str(unknown),
-        }
-    )
-    total = sum(recorder.recorded.values())
-    print(f"recorded {total} messages to {recorder.path} ({sum(invalid.values())} invalid dropped)", flush=True)
-    return status
+        counts, problem = intake.summary(stop.signal_name if stop.is_set() else None)
+        if problem:
+            recorder.log(LogLevel.ERROR, problem, intake.last_time_s)
+            print(f"error: {problem}", file=sys.stderr, flush=True)
+        recorder.finish({**counts, "recorded": json.dumps(dict(recorder.recorded), sort_keys=True)})
+    except RecordingWriteError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        recorder.finish({})
+        return 1
+    dropped = ", ".join(f"{reason} {n}" for reason, n in sorted(intake.dropped.items())) or "none"
+    print(f"recorded {sum(recorder.recorded.values())} messages to {recorder.path} "
+          f"(complete: {counts['complete']}; dropped: {dropped})", flush=True)
+    return 1 if problem else 0
 
 
 def default_path(run_id: str) -> Path:
     """``recordings/<UTC date-time>-<run id>.mcap``."""
     stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
     return Path("recordings") / f"{stamp}-{run_id}.mcap"
+
+
+def open_output(path: Path) -> BinaryIO:
+    """Create ``path``'s folder and open it for writing (:class:`UsageError` naming ``--out`` if impossible)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return path.open("wb")
+    except OSError as err:
+        raise UsageError(f"--out {path}: cannot write: {err.strerror or err}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -216,7 +520,8 @@ def main(argv: list[str] | None = None) -> int:
         "--expect", action="append", default=[], metavar="NODE",
         help="finish once these nodes have ended (default: once every node that started has ended)",
     )
-    parser.add_argument("--drain-s", type=float, default=3.0, help="how long to wait for late messages after the last end event")
+    parser.add_argument("--drain-s", type=float, default=3.0,
+                        help="how long to wait for late messages and for an ending node's liveliness token to go")
     add_bus_arguments(parser)
     args = parser.parse_args(argv)
     try:
@@ -226,16 +531,22 @@ def main(argv: list[str] | None = None) -> int:
             raise UsageError(f"--out must name a .mcap file, got {path}")
         if args.drain_s < 0:
             raise UsageError("--drain-s must be >= 0")
+        stream = open_output(path)
     except UsageError as err:
         return exit_usage(parser.prog, err)
     stop = StopFlag()
-    recorder = McapRecorder(path, settings.run_id)
+    try:
+        recorder = McapRecorder(path, settings.run_id, stream)
+    except RecordingWriteError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        return 1
     try:
         with NodeBus(NODE_NAME, settings) as bus:
             config = {"out": str(path), "expect": args.expect, "drain_s": args.drain_s}
-            return record(recorder, bus, stop, RunTracker(tuple(args.expect)), args.drain_s, config)
+            return record(recorder, bus, stop, RunTracker(tuple(args.expect), args.drain_s), args.drain_s, config)
     finally:
-        recorder.finish({"complete": "false", "stopped_by": "error"})
+        with suppress(RecordingWriteError):
+            recorder.finish({"complete": "false", "stopped_by": "error", "incomplete_reason": "recorder error"})
 
 
 if __name__ == "__main__":

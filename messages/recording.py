@@ -2,20 +2,46 @@
 
 Used by the GP dataset builder, the report and the tests, so that everything downstream of a
 run depends on the message contract only — a recording from a hardware node reads the same.
+
+A finished file is read through its summary (``mcap``'s seeking reader). A file the recorder
+never finished (killed, disk full: no footer) is read record by record up to the last complete
+one: :func:`read_messages`, :func:`metadata` and :func:`attachments` then return what its
+complete chunks hold, and :func:`read_recording` says so (``truncated``, ``detail``).
+
+``python -m messages.recording recover FILE --out FIXED.mcap`` writes such a file's schemas,
+channels, metadata, attachments and every message of its complete chunks into a finished MCAP,
+with ``meltloop.counts`` saying ``complete = "false"``, ``stopped_by = "recovered"``. Exit
+status 2 for a bad command line, a missing file or one that is not MCAP; 1 if nothing is
+recoverable or the output cannot be written.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import struct
+import sys
+from collections import Counter
 from collections.abc import Iterator
+from dataclasses import dataclass, field
+from io import BytesIO
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
-from mcap.exceptions import McapError
+from mcap.exceptions import EndOfFile, McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
+from mcap.records import Attachment, Channel, Footer, Metadata, Schema
+from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
 
+from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.codec import MessageError, decode
 from messages.topics import TOPICS, Topic
+
+MAGIC = b"\x89MCAP0\r\n"
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, record length
 
 
 class RecordingError(ValueError):
@@ -31,54 +57,202 @@ def _topic(channel_or_topic: str | Topic) -> Topic:
     return topic
 
 
-def _open(path: Path):
+def _open(path: Path) -> BinaryIO:
     path = Path(path)
     if not path.is_file():
         raise RecordingError(f"recording not found: {path}")
     if path.stat().st_size == 0:
         raise RecordingError(f"recording is empty: {path}")
-    return path.open("rb")
+    stream = path.open("rb")
+    if stream.read(len(MAGIC)) != MAGIC:
+        stream.close()
+        raise RecordingError(f"not an MCAP file: {path}")
+    stream.seek(0)
+    return stream
+
+
+def _finished(stream: BinaryIO) -> bool:
+    """Whether the file ends with a footer and the closing magic (the recorder finished it)."""
+    size = stream.seek(0, os.SEEK_END)
+    footer_at = size - len(MAGIC) - _RECORD_HEAD.size - 20
+    if footer_at < len(MAGIC):
+        return False
+    stream.seek(footer_at)
+    tail = stream.read()
+    stream.seek(0)
+    return tail[0] == Opcode.FOOTER and tail.endswith(MAGIC)
+
+
+@dataclass
+class Recording:
+    """Everything readable from one MCAP file, finished or truncated.
+
+    Attributes
+    ----------
+    path : Path
+        The file read.
+    schemas, channels : dict
+        MCAP schema and channel records by id.
+    messages : list of mcap.records.Message
+        Raw messages in file order (of complete chunks only, for a truncated file).
+    metadata : dict
+        Metadata records by name.
+    attachments : list of mcap.records.Attachment
+        Attachments in file order.
+    truncated : bool
+        True if the file has no footer: the recorder did not finish it.
+    detail : str
+        For a truncated file, where reading stopped and why; empty otherwise.
+    """
+
+    path: Path
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    messages: list[McapMessage] = field(default_factory=list)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    attachments: list[Attachment] = field(default_factory=list)
+    truncated: bool = False
+    detail: str = ""
+
+    def decoded(self, channel: str | Topic) -> Iterator[Any]:
+        """The validated messages of one channel, in file order (:class:`RecordingError` if one is invalid)."""
+        topic = _topic(channel)
+        ids = {i for i, c in self.channels.items() if c.topic == topic.channel}
+        for message in self.messages:
+            if message.channel_id in ids:
+                try:
+                    yield decode(topic, message.data)
+                except MessageError as err:
+                    raise RecordingError(f"{self.path}: invalid message: {err}") from None
+
+    def counts(self) -> Counter[str]:
+        """Messages per channel suffix (``plant/state``, ...)."""
+        return Counter(self.channels[m.channel_id].topic.lstrip("/") for m in self.messages)
+
+    def _take(self, record: Any) -> None:
+        if isinstance(record, Schema):
+            self.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            self.channels[record.id] = record
+        elif isinstance(record, McapMessage):
+            self.messages.append(record)
+        elif isinstance(record, Attachment):
+            self.attachments.append(record)
+        elif isinstance(record, Metadata):
+            self.metadata[record.name] = dict(record.metadata)
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Read a whole recording record by record, tolerating a missing end.
+
+    Reading stops at the footer, or at the first incomplete or corrupt record of a file the
+    recorder did not finish; ``truncated`` and ``detail`` of the result say which.
+
+    Raises
+    ------
+    RecordingError
+        Missing, empty or non-MCAP file.
+    """
+    path = Path(path)
+    result = Recording(path)
+    with _open(path) as stream:
+        size = stream.seek(0, os.SEEK_END)
+        stream.seek(len(MAGIC))
+        while True:
+            offset = stream.tell()
+            head = stream.read(_RECORD_HEAD.size)
+            if len(head) < _RECORD_HEAD.size:
+                stop = "no footer" if not head else f"ends inside a record header at byte {offset}"
+                break
+            opcode, length = _RECORD_HEAD.unpack(head)
+            if length > size - stream.tell():
+                stop = f"ends inside a {_opcode_name(opcode)} record at byte {offset}"
+                break
+            records = _parse_record(head + stream.read(length))
+            if records is None:
+                stop = f"corrupt {_opcode_name(opcode)} record at byte {offset}"
+                break
+            for record in records:
+                result._take(record)
+            if records and isinstance(records[-1], Footer):
+                return result
+    result.truncated = True
+    result.detail = (f"{path}: truncated recording ({stop}, {size} bytes): "
+                     f"read {len(result.messages)} messages of its complete chunks")
+    return result
+
+
+def _parse_record(data: bytes) -> list[Any] | None:
+    """The records of one complete top-level record (a chunk's content for a chunk), ``None`` if corrupt."""
+    buffer = BytesIO(data)
+    records: list[Any] = []
+    try:
+        for record in StreamReader(buffer, skip_magic=True, validate_crcs=True).records:
+            records.append(record)
+    except EndOfFile:  # the reader asks for the next record (or the closing magic) past our one
+        if records and buffer.tell() == len(data):
+            return records
+    except (McapError, ValueError, struct.error):
+        pass
+    return None
+
+
+def _opcode_name(opcode: int) -> str:
+    try:
+        return Opcode(opcode).name
+    except ValueError:
+        return f"unknown (opcode {opcode:#x})"
 
 
 def read_messages(path: str | Path, channel: str | Topic) -> Iterator[Any]:
     """Yield the decoded, validated messages of one channel (e.g. ``"/plant/state"``), in file order.
 
+    Of a file the recorder did not finish, the messages of its complete chunks
+    (:func:`read_recording` tells it is truncated; :func:`is_complete` is false).
+
     Raises
     ------
     RecordingError
-        Missing, empty or truncated file, or a message that fails validation.
+        Missing, empty or non-MCAP file, or a message that fails validation.
     """
     topic = _topic(channel)
     with _open(Path(path)) as stream:
+        if not _finished(stream):
+            yield from read_recording(path).decoded(topic)
+            return
         try:
             for _schema, _channel, message in make_reader(stream).iter_messages(topics=[topic.channel]):
                 yield decode(topic, message.data)
         except (McapError, EOFError, ValueError, KeyError, AssertionError) as err:
             if isinstance(err, MessageError):
                 raise RecordingError(f"{path}: invalid message: {err}") from None
-            raise RecordingError(f"{path}: unreadable or truncated MCAP ({type(err).__name__}: {err})") from None
+            raise RecordingError(f"{path}: unreadable MCAP ({type(err).__name__}: {err})") from None
 
 
 def metadata(path: str | Path) -> dict[str, dict[str, str]]:
     """The file's metadata records by name (``meltloop``, ``meltloop.counts``)."""
     with _open(Path(path)) as stream:
+        if not _finished(stream):
+            return read_recording(path).metadata
         try:
             return {m.name: dict(m.metadata) for m in make_reader(stream).iter_metadata()}
         except (McapError, EOFError, ValueError, AssertionError) as err:
-            raise RecordingError(f"{path}: unreadable or truncated MCAP ({type(err).__name__})") from None
+            raise RecordingError(f"{path}: unreadable MCAP ({type(err).__name__})") from None
 
 
 def attachments(path: str | Path) -> dict[str, bytes]:
     """The file's attachments by name (``config/<node>.json``)."""
     with _open(Path(path)) as stream:
+        if not _finished(stream):
+            return {a.name: a.data for a in read_recording(path).attachments}
         try:
             return {a.name: a.data for a in make_reader(stream).iter_attachments()}
         except (McapError, EOFError, ValueError, AssertionError) as err:
-            raise RecordingError(f"{path}: unreadable or truncated MCAP ({type(err).__name__})") from None
+            raise RecordingError(f"{path}: unreadable MCAP ({type(err).__name__})") from None
 
 
 def is_complete(path: str | Path) -> bool:
-    """True if the recorder finished the file and found no message missing."""
+    """True if the recorder finished the file and found no message missing or extra."""
     try:
         return metadata(path).get("meltloop.counts", {}).get("complete") == "true"
     except RecordingError:
@@ -92,3 +266,83 @@ def run_config(path: str | Path) -> dict[str, Any]:
         for name, data in attachments(path).items()
         if name.startswith("config/")
     }
+
+
+def recover(path: str | Path, out: str | Path) -> Recording:
+    """Write what is readable of ``path`` into a finished MCAP ``out``; returns what was read.
+
+    Schemas, channels, metadata (but the source's ``meltloop.counts``), attachments and every
+    message with its original times and sequence; then ``meltloop.counts`` with
+    ``complete = "false"``, ``stopped_by = "recovered"``, the per-channel counts and the
+    truncation detail.
+
+    Raises
+    ------
+    RecordingError
+        ``path`` missing, empty, not MCAP, or without a single complete message.
+    OSError
+        ``out`` cannot be written.
+    """
+    source = read_recording(path)
+    if not source.messages:
+        raise RecordingError(f"nothing recoverable in {path}: no complete chunk with messages"
+                             + (f" ({source.detail})" if source.detail else ""))
+    with Path(out).open("wb") as stream:
+        writer = Writer(stream, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="meltloop recover")
+        schema_ids = {i: writer.register_schema(name=s.name, encoding=s.encoding, data=s.data)
+                      for i, s in source.schemas.items()}
+        channel_ids = {i: writer.register_channel(topic=c.topic, message_encoding=c.message_encoding,
+                                                  schema_id=schema_ids.get(c.schema_id, 0), metadata=dict(c.metadata))
+                       for i, c in source.channels.items()}
+        for name, data in source.metadata.items():
+            if name != "meltloop.counts":
+                writer.add_metadata(name, data)
+        for a in source.attachments:
+            writer.add_attachment(create_time=a.create_time, log_time=a.log_time, name=a.name,
+                                  media_type=a.media_type, data=a.data)
+        for m in source.messages:
+            writer.add_message(channel_id=channel_ids[m.channel_id], log_time=m.log_time, data=m.data,
+                               publish_time=m.publish_time, sequence=m.sequence)
+        writer.add_metadata("meltloop.counts", {
+            "complete": "false",
+            "stopped_by": "recovered",
+            "incomplete_reason": source.detail or f"recovered from {path}",
+            "recorded": json.dumps(dict(source.counts()), sort_keys=True),
+            "recovered_from": str(path),
+        })
+        writer.finish()
+    return source
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m messages.recording``."""
+    parser = ArgumentParser(prog="python -m messages.recording", description="Tools for meltloop recordings.")
+    commands = parser.add_subparsers(dest="command", required=True)
+    rec = commands.add_parser("recover", help="write what is readable of an unfinished recording into a valid MCAP")
+    rec.add_argument("file", type=Path, help="recording to recover (e.g. of a killed recorder)")
+    rec.add_argument("--out", type=Path, required=True, help="finished MCAP to write")
+    args = parser.parse_args(argv)
+    prog = f"{parser.prog} {args.command}"
+    try:
+        if args.out.resolve() == args.file.resolve():
+            raise UsageError("--out must differ from FILE")
+        with _open(args.file):
+            pass
+    except (UsageError, RecordingError) as err:
+        return exit_usage(prog, err)
+    try:
+        source = recover(args.file, args.out)
+    except RecordingError as err:
+        return exit_error(prog, err)
+    except OSError as err:
+        return exit_error(prog, RecordingError(f"cannot write {args.out}: {err.strerror or err}"))
+    state = "truncated" if source.truncated else "finished"
+    print(f"recovered {len(source.messages)} messages of {state} {args.file} into {args.out}")
+    if source.truncated:
+        print(source.detail)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
