@@ -50,7 +50,17 @@ from messages.cli import ArgumentParser, UsageError, exit_usage
 from messages.codec import MessageError, decode, encode, json_schema
 from messages.foxglove import Log, LogLevel, Timestamp
 from messages.provenance import git_revision, package_versions
-from messages.topics import LASER_COMMAND, LOG, PLANT_STATE, RUN_EVENTS, TOPICS, Topic, run_prefix, topic_for_key
+from messages.topics import (
+    LASER_COMMAND,
+    LOG,
+    PLANT_STATE,
+    RUN_EVENTS,
+    TOPICS,
+    Topic,
+    message_node,
+    run_prefix,
+    split_key,
+)
 from messages.types import RunEvent
 
 NODE_NAME = "recorder"
@@ -226,8 +236,10 @@ class RunTracker:
     """Follows nodes' start/end events; an ``end`` counts only when the node's liveliness agrees.
 
     An ``end`` of a node that sent a ``start`` is held until the node's liveliness token is seen
-    gone within ``drain_s`` of it (before or after); then it is confirmed and its publish counts
-    taken. Held longer than ``drain_s`` with the token still there, it is dropped as
+    gone within ``drain_s`` of it (before or after); then the latest such ``end`` is confirmed
+    and its publish counts taken, any other of the node is dropped as ``duplicate_end`` (as is
+    every ``end`` after a confirmed one). An ``end`` held longer than ``drain_s`` with the
+    token still there, or received more than ``drain_s`` after the token went, is dropped as
     ``unconfirmed_end``. Times are wall-clock seconds.
 
     Parameters
@@ -246,7 +258,7 @@ class RunTracker:
     started: set[str] = field(default_factory=set)
     ended: dict[str, RunEvent] = field(default_factory=dict)
     gone_at: dict[str, float] = field(default_factory=dict)
-    _pending: dict[str, _PendingEnd] = field(default_factory=dict)
+    _pending: dict[str, list[_PendingEnd]] = field(default_factory=dict)
 
     def on_event(self, event: RunEvent, received_s: float, item: Any = None) -> str | None:
         """Take one life-cycle event; ``None`` if it is recorded now, ``"held"`` for an ``end``
@@ -261,27 +273,32 @@ class RunTracker:
             return None
         if node not in self.started or node == self.own_node:
             return "end_without_start"
-        if node in self.ended or node in self._pending:
+        if node in self.ended:
             return "duplicate_end"
-        self._pending[node] = _PendingEnd(event, received_s, item)
+        self._pending.setdefault(node, []).append(_PendingEnd(event, received_s, item))
         return "held"
 
     def gone(self, node: str, at_s: float) -> None:
         """``node``'s liveliness token was seen gone at ``at_s`` (the first time counts)."""
         self.gone_at.setdefault(node, at_s)
 
-    def poll(self, now_s: float) -> tuple[list[Any], int]:
-        """Decide held ``end`` events: returns the items of the confirmed ones and how many were dropped."""
-        confirmed, dropped = [], 0
+    def poll(self, now_s: float) -> tuple[list[Any], list[str]]:
+        """Decide held ``end`` events: the items of the confirmed ones, and the reasons of the dropped ones."""
+        confirmed, dropped = [], []
         for node, held in list(self._pending.items()):
             gone = self.gone_at.get(node)
-            if gone is not None and abs(gone - held.received_s) <= self.drain_s:
-                self.ended[node] = held.event
-                confirmed.append(held.item)
-            elif gone is not None or now_s - held.received_s > self.drain_s:
-                dropped += 1
-            else:
+            if gone is None:
+                expired = [h for h in held if now_s - h.received_s > self.drain_s]
+                dropped += ["unconfirmed_end"] * len(expired)
+                self._pending[node] = [h for h in held if h not in expired]
                 continue
+            matching = [h for h in held if abs(gone - h.received_s) <= self.drain_s]
+            dropped += ["unconfirmed_end"] * (len(held) - len(matching))
+            if matching:
+                latest = max(matching, key=lambda h: h.received_s)
+                self.ended[node] = latest.event
+                confirmed.append(latest.item)
+                dropped += ["duplicate_end"] * (len(matching) - 1)
             del self._pending[node]
         return confirmed, dropped
 
@@ -322,15 +339,6 @@ def reconcile(published: Counter[str], recorded: Counter[str], every_node_report
     return missing, {t: n - published[t] for t, n in sorted(recorded.items()) if n > published[t]}
 
 
-def sender(msg: Any) -> str | None:
-    """The node a message claims to come from, where the message says (events and logs)."""
-    if isinstance(msg, RunEvent):
-        return msg.node
-    if isinstance(msg, Log):
-        return msg.name
-    return None
-
-
 @dataclass
 class Accepted:
     """A message to write: its topic, original bytes, decoded form and receipt time (UNIX ns)."""
@@ -366,21 +374,24 @@ class Intake:
         return []
 
     def _accept(self, item: Accepted) -> list[Accepted]:
-        if sender(item.msg) != self.tracker.own_node:
+        if message_node(item.msg) != self.tracker.own_node:
             self.from_nodes[item.topic.suffix] += 1
         self.last_time_s = max(self.last_time_s, log_time_ns(item.msg) / 1e9)
         return [item]
 
     def receive(self, key: str, payload: bytes, received_ns: int) -> list[Accepted]:
         """Decide one sample of the run's key space; returns what to write now."""
-        topic = topic_for_key(self.run_id, key)
-        if topic is None:
+        found = split_key(self.run_id, key)
+        if found is None:
             return self._drop("unknown_key", key[:200])
+        topic, key_node = found
         try:
             msg = decode(topic, payload)
         except MessageError as err:
             self.invalid[topic.suffix] += 1
             return self._drop("invalid", str(err))
+        if topic.per_node and message_node(msg) != key_node:
+            return self._drop("node_mismatch", f"{topic.channel}: node {message_node(msg)!r} published under {key!r}")
         reason = self.admission.reason_to_drop(topic, msg)
         if reason is not None:
             step = getattr(msg, "step", None)
@@ -398,9 +409,9 @@ class Intake:
 
     def poll(self, now_s: float) -> list[Accepted]:
         """The ``end`` events confirmed by now (to write), counting the ones dropped unconfirmed."""
-        confirmed, unconfirmed = self.tracker.poll(now_s)
-        for _ in range(unconfirmed):
-            self._drop("unconfirmed_end", "end event not followed by its node's liveliness token disappearing")
+        confirmed, dropped = self.tracker.poll(now_s)
+        for reason in dropped:
+            self._drop(reason, "end event not matched by its node's liveliness token disappearing")
         return [accepted for item in confirmed for accepted in self._accept(item)]
 
     def summary(self, stopped_by: str | None) -> tuple[dict[str, str], str]:
