@@ -1,0 +1,226 @@
+"""Recordings that cannot be lost: chunks reach disk every period, write errors end the recorder in
+one line with the data kept, a truncated file reads and recovers into an MCAP the seeking reader opens."""
+
+from __future__ import annotations
+
+import errno
+import io
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from messages import recorder as recorder_module
+from messages.bus import BusSettings, NodeBus, StopFlag
+from messages.codec import encode
+from messages.recorder import FLUSH_PERIOD_S, McapRecorder, RunTracker, record
+from messages.recording import attachments, metadata, read_messages, read_recording, recover
+from messages.topics import PLANT_STATE, RUN_EVENTS
+from tests.conftest import REPO, finish, spawn
+from tests.test_recorder_rules import RUN, FakeBus, FakeStop, event, plant_run, state
+
+
+class CountingStream(io.BytesIO):
+    """An in-memory stream that counts its flushes."""
+
+    flushes = 0
+
+    def flush(self) -> None:
+        self.flushes += 1
+        super().flush()
+
+
+class FullDisk:
+    """A file whose device fills up after ``budget`` bytes: the write that crosses it raises ENOSPC."""
+
+    def __init__(self, stream, budget: int) -> None:
+        self._stream, self._budget = stream, budget
+
+    def write(self, data: bytes) -> int:
+        if self._stream.tell() + len(data) > self._budget:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return self._stream.write(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+def test_mcap_writer_flush_ends_the_chunk_and_flushes_the_stream(tmp_path):
+    """What :meth:`McapRecorder.flush` relies on; fails if the ``mcap`` package changes it."""
+    stream = CountingStream()
+    writer = Writer(stream)
+    writer.start()
+    channel = writer.register_channel("/a", "json", writer.register_schema("s", "jsonschema", b"{}"))
+    writer.add_message(channel, log_time=1, data=b"{}", publish_time=1)
+    path = tmp_path / "x.mcap"
+    path.write_bytes(stream.getvalue())
+    assert read_recording(path).messages == []  # still in the open chunk
+    writer.flush()
+    assert stream.flushes >= 1
+    path.write_bytes(stream.getvalue())
+    read = read_recording(path)
+    assert read.truncated and len(read.messages) == 1 and read.channels[channel].topic == "/a"
+
+
+def test_recorder_puts_data_on_disk_every_period_while_running(tmp_path):
+    """Read the file from outside while the recorder runs: what arrived a period ago is there."""
+    seen = {}
+    out = tmp_path / "live.mcap"
+
+    def script(bus):
+        bus.send(RUN_EVENTS, event("plant", "start"))
+        for step in range(5):
+            bus.send(PLANT_STATE, state(step))
+        time.sleep(FLUSH_PERIOD_S + 0.3)  # idle: the idle tick flushes
+        seen["idle"] = [s.step for s in read_messages(out, PLANT_STATE)]
+        t0 = time.monotonic()
+        step = 5
+        while time.monotonic() - t0 < 2.5 * FLUSH_PERIOD_S:  # busy: flushes keep coming
+            bus.send(PLANT_STATE, state(step))
+            step += 1
+            time.sleep(0.01)
+        seen["busy"] = len(list(read_messages(out, PLANT_STATE)))
+        seen["sent"] = step
+        bus.send(RUN_EVENTS, event("plant", "end", {"plant/state": step, "run/events": 2}))
+        bus.leave("plant")
+
+    recorder = McapRecorder(out, RUN, out.open("wb"))
+    assert record(recorder, FakeBus(script), FakeStop(), RunTracker(("plant",), 0.3), 0.3, {}) == 0
+    assert seen["idle"] == [0, 1, 2, 3, 4]
+    assert seen["busy"] >= seen["sent"] - FLUSH_PERIOD_S / 0.01 - 5, seen
+
+
+def test_full_disk_ends_the_recorder_in_one_line_with_the_data_kept(tmp_path, capsys):
+    out = tmp_path / "full.mcap"
+    stream = FullDisk(out.open("wb"), budget=60_000)
+
+    def script(bus):
+        plant_run(100_000)(bus)  # more than fits
+
+    recorder = McapRecorder(out, RUN, stream)
+    status = record(recorder, FakeBus(script), FakeStop(), RunTracker(("plant",), 0.3), 0.3, {})
+    err = capsys.readouterr().err
+    assert status == 1
+    assert err == f"error: cannot write {out}: No space left on device\n"
+    kept = read_recording(out)
+    assert kept.truncated and len(kept.messages) > 10
+    steps = [s.step for s in kept.decoded(PLANT_STATE)]
+    assert steps == list(range(len(steps)))
+    recover(out, tmp_path / "fixed.mcap")
+    assert [s.step for s in read_messages(tmp_path / "fixed.mcap", PLANT_STATE)] == steps
+
+
+def test_unwritable_output_folder_is_a_usage_error_naming_out(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert recorder_module.main(["--out", str(blocker / "run.mcap")]) == 2
+    line = capsys.readouterr().err
+    assert line.count("\n") == 1 and f"--out {blocker / 'run.mcap'}: cannot write" in line
+    try:
+        open("/sys/meltloop-test.mcap", "wb").close()
+    except OSError:
+        assert recorder_module.main(["--out", "/sys/meltloop-test.mcap"]) == 2
+        assert "--out /sys/meltloop-test.mcap: cannot write: " in capsys.readouterr().err
+
+
+def truncated_recording(tmp_path):
+    """A recording cut in its last chunk, with an attachment; returns (path, steps in complete chunks)."""
+    out = tmp_path / "cut.mcap"
+    recorder = McapRecorder(out, RUN, out.open("wb"))
+    msg = event("plant", "start")
+    recorder.write(RUN_EVENTS, encode(msg), msg, time.time_ns())
+    recorder.attach("config/plant.json", b'{"h_um": 40}')
+    for step in range(30):
+        recorder.write(PLANT_STATE, encode(state(step)), state(step), time.time_ns())
+    recorder.flush()
+    on_disk = out.stat().st_size
+    for step in range(30, 40):
+        recorder.write(PLANT_STATE, encode(state(step)), state(step), time.time_ns())
+    recorder.flush()
+    out.write_bytes(out.read_bytes()[:on_disk + 40])  # killed while writing the second chunk
+    return out, list(range(30))
+
+
+def test_truncated_file_reads_its_complete_chunks_and_says_so(tmp_path):
+    path, steps = truncated_recording(tmp_path)
+    read = read_recording(path)
+    assert read.truncated and "truncated recording" in read.detail and "ends inside a CHUNK record" in read.detail
+    assert [s.step for s in read_messages(path, PLANT_STATE)] == steps
+    assert metadata(path)["meltloop"]["run_id"] == RUN
+    assert attachments(path) == {"config/plant.json": b'{"h_um": 40}'}
+
+
+def run_recover(*args):
+    return subprocess.run([sys.executable, "-m", "messages.recording", "recover", *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_recover_writes_an_mcap_the_seeking_reader_opens(tmp_path):
+    path, steps = truncated_recording(tmp_path)
+    fixed = tmp_path / "fixed.mcap"
+    done = run_recover(str(path), "--out", str(fixed))
+    assert done.returncode == 0, done.stderr
+    with fixed.open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics.message_count == len(steps) + 1
+        topics = [channel.topic for _s, channel, _m in reader.iter_messages()]
+    assert topics.count("/plant/state") == len(steps)
+    counts = metadata(fixed)["meltloop.counts"]
+    assert counts["complete"] == "false" and counts["stopped_by"] == "recovered"
+    assert json.loads(counts["recorded"]) == {"plant/state": 30, "run/events": 1}
+    assert metadata(fixed)["meltloop"]["run_id"] == RUN
+    assert attachments(fixed) == {"config/plant.json": b'{"h_um": 40}'}
+
+
+@pytest.mark.parametrize("case, status, text", [
+    ("missing", 2, "recording not found"),
+    ("not-mcap", 2, "not an MCAP file"),
+    ("header-only", 1, "nothing recoverable"),
+    ("no-out", 2, "required: --out"),
+])
+def test_recover_errors_are_one_line(tmp_path, case, status, text):
+    path = tmp_path / "in.mcap"
+    if case == "not-mcap":
+        path.write_text("hello\n")
+    if case == "header-only":
+        path.write_bytes(truncated_recording(tmp_path)[0].read_bytes()[:200])
+    args = [str(path)] if case == "no-out" else [str(path), "--out", str(tmp_path / "out.mcap")]
+    done = run_recover(*args)
+    assert done.returncode == status, done.stderr
+    assert text in done.stderr and done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+
+
+def test_recorder_killed_loses_at_most_a_second(tmp_path, hub, run_id):
+    """SIGKILL the recorder of a real run after >= 2 s of recording; the recovered file holds the
+    states received up to within 1 s (recorder wall clock) of the kill."""
+    out = tmp_path / "killed.mcap"
+    common = ("--run-id", run_id, "--connect", hub)
+    with NodeBus("observer", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        states = bus.inbox(PLANT_STATE)
+        recorder = spawn("messages.recorder", "--out", str(out), "--expect", "plant", *common)
+        bus.wait_for_nodes(["recorder"], StopFlag(), timeout_s=60)
+        plant = spawn("fe_node", "--h-um", "40", "--open-loop", "--max-steps", "3000", "--require", "recorder",
+                      *common)
+        assert states.get(timeout=60) is not None, "plant did not start stepping"
+        time.sleep(2.5)
+        recorder.send_signal(signal.SIGKILL)
+        killed_ns = time.time_ns()
+        plant.send_signal(signal.SIGINT)
+        finish(plant, timeout=30)
+        finish(recorder, timeout=10)
+    fixed = tmp_path / "fixed.mcap"
+    done = run_recover(str(out), "--out", str(fixed))
+    assert done.returncode == 0, done.stderr
+    with fixed.open("rb") as f:
+        reader = make_reader(f)
+        assert reader.get_summary() is not None
+        last = max(m.publish_time for _s, c, m in reader.iter_messages() if c.topic == "/plant/state")
+    assert killed_ns - last < 1e9, f"last recovered state {(killed_ns - last) / 1e9:.2f} s before the kill"
+    steps = [s.step for s in read_messages(fixed, PLANT_STATE)]
+    assert len(steps) >= 10 and steps == list(range(len(steps)))
