@@ -22,7 +22,7 @@ from controller_node.settings import ControllerSettings
 from controller_node.types import ConfigurationError, Measurement
 from gp_trainer.atomic import atomic_write_bytes
 from messages import ControllerDiagnostics, LaserCommand, LogLevel, MeltPoolState
-from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
+from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.config import as_dict, build, load_toml
 from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE
@@ -187,11 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     config = {"controller": args.controller, "model": str(args.model or DEFAULT_MODEL) if model else None,
               **as_dict(settings)}
     stop = StopFlag()
-    try:
-        with NodeBus(NODE_NAME, bus_settings) as bus:
-            status = run(bus, controller, settings, stop, args.plant, config)
-    except TimeoutError as err:  # a --require node never appeared
-        return exit_error(parser.prog, err)
+    status = run_node(parser.prog, NODE_NAME, bus_settings,
+                      lambda bus: run(bus, controller, settings, stop, args.plant, config))
     if args.learning_state is not None and status == 0:
         controller.finish_run()
         try:

@@ -3,7 +3,7 @@
 One :class:`ControllerSettings` configures every controller of the registry
 (:func:`controller_node.registry.make_controller`); each controller reads its own
 sub-settings.  Defaults follow the paper (Table 3, section IV.B) and the project's
-typical operating point (set point 0.07 mm², v = 0.8 m/s, Δt = 50 µs).
+typical operating point (set point 0.063 mm², v = 0.8 m/s, Δt = 50 µs).
 Invalid values raise ``ValueError`` with a one-line message.
 """
 
@@ -363,7 +363,7 @@ class ControllerSettings:
         Settings of the ``feedforward`` baseline.
     """
 
-    set_point_m2: float = 0.07e-6
+    set_point_m2: float = 0.063e-6
     power_min_w: float = 0.0
     power_max_w: float = 350.0
     nominal_power_w: float = 250.0

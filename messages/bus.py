@@ -22,17 +22,18 @@ import queue
 import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import zenoh
 
+from messages.auth import PASSWORD_ENV, USER_ENV, node_credentials
 from messages.cli import UsageError
 from messages.codec import MessageError, decode, encode
 from messages.foxglove import Log, LogLevel, Timestamp
-from messages.topics import LOG, RUN_EVENTS, Topic, key_expr, liveliness_key
+from messages.topics import LOG, RUN_EVENTS, Topic, key_expr, liveliness_key, message_node
 from messages.types import RunEvent
 
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
@@ -114,8 +115,14 @@ def bus_settings_from_args(args: argparse.Namespace) -> BusSettings:
     )
 
 
-def zenoh_config(settings: BusSettings) -> zenoh.Config:
-    """The zenoh configuration: the given file, or peer mode on loopback with multicast off."""
+def zenoh_config(settings: BusSettings, credentials: tuple[str, str] | None = None) -> zenoh.Config:
+    """The zenoh configuration of a node.
+
+    - a configuration file given: that file (explicit ``connect``/``listen`` still override);
+    - ``credentials`` (user, password), as ``launch.py`` hands them to its nodes: a client of the
+      run's authenticating hub (``settings.connect``), multicast off, listening nowhere;
+    - neither: an unauthenticated peer on loopback with multicast off.
+    """
     if settings.zenoh_config is not None:
         try:
             config = zenoh.Config.from_file(str(settings.zenoh_config))
@@ -123,13 +130,40 @@ def zenoh_config(settings: BusSettings) -> zenoh.Config:
             raise UsageError(f"cannot load zenoh config {settings.zenoh_config}: {err}") from None
     else:
         config = zenoh.Config()
-        config.insert_json5("mode", '"peer"')
+        config.insert_json5("mode", '"client"' if credentials else '"peer"')
         config.insert_json5("scouting/multicast/enabled", "false")
-    if settings.listen:
+    if credentials is not None:
+        user, password = credentials
+        config.insert_json5("transport/auth/usrpwd", json.dumps({"user": user, "password": password}))
+    if settings.listen and credentials is None:
         config.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
     if settings.connect:
         config.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
     return config
+
+
+def open_session(settings: BusSettings, node: str) -> zenoh.Session:
+    """Open ``node``'s zenoh session with the run credentials from the environment, if any
+    (:mod:`messages.auth`); without them, say once that the session is unauthenticated.
+
+    Raises
+    ------
+    UsageError
+        If the configuration file cannot be loaded.
+    ConnectionError
+        If the hub cannot be reached or refuses the credentials (one line, naming the endpoints).
+    """
+    credentials = node_credentials()
+    if credentials is None and settings.zenoh_config is None:
+        print(f"warning: {node}: no run credentials ({USER_ENV}/{PASSWORD_ENV}); this zenoh session is "
+              "unauthenticated (start the run with launch.py for per-node access control)", flush=True)
+    try:
+        return zenoh.open(zenoh_config(settings, credentials))
+    except zenoh.ZError as err:
+        where = ", ".join(settings.connect) or "the configured endpoints"
+        reason = "refused or unreachable" if credentials else "unreachable"
+        raise ConnectionError(f"{node}: cannot open a zenoh session to {where} ({reason}): "
+                              f"{str(err).split(' at ')[0]}") from None
 
 
 class StopFlag:
@@ -171,6 +205,34 @@ class StopFlag:
         return self._event.wait(timeout)
 
 
+def wait_for_nodes(session: zenoh.Session, run_id: str, nodes: list[str], stop: StopFlag | threading.Event,
+                   timeout_s: float, check: Callable[[], None] | None = None) -> None:
+    """Block until every node in ``nodes`` holds its liveliness token in run ``run_id``: the one
+    readiness mechanism of nodes and of the launch service.
+
+    ``check()`` is called between queries and may raise to give up (e.g. a node process exited).
+
+    Raises
+    ------
+    TimeoutError
+        If they are not all present within ``timeout_s`` (or a stop was requested).
+    """
+    missing = set(nodes)
+    deadline = time.monotonic() + timeout_s
+    while missing and not stop.is_set() and time.monotonic() < deadline:
+        if check is not None:
+            check()
+        for reply in session.liveliness().get(liveliness_key(run_id), timeout=0.5):
+            if reply.ok is not None:
+                missing.discard(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        if missing:
+            stop.wait(0.05)
+    if missing and stop.is_set():
+        raise TimeoutError(f"stopped while waiting for nodes: {', '.join(sorted(missing))}")
+    if missing:
+        raise TimeoutError(f"nodes not present after {timeout_s:.0f} s: {', '.join(sorted(missing))}")
+
+
 class TopicPublisher:
     """Publishes validated messages of one topic and counts them."""
 
@@ -199,12 +261,12 @@ class Inbox:
     def __init__(self, topic: Topic, run_id: str | None = None) -> None:
         self.topic = topic
         self.run_id = run_id
-        self._queue: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
         self.n_invalid = 0
         self.last_error = ""
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self._queue.put(sample.payload.to_bytes())
+        self._queue.put((str(sample.key_expr), sample.payload.to_bytes()))
 
     def get(self, timeout: float | None = None) -> Any | None:
         """Next valid message, waiting up to ``timeout`` s (``None``: do not wait); ``None`` if none."""
@@ -212,9 +274,9 @@ class Inbox:
         while True:
             try:
                 if deadline is None:
-                    payload = self._queue.get_nowait()
+                    key, payload = self._queue.get_nowait()
                 else:
-                    payload = self._queue.get(timeout=max(0.0, deadline - time.monotonic()))
+                    key, payload = self._queue.get(timeout=max(0.0, deadline - time.monotonic()))
             except queue.Empty:
                 return None
             try:
@@ -225,7 +287,13 @@ class Inbox:
                 continue
             if self.run_id is not None and getattr(msg, "run_id", self.run_id) != self.run_id:
                 self.n_invalid += 1
-                self.last_error = f"{self.topic.channel}: run_id {msg.run_id!r} does not match the key's run {self.run_id!r}"
+                self.last_error = (
+                    f"{self.topic.channel}: run_id {msg.run_id!r} does not match the key's run {self.run_id!r}"
+                )
+                continue
+            if self.topic.per_node and key.rpartition("/")[2] != message_node(msg):
+                self.n_invalid += 1
+                self.last_error = f"{self.topic.channel}: node {message_node(msg)!r} published under {key!r}"
                 continue
             return msg
 
@@ -255,7 +323,7 @@ class NodeBus:
 
     def __enter__(self) -> NodeBus:
         zenoh.try_init_log_from_env()
-        self.session = zenoh.open(zenoh_config(self.settings))
+        self.session = open_session(self.settings, self.node)
         return self
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
@@ -283,7 +351,7 @@ class NodeBus:
         if topic.suffix not in self._publishers:
             assert self.session is not None
             pub = self.session.declare_publisher(
-                key_expr(self.run_id, topic),
+                key_expr(self.run_id, topic, self.node),
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE,
                 express=express,
@@ -327,26 +395,9 @@ class NodeBus:
         self._declared.append(self._token)
 
     def wait_for_nodes(self, nodes: list[str], stop: StopFlag | threading.Event, timeout_s: float) -> None:
-        """Block until every node in ``nodes`` holds its liveliness token.
-
-        Raises
-        ------
-        TimeoutError
-            If they are not all present within ``timeout_s`` (or a stop was requested).
-        """
+        """Block until every node in ``nodes`` holds its liveliness token (:func:`wait_for_nodes`)."""
         assert self.session is not None
-        missing = set(nodes)
-        deadline = time.monotonic() + timeout_s
-        while missing and not stop.is_set() and time.monotonic() < deadline:
-            for reply in self.session.liveliness().get(liveliness_key(self.run_id), timeout=0.5):
-                if reply.ok is not None:
-                    missing.discard(str(reply.ok.key_expr).rsplit("/", 1)[-1])
-            if missing:
-                stop.wait(0.05)
-        if missing and stop.is_set():
-            raise TimeoutError(f"stopped while waiting for nodes: {', '.join(sorted(missing))}")
-        if missing:
-            raise TimeoutError(f"nodes not present after {timeout_s:.0f} s: {', '.join(sorted(missing))}")
+        wait_for_nodes(self.session, self.run_id, nodes, stop, timeout_s)
 
     def watch_presence(self, node: str) -> threading.Event:
         """An event set when ``node``'s liveliness token disappears (the node ended or died)."""
@@ -399,3 +450,21 @@ class NodeBus:
             Log(timestamp=Timestamp.from_seconds(time_s), level=level, message=text[:8000], name=self.node)
         )
         print(f"{level.name.lower()}: {text}", flush=True)
+
+
+def run_node(prog: str, node: str, settings: BusSettings, body: Callable[[NodeBus], int]) -> int:
+    """Run ``body(bus)`` inside ``node``'s :class:`NodeBus`: the one place a node main turns a
+    session failure into one line and an exit status.
+
+    Returns ``body``'s status; 2 (naming the key) for a zenoh configuration that cannot be
+    loaded, 1 for a hub that cannot be reached or a required node that never appeared.
+    """
+    from messages.cli import exit_error, exit_usage
+
+    try:
+        with NodeBus(node, settings) as bus:
+            return body(bus)
+    except UsageError as err:
+        return exit_usage(prog, err)
+    except (TimeoutError, ConnectionError) as err:
+        return exit_error(prog, err)

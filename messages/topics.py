@@ -1,7 +1,9 @@
 """Topic registry: key expressions, MCAP channel names, types and size limits, in one place.
 
 Every key is namespaced by run id: ``meltloop/<run_id>/<suffix>``; the MCAP channel of a topic
-is ``/<suffix>``. Liveliness tokens (readiness and presence of each node) live at
+is ``/<suffix>``. Topics every node publishes (run events, log) carry the publishing node's name
+as a last key segment, ``meltloop/<run_id>/run/events/<node>``, so that access control can let
+each node publish only its own. Liveliness tokens (readiness and presence of each node) live at
 ``meltloop/<run_id>/alive/<node>`` in zenoh's separate liveliness space.
 """
 
@@ -29,12 +31,16 @@ class Topic:
         MCAP schema name (Foxglove recognises ``foxglove.*`` names).
     max_bytes : int
         Largest payload accepted; larger ones are rejected before parsing.
+    per_node : bool
+        Published by every node under its own key ``<suffix>/<node>``; the message names the
+        node (``node`` or ``name`` field) and must match that segment.
     """
 
     suffix: str
     type: type
     schema_name: str
     max_bytes: int
+    per_node: bool = False
 
     @property
     def channel(self) -> str:
@@ -49,8 +55,8 @@ LASER_COMMAND = Topic("controller/command", LaserCommand, "meltloop.LaserCommand
 CONTROLLER_DIAGNOSTICS = Topic(
     "controller/diagnostics", ControllerDiagnostics, "meltloop.ControllerDiagnostics", 64 * 1024
 )
-RUN_EVENTS = Topic("run/events", RunEvent, "meltloop.RunEvent", 512 * 1024)
-LOG = Topic("log", Log, "foxglove.Log", 32 * 1024)
+RUN_EVENTS = Topic("run/events", RunEvent, "meltloop.RunEvent", 512 * 1024, per_node=True)
+LOG = Topic("log", Log, "foxglove.Log", 32 * 1024, per_node=True)
 
 TOPICS: dict[str, Topic] = {
     t.suffix: t
@@ -58,9 +64,19 @@ TOPICS: dict[str, Topic] = {
 }
 
 
-def key_expr(run_id: str, topic: Topic) -> str:
-    """Zenoh key expression of ``topic`` in run ``run_id``."""
+def key_expr(run_id: str, topic: Topic, node: str = "*") -> str:
+    """Zenoh key expression of ``topic`` in run ``run_id``.
+
+    For a per-node topic, ``node`` is the publishing node (``*``: every node, to subscribe).
+    """
+    if topic.per_node:
+        return f"{PREFIX}/{run_id}/{topic.suffix}/{node}"
     return f"{PREFIX}/{run_id}/{topic.suffix}"
+
+
+def message_node(msg: object) -> str | None:
+    """The node a per-node message says it comes from (``RunEvent.node``, ``Log.name``)."""
+    return getattr(msg, "node", getattr(msg, "name", None))
 
 
 def run_prefix(run_id: str) -> str:
@@ -73,9 +89,23 @@ def liveliness_key(run_id: str, node: str = "*") -> str:
     return f"{PREFIX}/{run_id}/alive/{node}"
 
 
-def topic_for_key(run_id: str, key: str) -> Topic | None:
-    """The registered topic of a received key, or ``None`` if it is not part of the contract."""
+def split_key(run_id: str, key: str) -> tuple[Topic, str | None] | None:
+    """The registered topic of a received key and, for a per-node topic, the node segment;
+    ``None`` if the key is not part of the run's contract."""
     head = f"{PREFIX}/{run_id}/"
     if not key.startswith(head):
         return None
-    return TOPICS.get(key[len(head):])
+    suffix = key[len(head):]
+    if suffix in TOPICS and not TOPICS[suffix].per_node:
+        return TOPICS[suffix], None
+    base, _, node = suffix.rpartition("/")
+    topic = TOPICS.get(base)
+    if topic is None or not topic.per_node or not node or node == "*":
+        return None
+    return topic, node
+
+
+def topic_for_key(run_id: str, key: str) -> Topic | None:
+    """The registered topic of a received key, or ``None`` if it is not part of the contract."""
+    found = split_key(run_id, key)
+    return None if found is None else found[0]

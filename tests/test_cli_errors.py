@@ -11,17 +11,22 @@ from tests.conftest import REPO
 
 CASES = [
     # launch.py
-    (["launch.py", "--controller", "bogus"], "unknown controller"),
+    (["launch.py", "--controller", "bogus"], "--controller: choose one of"),
     (["launch.py", "--setpoint-mm2", "-1"], "--setpoint-mm2 must be in"),
     (["launch.py", "--max-steps", "0"], "--max-steps must be >= 1"),
-    (["launch.py", "--scenario", "nope"], "unknown scenario"),
-    (["launch.py", "--config", "missing.toml"], "config file not found"),
+    (["launch.py", "--scenario", "nope"], "--scenario: unknown 'nope'"),
+    (["launch.py", "--config", "missing.toml"], "--config: file not found"),
+    (["launch.py", "--h-um", "0"], "--h-um must be in (0, 1000]"),
+    (["launch.py", "--h-um", "-5"], "--h-um must be in (0, 1000]"),
+    (["launch.py", "--fallback", "off"], "--fallback must be 'safe' or 'hold'"),
+    (["launch.py", "--command-timeout-s", "0"], "--command-timeout-s must be in (0, 60]"),
+    (["launch.py", "--out", "/proc/meltloop/run.mcap"], "--out /proc/meltloop/run.mcap: cannot create its folder"),
     (["launch.py", "--run-id", "bad id"], "invalid run id"),
     (["launch.py", "--hub", "nonsense"], "invalid zenoh endpoint"),
     (["launch.py", "--max-steps", "x"], "invalid int value"),
     # the FE plant node
     (["-m", "fe_node", "--max-steps", "0"], "--max-steps must be >= 1"),
-    (["-m", "fe_node", "--command-timeout-s", "0"], "--command-timeout-s must be > 0"),
+    (["-m", "fe_node", "--command-timeout-s", "0"], "--command-timeout-s must be finite and > 0"),
     (["-m", "fe_node", "--power-min-w", "300", "--power-max-w", "200"], "power bounds"),
     (["-m", "fe_node", "--safe-power-w", "999"], "--safe-power-w must lie within"),
     (["-m", "fe_node", "--fallback", "panic"], "invalid choice"),
@@ -42,7 +47,7 @@ CASES = [
     (["-m", "fe_node.example_sensor", "--max-steps", "0"], "--max-steps must be >= 1"),
     (["-m", "fe_node.example_sensor", "--duration-s", "0"], "--duration-s must be > 0"),
     (["-m", "fe_node.example_sensor", "--power-w", "500"], "must lie within the command bounds"),
-    (["-m", "fe_node.example_sensor", "--command-timeout-s", "-1"], "--command-timeout-s must be > 0"),
+    (["-m", "fe_node.example_sensor", "--command-timeout-s", "-1"], "--command-timeout-s must be finite and > 0"),
     (["-m", "fe_node.surrogate", "--rate-hz", "-5"], "--rate-hz must be in"),
     (["-m", "fe_node.surrogate", "--model", "missing.json"], "cannot load GP model"),
     (["-m", "fe_node.surrogate", "--speed-mm-s", "0"], "must lie within the command bounds"),
@@ -63,3 +68,12 @@ def test_bad_value_exits_2_with_one_line(argv, message):
     assert run.returncode == 2, run.stdout + run.stderr
     lines = run.stderr.splitlines()
     assert len(lines) == 1 and "error" in lines[0] and message in lines[0], run.stderr
+
+
+def test_launch_refuses_default_node_options_with_a_node_list(tmp_path):
+    nodes = tmp_path / "nodes.toml"
+    nodes.write_text('[[node]]\nname = "recorder"\nmodule = "messages.recorder"\n')
+    run = subprocess.run([sys.executable, "launch.py", "--nodes", str(nodes), "--setpoint-mm2", "0.07", "--h-um", "20"],
+                         cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
+    assert "--setpoint-mm2, --h-um cannot be combined with --nodes" in run.stderr

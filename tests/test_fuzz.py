@@ -36,6 +36,7 @@ args = ["--controller", "mpc", "--setpoint-mm2", "0.063", "--require", "recorder
 [[node]]
 name = "fuzzer"
 module = "tests.nodes.fuzzer"
+roles = ["plant", "controller"]  # authenticated, yet sending garbage: the nodes must cope
 args = ["--require", "recorder", "--count", "{count}", "--seed", "7",
         "--topic", "plant/state", "--topic", "controller/command", "--topic", "run/events"]
 

@@ -21,6 +21,7 @@ module = "messages.recorder"
 [[node]]
 name = "ticker"
 module = "tests.nodes.ticker"
+roles = ["plant"]
 args = {ticker_args}
 main = true
 """

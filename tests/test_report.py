@@ -213,22 +213,19 @@ def test_plan_finished_before_the_announced_total_is_complete(tmp_path):
 
 
 def test_launch_summary_and_table_of_an_incomplete_run(tmp_path, capsys):
-    import launch
+    from controller_node.summary import summarise, table_line
 
     path = _write_recording(tmp_path / "run.mcap", 40, 60, end_detail="stopped at step 39; 0 fallbacks")
-    opts = launch.RunOptions(scenario="single-track", controller="pid", setpoint_mm2=SETPOINT_MM2)
-    summary = launch._summarise(path, opts, 0, 1.0)
+    summary = summarise(path, "single-track", "pid", SETPOINT_MM2, 0, 1.0)
     assert summary["complete"] is False and summary["incomplete_reason"] == "40 of 61 plant states recorded"
-    launch._print_table(summary)
-    out = capsys.readouterr().out
+    out = table_line(summary)
     assert "pid on single-track: INCOMPLETE (40 of 61 plant states recorded)" in out and "overshoot" not in out
 
     full = _write_recording(tmp_path / "full.mcap", 61, 60)
-    summary = launch._summarise(full, opts, 0, 1.0)
+    summary = summarise(full, "single-track", "pid", SETPOINT_MM2, 0, 1.0)
     assert summary["complete"] is True and summary["window_start_s"] == WINDOW_START_S
     assert summary["rmse_turnaround_pct"] is None and summary["n_along"] == 41
-    launch._print_table(summary)
-    assert "window from 1 ms after laser-on" in capsys.readouterr().out
+    assert "window from 1 ms after laser-on" in table_line(summary)
 
 
 @pytest.mark.parametrize("n_states, expected_status", [(40, 1), (61, 0)])

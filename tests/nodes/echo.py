@@ -1,4 +1,5 @@
-"""Test node: republishes every valid message of run ``--run-id`` on run ``<run-id>-echo`` (with that run id).
+"""Test node: republishes every valid message of run ``--run-id`` on run ``<run-id>-echo``
+(with that run id).
 
 Each message is decoded (validated) and re-encoded, so a round trip through this process
 checks the whole codec across a process boundary.
@@ -12,7 +13,8 @@ import msgspec
 
 from messages.bus import BusSettings, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
 from messages.cli import ArgumentParser
-from messages.topics import TOPICS
+from messages.codec import encode
+from messages.topics import TOPICS, key_expr, message_node
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -33,7 +35,10 @@ def main(argv: list[str] | None = None) -> int:
                 for msg in box.drain():
                     if hasattr(msg, "run_id"):  # now a message of the echo run
                         msg = msgspec.structs.replace(msg, run_id=out_settings.run_id)
-                    pubs[box.topic.suffix].put(msg)
+                    if box.topic.per_node:  # forwarded under the node it names, as that node sent it
+                        out.session.put(key_expr(out.run_id, box.topic, message_node(msg)), encode(msg))
+                    else:
+                        pubs[box.topic.suffix].put(msg)
                     idle = False
             if idle:
                 stop.wait(0.002)

@@ -1,0 +1,128 @@
+"""Per-run credentials and access control: who may publish what in one run.
+
+``launch.py`` makes fresh credentials for every run (:class:`RunCredentials`): one user per node
+(the node's name) with a random password, a dictionary file readable only by the current user,
+and a zenoh **router** configuration for the run's hub that
+
+- accepts only sessions that authenticate with one of these users (zenoh ``usrpwd``; a process
+  without them cannot open a link), and
+- lets each node publish only its own keys (zenoh access control, checked on what the hub
+  receives): ``plant`` the ``plant/*`` topics, ``controller`` the ``controller/*`` topics,
+  every node only its own run events, log and liveliness token.
+
+Nodes get their user and password from the environment (:data:`USER_ENV`, :data:`PASSWORD_ENV`),
+never from argv, and then run as zenoh clients of the hub (:func:`messages.bus.zenoh_config`).
+A node started by hand without them runs unauthenticated in peer mode and says so once.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from messages.topics import PREFIX, TOPICS, liveliness_key
+
+USER_ENV = "MELTLOOP_ZENOH_USER"
+PASSWORD_ENV = "MELTLOOP_ZENOH_PASSWORD"
+ROLES = ("plant", "controller")
+"""Roles: a node of role ``plant`` may publish the ``plant/...`` topics, and so on. A node's role
+is its name unless its spec names another (e.g. a camera node ``camera`` with role ``plant``)."""
+
+_SESSION_MESSAGES = ["declare_subscriber", "declare_queryable", "query", "reply",
+                     "declare_liveliness_subscriber", "liveliness_query"]
+
+
+def node_credentials() -> tuple[str, str] | None:
+    """This process's (user, password) from the environment, or ``None`` if unauthenticated."""
+    user, password = os.environ.get(USER_ENV), os.environ.get(PASSWORD_ENV)
+    return (user, password) if user and password else None
+
+
+def publish_keys(run_id: str, node: str, roles: tuple[str, ...]) -> list[str]:
+    """Key expressions ``node`` with ``roles`` may publish (put) in run ``run_id``."""
+    keys = [f"{PREFIX}/{run_id}/{t.suffix}/{node}" for t in TOPICS.values() if t.per_node]
+    keys += [f"{PREFIX}/{run_id}/{t.suffix}" for t in TOPICS.values() if t.suffix.split("/")[0] in roles]
+    return keys
+
+
+def access_control(run_id: str, roles: dict[str, tuple[str, ...]]) -> dict:
+    """The hub's zenoh ``access_control`` section for a run with these nodes.
+
+    Default deny. Every authenticated node may subscribe, query liveliness and receive anything
+    of the run; it may put only :func:`publish_keys` and declare only its own liveliness token.
+    ``roles`` maps each node name (its zenoh user) to its roles.
+    """
+    nodes = list(roles)
+    run_keys = [f"{PREFIX}/{run_id}/**"]
+    rules = [
+        {"id": "session", "permission": "allow", "flows": ["ingress", "egress"], "messages": _SESSION_MESSAGES,
+         "key_exprs": run_keys},
+        {"id": "receive", "permission": "allow", "flows": ["egress"], "messages": ["put", "liveliness_token"],
+         "key_exprs": run_keys},
+    ]
+    subjects = [{"id": "nodes", "usernames": list(nodes)}]
+    policies = [{"rules": ["session", "receive"], "subjects": ["nodes"]}]
+    for node in nodes:
+        rules += [
+            {"id": f"put-{node}", "permission": "allow", "flows": ["ingress"], "messages": ["put"],
+             "key_exprs": publish_keys(run_id, node, roles[node])},
+            {"id": f"alive-{node}", "permission": "allow", "flows": ["ingress"], "messages": ["liveliness_token"],
+             "key_exprs": [liveliness_key(run_id, node)]},
+        ]
+        subjects.append({"id": f"user-{node}", "usernames": [node]})
+        policies.append({"rules": [f"put-{node}", f"alive-{node}"], "subjects": [f"user-{node}"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+@dataclass
+class RunCredentials:
+    """Fresh credentials of one run: a random password per node, kept in a private folder.
+
+    Use as a context manager; the folder (dictionary file) is removed on exit.
+
+    Attributes
+    ----------
+    run_id : str
+        The run the access control is written for.
+    roles : dict of str to tuple of str
+        Node name (each is a zenoh user) -> its roles.
+    """
+
+    run_id: str
+    roles: dict[str, tuple[str, ...]]
+    passwords: dict[str, str] = field(default_factory=dict)
+    folder: Path | None = None
+
+    def __enter__(self) -> RunCredentials:
+        self.folder = Path(tempfile.mkdtemp(prefix="meltloop-auth-"))  # mode 0700
+        self.passwords = {node: secrets.token_urlsafe(24) for node in self.roles}
+        self.dictionary_file.touch(mode=0o600)
+        self.dictionary_file.write_text("".join(f"{n}:{p}\n" for n, p in self.passwords.items()))
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        if self.folder is not None:
+            shutil.rmtree(self.folder, ignore_errors=True)
+
+    @property
+    def dictionary_file(self) -> Path:
+        """The ``user:password`` lines the hub checks links against (mode 0600)."""
+        assert self.folder is not None, "use RunCredentials as a context manager"
+        return self.folder / "credentials.txt"
+
+    def env(self, node: str) -> dict[str, str]:
+        """Environment variables that give ``node`` its identity."""
+        return {USER_ENV: node, PASSWORD_ENV: self.passwords[node]}
+
+    def hub_settings(self) -> dict[str, str]:
+        """zenoh configuration entries (path -> JSON5 value) of the run's authenticating hub."""
+        return {
+            "transport/auth/usrpwd": json.dumps({"dictionary_file": str(self.dictionary_file)}),
+            "access_control": json.dumps(access_control(self.run_id, self.roles)),
+        }
