@@ -202,10 +202,10 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
         if status:
             states.put(state_message(bus.run_id, obs))
             break
-    summary = (f"{'stopped' if stop.is_set() else 'finished'} at step {obs.step}; {n_fallbacks} fallbacks"
+    ended = "aborted" if status else "stopped" if stop.is_set() else "finished"  # "finished": end of the plan
+    summary = (f"{ended} at step {obs.step}{': controller lost' if status else ''}; {n_fallbacks} fallbacks"
                + (f", {waiter.summary()}" if waiter else ""))
-    bus.log(LogLevel.ERROR if status else LogLevel.INFO,
-            summary + ("; ending the run: controller lost" if status else ""), time_s=obs.time_s)
+    bus.log(LogLevel.ERROR if status else LogLevel.INFO, summary, time_s=obs.time_s)
     bus.end_detail(summary)
     return status
 
