@@ -158,7 +158,7 @@ def test_completeness_rules():
 def _write_recording(path, n_states: int, total_steps: int | None, *, complete: bool = True,
                      end_detail: str = "", setpoint_mm2: float = SETPOINT_MM2):
     """A small closed-loop recording written with the recorder's own writer (no zenoh)."""
-    rec = McapRecorder(path, "r")
+    rec = McapRecorder(path, "r", path.open("wb"))
 
     def put(topic, msg):
         rec.write(topic, encode(msg), msg, time.time_ns())
