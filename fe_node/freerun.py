@@ -268,8 +268,8 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
         if new_source.startswith("fallback") and not command_source.startswith("fallback"):
             reason = (f"controller {settings.controller!r} gone (liveliness lost)" if gone
                       else f"no command for {latch.policy.timeout_s} s")
-            bus.log(LogLevel.WARNING, f"{reason}: applying {new_source} {power:.1f} W from step {step}",
-                    time_s=step * dt)
+            bus.log(LogLevel.WARNING, f"{reason}: applying {new_source} {power:.1f} W from step {step} "
+                    f"at wall {time.time():.6f} s", time_s=step * dt)
         command_source = new_source
         misses += latch.missed(step)
         sample = plant.step(power, speed, dt)
