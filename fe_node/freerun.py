@@ -29,8 +29,8 @@ import numpy as np
 
 from fe_node.commands import FALLBACKS, CommandGate, CommandPolicy, Verdict
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
-from messages.bus import BusSettings, NodeBus, StopFlag
-from messages.cli import UsageError, exit_error
+from messages.bus import BusSettings, NodeBus, StopFlag, run_node
+from messages.cli import UsageError
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
 
 RING = 1 << 14  # publish times kept for round-trip matching; older commands are stale (steps)
@@ -336,16 +336,17 @@ def serve(node: str, plant: FreePlant, bus_settings: BusSettings, args: argparse
     """Open the bus as ``node``, announce readiness (after any ``--require`` nodes), run; exit status."""
     stop = StopFlag()
     latch = CommandLatch(policy, args.power_w, args.speed_mm_s * 1e-3)
-    try:
-        with NodeBus(node, bus_settings) as bus:
-            controller_gone = bus.watch_presence(settings.controller)
-            bus.ready(config={**config, "rate_hz": settings.rate_hz, "policy": vars(policy)},
-                      total_steps=settings.max_steps, stop=stop)
-            stats = run_free(bus, plant, latch, settings, stop, source, controller_gone)
-            summary = stats.summary()
-            bus.end_detail(json.dumps(summary))
-    except TimeoutError as err:  # a --require node never appeared
-        return exit_error(node, err)
-    if args.json:
+    summary: dict[str, float | int] = {}
+
+    def body(bus: NodeBus) -> int:
+        controller_gone = bus.watch_presence(settings.controller)
+        bus.ready(config={**config, "rate_hz": settings.rate_hz, "policy": vars(policy)},
+                  total_steps=settings.max_steps, stop=stop)
+        summary.update(run_free(bus, plant, latch, settings, stop, source, controller_gone).summary())
+        bus.end_detail(json.dumps(summary))
+        return 0
+
+    status = run_node(node, node, bus_settings, body)
+    if status == 0 and args.json:
         print(json.dumps(summary), flush=True)
-    return 0
+    return status

@@ -30,8 +30,8 @@ from fe_node.scenarios import NAMES, Scenario
 from fe_node.scenarios import scenario as build_scenario
 from fe_node.solver import ThermalModel
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
-from messages.bus import Inbox, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
-from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
+from messages.bus import Inbox, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
+from messages.cli import ArgumentParser, UsageError, exit_usage
 from messages.config import load_toml
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE, PLANT_TEMPERATURE
 
@@ -269,11 +269,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     model = ThermalModel(scenario.settings, scenario.plan)
     setup_s = time.perf_counter() - t0
-    try:
-        with NodeBus(NODE_NAME, bus_settings) as bus:
-            return run(bus, scenario, model, settings, stop, setup_s)
-    except TimeoutError as err:  # a --require node never appeared
-        return exit_error(parser.prog, err)
+    return run_node(parser.prog, NODE_NAME, bus_settings,
+                    lambda bus: run(bus, scenario, model, settings, stop, setup_s))
 
 
 if __name__ == "__main__":

@@ -17,8 +17,8 @@ from pathlib import Path
 import msgspec
 
 from messages import LogLevel, MeltPoolState
-from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
-from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
+from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
+from messages.cli import ArgumentParser, UsageError, exit_usage
 from messages.recording import RecordingError, read_messages
 from messages.topics import LASER_COMMAND, PLANT_STATE
 
@@ -79,14 +79,14 @@ def main(argv: list[str] | None = None) -> int:
         return exit_usage(parser.prog, err)
     offsets = schedule(states, args.rate_scale)
     stop = StopFlag()
-    try:
-        with NodeBus(NODE_NAME, bus_settings) as bus:
-            bus.ready(config={"recording": str(args.recording), "rate_scale": args.rate_scale, "states": len(states)},
-                      total_steps=len(states), stop=stop)
-            replay(bus, states, offsets, stop)
-    except TimeoutError as err:  # a --require node never appeared
-        return exit_error(parser.prog, err)
-    return 0
+
+    def body(bus: NodeBus) -> int:
+        bus.ready(config={"recording": str(args.recording), "rate_scale": args.rate_scale, "states": len(states)},
+                  total_steps=len(states), stop=stop)
+        replay(bus, states, offsets, stop)
+        return 0
+
+    return run_node(parser.prog, NODE_NAME, bus_settings, body)
 
 
 if __name__ == "__main__":

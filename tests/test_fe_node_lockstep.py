@@ -40,8 +40,8 @@ def test_plant_applies_only_the_matching_in_bounds_command(hub, run_id):
 
 
 def test_missing_commands_trigger_the_safe_fallback_and_are_logged(hub, run_id):
-    plant = spawn("fe_node", "--scenario", "single-track", "--h-um", "40", "--max-steps", "3", "--command-timeout-s", "0.2",
-                  "--fallback", "safe", "--safe-power-w", "20", "--run-id", run_id, "--connect", hub)
+    plant = spawn("fe_node", "--scenario", "single-track", "--h-um", "40", "--max-steps", "3",
+                  "--command-timeout-s", "0.2", "--safe-power-w", "20", "--run-id", run_id, "--connect", hub)
     with NodeBus("controller", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         states = bus.inbox(PLANT_STATE)
         bus.ready()
