@@ -1,11 +1,12 @@
 """Example sensor node: a fake melt-pool camera, ``python -m fe_node.example_sensor``.
 
 The smallest hardware-shaped plant: it publishes ``MeltPoolState`` (``source="sensor"``) at a
-fixed rate from a synthetic first-order melt-pool model and applies the newest valid
-``LaserCommand`` (within the power bounds; fallback after ``--command-timeout-s`` without
-commands), exactly as a camera + laser driver would. Replace :class:`SyntheticMeltPool` by
-frame grabbing and a laser driver call and the rest of the contract stays; see
-``docs/node-contract.md``.
+fixed rate from a synthetic first-order melt-pool model and applies the newest admitted
+``LaserCommand`` (its own power/speed bounds, a step it can use; every other command is dropped
+and counted), and the safe power as soon as the controller's liveliness token is gone or after
+``--command-timeout-s`` without commands, exactly as a camera + laser driver would. Replace
+:class:`SyntheticMeltPool` by frame grabbing and a laser driver call and the rest of the
+contract stays; see ``docs/node-contract.md``.
 """
 
 from __future__ import annotations
