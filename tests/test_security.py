@@ -8,16 +8,15 @@ import signal
 import time
 from pathlib import Path
 
+import msgspec
 import pytest
 
-from messages import LaserCommand, Log, LogLevel, Timestamp
+from messages import LaserCommand, LogLevel, RunEvent, encode
+from messages.auth import PASSWORD_ENV, USER_ENV, RunCredentials
 from messages.bus import DEFAULT_HUB, BusSettings, NodeBus, StopFlag, zenoh_config
-from messages.topics import LASER_COMMAND, LOG, PLANT_STATE
-from tests.conftest import REPO, finish, spawn
+from messages.topics import LASER_COMMAND, LOG, PLANT_STATE, RUN_EVENTS, key_expr, liveliness_key
+from tests.conftest import finish, spawn
 from tests.test_controller_node import state
-
-ACL_FILE = REPO / "docs" / "zenoh-acl.json5"
-PASSWORDS = {"plant": "pw-plant", "controller": "pw-controller", "recorder": "pw-recorder"}
 
 
 def test_default_config_is_peer_on_loopback_without_multicast():
@@ -73,57 +72,84 @@ def test_live_node_listens_on_loopback_only_and_opens_no_udp_socket(hub, run_id)
     assert all(list(link.interfaces) == ["lo"] for link in links)
 
 
-def node_config(tmp_path: Path, user: str, password: str | None = None) -> Path:
-    """The shipped ACL example for ``user``, with this test's credential dictionary."""
-    creds = tmp_path / "credentials.txt"
-    creds.write_text("".join(f"{u}:{p}\n" for u, p in PASSWORDS.items()))
-    text = ACL_FILE.read_text()
-    text = text.replace('user: "controller"', f'user: "{user}"')
-    text = text.replace('password: "change-me-controller"', f'password: "{password or PASSWORDS[user]}"')
-    text = text.replace("/etc/meltloop/zenoh-credentials.txt", str(creds))
-    path = tmp_path / f"{user}.json5"
-    path.write_text(text)
-    return path
+def _hub(credentials: RunCredentials, endpoint: str):
+    """The run's authenticating hub, as launch.py opens it."""
+    import zenoh
+
+    config = zenoh_config(BusSettings(run_id=credentials.run_id, connect=(), listen=(endpoint,)))
+    config.insert_json5("mode", '"router"')
+    for key, value in credentials.hub_settings().items():
+        config.insert_json5(key, value)
+    return zenoh.open(config)
 
 
-def test_acl_only_the_controller_session_may_command(tmp_path, hub, run_id):
-    controller = spawn("controller_node", "--controller", "pid", "--setpoint-mm2", "0.063", "--run-id", run_id,
-                       "--connect", hub, "--zenoh-config", str(node_config(tmp_path, "controller")))
-    plant_settings = BusSettings(run_id=run_id, connect=(), listen=(hub,), zenoh_config=node_config(tmp_path, "plant"))
-    rogue_settings = BusSettings(run_id=run_id, connect=(hub,), listen=("tcp/127.0.0.1:0",),
-                                 zenoh_config=node_config(tmp_path, "recorder"))  # valid credentials, wrong role
-    with NodeBus("plant", plant_settings) as plant:
-        commands, logs = plant.inbox(LASER_COMMAND), plant.inbox(LOG)
-        plant.wait_for_nodes(["controller"], StopFlag(), timeout_s=30)
-        plant.ready()
-        states = plant.publisher(PLANT_STATE)
-        with NodeBus("rogue", rogue_settings) as rogue:
+def _node(monkeypatch, credentials: RunCredentials, name: str, endpoint: str, password: str | None = None) -> NodeBus:
+    monkeypatch.setenv(USER_ENV, name)
+    monkeypatch.setenv(PASSWORD_ENV, password or credentials.passwords[name])
+    return NodeBus(name, BusSettings(run_id=credentials.run_id, connect=(endpoint,)))
+
+
+ROLES = {"plant": ("plant",), "controller": ("controller",), "recorder": ()}
+
+
+def test_generated_access_control_lets_each_node_publish_only_its_own_keys(monkeypatch, hub, run_id):
+    with RunCredentials(run_id, ROLES) as creds, _hub(creds, hub):
+        with _node(monkeypatch, creds, "plant", hub) as plant, _node(monkeypatch, creds, "controller", hub) as ctl, \
+                _node(monkeypatch, creds, "recorder", hub) as rec:
+            commands, events, logs = plant.inbox(LASER_COMMAND), plant.inbox(RUN_EVENTS), plant.inbox(LOG)
+            states = ctl.inbox(PLANT_STATE)
+            gone = plant.watch_presence("controller")
             time.sleep(0.5)
-            states.put(state(run_id, 0))
-            first = commands.get(timeout=10)
-            assert first is not None and first.step == 1, "the controller's command must pass the ACL"
-            rogue.publisher(LASER_COMMAND).put(LaserCommand(run_id=run_id, step=2, time_s=0.0, power_w=123.0,
-                                                            speed_mm_s=800.0, controller="rogue"))
-            rogue.publisher(LOG).put(Log(timestamp=Timestamp.from_seconds(0.0), level=LogLevel.INFO,
-                                         message="rogue connected", name="rogue"))
-            states.put(state(run_id, 1))
+            command = LaserCommand(run_id=run_id, step=1, time_s=0.0, power_w=200.0, speed_mm_s=800.0, controller="pid")
+            ctl.publisher(LASER_COMMAND).put(command)
+            rec.publisher(LASER_COMMAND).put(msgspec.structs.replace(command, power_w=123.0))  # no role
+            rec.publisher(PLANT_STATE).put(state(run_id, 0))  # no role
+            rec.log(LogLevel.INFO, "recorder connected")  # its own log: allowed
+            forged_end = RunEvent(run_id=run_id, node="plant", event="end", time_s=0.0)
+            rec.session.put(key_expr(run_id, RUN_EVENTS, "plant"), encode(forged_end))  # another node's key
+            token = rec.session.liveliness().declare_token(liveliness_key(run_id, "controller"))
             time.sleep(1.0)
-            rest = list(commands.drain())
-            rogue_logs = [m.message for m in logs.drain()]
-    status, out = finish(controller)
-    assert "rogue connected" in rogue_logs  # the rogue was connected: only the command was filtered
-    assert [(c.step, c.controller) for c in rest] == [(2, "pid")]
-    assert status == 0, out
+            received = [c.power_w for c in commands.drain()]
+            seen_events = [(e.node, e.event) for e in events.drain()]
+            seen_logs = [(m.name, m.message) for m in logs.drain()]
+            seen_states = list(states.drain())
+            token.undeclare()
+    assert received == [200.0]
+    assert ("plant", "end") not in seen_events
+    assert ("recorder", "recorder connected") in seen_logs  # connected: only the forgeries were filtered
+    assert seen_states == []
+    assert not gone.is_set()
 
 
-def test_wrong_password_cannot_connect(tmp_path, hub, run_id):
-    plant_settings = BusSettings(run_id=run_id, connect=(), listen=(hub,), zenoh_config=node_config(tmp_path, "plant"))
-    rogue_settings = BusSettings(run_id=run_id, connect=(hub,), listen=("tcp/127.0.0.1:0",),
-                                 zenoh_config=node_config(tmp_path, "controller", password="guess"))
-    with NodeBus("plant", plant_settings) as plant, NodeBus("controller", rogue_settings) as rogue:
-        commands = plant.inbox(LASER_COMMAND)
-        time.sleep(0.5)
-        rogue.publisher(LASER_COMMAND).put(LaserCommand(run_id=run_id, step=1, time_s=0.0, power_w=123.0,
-                                                        speed_mm_s=800.0, controller="rogue"))
-        assert commands.get(timeout=1.0) is None
-        assert not list(plant.session.info.links())
+def test_wrong_or_missing_credentials_get_no_session(monkeypatch, hub, run_id, capsys):
+    with RunCredentials(run_id, ROLES) as creds, _hub(creds, hub):
+        with pytest.raises(ConnectionError, match="refused or unreachable"):
+            with _node(monkeypatch, creds, "controller", hub, password="guess"):
+                pass
+        monkeypatch.delenv(USER_ENV)
+        monkeypatch.delenv(PASSWORD_ENV)
+        bus = NodeBus("rogue", BusSettings(run_id=run_id, connect=(hub,), listen=("tcp/127.0.0.1:0",)))
+        with bus:
+            assert not list(bus.session.info.peers_zid()) and not list(bus.session.info.routers_zid())
+    assert "this zenoh session is unauthenticated" in capsys.readouterr().out
+
+
+def test_run_credentials_are_private_and_removed():
+    with RunCredentials("r", ROLES) as creds:
+        folder = creds.folder
+        assert oct(folder.stat().st_mode & 0o777) == "0o700"
+        assert oct(creds.dictionary_file.stat().st_mode & 0o777) == "0o600"
+        assert len({*creds.passwords.values()}) == 3
+        assert creds.env("plant") == {USER_ENV: "plant", PASSWORD_ENV: creds.passwords["plant"]}
+    assert not folder.exists()
+
+
+def test_launch_gives_credentials_by_environment_never_argv(tmp_path):
+    from messages.launch.node import NodeProcess, NodeSpec
+
+    lines = []
+    node = NodeProcess.spawn(NodeSpec("probe", "tests.nodes.ticker", ("--steps", "1")), "r", "tcp/127.0.0.1:9",
+                             {USER_ENV: "probe", PASSWORD_ENV: "s3cret"}, lines.append, lines.append)
+    argv = " ".join(node.process.args)
+    node.stop()
+    assert "s3cret" not in argv and "s3cret" not in " ".join(lines)
