@@ -1,16 +1,19 @@
 """A rogue publisher floods the lockstep plant with schema-valid commands it must not apply.
 
 Two short closed-loop runs (FE plant + PID controller, real processes) side by side: a clean
-one, and one during which the test publishes 2 000 schema-valid ``LaserCommand`` messages on the
-run's command key — the awaited step with another run's id, steps ahead of anything the plant can
-wait for (up to 2³¹ − 1), the stale step 0, and the awaited step with a power or speed outside the
-plant's bounds. The lockstep result does not depend on timing, so the flooded run must give
-exactly the clean states, and every forged command must be dropped and counted.
+one, and one during which the test publishes 2 000 (``-m slow``: 10 000) schema-valid
+``LaserCommand`` messages on the run's command key — the awaited step with another run's id,
+steps ahead of anything the plant can wait for (up to 2³¹ − 1), the stale step 0, and the
+awaited step with a power or speed outside the plant's bounds. The lockstep result does not
+depend on timing, so the flooded run must give exactly the clean states, and every forged
+command must be dropped and counted.
 """
 
 from __future__ import annotations
 
 import re
+
+import pytest
 
 from messages import LaserCommand
 from messages.bus import BusSettings, NodeBus
@@ -47,7 +50,8 @@ def start(run_id: str, hub: str) -> tuple:
     return controller, plant
 
 
-def test_forged_commands_are_dropped_and_counted_and_change_nothing(hub, run_id):
+@pytest.mark.parametrize("n_forged", [N_FORGED, pytest.param(10_000, marks=pytest.mark.slow)])
+def test_forged_commands_are_dropped_and_counted_and_change_nothing(hub, run_id, n_forged):
     clean_id, flood_id = run_id + "c", run_id + "f"
     with (NodeBus("observer", BusSettings(run_id=clean_id, connect=(), listen=(hub,))) as clean,
           NodeBus("observer", BusSettings(run_id=flood_id, connect=(hub,), listen=())) as rogue):
@@ -61,7 +65,7 @@ def test_forged_commands_are_dropped_and_counted_and_change_nothing(hub, run_id)
         while (state := states.get(timeout=60)) is not None:
             flooded.append(state)
             if 1 <= state.step < STEPS - SLACK:  # one burst per state: the flood runs along with the loop
-                end = N_FORGED * state.step // (STEPS - SLACK - 1)
+                end = n_forged * state.step // (STEPS - SLACK - 1)
                 for i in range(sent, end):
                     commands.put(forgery(i, flood_id, state.step))
                 sent = end
@@ -72,7 +76,7 @@ def test_forged_commands_are_dropped_and_counted_and_change_nothing(hub, run_id)
         last = list(diagnostics.drain())[-1]
     for status, out in outputs:
         assert status == 0 and "Traceback" not in out, out
-    assert sent == N_FORGED
+    assert sent == n_forged
 
     def trace(seen):
         return [(s.step, s.power_w, s.speed_mm_s, s.area_mm2) for s in seen]
@@ -81,12 +85,12 @@ def test_forged_commands_are_dropped_and_counted_and_change_nothing(hub, run_id)
     assert trace(flooded) == trace(clean_trace)
     assert len({s.power_w for s in flooded}) > 5  # the controller did steer
     assert last.step == STEPS and last.n_fallbacks == 0 and last.command_source == "controller"
-    assert last.n_dropped == N_FORGED and last.n_stale_commands >= N_FORGED // 4
+    assert last.n_dropped == n_forged and last.n_stale_commands >= n_forged // 4
     plant_out = outputs[3][1]
     m = re.search(r"(\d+) dropped commands \((\d+) stale, (\d+) ahead, (\d+) out of bounds, (\d+) invalid\)", plant_out)
     assert m, plant_out
     dropped, stale, ahead, out_of_bounds, invalid = (int(g) for g in m.groups())
     print(f"flooded plant: {m.group(0)}")
-    assert dropped == N_FORGED and invalid == N_FORGED // 4 and ahead == N_FORGED // 4
-    assert stale + out_of_bounds == N_FORGED // 2 and stale >= N_FORGED // 4
+    assert dropped == n_forged and invalid == n_forged // 4 and ahead == n_forged // 4
+    assert stale + out_of_bounds == n_forged // 2 and stale >= n_forged // 4
     assert "0 dropped commands" in outputs[1][1]  # the clean plant dropped nothing
