@@ -8,13 +8,15 @@ timeouts, with a log line on each escalation.
 from __future__ import annotations
 
 import os
+import shlex
+import shutil
 import signal
 import subprocess
 import sys
 import threading
 import tomllib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 from messages.auth import ROLES
@@ -33,7 +35,7 @@ class NodeSpec:
         Node name: the ``[name]`` output prefix, its zenoh user and its liveliness token
         ``.../alive/<name>``.
     module : str
-        Python module run as ``python -m module``.
+        Python module run as ``python -u -m module`` (empty when ``command`` is given).
     args : tuple of str
         Its arguments (the launch service appends ``--run-id <run> --connect <hub>``).
     wait_ready : bool
@@ -44,50 +46,82 @@ class NodeSpec:
         What it may publish besides its own events and log (:data:`messages.auth.ROLES`):
         ``plant`` the ``plant/...`` topics, ``controller`` the ``controller/...`` topics.
         Default: the name, if it is a role.
+    command : tuple of str
+        Any executable and its first arguments, instead of ``module``: a name is looked up on
+        ``PATH``, a path with a ``/`` is taken relative to the working directory.
     """
 
     name: str
-    module: str
+    module: str = ""
     args: tuple[str, ...] = ()
     wait_ready: bool = True
     main: bool = False
     roles: tuple[str, ...] = ()
+    command: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.name or not set(self.name) <= _NAME_CHARS or self.name[0] in "_.-":
             raise UsageError(f"invalid node name {self.name!r}")
-        if not self.module or not all(part.isidentifier() for part in self.module.split(".")):
+        if not self.module and not self.command:
+            raise UsageError(f"node {self.name!r} without 'module' or 'command' (give exactly one)")
+        if self.module and self.command:
+            raise UsageError(f"node {self.name!r} has both 'module' and 'command' (give exactly one)")
+        if self.module and not all(part.isidentifier() for part in self.module.split(".")):
             raise UsageError(f"invalid module {self.module!r} for node {self.name!r}")
+        if self.command and shutil.which(self.command[0]) is None:
+            raise UsageError(f"node {self.name!r}: 'command' executable {self.command[0]!r} not found "
+                             "or not executable")
         if not set(self.roles) <= set(ROLES):
             raise UsageError(f"invalid roles {list(self.roles)} for node {self.name!r}; "
                              f"choose among {', '.join(ROLES)}")
         if not self.roles and self.name in ROLES:
             object.__setattr__(self, "roles", (self.name,))
 
-    def command(self, run_id: str, hub: str) -> list[str]:
-        """The node's command line, with the arguments the launch service appends."""
-        return [sys.executable, "-u", "-m", self.module, *self.args, "--run-id", run_id, "--connect", hub]
+    def argv(self, run_id: str, hub: str) -> list[str]:
+        """The node's full command line, with the arguments the launch service appends."""
+        head = list(self.command) if self.command else [sys.executable, "-u", "-m", self.module]
+        return [*head, *self.args, "--run-id", run_id, "--connect", hub]
+
+
+_KEY_TYPES = {"name": str, "module": str, "args": list, "wait_ready": bool, "main": bool, "roles": list,
+              "command": list}
+_KIND_NAMES = {str: "a string", list: "a list of strings", bool: "true or false"}
 
 
 def load_node_list(path: Path) -> list[NodeSpec]:
-    """Read a declarative node list: TOML with ``[[node]]`` tables (the fields of :class:`NodeSpec`)."""
+    """Read a declarative node list: TOML with ``[[node]]`` tables (the fields of :class:`NodeSpec`).
+
+    Raises
+    ------
+    UsageError
+        One line naming the file, the node and the offending key.
+    """
     try:
         entries = tomllib.loads(path.read_text()).get("node")
     except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
         raise UsageError(f"--nodes {path}: {getattr(err, 'strerror', None) or err}") from None
     if not isinstance(entries, list) or not entries or not all(isinstance(e, dict) for e in entries):
         raise UsageError(f"--nodes {path}: expected one or more [[node]] tables")
-    known = {f.name for f in fields(NodeSpec)}
     specs = []
     for entry in entries:
-        if set(entry) - known:
-            raise UsageError(f"--nodes {path}: unknown node keys {sorted(set(entry) - known)}; known: {sorted(known)}")
-        if missing := [k for k in ("name", "module") if k not in entry]:
-            raise UsageError(f"--nodes {path}: node entry without {missing[0]!r}")
-        specs.append(NodeSpec(name=entry["name"], module=entry["module"],
-                              args=tuple(str(a) for a in entry.get("args", [])),
-                              wait_ready=bool(entry.get("wait_ready", True)), main=bool(entry.get("main", False)),
-                              roles=tuple(entry.get("roles", ()))))
+        if unknown := sorted(set(entry) - set(_KEY_TYPES)):
+            raise UsageError(f"--nodes {path}: unknown node keys {unknown}; known: {sorted(_KEY_TYPES)}")
+        if "name" not in entry:
+            raise UsageError(f"--nodes {path}: node entry without 'name'")
+        where = f"--nodes {path}: node {entry['name']!r}"
+        for key, value in entry.items():
+            kind = _KEY_TYPES[key]
+            if not isinstance(value, kind) or (kind is list and not all(isinstance(v, str) for v in value)):
+                raise UsageError(f"{where}: {key!r} must be {_KIND_NAMES[kind]}")
+        if "command" in entry and not (entry["command"] and entry["command"][0]):
+            raise UsageError(f"{where}: 'command' must name an executable")
+        try:
+            specs.append(NodeSpec(name=entry["name"], module=entry.get("module", ""),
+                                  args=tuple(entry.get("args", ())), wait_ready=entry.get("wait_ready", True),
+                                  main=entry.get("main", False), roles=tuple(entry.get("roles", ())),
+                                  command=tuple(entry.get("command", ()))))
+        except UsageError as err:
+            raise UsageError(f"--nodes {path}: {err}") from None
     return specs
 
 
@@ -114,14 +148,14 @@ class NodeProcess:
               emit: Callable[[str], None], say: Callable[[str], None]) -> NodeProcess:
         """Start the node in its own process session (so a terminal's Ctrl-C reaches only the
         supervisor, which then stops the nodes in order); ``env`` is added to the environment."""
+        argv = spec.argv(run_id, hub)
         process = subprocess.Popen(
-            spec.command(run_id, hub), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             text=True, bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1", **env}, start_new_session=True,
         )
         relay = threading.Thread(target=_relay, args=(spec.name, process.stdout, emit), daemon=True)
         relay.start()
-        say(f"started {spec.name} (pid {process.pid}): python -m {spec.module} "
-            f"{' '.join(spec.args + ('--run-id', run_id, '--connect', hub))}")
+        say(f"started {spec.name} (pid {process.pid}): {shlex.join(argv)}")
         return cls(spec, process, relay, say)
 
     @property
