@@ -89,8 +89,9 @@ def test_recorder_puts_data_on_disk_every_period_while_running(tmp_path):
         bus.send(RUN_EVENTS, event("plant", "end", {"plant/state": step, "run/events": 2}))
         bus.leave("plant")
 
-    recorder = McapRecorder(out, RUN, out.open("wb"))
-    assert record(recorder, FakeBus(script), FakeStop(), RunTracker(("plant",), 0.3), 0.3, {}) == 0
+    recorder, stop = McapRecorder(out, RUN, out.open("wb")), FakeStop()
+    assert record(recorder, FakeBus(script, stop), stop, RunTracker(("plant",), 0.3), 0.3, {}) == 0
+    assert stop.signal_name is None
     assert seen["idle"] == [0, 1, 2, 3, 4]
     assert seen["busy"] >= seen["sent"] - FLUSH_PERIOD_S / 0.01 - 5, seen
 
@@ -102,8 +103,8 @@ def test_full_disk_ends_the_recorder_in_one_line_with_the_data_kept(tmp_path, ca
     def script(bus):
         plant_run(100_000)(bus)  # more than fits
 
-    recorder = McapRecorder(out, RUN, stream)
-    status = record(recorder, FakeBus(script), FakeStop(), RunTracker(("plant",), 0.3), 0.3, {})
+    recorder, stop = McapRecorder(out, RUN, stream), FakeStop()
+    status = record(recorder, FakeBus(script, stop), stop, RunTracker(("plant",), 0.3), 0.3, {})
     err = capsys.readouterr().err
     assert status == 1
     assert err == f"error: cannot write {out}: No space left on device\n"
@@ -174,6 +175,7 @@ def test_recover_writes_an_mcap_the_seeking_reader_opens(tmp_path):
     counts = metadata(fixed)["meltloop.counts"]
     assert counts["complete"] == "false" and counts["stopped_by"] == "recovered"
     assert json.loads(counts["recorded"]) == {"plant/state": 30, "run/events": 1}
+    assert not read_recording(fixed).truncated and read_recording(fixed).detail == ""
     assert metadata(fixed)["meltloop"]["run_id"] == RUN
     assert attachments(fixed) == {"config/plant.json": b'{"h_um": 40}'}
 
@@ -206,7 +208,7 @@ def test_recorder_killed_loses_at_most_a_second(tmp_path, hub, run_id):
         recorder = spawn("messages.recorder", "--out", str(out), "--expect", "plant", *common)
         bus.wait_for_nodes(["recorder"], StopFlag(), timeout_s=60)
         plant = spawn("fe_node", "--h-um", "40", "--open-loop", "--max-steps", "3000", "--require", "recorder",
-                      *common)
+                      "--image-every", "100000", *common)  # no images: chunks would fill up without a flush
         assert states.get(timeout=60) is not None, "plant did not start stepping"
         time.sleep(2.5)
         recorder.send_signal(signal.SIGKILL)

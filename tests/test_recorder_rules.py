@@ -149,12 +149,19 @@ class FakeStop(threading.Event):
 
 
 class FakeBus:
-    """What :func:`record` uses of a NodeBus; ``ready`` plays ``script(bus)`` in a thread."""
+    """What :func:`record` uses of a NodeBus; ``ready`` plays ``script(bus)`` in a thread.
 
-    def __init__(self, script) -> None:
+    If the script fails, or the recording outlives ``WATCHDOG_S``, ``stop`` ends it (a broken
+    recorder must fail its test, not hang it).
+    """
+
+    WATCHDOG_S = 15.0
+
+    def __init__(self, script, stop: FakeStop) -> None:
         self.run_id = RUN
         self.presence: dict[str, threading.Event] = {}
         self._script = script
+        self._stop = stop
         self._callback = None
 
     def subscribe_raw(self, key: str, callback) -> None:
@@ -164,7 +171,17 @@ class FakeBus:
         return self.presence.setdefault(node, threading.Event())
 
     def ready(self, config) -> None:
-        threading.Thread(target=self._script, args=(self,), daemon=True).start()
+        threading.Thread(target=self._play, daemon=True).start()
+        watchdog = threading.Timer(self.WATCHDOG_S, self._stop.stop, ("watchdog",))
+        watchdog.daemon = True
+        watchdog.start()
+
+    def _play(self) -> None:
+        try:
+            self._script(self)
+        except BaseException:
+            self._stop.stop("test script failed")
+            raise
 
     def send(self, topic, msg, key_run: str = RUN) -> None:
         self._callback(SimpleNamespace(key_expr=key(topic, msg, key_run), payload=SimpleNamespace(
@@ -177,7 +194,8 @@ class FakeBus:
 def run_recorder(tmp_path, script, stop=None, expect=("plant",), drain_s=0.3):
     out = tmp_path / "rec.mcap"
     recorder = McapRecorder(out, RUN, out.open("wb"))
-    status = record(recorder, FakeBus(script), stop or FakeStop(), RunTracker(expect, drain_s), drain_s, {})
+    stop = stop or FakeStop()
+    status = record(recorder, FakeBus(script, stop), stop, RunTracker(expect, drain_s), drain_s, {})
     return status, out
 
 
