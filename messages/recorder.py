@@ -45,7 +45,7 @@ from typing import Any, BinaryIO
 
 from mcap.writer import CompressionType, Writer
 
-from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args
+from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
 from messages.cli import ArgumentParser, UsageError, exit_usage
 from messages.codec import MessageError, decode, encode, json_schema
 from messages.foxglove import Log, LogLevel, Timestamp
@@ -551,10 +551,11 @@ def main(argv: list[str] | None = None) -> int:
     except RecordingWriteError as err:
         print(f"error: {err}", file=sys.stderr, flush=True)
         return 1
+    config = {"out": str(path), "expect": args.expect, "drain_s": args.drain_s}
+    tracker = RunTracker(tuple(args.expect), args.drain_s)
     try:
-        with NodeBus(NODE_NAME, settings) as bus:
-            config = {"out": str(path), "expect": args.expect, "drain_s": args.drain_s}
-            return record(recorder, bus, stop, RunTracker(tuple(args.expect), args.drain_s), args.drain_s, config)
+        return run_node(parser.prog, NODE_NAME, settings,
+                        lambda bus: record(recorder, bus, stop, tracker, args.drain_s, config))
     finally:
         with suppress(RecordingWriteError):
             recorder.finish({"complete": "false", "stopped_by": "error", "incomplete_reason": "recorder error"})
