@@ -70,6 +70,7 @@ STEP_TOPICS = (PLANT_STATE, LASER_COMMAND)
 FLUSH_PERIOD_S = 0.5
 """Wall time [s] between chunk closes and file flushes (while messages arrive and when idle)."""
 POLL_S = 0.05
+MAX_WATCHES = 64
 WARNINGS_LOGGED = 20
 
 
@@ -443,7 +444,12 @@ class Intake:
 
 
 class _Presence:
-    """Liveliness watches of the run's nodes, turned into :meth:`RunTracker.gone` calls."""
+    """Liveliness watches of the run's nodes, turned into :meth:`RunTracker.gone` calls.
+
+    Expected nodes are watched from the start, other nodes once they sent a ``start``, at most
+    :data:`MAX_WATCHES` in all (forged starts under many names must not exhaust the session; an
+    unwatched node's ``end`` is never confirmed, so the run is then incomplete, never forged).
+    """
 
     def __init__(self, bus: Any, tracker: RunTracker) -> None:
         self._bus = bus
@@ -451,8 +457,11 @@ class _Presence:
         self._watches = {node: bus.watch_presence(node) for node in tracker.expected}
 
     def update(self, now_s: float) -> None:
-        for node in self._tracker.started - set(self._watches) - {self._tracker.own_node}:
-            self._watches[node] = self._bus.watch_presence(node)
+        """Watch newly started nodes; report every node whose token is gone (at ``now_s``, wall s)."""
+        if len(self._watches) < MAX_WATCHES and len(self._tracker.started) > len(self._watches):
+            for node in sorted(self._tracker.started - set(self._watches) - {self._tracker.own_node}):
+                if len(self._watches) < MAX_WATCHES:
+                    self._watches[node] = self._bus.watch_presence(node)
         for node, gone in self._watches.items():
             if gone.is_set():
                 self._tracker.gone(node, now_s)
