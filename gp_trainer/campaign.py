@@ -1,4 +1,4 @@
-"""The data campaign: the nine Table 2 cases run open loop, in parallel, each to its own MCAP.
+"""The data campaign: the nine Table 2 cases run open loop, in parallel on Dask, each to its own MCAP.
 
 Every case is a separate run of the project's own entry point,
 
@@ -22,10 +22,23 @@ none --config <tmp>/<name>.toml`` whose ``[plant]`` table carries ``ident_seed``
 ``ident_mean_w`` and ``ident_amplitude_w`` (:data:`IDENT_RUNS`). In general a run is a
 :class:`Job`: a name (run id and recording stem), a scenario, an optional ``[plant]`` table and
 further launcher arguments.
+
+Jobs run on Dask distributed (:mod:`gp_trainer.distributed`): a ``LocalCluster`` of
+``workers`` worker processes by default, or an existing cluster (``scheduler``,
+``tcp://HOST:PORT``). A worker runs a job exactly as above, as a ``launch.py`` subprocess
+(:func:`run_job`), so the plant, recorder and controller stay separate processes; the workers must
+see the repository, the interpreter and the output directory at the same paths as this process.
+The FE runs are lockstep and deterministic, run ids and paths depend only on the job, and results
+come back in job order, so the recordings' plant states, and the dataset built from them, are
+the same bit for bit whichever worker ran a job and in which order the jobs finished
+(``tests/test_campaign_dask.py``). A failed job is retried once (``retries``), then reported;
+the other jobs are kept.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -35,7 +48,6 @@ import sys
 import tempfile
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -46,6 +58,7 @@ from gp_trainer.provenance import REPO_ROOT
 TABLE2_CASES = tuple(range(1, 10))
 DEFAULT_IDENT_DIR = Path("recordings/identification")
 STOP_GRACE_S = 30.0  # after a timeout: SIGINT, then SIGKILL if the launcher is still running
+OUTPUT_TAIL_LINES = 15  # of a failed run's output, kept in its result
 
 
 @dataclass(frozen=True)
@@ -59,7 +72,8 @@ class CampaignSettings:
     out_dir : Path
         Directory of the recordings.
     workers : int
-        Cases run at the same time (each is several processes; the FE plant dominates).
+        Worker processes of the local Dask cluster, i.e. cases run at the same time (each is
+        several processes; the FE plant dominates).
     launcher : Path
         The project's ``launch.py``.
     python : str
@@ -68,6 +82,16 @@ class CampaignSettings:
         Wall-time limit per case [s].
     controller : str
         launch.py's ``--controller``; ``none`` plays the scenario's profiles (module docstring).
+    scheduler : str or None
+        Address of an existing Dask scheduler (``tcp://HOST:PORT``); None: a ``LocalCluster`` of
+        ``workers`` worker processes started for the campaign.
+    sequential : bool
+        No Dask: the cases run in this process, one after the other (the reference of the
+        bit-for-bit comparison, and a fallback).
+    retries : int
+        A failed case is run again this many times before it is reported failed.
+    launch_args : tuple[str, ...]
+        Further launch.py arguments for every case (e.g. ``--max-steps 40 --h-um 50``).
     """
 
     cases: tuple[int, ...] = TABLE2_CASES
@@ -77,17 +101,27 @@ class CampaignSettings:
     python: str = sys.executable
     timeout_s: float | None = None
     controller: str = "none"
+    scheduler: str | None = None
+    sequential: bool = False
+    retries: int = 1
+    launch_args: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
 class CaseResult:
-    """Outcome of one case: ``status`` is ``skipped`` (already complete), ``ok`` or ``failed``."""
+    """Outcome of one case: ``status`` is ``skipped`` (already complete), ``ok`` or ``failed``
+    (further fields as :class:`JobResult`)."""
 
     case: int
     recording: str
     status: str
     wall_s: float
     detail: str
+    attempts: int = 1
+    exit_status: int | None = None
+    worker: str = ""
+    output_tail: str = ""
+    states_sha256: str | None = None
 
 
 @dataclass(frozen=True)
@@ -119,13 +153,41 @@ class Job:
 
 @dataclass(frozen=True)
 class JobResult:
-    """Outcome of one job: ``status`` is ``skipped`` (already complete), ``ok`` or ``failed``."""
+    """Outcome of one job.
+
+    Attributes
+    ----------
+    name : str
+    recording : str
+        The final recording, or the ``.partial.mcap`` a failed run left.
+    status : str
+        ``skipped`` (already complete), ``ok`` or ``failed`` (every attempt failed).
+    wall_s : float
+        Wall time of the last attempt [s].
+    detail : str
+        The launcher's last output line; for a failure ``exit status N: <last line>``.
+    attempts : int
+        Launcher runs (0 for skipped; 2 for a failure retried once).
+    exit_status : int or None
+        The launcher's exit status of the last attempt (None: it never ran or its worker died).
+    worker : str
+        Dask worker address of the last attempt (``local`` without Dask).
+    output_tail : str
+        Last lines of the launcher's merged stdout/stderr of a failed attempt.
+    states_sha256 : str or None
+        :func:`states_sha256` of a complete recording.
+    """
 
     name: str
     recording: str
     status: str
     wall_s: float
     detail: str
+    attempts: int = 1
+    exit_status: int | None = None
+    worker: str = ""
+    output_tail: str = ""
+    states_sha256: str | None = None
 
 
 class RunnerSettings(Protocol):
@@ -137,6 +199,10 @@ class RunnerSettings(Protocol):
     python: str
     timeout_s: float | None
     controller: str
+    scheduler: str | None
+    sequential: bool
+    retries: int
+    launch_args: tuple[str, ...]
 
 
 def scenario_name(case: int) -> str:
@@ -149,7 +215,7 @@ def case_job(case: int) -> Job:
     return Job(scenario_name(case), scenario_name(case))
 
 
-def job_recording(settings: RunnerSettings, job: Job) -> Path:
+def job_recording(settings: RunnerSettings | RunSpec, job: Job) -> Path:
     """Final recording of one job."""
     return settings.out_dir / f"{job.name}.mcap"
 
@@ -166,14 +232,14 @@ def recording_complete(path: Path) -> bool:
     return path.is_file() and is_complete(path)
 
 
-def job_command(settings: RunnerSettings, job: Job, out: Path, config: Path | None = None) -> list[str]:
+def job_command(settings: RunnerSettings | RunSpec, job: Job, out: Path, config: Path | None = None) -> list[str]:
     """Command line that records ``job`` to ``out``, with ``--config config`` if given (the job's
-    ``[plant]`` table as TOML). The launcher runs in the repository root: the runner passes
-    absolute paths."""
+    ``[plant]`` table as TOML), then the job's and the settings' further arguments. The launcher
+    runs in the repository root: the runner passes absolute paths."""
     return [settings.python, str(settings.launcher), "--scenario", job.scenario,
             "--controller", job.controller or settings.controller,
             *(("--config", str(config)) if config is not None else ()), *job.args,
-            "--no-progress", "--json", "--out", str(out), "--run-id", job.name]
+            *getattr(settings, "launch_args", ()), "--no-progress", "--json", "--out", str(out), "--run-id", job.name]
 
 
 def case_command(settings: CampaignSettings, case: int, out: Path) -> list[str]:
@@ -202,122 +268,250 @@ def plant_toml(plant: tuple[tuple[str, Any], ...]) -> str:
     return "[plant]\n" + "".join(f"{key} = {_toml_value(key, value)}\n" for key, value in plant)
 
 
-class _Runner:
-    """Runs job subprocesses and can interrupt all of them (Ctrl-C of the campaign)."""
+@dataclass(frozen=True)
+class RunSpec:
+    """What a worker needs to record a job: absolute paths, so a Dask worker in another working
+    directory (or on another machine sharing the file system) writes where the campaign would."""
 
-    def __init__(self, settings: RunnerSettings) -> None:
-        self.settings = settings
-        self._procs: dict[str, subprocess.Popen[str]] = {}
-        self._lock = threading.Lock()
+    out_dir: Path
+    launcher: Path
+    python: str
+    timeout_s: float | None
+    controller: str
+    launch_args: tuple[str, ...] = ()
 
-    def run(self, job: Job) -> JobResult:
+
+def run_spec(settings: RunnerSettings) -> RunSpec:
+    """The :class:`RunSpec` of ``settings`` (output directory made absolute)."""
+    return RunSpec(settings.out_dir.absolute(), settings.launcher.absolute(), settings.python, settings.timeout_s,
+                   settings.controller, tuple(getattr(settings, "launch_args", ())))
+
+
+_RUNNING: dict[str, subprocess.Popen[str]] = {}  # partial recording -> launcher process, in this process
+_RUNNING_LOCK = threading.Lock()
+
+
+def _tail(text: str, lines: int = OUTPUT_TAIL_LINES) -> str:
+    return "\n".join(text.rstrip().splitlines()[-lines:])
+
+
+def _worker_name() -> str:
+    try:
+        from distributed import get_worker
+
+        return get_worker().address
+    except (ImportError, ValueError):
+        return "local"
+
+
+def run_job(spec: RunSpec, job: Job, attempt: int = 1) -> JobResult:
+    """Record one job now, in this process (a Dask worker runs exactly this).
+
+    The launcher runs as a subprocess in the repository root (its nodes are separate processes
+    as in any run) and writes ``<name>.partial.mcap``, renamed to ``<name>.mcap`` when it
+    succeeded and the recorder marked the file complete. Never raises for a failed run: the
+    result says ``failed`` with the exit status and the last lines of the launcher's output.
+    """
+    started = time.monotonic()
+    final = job_recording(spec, job)
+    partial = final.with_name(f"{job.name}.partial.mcap")
+    worker = _worker_name()
+    try:
         if not job.plant:
-            return self._run(job, None)
-        with tempfile.TemporaryDirectory(prefix="meltloop-job-") as tmp:
-            config = Path(tmp) / f"{job.name}.toml"
-            config.write_text(plant_toml(job.plant))
-            return self._run(job, config)
+            returncode, output = _launch(spec, job, partial, None)
+        else:
+            with tempfile.TemporaryDirectory(prefix="meltloop-job-") as tmp:
+                config = Path(tmp) / f"{job.name}.toml"
+                config.write_text(plant_toml(job.plant))
+                returncode, output = _launch(spec, job, partial, config)
+    except (OSError, CampaignError) as exc:  # e.g. the interpreter or launcher is missing on this worker
+        return JobResult(job.name, str(partial), "failed", time.monotonic() - started,
+                         f"could not start the launcher on {worker}: {exc}", attempt, None, worker, str(exc))
+    wall = time.monotonic() - started
+    last = (output.strip().splitlines() or [""])[-1]
+    if returncode == 0 and recording_complete(partial):
+        os.replace(partial, final)
+        return JobResult(job.name, str(final), "ok", wall, last, attempt, 0, worker, "")
+    if returncode == 0:
+        last = f"the recording {partial.name} is not complete; {last}".rstrip("; ")
+    return JobResult(job.name, str(partial), "failed", wall, f"exit status {returncode}: {last or 'no output'}",
+                     attempt, returncode, worker, _tail(output))
 
-    def _run(self, job: Job, config: Path | None) -> JobResult:
-        final = job_recording(self.settings, job)
-        partial = final.with_name(f"{job.name}.partial.mcap")
-        started = time.monotonic()
-        proc = subprocess.Popen(job_command(self.settings, job, partial.absolute(), config), cwd=REPO_ROOT,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        with self._lock:
-            self._procs[job.name] = proc
+
+def _launch(spec: RunSpec, job: Job, partial: Path, config: Path | None) -> tuple[int, str]:
+    """Run the launcher to the end (or the timeout): exit status and its merged stdout/stderr."""
+    partial.parent.mkdir(parents=True, exist_ok=True)
+    proc = subprocess.Popen(job_command(spec, job, partial, config), cwd=REPO_ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    with _RUNNING_LOCK:
+        _RUNNING[str(partial)] = proc
+    try:
+        output, _ = proc.communicate(timeout=spec.timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGINT)  # let the launcher stop its nodes, then insist
         try:
-            stdout, stderr = proc.communicate(timeout=self.settings.timeout_s)
+            output, _ = proc.communicate(timeout=STOP_GRACE_S)
         except subprocess.TimeoutExpired:
-            proc.send_signal(signal.SIGINT)  # let the launcher stop its nodes, then insist
-            try:
-                stdout, stderr = proc.communicate(timeout=STOP_GRACE_S)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                stdout, stderr = proc.communicate()
-            stderr += f"\ntimed out after {self.settings.timeout_s} s"
-        finally:
-            with self._lock:
-                self._procs.pop(job.name, None)
-        wall = time.monotonic() - started
-        last_out = (stdout.strip().splitlines() or [""])[-1]
-        last_err = (stderr.strip().splitlines() or [""])[-1]
-        if proc.returncode == 0 and recording_complete(partial):
-            os.replace(partial, final)
-            return JobResult(job.name, str(final), "ok", wall, last_out)
-        reason = last_err or last_out or "no output"
-        return JobResult(job.name, str(partial), "failed", wall, f"exit status {proc.returncode}: {reason}")
+            proc.kill()
+            output, _ = proc.communicate()
+        output += f"\ntimed out after {spec.timeout_s} s"
+    finally:
+        with _RUNNING_LOCK:
+            _RUNNING.pop(str(partial), None)
+    return proc.returncode, output
 
-    def interrupt(self) -> None:
-        with self._lock:
-            procs = list(self._procs.values())
-        for proc in procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)  # the launcher stops its nodes in order
+
+def interrupt_running(partials: list[str] | None = None) -> int:
+    """SIGINT to the launchers this process runs (those writing ``partials``, or all): the
+    launcher stops its nodes in order. Returns how many were signalled."""
+    with _RUNNING_LOCK:
+        procs = [p for key, p in _RUNNING.items() if partials is None or key in partials]
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    return len(procs)
+
+
+def states_sha256(path: Path) -> str | None:
+    """SHA-256 of a recording's ``/plant/state`` messages (msgspec JSON, in file order): what the
+    dataset is built from, free of wall-clock times; equal for equal FE runs wherever they ran."""
+    import msgspec
+
+    from messages.recording import read_messages
+
+    digest = hashlib.sha256()
+    try:
+        for state in read_messages(path, "/plant/state"):
+            digest.update(msgspec.json.encode(state))
+    except ValueError:
+        return None
+    return digest.hexdigest()
 
 
 def _check_runner(settings: RunnerSettings) -> None:
+    scheduler = getattr(settings, "scheduler", None)
     if settings.workers < 1:
         raise CampaignError(f"--workers must be at least 1, got {settings.workers}")
+    if getattr(settings, "retries", 1) < 0:
+        raise CampaignError(f"--retries must be >= 0, got {settings.retries}")
     if settings.timeout_s is not None and not settings.timeout_s > 0:
         raise CampaignError(f"--timeout must be > 0 s, got {settings.timeout_s}")
+    if scheduler is not None and getattr(settings, "sequential", False):
+        raise CampaignError("--scheduler and --sequential exclude each other")
+    if scheduler is not None:
+        from gp_trainer.distributed import check_scheduler_address
+
+        check_scheduler_address(scheduler)
     if not settings.launcher.is_file():
         raise CampaignError(f"launcher not found: {settings.launcher}")
 
 
+class _Progress:
+    """The tqdm bar over jobs and one line per finished (or retried) job, on stderr."""
+
+    def __init__(self, total: int, initial: int, unit: str, enabled: bool) -> None:
+        from tqdm import tqdm
+
+        self.enabled = enabled
+        self.bar = tqdm(total=total, initial=initial, unit=unit, disable=not enabled, file=sys.stderr)
+
+    def __call__(self, result: JobResult, final: bool) -> None:
+        if not self.enabled:
+            return
+        where = f", {result.worker}" if result.worker else ""
+        if final:
+            self.bar.write(f"{result.name}: {result.status} ({result.wall_s:.1f} s{where})"
+                           + (f" after {result.attempts} attempts: {result.detail}" if result.status == "failed"
+                              else ""), file=sys.stderr)
+            self.bar.set_postfix_str(f"{result.name} {result.status}")
+            self.bar.update()
+        else:
+            self.bar.write(f"{result.name}: failed ({result.wall_s:.1f} s{where}): {result.detail}; retrying",
+                           file=sys.stderr)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _run_sequential(jobs: list[Job], spec: RunSpec, retries: int, report: _Progress) -> dict[str, JobResult]:
+    """Every job in this process, one after the other, in job order (no Dask)."""
+    results = {}
+    try:
+        for job in jobs:
+            for attempt in range(1, retries + 2):
+                result = run_job(spec, job, attempt)
+                final = result.status != "failed" or attempt > retries
+                report(result, final)
+                if final:
+                    results[job.name] = result
+                    break
+    except KeyboardInterrupt:
+        interrupt_running()
+        raise
+    return results
+
+
 def run_jobs(jobs: list[Job] | tuple[Job, ...], settings: RunnerSettings, *, progress: bool = True,
              unit: str = "run") -> list[JobResult]:
-    """Record every job that has no complete recording yet, ``settings.workers`` at a time.
+    """Record every job that has no complete recording yet, on Dask distributed.
+
+    Jobs run on a ``LocalCluster`` of ``settings.workers`` worker processes (one thread each, so
+    one job per worker at a time), or on the cluster at ``settings.scheduler``
+    (``tcp://HOST:PORT``), or, with ``settings.sequential``, in this process one after the other
+    without Dask. Each job is one ``launch.py`` subprocess started by the worker
+    (:func:`run_job`). A failed job is run again up to ``settings.retries`` times (default once);
+    it is reported failed only if every attempt failed, and the other jobs are kept either way.
+    Results come back in job order, whatever order the jobs finished in.
 
     Parameters
     ----------
     jobs : sequence of Job
         Distinct names.
     settings : RunnerSettings
-        Output directory, workers, launcher, interpreter, timeout, controller.
+        Output directory, workers or scheduler, launcher, interpreter, timeout, controller.
     progress : bool
-        Show a tqdm progress bar over jobs (on stderr).
+        Show a tqdm progress bar over jobs and one line per finished job (on stderr).
     unit : str
         Unit name of the progress bar.
 
     Returns
     -------
     list[JobResult]
-        One per job, in job order.
+        One per job, in job order; ``states_sha256`` is set for every complete recording.
 
     Raises
     ------
     CampaignError
-        No or duplicate jobs, ``workers`` < 1 or a missing launcher.
+        No or duplicate jobs, ``workers`` < 1, a missing launcher, a malformed or unreachable
+        scheduler.
     """
-    from tqdm import tqdm
-
     names = [j.name for j in jobs]
     if not jobs or len(set(names)) != len(names):
         raise CampaignError(f"need at least one job and distinct names, got {names}")
     _check_runner(settings)
     for job in jobs:
         plant_toml(job.plant)  # a bad [plant] table is a usage error before anything runs
-    settings.out_dir.mkdir(parents=True, exist_ok=True)
-    results = {j.name: JobResult(j.name, str(job_recording(settings, j)), "skipped", 0.0, "recording complete")
+    spec = run_spec(settings)
+    spec.out_dir.mkdir(parents=True, exist_ok=True)
+    results = {j.name: JobResult(j.name, str(job_recording(settings, j)), "skipped", 0.0, "recording complete", 0)
                for j in jobs if recording_complete(job_recording(settings, j))}
     pending = [j for j in jobs if j.name not in results]
-    runner = _Runner(settings)
-    with tqdm(total=len(jobs), initial=len(results), unit=unit, disable=not progress) as bar, \
-            ThreadPoolExecutor(max_workers=settings.workers) as pool:
-        futures = {pool.submit(runner.run, j): j for j in pending}
-        try:
-            for future in as_completed(futures):
-                result = future.result()
-                results[result.name] = result
-                bar.set_postfix_str(f"{result.name} {result.status}")
-                bar.update()
-        except KeyboardInterrupt:
-            for future in futures:
-                future.cancel()
-            runner.interrupt()
-            raise
-    return [results[n] for n in names]
+    retries = getattr(settings, "retries", 1)
+    report = _Progress(len(jobs), len(results), unit, progress)
+    try:
+        if not pending:
+            pass
+        elif getattr(settings, "sequential", False):
+            results.update(_run_sequential(pending, spec, retries, report))
+        else:
+            from gp_trainer.distributed import dask_client, run_on_dask
+
+            with dask_client(getattr(settings, "scheduler", None), settings.workers) as client:
+                results.update(run_on_dask(client, pending, spec, retries, report))
+    finally:
+        report.close()
+    return [dataclasses.replace(results[n], states_sha256=states_sha256(Path(results[n].recording)))
+            if results[n].status != "failed" else results[n] for n in names]
 
 
 def run_campaign(settings: CampaignSettings = CampaignSettings(), *, progress: bool = True) -> list[CaseResult]:
@@ -332,12 +526,12 @@ def run_campaign(settings: CampaignSettings = CampaignSettings(), *, progress: b
     Returns
     -------
     list[CaseResult]
-        One per case, in case order.
+        One per case, in case order (whatever order they finished in).
 
     Raises
     ------
     CampaignError
-        Unknown case numbers, ``workers`` < 1 or a missing launcher.
+        Unknown case numbers, ``workers`` < 1, a missing launcher or a bad ``scheduler``.
     """
     bad = sorted(set(settings.cases) - set(TABLE2_CASES))
     if bad or not settings.cases:
@@ -345,7 +539,7 @@ def run_campaign(settings: CampaignSettings = CampaignSettings(), *, progress: b
     _check_runner(settings)
     cases = list(dict.fromkeys(settings.cases))
     done = run_jobs([case_job(c) for c in cases], settings, progress=progress, unit="case")
-    by_case = {c: CaseResult(c, r.recording, r.status, r.wall_s, r.detail) for c, r in zip(cases, done)}
+    by_case = {c: CaseResult(c, **{k: v for k, v in asdict(r).items() if k != "name"}) for c, r in zip(cases, done)}
     return [by_case[c] for c in settings.cases]
 
 
@@ -422,6 +616,10 @@ class IdentifySettings:
     python: str = sys.executable
     timeout_s: float | None = None
     controller: str = "none"
+    scheduler: str | None = None
+    sequential: bool = False
+    retries: int = 1
+    launch_args: tuple[str, ...] = ()
 
 
 def select_ident_runs(
@@ -454,7 +652,7 @@ def run_identification(settings: IdentifySettings = IdentifySettings(), *, progr
     Raises
     ------
     CampaignError
-        No runs, duplicate names, ``workers`` < 1 or a missing launcher.
+        No runs, duplicate names, ``workers`` < 1, a missing launcher or a bad ``scheduler``.
     """
     return run_jobs(identify_jobs(settings), settings, progress=progress)
 

@@ -2,8 +2,9 @@
 
 Typical use::
 
-    python -m gp_trainer campaign --workers 2      # nine Table 2 cases -> recordings/campaign/
-    python -m gp_trainer identify --workers 2      # six random-staircase runs -> recordings/identification/
+    python -m gp_trainer campaign --workers 2      # 9 Table 2 cases, Dask LocalCluster -> recordings/campaign/
+    python -m gp_trainer campaign --scheduler tcp://HOST:8786   # ... on an existing Dask cluster
+    python -m gp_trainer identify --workers 2      # 13 identification runs -> recordings/identification/
     python -m gp_trainer dataset                   # -> out/gp/dataset.npz
     python -m gp_trainer train                     # -> gp_trainer/models/in625_gp.json
     python -m gp_trainer evaluate --json           # metrics + out/gp/gp_scatter.png, gp_rollout.png
@@ -18,10 +19,10 @@ import argparse
 import json
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -110,31 +111,74 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
 
-    p = sub.add_parser("campaign", formatter_class=fmt, help="record the Table 2 cases open loop")
-    p.add_argument("--workers", type=int, default=2, help="cases run in parallel")
+    p = sub.add_parser("campaign", formatter_class=fmt, help="record the Table 2 cases open loop (on Dask)",
+                       description="Record the Table 2 cases open loop, each a launch.py run, on Dask distributed: "
+                       "a local cluster of --workers processes, or an existing one (--scheduler).")
     p.add_argument("--cases", type=int, nargs="+", default=list(range(1, 10)), help="Table 2 case numbers")
     p.add_argument("--out-dir", type=Path, default=DEFAULT_RECORDINGS, help="recordings directory")
-    p.add_argument("--timeout", type=float, default=None, help="wall-time limit per case [s]")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--json", action="store_true", help="print a JSON summary (last line)")
+    _runner_options(p, "case")
 
     from gp_trainer.campaign import DEFAULT_IDENT_DIR, IDENT_RUNS
 
     p = sub.add_parser(
         "identify",
         formatter_class=fmt,
-        help="record the identification runs (random power staircases) open loop",
+        help="record the identification runs (random power staircases, closed-loop runs) on Dask",
         description="Record seeded random power-staircase runs of ident-layer and ident-double-track "
-        "(launch.py --controller none), one MCAP each. Runs: " + ", ".join(r.name for r in IDENT_RUNS),
+        "(launch.py --controller none) and closed-loop runs, one MCAP each, on Dask distributed as `campaign`. "
+        "Runs: " + ", ".join(r.name for r in IDENT_RUNS),
     )
     p.add_argument("--runs", nargs="+", metavar="NAME", default=argparse.SUPPRESS,
-                   help="only these runs (default: all six)")
-    p.add_argument("--workers", type=int, default=2, help="runs in parallel")
+                   help="only these runs (default: all)")
     p.add_argument("--out-dir", type=Path, default=DEFAULT_IDENT_DIR, help="recordings directory")
-    p.add_argument("--timeout", type=float, default=None, help="wall-time limit per run [s]")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--json", action="store_true", help="print a JSON summary (last line)")
+    _runner_options(p, "run")
     return parser
+
+
+def _runner_options(p: argparse.ArgumentParser, unit: str) -> None:
+    """Options of the job runner (`campaign`, `identify`): where the runs execute and how."""
+    from gp_trainer.campaign import CampaignSettings
+
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, default=None,
+                       help=f"worker processes of the local Dask cluster, i.e. {unit}s run at the same time "
+                       f"(default {CampaignSettings.workers})")
+    where.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
+                       help="run on this existing Dask cluster instead (workers must see this repository "
+                       "and --out-dir at the same paths)")
+    where.add_argument("--sequential", action="store_true",
+                       help=f"no Dask: the {unit}s one after the other in this process")
+    p.add_argument("--retries", type=int, default=1, help=f"a failed {unit} is run again this many times")
+    p.add_argument("--timeout", type=float, default=None, help=f"wall-time limit per {unit} and attempt [s]")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help=f"launch.py --max-steps for every {unit} (short test runs; use another --out-dir)")
+    p.add_argument("--h-um", type=float, default=None,
+                   help=f"launch.py --h-um for every {unit} (coarser mesh; use another --out-dir)")
+    p.add_argument("--no-progress", action="store_true", help=f"no progress bar and no line per finished {unit}")
+    p.add_argument("--json", action="store_true", help="print a JSON summary (last line)")
+
+
+def _runner_settings(args: argparse.Namespace) -> dict:
+    """The runner fields of the campaign/identify settings from the command line."""
+    from gp_trainer.campaign import CampaignSettings
+
+    launch_args = (*(("--max-steps", str(args.max_steps)) if args.max_steps is not None else ()),
+                   *(("--h-um", repr(args.h_um)) if args.h_um is not None else ()))
+    return dict(out_dir=args.out_dir, workers=CampaignSettings.workers if args.workers is None else args.workers,
+                scheduler=args.scheduler, sequential=args.sequential, retries=args.retries, timeout_s=args.timeout,
+                launch_args=launch_args)
+
+
+def _report_failures(results: list, label: Callable[[Any], str]) -> None:
+    """For every run that failed after its retries: which, exit status and the last lines of its output."""
+    for r in results:
+        if r.status != "failed":
+            continue
+        status = "no exit status (its worker died)" if r.exit_status is None else f"exit status {r.exit_status}"
+        print(f"{label(r)} failed after {r.attempts} attempt(s), {status}; last lines of its output:",
+              file=sys.stderr)
+        for line in (r.output_tail or r.detail).splitlines():
+            print(f"    {line}", file=sys.stderr)
 
 
 def _case_number(path: Path) -> tuple[int, str]:
@@ -262,11 +306,11 @@ def _evaluate(args: argparse.Namespace) -> int:
 def _campaign(args: argparse.Namespace) -> int:
     from gp_trainer.campaign import CampaignSettings, run_campaign, summary_json
 
-    settings = CampaignSettings(cases=tuple(args.cases), out_dir=args.out_dir, workers=args.workers,
-                                timeout_s=args.timeout)
+    settings = CampaignSettings(cases=tuple(args.cases), **_runner_settings(args))
     results = run_campaign(settings, progress=not args.no_progress)
     for r in results:
         print(f"case {r.case}: {r.status} ({r.wall_s:.1f} s) {r.recording} {r.detail}".rstrip())
+    _report_failures(results, lambda r: f"case {r.case}")
     if args.json:
         print(summary_json(results))
     return 1 if any(r.status == "failed" for r in results) else 0
@@ -280,11 +324,11 @@ def _identify(args: argparse.Namespace) -> int:
         summary_json,
     )
 
-    settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None)), out_dir=args.out_dir,
-                                workers=args.workers, timeout_s=args.timeout)
+    settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None)), **_runner_settings(args))
     results = run_identification(settings, progress=not args.no_progress)
     for r in results:
         print(f"{r.name}: {r.status} ({r.wall_s:.1f} s) {r.recording} {r.detail}".rstrip())
+    _report_failures(results, lambda r: r.name)
     if args.json:
         print(summary_json(results, key="runs"))
     return 1 if any(r.status == "failed" for r in results) else 0

@@ -1,0 +1,139 @@
+"""Campaign jobs on Dask distributed: a ``LocalCluster`` by default, or an existing cluster.
+
+:func:`gp_trainer.campaign.run_jobs` opens a client with :func:`dask_client` and hands the pending
+jobs to :func:`run_on_dask`. Each job is one task, :func:`gp_trainer.campaign.run_job`, which
+starts ``launch.py`` as a subprocess on the worker; the worker only waits for it. So:
+
+* a local cluster has ``workers`` worker *processes* with one thread each: at most ``workers``
+  launcher runs at a time, as the process pool did before;
+* on an existing cluster (``--scheduler tcp://HOST:PORT``) a worker runs as many jobs at a time as
+  it has threads; the workers must have this project installed and see the repository, the
+  interpreter and the output directory at the same paths as the client (a shared file system);
+* a failed job (the launcher failed, or its worker died) is submitted again, under a new key, up
+  to ``retries`` times; the results are collected by job name, so their order, and the dataset
+  built from the recordings, does not depend on which job finished first;
+* Ctrl-C cancels the tasks and sends SIGINT to this campaign's launchers on every worker, which
+  stop their nodes in order.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import re
+import uuid
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
+
+from gp_trainer.errors import CampaignError
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+    from gp_trainer.campaign import Job, JobResult, RunSpec
+
+CONNECT_TIMEOUT_S = 10.0  # an unreachable --scheduler is reported after this long
+_ADDRESS = re.compile(r"^(tcp|tls)://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(\d{1,5})$")
+
+
+def check_scheduler_address(address: str) -> str:
+    """``address`` if it looks like ``tcp://HOST:PORT`` (or ``tls://``), else a one-line
+    :class:`CampaignError` naming ``--scheduler``."""
+    match = _ADDRESS.match(address)
+    if not match or not 0 < int(match.group(3)) < 65536:
+        raise CampaignError(f"--scheduler must be tcp://HOST:PORT (a Dask scheduler), got {address!r}")
+    return address
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: str | None, workers: int) -> Iterator[Client]:
+    """A Dask client: of the cluster at ``scheduler``, or of a new ``LocalCluster`` of ``workers``
+    worker processes (one thread each, no dashboard, no memory limit: the memory is the
+    launcher's, outside the worker), closed on exit.
+
+    Raises
+    ------
+    CampaignError
+        ``scheduler`` is malformed, unreachable within :data:`CONNECT_TIMEOUT_S` or has no worker.
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise CampaignError("Dask distributed is not installed (pip install 'dask[distributed]'); "
+                            "--sequential runs without it") from None
+    if scheduler is None:
+        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                          memory_limit=0, silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+            yield client
+        return
+    check_scheduler_address(scheduler)
+    try:
+        client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
+    except (OSError, TimeoutError) as exc:
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise CampaignError(f"--scheduler {scheduler}: no Dask scheduler reachable within "
+                            f"{CONNECT_TIMEOUT_S:g} s ({reason[:200]})") from None
+    with client:
+        try:
+            client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+        except (OSError, TimeoutError):
+            raise CampaignError(f"--scheduler {scheduler}: the cluster has no worker "
+                                f"(none joined within {CONNECT_TIMEOUT_S:g} s)") from None
+        yield client
+
+
+def _interrupt(partials: list[str]) -> int:
+    from gp_trainer.campaign import interrupt_running
+
+    return interrupt_running(partials)
+
+
+def run_on_dask(client: Client, jobs: list[Job], spec: RunSpec, retries: int,
+                report: Callable[[JobResult, bool], None]) -> dict[str, JobResult]:
+    """Run ``jobs`` as tasks on ``client``'s cluster; a failed one again, up to ``retries`` times.
+
+    ``report(result, final)`` is called for every attempt as it finishes (``final`` false when it
+    will be retried). Returns the final result of every job, by name.
+    """
+    from distributed import as_completed
+
+    from gp_trainer.campaign import JobResult, job_recording, run_job
+
+    campaign = uuid.uuid4().hex[:8]  # keys unique on a shared cluster; never in a result
+    attempts: dict[str, tuple[Job, int]] = {}
+    live: dict[str, object] = {}  # futures not yet finished
+
+    def submit(job: Job, attempt: int):
+        future = client.submit(run_job, spec, job, attempt, key=f"meltloop-{job.name}-{campaign}-{attempt}",
+                               pure=False, retries=0)
+        attempts[future.key] = (job, attempt)
+        live[future.key] = future
+        return future
+
+    results: dict[str, JobResult] = {}
+    running = as_completed([submit(job, 1) for job in jobs])
+    try:
+        for future in running:
+            job, attempt = attempts.pop(future.key)
+            live.pop(future.key, None)
+            try:
+                result = future.result()
+            except Exception as exc:  # the worker died (KilledWorker), the task was lost, ...
+                reason = " ".join(f"{type(exc).__name__}: {exc}".split())
+                partial = job_recording(spec, job).with_name(f"{job.name}.partial.mcap")
+                result = JobResult(job.name, str(partial), "failed", 0.0, f"not run to the end: {reason}",
+                                   attempt, None, "", reason)
+            future.release()
+            final = result.status != "failed" or attempt > retries
+            report(result, final)
+            if final:
+                results[job.name] = result
+            else:
+                running.add(submit(job, attempt + 1))
+    except KeyboardInterrupt:
+        client.cancel(list(live.values()))
+        partials = [str(job_recording(spec, j).with_name(f"{j.name}.partial.mcap")) for j in jobs]
+        with contextlib.suppress(Exception):
+            client.run(_interrupt, partials)
+        raise
+    return results
