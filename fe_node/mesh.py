@@ -1,14 +1,10 @@
-"""Graded tensor-product hexahedral mesh and its exact fast stiffness operator.
+"""Graded tensor-product hexahedral grid and 1-D linear-element matrices.
 
-On a tensor-product grid with trilinear hexahedra (ElementHex1), the unit-conductivity
-stiffness and consistent mass matrices are exactly
-
-    K = Kx (x) My (x) Mz + Mx (x) Ky (x) Mz + Mx (x) My (x) Kz,     M = Mx (x) My (x) Mz,
-
-with ``Kd, Md`` the 1-D linear-element stiffness and mass matrices.  :class:`Stiffness`
-applies ``K`` as one sparse product on the (y, z) planes followed by one along x, which
-is exact and avoids assembling the 27-point matrix.  ``tests/test_fe_mesh.py`` checks it
-against scikit-fem assembly (``Basis(m, ElementHex1(), intorder=2)``).
+On a tensor-product grid of boxes with trilinear hexahedra (ElementHex1) the stiffness and
+consistent mass factor into 1-D linear-element matrices (:func:`fe1d`); the fast operator of
+:mod:`fe_node.operators` applies them.  :meth:`Grid.skfem_mesh` gives the same grid as a
+scikit-fem mesh, :meth:`Grid.top_areas` the lumped top-face areas (the ``facet_area`` form of
+:mod:`fe_node.forms` on boxes).
 
 Array convention: the solver stores nodal fields as ``(ny, nz, nx)`` arrays (C order, x
 fastest), so the (y, z)-plane product needs no transposes and the top surface (z = 0,
@@ -57,20 +53,28 @@ def graded_axis(lo: float, hi: float, fine_lo: float, fine_hi: float, h: float,
     return x
 
 
-def fe1d(x: np.ndarray):
-    """1-D linear-element matrices on nodes ``x``.
+def fe1d(x: np.ndarray, w: np.ndarray | None = None):
+    """1-D linear-element matrices on nodes ``x``, optionally weighted per element.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+        Increasing node coordinates [m].
+    w : ndarray, shape (n - 1,), optional
+        Element weights [-] (default 1).
 
     Returns
     -------
     K, M : scipy.sparse.csr_matrix, shape (n, n)
-        Stiffness ``int N_i' N_j'`` [1/m] and consistent mass ``int N_i N_j`` [m].
+        Stiffness ``int w N_i' N_j'`` [1/m] and consistent mass ``int w N_i N_j`` [m].
     """
     h = np.diff(x)
+    w = np.ones_like(h) if w is None else np.asarray(w, dtype=float)
     z = np.zeros(1)
-    kd = np.concatenate([1 / h, z]) + np.concatenate([z, 1 / h])
-    md = np.concatenate([h / 3, z]) + np.concatenate([z, h / 3])
-    K = sp.diags([kd, -1 / h, -1 / h], [0, -1, 1], format="csr")
-    M = sp.diags([md, h / 6, h / 6], [0, -1, 1], format="csr")
+    kd = np.concatenate([w / h, z]) + np.concatenate([z, w / h])
+    md = np.concatenate([w * h / 3, z]) + np.concatenate([z, w * h / 3])
+    K = sp.diags([kd, -w / h, -w / h], [0, -1, 1], format="csr")
+    M = sp.diags([md, w * h / 6, w * h / 6], [0, -1, 1], format="csr")
     return K, M
 
 
@@ -99,11 +103,6 @@ class Grid:
     def to_xyz(u: np.ndarray) -> np.ndarray:
         """View of a solver field (ny, nz, nx) as (nx, ny, nz)."""
         return np.transpose(u, (2, 0, 1))
-
-    def lumped_mass(self) -> np.ndarray:
-        """Row-sum lumped nodal volumes [m³], solver shape ``(ny, nz, nx)``."""
-        mx, my, mz = (np.asarray(fe1d(a)[1].sum(axis=1)).ravel() for a in (self.xs, self.ys, self.zs))
-        return my[:, None, None] * mz[None, :, None] * mx[None, None, :]
 
     def top_areas(self) -> np.ndarray:
         """Row-sum lumped nodal areas of the top face [m²], shape ``(ny, nx)``."""
@@ -134,50 +133,20 @@ class Grid:
         perm[ours] = np.arange(self.n_nodes)
         return mesh, perm
 
+    def element_order(self, mesh) -> np.ndarray:
+        """``order[solver_element] = mesh element`` for :meth:`skfem_mesh`'s mesh.
+
+        Solver elements are numbered in C order of ``(ny - 1, nz - 1, nx - 1)``.
+        """
+        c = mesh.p[:, mesh.t].mean(axis=1)              # element centroids, (3, n_elements)
+        mids = [0.5 * (a[1:] + a[:-1]) for a in (self.xs, self.ys, self.zs)]
+        ix, iy, iz = (_nearest(m, ci, np.searchsorted(m, ci)) for m, ci in zip(mids, c))
+        ours = np.ravel_multi_index((iy, iz, ix), (len(self.ys) - 1, len(self.zs) - 1, len(self.xs) - 1))
+        order = np.empty(len(ours), dtype=np.intp)
+        order[ours] = np.arange(len(ours))
+        return order
+
 
 def _nearest(a, v, i):
     i = np.clip(i, 1, len(a) - 1)
     return np.where(np.abs(a[i - 1] - v) < np.abs(a[i] - v), i - 1, i)
-
-
-class Stiffness:
-    """Exact action of the unit-conductivity trilinear stiffness matrix ``K`` [m].
-
-    ``K u`` for a solver field ``u`` of shape ``(ny, nz, nx)`` (or flat) is computed as
-    ``(A u) Kx + (B u) Mx`` with ``A = My (x) Mz`` and ``B = Ky (x) Mz + My (x) Kz``
-    acting on the (y, z) index (one sparse product, no copy), then the symmetric
-    tridiagonal ``Kx``, ``Mx`` along the contiguous x axis by array slicing.
-    """
-
-    def __init__(self, grid: Grid):
-        self.shape = grid.solver_shape
-        kx, mx = fe1d(grid.xs)
-        ky, my = fe1d(grid.ys)
-        kz, mz = fe1d(grid.zs)
-        a = sp.kron(my, mz)
-        b = sp.kron(ky, mz) + sp.kron(my, kz)
-        self._ab = sp.vstack([a, b]).tocsr()
-        self._p = a.shape[0]
-        self._kd, self._ko = kx.diagonal(), kx.diagonal(1)
-        self._md, self._mo = mx.diagonal(), mx.diagonal(1)
-
-    def __call__(self, u: np.ndarray) -> np.ndarray:
-        """Return ``K u`` with the shape of ``u``."""
-        nx = self.shape[2]
-        vw = self._ab @ np.reshape(u, (self._p, nx))
-        v, w = vw[: self._p], vw[self._p:]
-        out = v * self._kd
-        out += w * self._md
-        up = v[:, :-1] * self._ko          # couplings (i, i+1): contributions to row i+1
-        up += w[:, :-1] * self._mo
-        out[:, 1:] += up
-        dn = v[:, 1:] * self._ko           # contributions to row i
-        dn += w[:, 1:] * self._mo
-        out[:, :-1] += dn
-        return out.reshape(np.shape(u))
-
-    def assembled(self) -> sp.csr_matrix:
-        """The full sparse ``K`` in solver order (for tests only)."""
-        kx = sp.diags([self._kd, self._ko, self._ko], [0, -1, 1])
-        mx = sp.diags([self._md, self._mo, self._mo], [0, -1, 1])
-        return (sp.kron(self._ab[: self._p], kx) + sp.kron(self._ab[self._p:], mx)).tocsr()

@@ -5,6 +5,8 @@ from dataclasses import dataclass, field, fields
 
 from fe_node.material import Material
 
+OPERATORS = ("tensor", "csr")
+
 
 @dataclass(frozen=True)
 class Settings:
@@ -44,6 +46,9 @@ class Settings:
         Top-surface convection coefficient [W/(m² K)] (gas flow; 10 by default).
     emissivity : float
         Top-surface emissivity [-] (IN625 about 0.4-0.5).
+    operator : str
+        Implementation of the forms (:mod:`fe_node.operators`): ``"tensor"`` (the fast
+        tensor-product path, default) or ``"csr"`` (scikit-fem-assembled CSR matrix, same result).
     """
 
     material: Material = field(default_factory=Material.in625)
@@ -61,6 +66,7 @@ class Settings:
     t_amb_k: float = 300.0
     h_conv_w_m2k: float = 10.0
     emissivity: float = 0.4
+    operator: str = "tensor"
 
     def __post_init__(self):
         if not isinstance(self.material, Material):
@@ -74,6 +80,8 @@ class Settings:
             raise ValueError(f"settings: absorptivity must be in (0, 1], got {self.absorptivity}")
         if not 0 <= self.emissivity <= 1:
             raise ValueError(f"settings: emissivity must be in [0, 1], got {self.emissivity}")
+        if self.operator not in OPERATORS:
+            raise ValueError(f"settings: operator must be one of {', '.join(OPERATORS)}, got {self.operator!r}")
         if self.h_conv_w_m2k < 0:
             raise ValueError(f"settings: h_conv_w_m2k must be >= 0, got {self.h_conv_w_m2k}")
         if not 1 <= self.growth <= 2:

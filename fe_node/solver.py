@@ -1,19 +1,21 @@
 """Transient 3-D heat conduction of the powder-bed plant (paper Sec. II.D, eq. 6).
 
-Semi-discrete Galerkin FE (trilinear hexahedra) with row-sum lumped mass, in enthalpy
-form with the Kirchhoff transform (see :mod:`fe_node.material`):
+The physics is the set of scikit-fem forms in :mod:`fe_node.forms`; semi-discrete with
+trilinear hexahedra and row-sum lumped mass, in enthalpy form with the Kirchhoff transform
+(see :mod:`fe_node.material`):
 
-    m_i dH_i/dt = - k_ref (K phi(H))_i + f_i(t) - A_i q_loss(T_i),
+    m_i dH_i/dt = - k_ref (K_w phi(H))_i + f_i(t) - A_i q_loss(T_i),
 
-``K`` the constant unit-conductivity stiffness (:class:`fe_node.mesh.Stiffness`),
-``m_i`` lumped nodal volumes, ``f`` the laser load (:mod:`fe_node.source`), and
-``q_loss = h (T - T_amb) + eps sigma (T^4 - T_amb^4)`` on the top face (T capped at the
-boiling point, see :class:`fe_node.material.Material`), with ``A_i`` the lumped top-face
-areas; other faces are insulated.  Time stepping is explicit (forward
-Euler) with as many equal sub-steps per step as the stability limit
-``dt_sub <= 0.9 * 2 / (alpha_max * lambda_max(M_L^-1 K))`` requires (one at 25 µm).
-Explicit lumped-mass stepping does not over-diffuse along the scan like implicit Euler
-at 50 µs, and conserves energy to round-off: ``sum_i (K phi)_i = 0`` exactly.
+``K_w`` the weighted unit-conductivity stiffness and ``m_i`` the lumped nodal volumes of one of
+the two operators of :mod:`fe_node.operators` (``Settings.operator``: the tensor-product fast
+path by default, or the CSR matrix), ``f`` the laser load (:mod:`fe_node.source`), and
+``q_loss`` (:mod:`fe_node.boundary`) on the top face with ``A_i`` the lumped top-face areas;
+other faces are insulated.  Time stepping is explicit (forward Euler) with as many equal
+sub-steps per step as the stability limit ``dt_sub <= 0.9 * 2 / (alpha_max * lambda)``
+requires, ``lambda`` the operator's element bound of ``lambda_max(M_L^-1 K_w)``, recomputed
+whenever weights change (one sub-step at 25 µm).  Explicit lumped-mass stepping does not
+over-diffuse along the scan like implicit Euler at 50 µs, and conserves energy to round-off:
+``sum_i (K_w phi)_i = 0`` exactly.
 """
 from __future__ import annotations
 
@@ -21,15 +23,14 @@ import math
 
 import numpy as np
 
+from fe_node.boundary import loss_flux
 from fe_node.material import Constitutive
-from fe_node.mesh import Grid, Stiffness, graded_axis
+from fe_node.mesh import Grid, graded_axis
 from fe_node.observe import Observation, bilinear, interp_matrix, pool_geometry
+from fe_node.operators import CsrOperator, TensorOperator
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.source import surface_load
-
-SIGMA_SB = 5.670374419e-8
-"""Stefan-Boltzmann constant [W/(m² K^4)]."""
 
 
 def build_grid(settings: Settings, plan: ScanPlan) -> Grid:
@@ -72,43 +73,32 @@ class ThermalModel:
         self.settings, self.plan = settings, plan
         self.grid = build_grid(settings, plan)
         self.law = Constitutive(settings.material)
-        self._stiff = Stiffness(self.grid)
-        self._m = self.grid.lumped_mass()
+        self.operator = self._build_operator()
         self._a_top = self.grid.top_areas()
-        lam = self._max_eigenvalue()
-        dt_stable = 0.9 * 2.0 / (self.law.max_diffusivity * lam)
-        self.n_substeps = max(1, math.ceil(settings.dt_s / dt_stable))
-        self._dt_sub = settings.dt_s / self.n_substeps
-        self._c = (self._dt_sub * self.law.k_ref) / self._m
-        self._c_top = self._dt_sub / self._m[:, -1, :]
         self._h = np.full(self.grid.solver_shape, float(self.law.enthalpy(settings.t0_k)))
+        self._set_time_step()
         self._e0 = self._energy()
         self._s = 0.0
         self.step_index = 0
         self._absorbed = 0.0
         self._lost = 0.0
 
-    def _max_eigenvalue(self, n_iter: int = 60) -> float:
-        """Largest eigenvalue of ``M_L^-1 K`` [1/m²] by power iteration.
+    def _build_operator(self):
+        """The ``Settings.operator`` implementation of the forms on this grid (solver node order)."""
+        if self.settings.operator == "csr":
+            mesh, perm = self.grid.skfem_mesh()
+            return CsrOperator(mesh, order=perm)
+        return TensorOperator(self.grid)
 
-        The symmetric form ``D K D`` (``D = M_L^-1/2``) is iterated from a vector that
-        alternates in sign along each axis (the top eigenvectors oscillate node to node
-        along one axis); the Rayleigh quotient approaches the top of the spectrum from
-        below within ~1 % in 60 iterations, well inside the 10 % stability margin.
-        Dot products use einsum (no multithreaded BLAS on the shared 2-core host).
-        """
-        d = 1.0 / np.sqrt(self._m)
-        ny, nz, nx = d.shape
-        rng = np.random.default_rng(0)
-        v = ((-1.0) ** np.arange(ny)[:, None, None] + (-1.0) ** np.arange(nz)[None, :, None]
-             + (-1.0) ** np.arange(nx)[None, None, :] + 0.1 * rng.standard_normal(d.shape))
-        lam = 0.0
-        for _ in range(n_iter):
-            v /= np.sqrt(np.einsum("ijk,ijk->", v, v))
-            w = d * self._stiff(d * v)
-            lam = float(np.einsum("ijk,ijk->", v, w))
-            v = w
-        return lam
+    def _set_time_step(self) -> None:
+        """Sub-steps and update factors from the current weights (stability limit, module docstring)."""
+        self._m = np.reshape(self.operator.lumped_mass, self.grid.solver_shape)
+        lam = self.operator.stability_eigenvalue()
+        dt_stable = 0.9 * 2.0 / (self.law.max_diffusivity * lam)
+        self.n_substeps = max(1, math.ceil(self.settings.dt_s / dt_stable))
+        self._dt_sub = self.settings.dt_s / self.n_substeps
+        self._c = (self._dt_sub * self.law.k_ref) / self._m
+        self._c_top = self._dt_sub / self._m[:, -1, :]
 
     @property
     def done(self) -> bool:
@@ -155,11 +145,9 @@ class ThermalModel:
 
     def _substep(self, load) -> None:
         """One explicit sub-step (losses at the start temperature, capped at boiling)."""
-        s, h = self.settings, self._h
-        t_top = np.minimum(self.law.temperature(h[:, -1, :]), s.material.t_boil)
-        q = self._a_top * (s.h_conv_w_m2k * (t_top - s.t_amb_k)
-                           + s.emissivity * SIGMA_SB * (t_top**4 - s.t_amb_k**4))
-        kphi = self._stiff(self.law.kirchhoff(h))
+        h = self._h
+        q = self._a_top * loss_flux(self.law.temperature(h[:, -1, :]), self.settings)
+        kphi = self.operator(self.law.kirchhoff(h))
         kphi *= self._c
         h -= kphi
         h[:, -1, :] += (load.T - q) * self._c_top

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from fe_node.material import Constitutive, Material
-from fe_node.mesh import Grid, Stiffness, graded_axis
+from fe_node.mesh import Grid, graded_axis
 from fe_node.observe import area_above, pool_geometry
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
@@ -26,24 +26,6 @@ def test_graded_axis_bounds_and_fine_size():
     assert x[0] == -1e-3 and x[-1] == 2e-3 and np.all(np.diff(x) > 0)
     fine = np.diff(x[(x >= 0) & (x <= 1e-3)])
     assert np.allclose(fine, 25e-6) and np.diff(x).max() <= 0.3e-3 + 1e-12
-
-
-def test_tensor_stiffness_equals_skfem_assembly():
-    from skfem import Basis, BilinearForm, ElementHex1
-    from skfem.helpers import dot, grad
-
-    g = small_grid()
-    mesh, perm = g.skfem_mesh()
-    basis = Basis(mesh, ElementHex1(), intorder=2)
-    K = BilinearForm(lambda u, v, w: dot(grad(u), grad(v))).assemble(basis)
-    M = BilinearForm(lambda u, v, w: u * v).assemble(basis)
-    u = np.random.default_rng(0).standard_normal(g.n_nodes)
-    ours = Stiffness(g)(u.reshape(g.solver_shape)).ravel()
-    ref = (K @ u[np.argsort(perm)])[perm]
-    assert np.allclose(ours, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
-    assert np.allclose(g.lumped_mass().ravel(), np.asarray(M.sum(axis=1)).ravel()[perm], rtol=1e-12)
-    kfull = Stiffness(g).assembled()
-    assert abs(kfull - K[perm][:, perm]).max() < 1e-10 * abs(K).max()
 
 
 def test_constitutive_tables_roundtrip():

@@ -1,0 +1,137 @@
+"""The two operators of fe_node.operators implement the forms of fe_node.forms (1e-12 on random weights)."""
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from skfem import Basis, ElementHex1, FacetBasis, MeshTet
+
+from fe_node.forms import conduction, facet_area, laser, mass
+from fe_node.mesh import Grid, graded_axis
+from fe_node.operators import CsrOperator, TensorOperator, box_stiffness
+from fe_node.source import surface_load
+
+
+def small_grid(h=30e-6):
+    ax = dict(h=h, growth=1.4, h_max=0.2e-3)
+    return Grid(graded_axis(-0.4e-3, 0.5e-3, -0.1e-3, 0.2e-3, **ax),
+                graded_axis(-0.3e-3, 0.3e-3, -0.1e-3, 0.1e-3, **ax),
+                graded_axis(-0.4e-3, 0.0, -0.1e-3, 0.0, **ax))
+
+
+@pytest.fixture(scope="module")
+def setup():
+    g = small_grid()
+    mesh, perm = g.skfem_mesh()
+    return g, mesh, perm, g.element_order(mesh), Basis(mesh, ElementHex1(), intorder=2)
+
+
+def skfem_reference(basis, kw, rho_w):
+    """K_w and lumped m assembled directly from the forms (skfem element order weights)."""
+    nqp = basis.X.shape[-1]
+    k = conduction.assemble(basis, kw=np.repeat(kw[:, None], nqp, axis=1))
+    m = np.asarray(mass.assemble(basis, rho_w=np.repeat(rho_w[:, None], nqp, axis=1)).sum(axis=1)).ravel()
+    return k, m
+
+
+def close(a, b, tol=1e-12):
+    return np.max(np.abs(a - b)) <= tol * np.max(np.abs(b))
+
+
+@pytest.mark.parametrize("layered", [False, True])
+def test_operators_equal_forms_on_random_weights(setup, layered):
+    g, mesh, perm, eorder, basis = setup
+    rng = np.random.default_rng(3)
+    shape = (len(g.ys) - 1, len(g.zs) - 1, len(g.xs) - 1)
+    if layered:      # powder-like: weights per z layer, a few elements differing (the tensor path's fast case)
+        kw = np.broadcast_to(rng.uniform(0.01, 1.0, shape[1])[None, :, None], shape).copy()
+        rho_w = np.broadcast_to(rng.uniform(0.5, 1.0, shape[1])[None, :, None], shape).copy()
+        few = rng.choice(kw.size, 40, replace=False)
+        kw.ravel()[few], rho_w.ravel()[few] = 1.0, 0.7
+    else:
+        kw, rho_w = rng.uniform(0.01, 2.0, shape), rng.uniform(0.3, 1.0, shape)
+    kw, rho_w = kw.ravel(), rho_w.ravel()
+    sk_kw, sk_rho = np.empty_like(kw), np.empty_like(rho_w)
+    sk_kw[eorder], sk_rho[eorder] = kw, rho_w
+    k_ref, m_ref = skfem_reference(basis, sk_kw, sk_rho)
+    k_ref, m_ref = k_ref[perm][:, perm], m_ref[perm]
+    u = rng.standard_normal(g.n_nodes)
+    tensor = TensorOperator(g, kw, rho_w)
+    csr = CsrOperator(mesh, sk_kw, sk_rho, order=perm)
+    for op in (tensor, csr):
+        assert close(op(u.reshape(g.solver_shape)).ravel(), k_ref @ u)
+        assert close(np.ravel(op.lumped_mass), m_ref)
+    assert abs(tensor.assembled() - k_ref).max() <= 1e-12 * abs(k_ref).max()
+    assert tensor.stability_eigenvalue() == pytest.approx(csr.stability_eigenvalue(), rel=1e-9)
+
+
+def test_reweight_equals_fresh_operator(setup):
+    g, mesh, perm, eorder, _ = setup
+    rng = np.random.default_rng(4)
+    n = eorder.size
+    el = rng.choice(n, 300, replace=False)
+    kw, rho_w = np.ones(n), np.ones(n)
+    kw[el], rho_w[el] = rng.uniform(0.05, 3.0, el.size), rng.uniform(0.4, 1.0, el.size)
+    sk = np.empty(n, dtype=np.intp)
+    sk[eorder] = np.arange(n)       # skfem element of each solver element
+    u = rng.standard_normal(g.n_nodes)
+    fresh = TensorOperator(g, kw, rho_w)
+    t, c = TensorOperator(g), CsrOperator(mesh, order=perm)
+    lam0 = t.stability_eigenvalue()
+    t.reweight(el, kw[el], rho_w[el])
+    c.reweight(eorder[el], kw[el], rho_w[el])
+    for op in (t, c):
+        assert close(op(u), fresh(u)) and close(np.ravel(op.lumped_mass), np.ravel(fresh.lumped_mass))
+        assert op.stability_eigenvalue() == pytest.approx(fresh.stability_eigenvalue(), rel=1e-9)
+    assert t.stability_eigenvalue() > lam0        # the limit follows the weights
+
+
+def test_stability_bound_is_tight_upper_bound(setup):
+    g, mesh, perm, _, _ = setup
+    n_el = (len(g.ys) - 1) * (len(g.zs) - 1) * (len(g.xs) - 1)
+    for kw, slack in ((None, 1.05), (np.random.default_rng(5).uniform(0.1, 1.0, n_el), 2.0)):
+        op = TensorOperator(g, kw)
+        d = sp.diags(1.0 / np.sqrt(np.ravel(op.lumped_mass)))
+        lam = sp.linalg.eigsh(d @ op.assembled() @ d, k=1, which="LA", return_eigenvectors=False)[0]
+        assert lam <= op.stability_eigenvalue() < slack * lam
+    # box element eigenvalue 4 / h_min² (the tensor path's closed form) = the CSR path's eigvalsh
+    h = np.array([30e-6, 20e-6, 45e-6])
+    ke = box_stiffness(*h[:, None])[0]
+    assert np.linalg.eigvalsh(ke / np.prod(h) * 8).max() == pytest.approx(4 / h.min() ** 2, rel=1e-12)
+
+
+def test_csr_operator_on_a_tetrahedral_mesh():
+    mesh = MeshTet.init_tensor(np.linspace(0, 1e-3, 6), np.linspace(0, 1e-3, 5), np.linspace(-5e-4, 0, 4))
+    rng = np.random.default_rng(6)
+    op = CsrOperator(mesh, rng.uniform(0.1, 1.0, mesh.t.shape[1]))
+    assert np.abs(op.matrix.sum(axis=1)).max() < 1e-12 * abs(op.matrix).max()   # conserves energy
+    assert op.lumped_mass.sum() == pytest.approx(0.5e-9, rel=1e-12)
+    assert op.stability_eigenvalue() > 0
+
+
+def test_laser_and_facet_forms_equal_the_closed_forms(setup):
+    g, mesh, perm, _, _ = setup
+    top = mesh.facets_satisfying(lambda x: np.isclose(x[2], 0.0))
+    fb = FacetBasis(mesh, ElementHex1(), facets=top, intorder=12)
+    nodes = np.unravel_index(np.arange(g.n_nodes), g.solver_shape)
+    on_top = nodes[1] == len(g.zs) - 1
+    areas = facet_area.assemble(fb)[perm][on_top].reshape(len(g.ys), len(g.xs))
+    assert close(areas, g.top_areas(), 1e-13)
+    xl, yl, r = 3e-6, -7e-6, 50e-6
+    f = laser.assemble(fb, xl=xl, yl=yl, r=r)[perm][on_top].reshape(len(g.ys), len(g.xs))
+    exact = surface_load(g.xs, g.ys, np.array([[xl, yl]]), 1.0, 1.0, r).T
+    assert f.sum() == pytest.approx(1.0, rel=1e-6) and close(f, exact, 1e-6)
+
+
+def test_thermal_model_same_with_either_operator():
+    from fe_node.scan import ScanPlan
+    from fe_node.settings import Settings
+    from fe_node.solver import ThermalModel
+
+    coarse = dict(h_fine_m=40e-6, margin_m=0.4e-3, depth_m=0.5e-3, fine_pad_m=120e-6, fine_depth_m=120e-6,
+                  h_max_m=0.2e-3)
+    plan = ScanPlan.layer(2, 0.4e-3, 0.1e-3)
+    models = [ThermalModel(Settings(**coarse, operator=op), plan) for op in ("tensor", "csr")]
+    for _ in range(12):
+        obs = [m.step(250.0, 0.8) for m in models]
+    assert obs[0].area_m2 > 0 and models[0].n_substeps == models[1].n_substeps
+    assert obs[1].area_m2 == pytest.approx(obs[0].area_m2, rel=1e-12)
+    assert close(models[1].temperature(), models[0].temperature())
