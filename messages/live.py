@@ -1,0 +1,331 @@
+"""Live view: serve a running loop over the Foxglove WebSocket protocol (``foxglove-sdk``).
+
+The ``live`` node subscribes to every contract topic of its run and serves them to Foxglove on
+``ws://127.0.0.1:8765`` (loopback by default). The channels are the MCAP recording's: the same
+names (``/plant/state``, ``/controller/command``, ...), the same schemas (name and
+``jsonschema`` bytes from :func:`messages.codec.json_schema`, as :mod:`messages.recorder`
+writes them), message encoding ``json`` with the original JSON bytes as payload, and log time =
+the message's **process time** (:func:`messages.recorder.log_time_ns`), so the shipped layout
+``docs/foxglove-layout.json`` shows a live run exactly as it shows its recording.
+
+It never slows the loop:
+
+- zenoh callbacks only filter and enqueue: a topic no client is subscribed to is not even copied,
+  and ``/plant/temperature`` images are decimated there to at most ``--image-max-hz`` per second
+  of wall clock (images arriving sooner after the last one kept are skipped before their bytes
+  are copied);
+- the queue is bounded (``--queue-size``) and drops its oldest item when full, counting it;
+- decoding and validation (schema, run id, publishing node — invalid messages are dropped and
+  counted, as the recorder does) happen in the node's own loop;
+- publishing to clients never blocks: the SDK keeps a bounded backlog per client and drops its
+  oldest messages for a slow client.
+
+It publishes no contract topic (no role), only its own start/end events and log lines. It ends
+when the plant's liveliness token goes (after draining what already arrived, ``--drain-s``), or
+on SIGINT/SIGTERM, with exit status 0; 2 for a bad command line or a port it cannot listen on
+(one line naming ``--port``); 1 if the hub cannot be reached.
+
+Run: ``python -m messages.live --run-id RUN --connect HUB [--port 8765]``, or
+``python launch.py --live``; then open ``ws://127.0.0.1:8765`` in Foxglove (``docs/live.md``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+from typing import Any
+
+from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
+from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.codec import MessageError, decode, json_schema
+from messages.foxglove import LogLevel
+from messages.recorder import log_time_ns
+from messages.topics import PLANT_TEMPERATURE, TOPICS, Topic, key_expr, message_node
+
+NODE_NAME = "live"
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 8765
+DEFAULT_IMAGE_MAX_HZ = 30.0
+DEFAULT_QUEUE_SIZE = 4096
+CLIENT_BACKLOG = 1024
+"""Messages buffered per WebSocket client before the SDK drops that client's oldest ones."""
+POLL_S = 0.1
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    """What the live node serves and how (validated command-line options)."""
+
+    host: str = DEFAULT_HOST
+    port: int = DEFAULT_PORT
+    image_max_hz: float = DEFAULT_IMAGE_MAX_HZ
+    queue_size: int = DEFAULT_QUEUE_SIZE
+    plant: str = "plant"
+    drain_s: float = 0.2
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise UsageError(f"--port must be in 0..65535 (0: any free port), got {self.port}")
+        if not self.image_max_hz > 0:
+            raise UsageError(f"--image-max-hz must be > 0, got {self.image_max_hz}")
+        if self.queue_size < 1:
+            raise UsageError(f"--queue-size must be >= 1, got {self.queue_size}")
+        if not 0 <= self.drain_s <= 60:
+            raise UsageError(f"--drain-s must be in [0, 60], got {self.drain_s}")
+        if not self.host:
+            raise UsageError("--host must not be empty")
+
+
+def schema_bytes(topic: Topic) -> bytes:
+    """The ``jsonschema`` data of ``topic``'s channel, byte for byte what the recorder writes."""
+    return json.dumps(json_schema(topic)).encode()
+
+
+class DropOldestQueue:
+    """A bounded queue filled by zenoh callbacks and emptied by the node's loop.
+
+    When full, appending drops the oldest item. :attr:`dropped` is exact: everything put that
+    was neither taken nor is still queued.
+    """
+
+    def __init__(self, size: int) -> None:
+        self._items: deque[Any] = deque(maxlen=size)
+        self._wake = threading.Event()
+        self.n_put = 0
+        self.n_taken = 0
+
+    def put(self, item: Any) -> None:
+        """Append ``item`` (from a zenoh thread); never blocks."""
+        self._items.append(item)
+        self.n_put += 1
+        if not self._wake.is_set():
+            self._wake.set()
+
+    def take_all(self, timeout: float) -> list[Any]:
+        """Everything queued, oldest first, waiting up to ``timeout`` s for something."""
+        self._wake.wait(timeout)
+        self._wake.clear()  # before draining: an item put from now on sets it again
+        taken = []
+        while True:
+            try:
+                taken.append(self._items.popleft())
+            except IndexError:
+                break
+        self.n_taken += len(taken)
+        return taken
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    @property
+    def dropped(self) -> int:
+        """Items dropped because the queue was full."""
+        return max(0, self.n_put - self.n_taken - len(self._items))
+
+
+class RateGate:
+    """Lets at most one event through per ``1 / max_hz`` s of ``clock`` (wall clock by default)."""
+
+    def __init__(self, max_hz: float, clock: Any = time.monotonic) -> None:
+        self.period_s = 1.0 / max_hz
+        self._clock = clock
+        self._last: float | None = None
+        self.n_skipped = 0
+
+    def admit(self) -> bool:
+        """Whether the event now passes (and then restarts the period)."""
+        now = self._clock()
+        if self._last is not None and now - self._last < self.period_s:
+            self.n_skipped += 1
+            return False
+        self._last = now
+        return True
+
+
+class LiveServer:
+    """The Foxglove WebSocket server and one channel per contract topic, in a context of its own.
+
+    Raises
+    ------
+    UsageError
+        If the server cannot listen on ``host:port`` (one line naming ``--port``).
+    """
+
+    def __init__(self, settings: LiveSettings, name: str) -> None:
+        import foxglove
+
+        self._context = foxglove.Context()
+        try:
+            self.server = foxglove.start_server(name=name, host=settings.host, port=settings.port,
+                                                context=self._context, message_backlog_size=CLIENT_BACKLOG)
+        except RuntimeError as err:
+            reason = str(err).removeprefix("FoxgloveError: ")
+            if "in use" in reason.lower():
+                reason = "address already in use (another live view? choose another --port, 0 for any free one)"
+            raise UsageError(f"--port {settings.port}: cannot serve on {settings.host}:{settings.port}: "
+                             f"{reason}") from None
+        self.channels: dict[str, Any] = {
+            topic.suffix: foxglove.Channel(
+                topic.channel,
+                schema=foxglove.Schema(name=topic.schema_name, encoding="jsonschema", data=schema_bytes(topic)),
+                message_encoding="json",
+                context=self._context,
+            )
+            for topic in TOPICS.values()
+        }
+
+    @property
+    def port(self) -> int:
+        """The port it listens on (the chosen one when ``--port 0``)."""
+        return self.server.port
+
+    def watched(self, topic: Topic) -> bool:
+        """Whether a client is subscribed to ``topic``'s channel."""
+        return self.channels[topic.suffix].has_sinks()
+
+    def publish(self, topic: Topic, payload: bytes, log_time_ns: int) -> None:
+        """Send one message to the subscribed clients (never blocks)."""
+        self.channels[topic.suffix].log(payload, log_time=log_time_ns)
+
+    def stop(self) -> None:
+        """Close the channels and stop the server (clients are disconnected)."""
+        for channel in self.channels.values():
+            channel.close()
+        self.server.stop()
+
+
+class Forwarder:
+    """From zenoh samples to Foxglove messages: the callbacks' and the loop's halves, with counts."""
+
+    def __init__(self, server: LiveServer, run_id: str, queue_size: int, image_max_hz: float) -> None:
+        self.server = server
+        self.run_id = run_id
+        self.queue = DropOldestQueue(queue_size)
+        self.images = RateGate(image_max_hz)
+        self.sent: Counter[str] = Counter()
+        self.invalid: Counter[str] = Counter()
+        self.unwatched = 0
+        self.last_error = ""
+
+    def callback(self, topic: Topic) -> Any:
+        """The zenoh callback of ``topic``: filter cheaply, copy, enqueue; nothing else."""
+        server, queue, images = self.server, self.queue, self.images
+
+        def on_sample(sample: Any) -> None:
+            if not server.watched(topic):
+                self.unwatched += 1
+                return
+            if topic is PLANT_TEMPERATURE and not images.admit():
+                return
+            key = str(sample.key_expr) if topic.per_node else ""
+            queue.put((topic, key, sample.payload.to_bytes()))
+
+        return on_sample
+
+    def forward(self, topic: Topic, key: str, payload: bytes) -> int | None:
+        """Decode and check one queued message, then publish it; its log time [ns], ``None`` if it was
+        dropped as invalid."""
+        try:
+            msg = decode(topic, payload)
+            if getattr(msg, "run_id", self.run_id) != self.run_id:
+                raise MessageError(f"{topic.channel}: run_id {msg.run_id!r} is not the run {self.run_id!r}")
+            if topic.per_node and key.rpartition("/")[2] != message_node(msg):
+                raise MessageError(f"{topic.channel}: node {message_node(msg)!r} published under {key!r}")
+        except MessageError as err:
+            self.invalid[topic.channel] += 1
+            self.last_error = str(err)
+            return None
+        log_time = log_time_ns(msg)
+        self.server.publish(topic, payload, log_time)
+        self.sent[topic.channel] += 1
+        return log_time
+
+    def summary(self) -> str:
+        """Counts for the node's last log line and ``end`` event."""
+        sent = ", ".join(f"{ch} {n}" for ch, n in sorted(self.sent.items())) or "nothing"
+        return (f"sent {sent}; {self.images.n_skipped} images decimated, {self.queue.dropped} dropped "
+                f"(queue full), {sum(self.invalid.values())} invalid, {self.unwatched} not watched")
+
+
+def serve(bus: NodeBus, server: LiveServer, settings: LiveSettings, stop: StopFlag) -> int:
+    """Forward the run's messages to the Foxglove clients until the plant goes or a stop is requested."""
+    forwarder = Forwarder(server, bus.run_id, settings.queue_size, settings.image_max_hz)
+    for topic in TOPICS.values():
+        bus.subscribe_raw(key_expr(bus.run_id, topic), forwarder.callback(topic))
+    plant_gone = bus.watch_presence(settings.plant)
+    config = {"host": settings.host, "port": server.port, "image_max_hz": settings.image_max_hz,
+              "queue_size": settings.queue_size, "plant": settings.plant, "client_backlog": CLIENT_BACKLOG}
+    bus.ready(config=config, stop=stop)
+    print(f"serving run {bus.run_id} on ws://{settings.host}:{server.port} (Foxglove WebSocket; "
+          f"images <= {settings.image_max_hz:g} Hz)", flush=True)
+    last_time_ns = 0
+    gone_at: float | None = None
+    reported_drops = reported_invalid = False
+    while not stop.is_set():
+        for topic, key, payload in forwarder.queue.take_all(POLL_S):
+            last_time_ns = max(last_time_ns, forwarder.forward(topic, key, payload) or 0)
+        if forwarder.queue.dropped and not reported_drops:
+            reported_drops = True
+            bus.log(LogLevel.WARNING, f"live view falling behind: {forwarder.queue.dropped} messages dropped "
+                    "(queue full); further drops are only counted", time_s=last_time_ns / 1e9)
+        if forwarder.invalid and not reported_invalid:
+            reported_invalid = True
+            bus.log(LogLevel.WARNING, f"invalid message dropped: {forwarder.last_error} (further ones are only "
+                    "counted)", time_s=last_time_ns / 1e9)
+        if plant_gone.is_set():
+            gone_at = gone_at or time.monotonic()
+            if not len(forwarder.queue) and time.monotonic() - gone_at >= settings.drain_s:
+                break
+    reason = "stopped" if stop.is_set() else f"plant {settings.plant!r} went away"
+    summary = f"{reason}; {forwarder.summary()}"
+    bus.log(LogLevel.INFO, summary, time_s=last_time_ns / 1e9)
+    bus.end_detail(summary)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Command line of ``python -m messages.live``."""
+    parser = ArgumentParser(prog="python -m messages.live", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--host", default=DEFAULT_HOST,
+                        help="address to serve on (default: %(default)s, this machine only; the view is "
+                             "unauthenticated)")
+    parser.add_argument("--port", type=int, default=DEFAULT_PORT,
+                        help="WebSocket port (default: %(default)s; 0: any free port, printed)")
+    parser.add_argument("--image-max-hz", type=float, default=DEFAULT_IMAGE_MAX_HZ,
+                        help="most /plant/temperature images sent per second of wall clock (default: %(default)g)")
+    parser.add_argument("--queue-size", type=int, default=DEFAULT_QUEUE_SIZE,
+                        help="messages held between the zenoh callbacks and the loop; the oldest is dropped "
+                             "when full (default: %(default)s)")
+    parser.add_argument("--plant", default="plant",
+                        help="node whose end (liveliness token gone) ends the live view (default: %(default)s)")
+    parser.add_argument("--drain-s", type=float, default=0.2,
+                        help="after the plant ended, forward what still arrives for this long [s] (default: "
+                             "%(default)s)")
+    add_bus_arguments(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m messages.live``."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        bus_settings = bus_settings_from_args(args)
+        settings = LiveSettings(args.host, args.port, args.image_max_hz, args.queue_size, args.plant, args.drain_s)
+        server = LiveServer(settings, f"meltloop {bus_settings.run_id}")
+    except UsageError as err:
+        return exit_usage(parser.prog, err)
+    stop = StopFlag()
+    try:
+        return run_node(parser.prog, NODE_NAME, bus_settings, lambda bus: serve(bus, server, settings, stop))
+    finally:
+        server.stop()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
