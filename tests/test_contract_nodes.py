@@ -60,3 +60,14 @@ def test_launch_exits_2_naming_the_command_key(tmp_path):
                          cwd=REPO, capture_output=True, text=True, timeout=60)
     assert run.returncode == 2 and run.stdout == ""
     assert run.stderr.count("\n") == 1 and "'command' executable 'no-such-exe-4711' not found" in run.stderr
+
+
+def test_contract_states_what_the_launch_service_appends_and_sets():
+    from messages.auth import PASSWORD_ENV, USER_ENV
+    from messages.bus import SUPERVISOR_ENV
+
+    doc = (REPO / "docs" / "node-contract.md").read_text(encoding="utf-8")
+    tail = NodeSpec("n", command=(sys.executable,)).argv("RUN", "ENDPOINT")[1:]
+    assert f"COMMAND... ARGS... {' '.join(tail)}" in doc
+    for variable in (USER_ENV, PASSWORD_ENV, SUPERVISOR_ENV, "PYTHONUNBUFFERED"):
+        assert f"| `{variable}` |" in doc
