@@ -46,6 +46,9 @@ class Settings:
         Top-surface convection coefficient [W/(m² K)] (gas flow; 10 by default).
     emissivity : float
         Top-surface emissivity [-] (IN625 about 0.4-0.5).
+    min_substeps : int
+        Least explicit sub-steps per step (default 1: as many as stability needs).  The time
+        error of the default step is ``dt_convergence_pct`` of ``python -m fe_node validate``.
     operator : str
         Implementation of the forms (:mod:`fe_node.operators`): ``"tensor"`` (the fast
         tensor-product path, default) or ``"csr"`` (scikit-fem-assembled CSR matrix, same result).
@@ -66,6 +69,7 @@ class Settings:
     t_amb_k: float = 300.0
     h_conv_w_m2k: float = 10.0
     emissivity: float = 0.4
+    min_substeps: int = 1
     operator: str = "tensor"
 
     def __post_init__(self):
@@ -80,6 +84,8 @@ class Settings:
             raise ValueError(f"settings: absorptivity must be in (0, 1], got {self.absorptivity}")
         if not 0 <= self.emissivity <= 1:
             raise ValueError(f"settings: emissivity must be in [0, 1], got {self.emissivity}")
+        if isinstance(self.min_substeps, bool) or not isinstance(self.min_substeps, int) or self.min_substeps < 1:
+            raise ValueError(f"settings: min_substeps must be an integer >= 1, got {self.min_substeps!r}")
         if self.operator not in OPERATORS:
             raise ValueError(f"settings: operator must be one of {', '.join(OPERATORS)}, got {self.operator!r}")
         if self.h_conv_w_m2k < 0:

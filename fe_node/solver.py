@@ -52,6 +52,31 @@ def check_command(power_w: float, speed_m_s: float) -> None:
         raise ValueError(f"speed must be finite and > 0 m/s, got {speed_m_s}")
 
 
+def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, top_w: np.ndarray,
+                    c_top: np.ndarray) -> None:
+    """One forward-Euler sub-step of ``m dH/dt = -k_ref K_w phi(H) + top``, in place.
+
+    Parameters
+    ----------
+    h : ndarray, shape (ny, nz, nx)
+        Nodal enthalpy [J/m³], updated in place.
+    operator : TensorOperator or CsrOperator
+        ``K_w`` in solver node order.
+    law : Constitutive
+        ``H -> phi``.
+    c : ndarray, shape (ny, nz, nx)
+        ``dt_sub k_ref / m`` [W s/(m⁴ K)]: ``c * (K_w phi)`` is an enthalpy change [J/m³].
+    top_w : ndarray, shape (ny, nx)
+        Net power into the top nodes (laser load minus losses) [W].
+    c_top : ndarray, shape (ny, nx)
+        ``dt_sub / m`` of the top nodes [s/m³].
+    """
+    kphi = operator(law.kirchhoff(h))
+    kphi *= c
+    h -= kphi
+    h[:, -1, :] += top_w * c_top
+
+
 class ThermalModel:
     """The FE plant: assemble once, then :meth:`step` one sampling period at a time.
 
@@ -95,7 +120,7 @@ class ThermalModel:
         self._m = np.reshape(self.operator.lumped_mass, self.grid.solver_shape)
         lam = self.operator.stability_eigenvalue()
         dt_stable = 0.9 * 2.0 / (self.law.max_diffusivity * lam)
-        self.n_substeps = max(1, math.ceil(self.settings.dt_s / dt_stable))
+        self.n_substeps = max(self.settings.min_substeps, math.ceil(self.settings.dt_s / dt_stable))
         self._dt_sub = self.settings.dt_s / self.n_substeps
         self._c = (self._dt_sub * self.law.k_ref) / self._m
         self._c_top = self._dt_sub / self._m[:, -1, :]
@@ -145,12 +170,8 @@ class ThermalModel:
 
     def _substep(self, load) -> None:
         """One explicit sub-step (losses at the start temperature, capped at boiling)."""
-        h = self._h
-        q = self._a_top * loss_flux(self.law.temperature(h[:, -1, :]), self.settings)
-        kphi = self.operator(self.law.kirchhoff(h))
-        kphi *= self._c
-        h -= kphi
-        h[:, -1, :] += (load.T - q) * self._c_top
+        q = self._a_top * loss_flux(self.law.temperature(self._h[:, -1, :]), self.settings)
+        explicit_update(self._h, self.operator, self.law, self._c, load.T - q, self._c_top)
         self._absorbed += float(np.sum(load)) * self._dt_sub
         self._lost += float(q.sum()) * self._dt_sub
 
