@@ -8,11 +8,13 @@ import json
 import re
 import socket
 import struct
+import threading
 import time
 from pathlib import Path
 
 import jsonschema
 from mcap.reader import make_reader
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from messages import MeltPoolState, RawImage, Timestamp
@@ -49,6 +51,20 @@ def image(step: int) -> RawImage:
     width, height = 32, 16
     return RawImage(timestamp=Timestamp.from_seconds(step * 50e-6), frame_id="top_surface", width=width,
                     height=height, encoding="rgb8", step=3 * width, data=bytes([step % 256]) * (3 * width * height))
+
+
+def read_frames(ws, subs: dict[int, str], received: dict[str, list]) -> None:
+    """Collect decoded binary MessageData frames (receipt time, log time, message) until the connection closes."""
+    while True:
+        try:
+            frame = ws.recv(timeout=20)
+        except (ConnectionClosed, TimeoutError):
+            return
+        if isinstance(frame, str):
+            continue  # status or (un)advertise
+        assert frame[0] == 0x01, "binary MessageData frame"
+        sid, log_time = struct.unpack_from("<IQ", frame, 1)
+        received[subs[sid]].append((time.monotonic(), log_time, json.loads(frame[13:])))
 
 
 def serving_port(proc) -> int:
@@ -88,9 +104,12 @@ def test_client_receives_every_state_images_at_most_30_hz_and_the_recorders_chan
             subs = {1: PLANT_STATE.channel, 2: PLANT_TEMPERATURE.channel}
             ws.send(json.dumps({"op": "subscribe", "subscriptions": [
                 {"id": sid, "channelId": advertised[topic]["id"]} for sid, topic in subs.items()]}))
+            received: dict[str, list[tuple[float, int, dict]]] = {topic: [] for topic in subs.values()}
+            reader = threading.Thread(target=read_frames, args=(ws, subs, received), daemon=True)
+            reader.start()  # like Foxglove: read while the run goes on
             time.sleep(0.5)  # the subscription reaches the server before the plant starts
 
-            with NodeBus("plant", BusSettings(run_id=run_id, connect=(hub,), listen=())) as plant:
+            with NodeBus("plant", BusSettings(run_id=run_id, connect=(hub,), listen=(), require=("live",))) as plant:
                 states, images = plant.publisher(PLANT_STATE), plant.publisher(PLANT_TEMPERATURE)
                 plant.ready(stop=stop)
                 t0 = time.monotonic()
@@ -99,19 +118,7 @@ def test_client_receives_every_state_images_at_most_30_hz_and_the_recorders_chan
                     images.put(image(step))
                     time.sleep(1 / RATE_HZ)
                 publish_s = time.monotonic() - t0
-
-            received: dict[str, list[tuple[float, int, dict]]] = {topic: [] for topic in subs.values()}
-            deadline = time.monotonic() + 10
-            while time.monotonic() < deadline and len(received[PLANT_STATE.channel]) < N_STATES:
-                try:
-                    frame = ws.recv(timeout=2)
-                except TimeoutError:
-                    break
-                if isinstance(frame, str):
-                    continue  # status or (un)advertise
-                assert frame[0] == 0x01, "binary MessageData frame"
-                sid, log_time = struct.unpack_from("<IQ", frame, 1)
-                received[subs[sid]].append((time.monotonic(), log_time, json.loads(frame[13:])))
+            reader.join(timeout=15)  # the live node closes the connection when it ends
         status, output = finish(live, timeout=15)
         end = [e for e in events.drain() if e.node == "live" and e.event == "end"]
 
