@@ -1,79 +1,227 @@
-"""Benchmark of the closed loop over zenoh: free-running GP surrogate plant ↔ controller node.
+"""Benchmark of the closed loop over zenoh: free-running GP surrogate plant ↔ controller node,
+against the bare transport measured in the same run and topology.
 
-Starts ``python -m controller_node`` (default: GP-MPC) and ``python -m fe_node.surrogate
---rate-hz R`` as separate processes on a loopback hub, runs for ``--duration-s`` and reports
-what the surrogate measured: round trip state → command (median and p99) [µs], the achieved
-publish rate [Hz] and the share of steps whose command arrived after the next state was
-published (deadline misses) [%]. The controller answers the newest state and skips older ones,
-so a slow controller shows up as misses, not as a growing queue.
+Three phases on one hub (the bench process), each pair of nodes a separate process:
 
-Prints the node output, then, as the last line, JSON: ``rtt_median_us``, ``rtt_p99_us``,
-``rate_hz``, ``deadline_miss_pct``, the target rate and context (controller, CPU count, load
-average at the start: the numbers depend on what else runs on the machine).
+1. a bare zenoh ping-pong (``benchmarks/zenoh_pingpong.py``: a state-sized payload out on the
+   run's ``plant/state`` key, echoed back on ``controller/command``; express publishers; no
+   decoding) at ``--rate-hz`` for ``--pingpong-s``;
+2. the loop: ``python -m controller_node`` (default: GP-MPC) and ``python -m fe_node.surrogate
+   --rate-hz R`` for ``--duration-s``; the bench subscribes to the controller's diagnostics and
+   takes the controller update time from their ``solve_time_us``;
+3. the ping-pong again (both ping-pongs' round trips are pooled).
 
-Usage: ``python benchmarks/bench_loop.py --rate-hz 2000 [--duration-s 5] [--controller mpc]``
+``--topology peer`` (default): unauthenticated peers on loopback, as nodes started by hand (the
+plant and the controller connect to each other directly). ``--topology router``: what
+``launch.py`` runs, an authenticating zenoh router with per-node access control in the bench
+process (:class:`messages.auth.RunCredentials`) and every node its client (each message crosses
+the router). ``--load`` starts a busy loop on one core (a ``stress``-like process) for the whole
+measurement.
+
+Prints the node output, then, as the last line, JSON: the loop's round trip state → command
+(``rtt_median_us``, ``rtt_p99_us``), the achieved rate, the share of steps whose command arrived
+after the next state was published (``deadline_miss_pct``), the bare round trip
+(``zenoh_rtt_median_us``, ``zenoh_rtt_p99_us``), ``controller_update_median_us``,
+``overhead_ratio`` = loop round-trip median ÷ (bare median + update median), the topology, the
+load (1-minute load average at the start and end, the machine's CPU use during the loop, the
+busy loop if any) and context. The numbers depend on what else runs on the machine; the ratio,
+measured in the same run, much less.
+
+Usage: ``python benchmarks/bench_loop.py --rate-hz 2000 [--duration-s 5] [--topology router] [--load]``
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+import numpy as np  # noqa: E402
+import zenoh  # noqa: E402
+
 from launch import free_loopback_endpoint  # noqa: E402
-from messages.bus import BusSettings, NodeBus, StopFlag  # noqa: E402
+from messages.auth import RunCredentials  # noqa: E402
+from messages.bus import SUPERVISOR_ENV, BusSettings, StopFlag, wait_for_nodes, zenoh_config  # noqa: E402
+from messages.codec import MessageError, decode  # noqa: E402
+from messages.topics import CONTROLLER_DIAGNOSTICS, key_expr  # noqa: E402
+
+PINGPONG = str(REPO / "benchmarks" / "zenoh_pingpong.py")
+NODES = {"plant": ("plant",), "controller": ("controller",), "ping": ("plant",), "pong": ("controller",)}
+BUSY_LOOP = "import os, sys\nos.sched_setaffinity(0, {int(sys.argv[1])})\nwhile True:\n    pass\n"
 
 
-def spawn(module: str, *args: str) -> subprocess.Popen[str]:
-    """``python -m module args`` in its own process group, output captured."""
-    return subprocess.Popen([sys.executable, "-u", "-m", module, *args], cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+def spawn(argv: list[str], env: dict[str, str]) -> subprocess.Popen[str]:
+    """``python argv`` in its own process group, output captured, ``env`` added."""
+    return subprocess.Popen([sys.executable, "-u", *argv], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True,
+                            env={**os.environ, **env})
+
+
+def cpu_times() -> tuple[int, int]:
+    """(busy, total) jiffies of the whole machine, from ``/proc/stat``."""
+    with open("/proc/stat") as f:
+        fields = [int(v) for v in f.readline().split()[1:]]
+    idle = fields[3] + fields[4]
+    return sum(fields) - idle, sum(fields)
+
+
+def ratio(loop_us: float | None, bare_us: float | None, update_us: float | None) -> float | None:
+    """Loop round trip ÷ (bare round trip + controller update), or ``None`` if one is missing."""
+    if loop_us is None or bare_us is None or update_us is None or bare_us + update_us <= 0:
+        return None
+    return round(loop_us / (bare_us + update_us), 3)
+
+
+class Hub:
+    """The run's hub in the bench process: an open peer, or launch.py's authenticating router."""
+
+    def __init__(self, topology: str, run_id: str) -> None:
+        self.endpoint = free_loopback_endpoint()
+        self.run_id = run_id
+        self.topology = topology
+        self._stack = contextlib.ExitStack()
+        self.credentials = None
+        if topology == "router":
+            self.credentials = self._stack.enter_context(RunCredentials(run_id, NODES))
+        config = zenoh_config(BusSettings(run_id=run_id, connect=(), listen=(self.endpoint,)))
+        if self.credentials is not None:  # as messages.launch.service.LaunchService.run
+            config.insert_json5("mode", '"router"')
+            for key, value in self.credentials.hub_settings().items():
+                config.insert_json5(key, value)
+        self.session = self._stack.enter_context(zenoh.open(config))
+
+    def close(self) -> None:
+        self._stack.close()
+
+    def env(self, node: str) -> dict[str, str]:
+        """A node's environment: its credentials (router), none (peer)."""
+        env = {SUPERVISOR_ENV: str(os.getpid())}
+        return {**env, **self.credentials.env(node)} if self.credentials is not None else env
+
+    def common(self) -> list[str]:
+        return ["--run-id", self.run_id, "--connect", self.endpoint]
+
+
+def finish(proc: subprocess.Popen[str], timeout: float, name: str) -> str:
+    """Wait for ``proc``; its output. Raises RuntimeError (after killing it) if it hangs or fails."""
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+        raise RuntimeError(f"{name} did not finish within {timeout:.0f} s:\n{out}") from None
+    if proc.returncode != 0:
+        raise RuntimeError(f"{name} exited {proc.returncode}:\n{out}")
+    return out
+
+
+def pingpong(hub: Hub, rate_hz: float, duration_s: float) -> list[float]:
+    """Round trips [µs] of a bare ping-pong between two node processes through ``hub``."""
+    pong = spawn([PINGPONG, "pong", *hub.common()], hub.env("pong"))
+    try:
+        ping = spawn([PINGPONG, "ping", *hub.common(), "--rate-hz", repr(rate_hz), "--duration-s",
+                      repr(duration_s), "--samples"], hub.env("ping"))
+        out = finish(ping, duration_s + 90, "ping")
+    finally:
+        pong.terminate()
+        finish(pong, 20, "pong")
+    return json.loads(out.strip().splitlines()[-1])["rtt_us"]
+
+
+def loop(hub: Hub, args: argparse.Namespace) -> tuple[dict, list[float], str]:
+    """Run the surrogate against the controller; (plant stats, update times [µs], node output)."""
+    updates: list[float] = []
+
+    def on_diagnostics(sample: zenoh.Sample) -> None:
+        with contextlib.suppress(MessageError):
+            updates.append(decode(CONTROLLER_DIAGNOSTICS, sample.payload.to_bytes()).solve_time_us)
+
+    sub = hub.session.declare_subscriber(key_expr(hub.run_id, CONTROLLER_DIAGNOSTICS), on_diagnostics)
+    controller = spawn(["-m", "controller_node", "--controller", args.controller, *hub.common()],
+                       hub.env("controller"))
+    try:
+        wait_for_nodes(hub.session, hub.run_id, ["controller"], StopFlag(), timeout_s=60)
+        plant = spawn(["-m", "fe_node.surrogate", "--rate-hz", repr(args.rate_hz), "--duration-s",
+                       repr(args.duration_s), "--require", "controller", "--json", *hub.common()], hub.env("plant"))
+        plant_out = finish(plant, args.duration_s + 90, "plant")
+        controller_out = finish(controller, 30, "controller")
+    finally:
+        if controller.poll() is None:
+            controller.kill()
+            controller.communicate()
+        sub.undeclare()
+    output = "\n".join([*(f"[plant] {line}" for line in plant_out.splitlines()[:-1]),
+                        *(f"[controller] {line}" for line in controller_out.splitlines())])
+    return json.loads(plant_out.strip().splitlines()[-1]), updates, output
+
+
+def start_load(cpu: int) -> subprocess.Popen:
+    """A busy loop pinned to ``cpu``, at the nodes' priority."""
+    return subprocess.Popen([sys.executable, "-c", BUSY_LOOP, str(cpu)], start_new_session=True)
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rate-hz", type=float, default=2000.0, help="surrogate publish rate [Hz]")
-    parser.add_argument("--duration-s", type=float, default=5.0, help="measured wall time [s]")
+    parser.add_argument("--duration-s", type=float, default=5.0, help="measured wall time of the loop [s]")
     parser.add_argument("--controller", default="mpc", help="controller node's control law (default: %(default)s)")
+    parser.add_argument("--topology", choices=("peer", "router"), default="peer",
+                        help="peer: open peers on loopback (nodes started by hand); router: launch.py's "
+                             "authenticating router, nodes its clients (default: %(default)s)")
+    parser.add_argument("--pingpong-s", type=float, default=2.0,
+                        help="bare ping-pong before and after the loop, each [s] (default: %(default)s)")
+    parser.add_argument("--load", action="store_true", help="run a busy loop on one core during the measurement")
+    parser.add_argument("--load-cpu", type=int, default=0, help="the core of --load (default: %(default)s)")
     args = parser.parse_args()
-    hub = free_loopback_endpoint()
     run_id = f"bench-loop-{os.getpid()}"
-    common = ("--run-id", run_id, "--connect", hub)
-    load = os.getloadavg()[0]
-    with NodeBus("bench", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
-        controller = spawn("controller_node", "--controller", args.controller, *common)
-        bus.wait_for_nodes(["controller"], StopFlag(), timeout_s=60)
-        plant = spawn("fe_node.surrogate", "--rate-hz", repr(args.rate_hz), "--duration-s", repr(args.duration_s),
-                      "--require", "controller", "--json", *common)
-        try:
-            plant_out, _ = plant.communicate(timeout=args.duration_s + 60)
-            controller_out, _ = controller.communicate(timeout=30)
-        except subprocess.TimeoutExpired as err:
-            for proc in (plant, controller):
-                proc.kill()
-                proc.communicate()
-            print(json.dumps({"error": f"{err.cmd[3]} did not finish within {err.timeout:.0f} s",
-                              "target_rate_hz": args.rate_hz}))
-            return 1
-    print("\n".join(f"[plant] {line}" for line in plant_out.splitlines()[:-1]))
-    print("\n".join(f"[controller] {line}" for line in controller_out.splitlines()))
-    if plant.returncode != 0 or controller.returncode != 0:
-        print(f"error: plant exited {plant.returncode}, controller {controller.returncode}", file=sys.stderr)
+    load_at_start = os.getloadavg()[0]
+    busy = start_load(args.load_cpu) if args.load else None
+    hub = Hub(args.topology, run_id)
+    try:
+        if busy is not None:
+            time.sleep(1.0)  # let the busy loop settle on its core
+        bare = pingpong(hub, args.rate_hz, args.pingpong_s)
+        cpu0 = cpu_times()
+        stats, updates, output = loop(hub, args)
+        cpu1 = cpu_times()
+        bare += pingpong(hub, args.rate_hz, args.pingpong_s)
+    except RuntimeError as err:
+        print(json.dumps({"error": str(err).splitlines()[0], "target_rate_hz": args.rate_hz}))
+        print(err, file=sys.stderr)
         return 1
-    stats = json.loads(plant_out.strip().splitlines()[-1])
+    finally:
+        hub.close()
+        if busy is not None:
+            busy.kill()
+            busy.wait()
+    print(output)
+    bare_us = np.asarray(bare)
+    zenoh_median = round(float(np.median(bare_us)), 1) if bare_us.size else None
+    update_median = round(float(np.median(updates)), 1) if updates else None
     result = {
         "rtt_median_us": stats["rtt_median_us"], "rtt_p99_us": stats["rtt_p99_us"], "rate_hz": stats["rate_hz"],
         "deadline_miss_pct": stats["deadline_miss_pct"], "target_rate_hz": args.rate_hz,
+        "zenoh_rtt_median_us": zenoh_median,
+        "zenoh_rtt_p99_us": round(float(np.percentile(bare_us, 99)), 1) if bare_us.size else None,
+        "controller_update_median_us": update_median,
+        "overhead_ratio": ratio(stats["rtt_median_us"], zenoh_median, update_median),
+        "topology": args.topology,
         "steps": stats["steps"], "commands": stats["commands"], "late_commands": stats["late_commands"],
+        "zenoh_pings": int(bare_us.size), "controller_updates": len(updates),
         "controller": args.controller, "duration_s": args.duration_s, "cpus": os.cpu_count(),
-        "loadavg_1min_at_start": round(load, 2), "python": platform.python_version(),
+        "loadavg_1min_at_start": round(load_at_start, 2), "loadavg_1min_at_end": round(os.getloadavg()[0], 2),
+        "cpu_busy_pct_during_loop": round(100.0 * (cpu1[0] - cpu0[0]) / max(1, cpu1[1] - cpu0[1]), 1),
+        "load": f"busy loop on cpu {args.load_cpu}" if args.load else "none added",
+        "python": platform.python_version(),
     }
     print(json.dumps(result))
     return 0

@@ -1,0 +1,126 @@
+"""Bare zenoh ping-pong between two processes: the transport's own round trip, the loop's yardstick.
+
+``pong`` echoes every payload it receives on the run's ``plant/state`` key back on the run's
+``controller/command`` key; ``ping`` publishes payloads of ``--size`` bytes (a sequence number,
+padded; default: the size of a ``MeltPoolState``) at ``--rate-hz`` on ``plant/state`` and times
+each echo. Both use express, reliable, blocking publishers, the same keys, session settings,
+credentials and access control as the loop's nodes (``messages.bus.open_session``), and receive
+the way the loop's nodes do, so that ``benchmarks/bench_loop.py`` can divide the loop's round
+trip by this one measured in the same run and topology. Nothing is decoded or validated: this is
+zenoh-python alone.
+
+Usage (``bench_loop.py`` runs both)::
+
+    python benchmarks/zenoh_pingpong.py pong --run-id R --connect tcp/127.0.0.1:7447
+    python benchmarks/zenoh_pingpong.py ping --run-id R --connect tcp/127.0.0.1:7447 --rate-hz 2000 --duration-s 2
+
+``ping`` prints, as its last line, JSON: ``rtt_median_us``, ``rtt_p99_us``, ``pings``, ``echoes``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import struct
+import sys
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+import numpy as np  # noqa: E402
+import zenoh  # noqa: E402
+
+from messages.bus import BusSettings, StopFlag, open_session, wait_for_nodes  # noqa: E402
+from messages.topics import LASER_COMMAND, PLANT_STATE, key_expr, liveliness_key  # noqa: E402
+
+STATE_SIZE = 394  # bytes of a typical encoded MeltPoolState (run id of 16 characters)
+WARMUP = 200  # pings before timing starts
+
+
+def publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
+    """An express, reliable, blocking publisher: the settings of the loop's hot path."""
+    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
+                                      reliability=zenoh.Reliability.RELIABLE, express=True)
+
+
+def pong(settings: BusSettings, stop: StopFlag) -> int:
+    """Echo every ping until stopped (its liveliness token ``pong`` says it is subscribed)."""
+    with open_session(settings, "pong") as session:
+        pub = publisher(session, key_expr(settings.run_id, LASER_COMMAND))
+        session.declare_subscriber(key_expr(settings.run_id, PLANT_STATE),
+                                   zenoh.handlers.Callback(lambda s: pub.put(s.payload), indirect=False))
+        token = session.liveliness().declare_token(liveliness_key(settings.run_id, "pong"))
+        while not stop.wait(0.2):
+            pass
+        token.undeclare()
+    return 0
+
+
+def ping(settings: BusSettings, stop: StopFlag, rate_hz: float, duration_s: float, size: int,
+         samples: bool = False) -> dict:
+    """Ping at ``rate_hz`` for ``duration_s`` (after a warm-up); round trips [µs] of the echoes."""
+    n = WARMUP + int(rate_hz * duration_s)
+    sent = np.full(n, np.nan)
+    rtt = np.full(n, np.nan)
+    done = threading.Event()
+    pad = bytes(max(0, size - 8))
+
+    def on_echo(sample: zenoh.Sample) -> None:
+        t = time.monotonic()
+        seq = struct.unpack_from("<q", sample.payload.to_bytes())[0]
+        if 0 <= seq < n:
+            rtt[seq] = t - sent[seq]
+            if seq == n - 1:
+                done.set()
+
+    with open_session(settings, "ping") as session:
+        pub = publisher(session, key_expr(settings.run_id, PLANT_STATE))
+        session.declare_subscriber(key_expr(settings.run_id, LASER_COMMAND),
+                                   zenoh.handlers.Callback(on_echo, indirect=False))
+        wait_for_nodes(session, settings.run_id, ["pong"], stop, timeout_s=60)
+        period = 1.0 / rate_hz
+        next_t = time.monotonic()
+        for seq in range(n):
+            if stop.is_set():
+                break
+            next_t += period
+            while (remaining := next_t - time.monotonic()) > 0:
+                time.sleep(remaining)
+            sent[seq] = time.monotonic()
+            pub.put(struct.pack("<q", seq) + pad)
+        done.wait(1.0)
+    timed = rtt[WARMUP:] * 1e6
+    ok = timed[np.isfinite(timed)]
+    summary = {
+        "rtt_median_us": round(float(np.median(ok)), 1) if ok.size else None,
+        "rtt_p99_us": round(float(np.percentile(ok, 99)), 1) if ok.size else None,
+        "pings": int(timed.size), "echoes": int(ok.size), "size_bytes": max(size, 8), "rate_hz": rate_hz,
+    }
+    if samples:
+        summary["rtt_us"] = [round(float(v), 1) for v in ok]
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("role", choices=("ping", "pong"))
+    parser.add_argument("--run-id", default="pingpong")
+    parser.add_argument("--connect", action="append", required=True, metavar="ENDPOINT")
+    parser.add_argument("--rate-hz", type=float, default=2000.0, help="ping rate [Hz]")
+    parser.add_argument("--duration-s", type=float, default=2.0, help="timed pinging [s]")
+    parser.add_argument("--size", type=int, default=STATE_SIZE, help="payload size [bytes] (default: a state's)")
+    parser.add_argument("--samples", action="store_true", help="also print every round trip [µs] (rtt_us)")
+    args = parser.parse_args(argv)
+    settings = BusSettings(run_id=args.run_id, connect=tuple(args.connect))
+    stop = StopFlag()
+    if args.role == "pong":
+        return pong(settings, stop)
+    print(json.dumps(ping(settings, stop, args.rate_hz, args.duration_s, args.size, args.samples)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
