@@ -5,7 +5,14 @@
   the FE top-surface area (mean over the last 10 steps) vs the analytic one.
 * Mesh convergence: the same FE case at ``h`` and ``h / 2``.
 * Energy: largest |error| of the energy balance over a double track with IN625
-  (temperature-dependent, latent heat) and convection + radiation.
+  (temperature-dependent, latent heat) and convection + radiation; the same run gives
+  ``peak_temperature_k`` (the hottest node over the run).
+* Time step: IN625 single track (3 mm, 250 W, 800 mm/s, default settings at ``h``), the
+  area with the default sub-steps vs 8 times as many (``dt_convergence_pct``).
+* IN625 reference: the melting column of :mod:`fe_node.reference`
+  (``in625_reference_error_pct``: largest nodal temperature error, % of the surface rise).
+* Powder: the single-track area with the default powder layer on over the bare plate
+  (``powder_area_ratio``, :class:`~fe_node.settings.Settings` ``powder_layer_m``).
 """
 from __future__ import annotations
 
@@ -14,6 +21,7 @@ import numpy as np
 from fe_node.driver import run_open_loop
 from fe_node.eagar_tsai import EagarTsai, EagarTsaiCase
 from fe_node.material import Material
+from fe_node.reference import in625_reference
 from fe_node.scan import ScanPlan
 from fe_node.scenarios import scenario
 from fe_node.settings import Settings
@@ -34,6 +42,16 @@ def fe_eagar_tsai_area(case: EagarTsaiCase, h_fine_m: float, track_m: float = 3e
     return float(np.mean(areas[-n_avg:]))
 
 
+def track_area(settings: Settings, track_m: float = 3e-3, power_w: float = 250.0, speed_m_s: float = 0.8,
+               n_avg: int = 10) -> float:
+    """Top-surface melt-pool area [m²] of a single track (mean of the last ``n_avg`` steps)."""
+    model = ThermalModel(settings, ScanPlan.single(track_m))
+    areas = []
+    while not model.done:
+        areas.append(model.step(power_w, speed_m_s).area_m2)
+    return float(np.mean(areas[-n_avg:]))
+
+
 def validate(h_fine_m: float = 25e-6, progress: bool = False) -> dict:
     """Run the three checks; returns the JSON-ready report (see module docstring)."""
     case = EagarTsaiCase()
@@ -41,6 +59,8 @@ def validate(h_fine_m: float = 25e-6, progress: bool = False) -> dict:
     fe_h = fe_eagar_tsai_area(case, h_fine_m)
     fe_h2 = fe_eagar_tsai_area(case, h_fine_m / 2)
     obs = run_open_loop(scenario("double-track", h_fine_m=h_fine_m), progress=progress)
+    areas = {n: track_area(Settings(h_fine_m=h_fine_m, min_substeps=n)) for n in (1, 8)}
+    reference = in625_reference(Settings(h_fine_m=h_fine_m))
     return dict(
         energy_error_pct=float(max(abs(o.energy_error_pct) for o in obs)),
         energy_case="double-track IN625, 2 x 5 mm, 250 W, 800 mm/s, convection + radiation",
@@ -48,6 +68,11 @@ def validate(h_fine_m: float = 25e-6, progress: bool = False) -> dict:
         mesh_convergence_pct=100 * (fe_h - fe_h2) / fe_h2,
         mesh_convergence_h_um=[round(h_fine_m * 1e6, 6), round(h_fine_m * 0.5e6, 6)],
         fe_area_h2_mm2=fe_h2 * 1e6,
+        dt_convergence_pct=100 * (areas[1] - areas[8]) / areas[8],
+        dt_convergence_area_mm2=dict(default=areas[1] * 1e6, substeps_x8=areas[8] * 1e6),
+        in625_reference_error_pct=reference["error_pct"],
+        in625_reference=reference,
+        peak_temperature_k=float(max(o.t_peak_k for o in obs)),
         eagar_tsai_case=dict(case.as_dict(), fe_area_mm2=fe_h * 1e6,
                              analytic_area_mm2=analytic * 1e6, h_um=round(h_fine_m * 1e6, 6)),
     )
