@@ -1,12 +1,12 @@
 """Bare zenoh ping-pong between two processes: the transport's own round trip, the loop's yardstick.
 
 ``pong`` echoes every payload it receives on the run's ``plant/state`` key back on the run's
-``controller/command`` key; ``ping`` publishes payloads of ``--size`` bytes (a sequence number,
-padded; default: the size of a ``MeltPoolState``) at ``--rate-hz`` on ``plant/state`` and times
-each echo. Both use express, reliable, blocking publishers, the same keys, session settings,
-credentials and access control as the loop's nodes (``messages.bus.open_session``), and receive
-the way the loop's nodes do, so that ``benchmarks/bench_loop.py`` can divide the loop's round
-trip by this one measured in the same run and topology. Nothing is decoded or validated: this is
+``controller/command`` key; ``ping`` publishes payloads of ``--size`` bytes (default: the size
+of a ``MeltPoolState``) at ``--rate-hz`` on ``plant/state`` and times each echo. Both use express,
+reliable, blocking publishers, the same keys, session settings, credentials and access control
+as the loop's nodes (``messages.bus.open_session``), and receive as zenoh-python's ``z_ping`` /
+``z_pong`` examples do, so that ``benchmarks/bench_loop.py`` can divide the loop's round trip by
+this one measured in the same run and topology. Nothing is decoded or validated: this is
 zenoh-python alone.
 
 Usage (``bench_loop.py`` runs both)::
@@ -14,16 +14,15 @@ Usage (``bench_loop.py`` runs both)::
     python benchmarks/zenoh_pingpong.py pong --run-id R --connect tcp/127.0.0.1:7447
     python benchmarks/zenoh_pingpong.py ping --run-id R --connect tcp/127.0.0.1:7447 --rate-hz 2000 --duration-s 2
 
-``ping`` prints, as its last line, JSON: ``rtt_median_us``, ``rtt_p99_us``, ``pings``, ``echoes``.
+``ping`` prints, as its last line, JSON: ``rtt_median_us``, ``rtt_p99_us``, ``pings`` (and with
+``--samples`` every round trip, ``rtt_us``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import struct
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -47,11 +46,13 @@ def publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
 
 
 def pong(settings: BusSettings, stop: StopFlag) -> int:
-    """Echo every ping until stopped (its liveliness token ``pong`` says it is subscribed)."""
+    """Echo every ping until stopped (its liveliness token ``pong`` says it is subscribed).
+
+    As zenoh-python's ``z_pong`` example: a plain callback that republishes the payload.
+    """
     with open_session(settings, "pong") as session:
         pub = publisher(session, key_expr(settings.run_id, LASER_COMMAND))
-        session.declare_subscriber(key_expr(settings.run_id, PLANT_STATE),
-                                   zenoh.handlers.Callback(lambda s: pub.put(s.payload), indirect=False))
+        session.declare_subscriber(key_expr(settings.run_id, PLANT_STATE), lambda s: pub.put(s.payload))
         token = session.liveliness().declare_token(liveliness_key(settings.run_id, "pong"))
         while not stop.wait(0.2):
             pass
@@ -61,43 +62,37 @@ def pong(settings: BusSettings, stop: StopFlag) -> int:
 
 def ping(settings: BusSettings, stop: StopFlag, rate_hz: float, duration_s: float, size: int,
          samples: bool = False) -> dict:
-    """Ping at ``rate_hz`` for ``duration_s`` (after a warm-up); round trips [µs] of the echoes."""
+    """Ping at ``rate_hz`` for ``duration_s`` (after a warm-up); round trips [µs] of the echoes.
+
+    As zenoh-python's ``z_ping`` example (put, then a blocking ``recv`` of the echo), paced at
+    ``rate_hz`` like the loop's plant: each ping leaves at its tick, or at once if the previous
+    echo came back after it.
+    """
     n = WARMUP + int(rate_hz * duration_s)
-    sent = np.full(n, np.nan)
     rtt = np.full(n, np.nan)
-    done = threading.Event()
-    pad = bytes(max(0, size - 8))
-
-    def on_echo(sample: zenoh.Sample) -> None:
-        t = time.monotonic()
-        seq = struct.unpack_from("<q", sample.payload.to_bytes())[0]
-        if 0 <= seq < n:
-            rtt[seq] = t - sent[seq]
-            if seq == n - 1:
-                done.set()
-
+    data = bytes(max(size, 8))
     with open_session(settings, "ping") as session:
+        sub = session.declare_subscriber(key_expr(settings.run_id, LASER_COMMAND), zenoh.handlers.FifoChannel(16))
         pub = publisher(session, key_expr(settings.run_id, PLANT_STATE))
-        session.declare_subscriber(key_expr(settings.run_id, LASER_COMMAND),
-                                   zenoh.handlers.Callback(on_echo, indirect=False))
         wait_for_nodes(session, settings.run_id, ["pong"], stop, timeout_s=60)
         period = 1.0 / rate_hz
         next_t = time.monotonic()
         for seq in range(n):
             if stop.is_set():
                 break
-            next_t += period
+            next_t = max(next_t + period, time.monotonic())
             while (remaining := next_t - time.monotonic()) > 0:
                 time.sleep(remaining)
-            sent[seq] = time.monotonic()
-            pub.put(struct.pack("<q", seq) + pad)
-        done.wait(1.0)
+            sent = time.monotonic()
+            pub.put(data)
+            sub.recv()
+            rtt[seq] = time.monotonic() - sent
     timed = rtt[WARMUP:] * 1e6
     ok = timed[np.isfinite(timed)]
     summary = {
         "rtt_median_us": round(float(np.median(ok)), 1) if ok.size else None,
         "rtt_p99_us": round(float(np.percentile(ok, 99)), 1) if ok.size else None,
-        "pings": int(timed.size), "echoes": int(ok.size), "size_bytes": max(size, 8), "rate_hz": rate_hz,
+        "pings": int(ok.size), "size_bytes": len(data), "rate_hz": rate_hz,
     }
     if samples:
         summary["rtt_us"] = [round(float(v), 1) for v in ok]
