@@ -37,6 +37,7 @@ the other jobs are kept.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -497,19 +498,18 @@ def run_jobs(jobs: list[Job] | tuple[Job, ...], settings: RunnerSettings, *, pro
                for j in jobs if recording_complete(job_recording(settings, j))}
     pending = [j for j in jobs if j.name not in results]
     retries = getattr(settings, "retries", 1)
-    report = _Progress(len(jobs), len(results), unit, progress)
-    try:
-        if not pending:
-            pass
-        elif getattr(settings, "sequential", False):
-            results.update(_run_sequential(pending, spec, retries, report))
-        else:
+    with contextlib.ExitStack() as stack:
+        client = None
+        if pending and not getattr(settings, "sequential", False):
             from gp_trainer.distributed import dask_client, run_on_dask
 
-            with dask_client(getattr(settings, "scheduler", None), settings.workers) as client:
-                results.update(run_on_dask(client, pending, spec, retries, report))
-    finally:
-        report.close()
+            client = stack.enter_context(dask_client(getattr(settings, "scheduler", None), settings.workers))
+        report = _Progress(len(jobs), len(results), unit, progress)  # after the cluster is up (or refused)
+        stack.callback(report.close)
+        if client is not None:
+            results.update(run_on_dask(client, pending, spec, retries, report))
+        elif pending:
+            results.update(_run_sequential(pending, spec, retries, report))
     return [dataclasses.replace(results[n], states_sha256=states_sha256(Path(results[n].recording)))
             if results[n].status != "failed" else results[n] for n in names]
 

@@ -1,0 +1,168 @@
+"""Campaigns on Dask distributed: the same dataset, bit for bit, as in-process sequential runs;
+retries and failure reports; --scheduler errors.
+
+Every case is a real ``launch.py`` run (FE plant, recorder, hub) kept short with ``--max-steps``
+and a coarse mesh; the default test set takes about 30-50 s on 2 loaded cores.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gp_trainer import campaign, distributed
+from gp_trainer.campaign import CampaignSettings, Job, run_campaign, run_jobs, states_sha256
+from gp_trainer.cli import main
+from gp_trainer.dataset import DatasetSettings, build_samples, concatenate, read_states
+
+SHORT = ("--h-um", "50")  # the coarsest mesh the beam allows
+
+
+def dataset_digest(recordings: list[Path]) -> str:
+    """SHA-256 of the dataset's arrays (Z, y, source, step, track: dtype, shape and bytes), built
+    from ``recordings`` in the given order as ``python -m gp_trainer dataset`` builds it."""
+    settings = DatasetSettings(min_samples=1)
+    samples = concatenate([build_samples(read_states(p), p.stem, settings)[0] for p in recordings], settings)
+    digest = hashlib.sha256()
+    for name in ("Z", "y", "source", "step", "track"):
+        array = np.ascontiguousarray(getattr(samples, name))
+        digest.update(f"{name}:{array.dtype.str}:{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+def _jobs(steps: tuple[int, ...]) -> list[Job]:
+    """Table 2 cases 1..n with ``--max-steps`` per case: the first is the longest, so on two workers
+    the cases finish in another order than they were submitted."""
+    return [Job(f"table2-case{c}", f"table2-case{c}", args=("--max-steps", str(n))) for c, n in enumerate(steps, 1)]
+
+
+def _compare(tmp_path: Path, jobs: list[Job], launch_args: tuple[str, ...]) -> None:
+    base = CampaignSettings(out_dir=tmp_path / "sequential", sequential=True, launch_args=launch_args)
+    local = run_jobs(jobs, base, progress=False)
+    dask = run_jobs(jobs, dataclasses.replace(base, out_dir=tmp_path / "dask", sequential=False, workers=2),
+                    progress=False)
+    assert [r.status for r in local] == [r.status for r in dask] == ["ok"] * len(jobs), [r.detail for r in dask]
+    assert [r.name for r in dask] == [j.name for j in jobs]  # job order, whatever finished first
+    assert {r.worker for r in local} == {"local"} and all(r.worker.startswith("tcp://") for r in dask)
+    assert [r.states_sha256 for r in local] == [r.states_sha256 for r in dask]
+    paths = {name: [Path(r.recording) for r in results] for name, results in (("local", local), ("dask", dask))}
+    assert dataset_digest(paths["local"]) == dataset_digest(paths["dask"])
+    assert all(p.parent == tmp_path / "dask" and p.name == f"{j.name}.mcap" for p, j in zip(paths["dask"], jobs))
+    assert sorted(p.name for p in (tmp_path / "dask").iterdir()) == sorted(f"{j.name}.mcap" for j in jobs)
+
+
+def test_two_worker_cluster_gives_the_sequential_dataset_bit_for_bit(tmp_path):
+    _compare(tmp_path, _jobs((60, 20, 20)), SHORT)
+
+
+@pytest.mark.slow
+def test_full_campaign_on_two_workers_gives_the_sequential_dataset_bit_for_bit(tmp_path):
+    """The nine Table 2 cases at full length and the default mesh (a few minutes on 2 cores)."""
+    sequential = run_campaign(CampaignSettings(out_dir=tmp_path / "sequential", sequential=True), progress=False)
+    dask = run_campaign(CampaignSettings(out_dir=tmp_path / "dask", workers=2), progress=False)
+    assert [r.status for r in sequential] == [r.status for r in dask] == ["ok"] * 9
+    assert [r.states_sha256 for r in sequential] == [r.states_sha256 for r in dask]
+    assert dataset_digest([Path(r.recording) for r in sequential]) == dataset_digest([Path(r.recording) for r in dask])
+
+
+FLAKY_LAUNCHER = '''
+import os, sys
+from pathlib import Path
+args = sys.argv[1:]
+name = args[args.index("--run-id") + 1]
+marker = Path(args[args.index("--out") + 1]).with_suffix(".tried")
+if name == "table2-case1":  # always fails
+    print("solver diverged at step 3", file=sys.stderr)
+    print("last words of case 1", file=sys.stderr)
+    sys.exit(7)
+if name == "table2-case2" and not marker.exists():  # fails once
+    marker.write_text("1")
+    print("transient failure", file=sys.stderr)
+    sys.exit(3)
+os.execv(sys.executable, [sys.executable, {launcher!r}, *args])
+'''
+
+
+def test_failed_case_is_retried_once_then_reported_and_the_others_kept(tmp_path, monkeypatch, capsys):
+    launcher = tmp_path / "flaky_launch.py"
+    launcher.write_text(FLAKY_LAUNCHER.format(launcher=str(campaign.REPO_ROOT / "launch.py")))
+    original = run_campaign
+    monkeypatch.setattr(campaign, "run_campaign",
+                        lambda settings, progress: original(dataclasses.replace(settings, launcher=launcher),
+                                                            progress=progress))
+    out = tmp_path / "out"
+    argv = ["campaign", "--cases", "1", "2", "3", "--workers", "2", "--max-steps", "10", *SHORT,
+            "--out-dir", str(out), "--json"]
+    assert main(argv) == 1
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out.strip().splitlines()[-1])
+    cases = {c["case"]: c for c in summary["cases"]}
+    assert (summary["ok"], summary["failed"]) == (2, 1) and list(cases) == [1, 2, 3]
+    assert (cases[1]["status"], cases[1]["attempts"], cases[1]["exit_status"]) == ("failed", 2, 7)
+    assert cases[1]["output_tail"].splitlines()[-2:] == ["solver diverged at step 3", "last words of case 1"]
+    assert (cases[2]["status"], cases[2]["attempts"], cases[3]["status"], cases[3]["attempts"]) == ("ok", 2, "ok", 1)
+    assert (out / "table2-case2.mcap").is_file() and (out / "table2-case3.mcap").is_file()
+    assert (out / "table2-case1.partial.mcap").exists() is False  # the fake never wrote one
+    err = captured.err
+    assert "case 1 failed after 2 attempt(s), exit status 7; last lines of its output:" in err
+    assert "    last words of case 1" in err
+    assert "table2-case2: failed" in err and "retrying" in err  # the progress line of the first attempt
+    for c in (2, 3):
+        assert f"table2-case{c}: ok (" in err  # one progress line per finished case
+    # a re-run skips the complete cases and tries the failed one again (twice)
+    assert main([*argv, "--no-progress"]) == 1
+    again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [c["status"] for c in again["cases"]] == ["failed", "skipped", "skipped"]
+    assert again["cases"][1]["states_sha256"] == states_sha256(out / "table2-case2.mcap") is not None
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("address, message", [
+    ("localhost:8786", "--scheduler must be tcp://HOST:PORT"),
+    ("tcp://127.0.0.1", "--scheduler must be tcp://HOST:PORT"),
+    ("tcp://127.0.0.1:99999", "--scheduler must be tcp://HOST:PORT"),
+    (None, "no Dask scheduler reachable within 1.5 s"),
+])
+def test_bad_or_unreachable_scheduler_is_a_one_line_error_exit_2(tmp_path, monkeypatch, capsys, address, message):
+    monkeypatch.setattr(distributed, "CONNECT_TIMEOUT_S", 1.5)
+    address = address or f"tcp://127.0.0.1:{_free_port()}"
+    assert main(["campaign", "--cases", "1", "--scheduler", address, "--out-dir", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("python -m gp_trainer campaign: error: --scheduler")
+    assert message in err[0]
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_workers_and_scheduler_exclude_each_other(tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["identify", "--workers", "2", "--scheduler", "tcp://127.0.0.1:8786", "--out-dir", str(tmp_path)])
+    assert info.value.code == 2 and "--scheduler: not allowed with argument --workers" in capsys.readouterr().err
+
+
+def test_existing_cluster_via_scheduler_address(tmp_path):
+    """``--scheduler``: a cluster started elsewhere (here a LocalCluster of this test) runs the case."""
+    import logging
+
+    from distributed import LocalCluster
+
+    settings = CampaignSettings(cases=(2,), out_dir=tmp_path / "seq", sequential=True,
+                                launch_args=("--max-steps", "10", *SHORT))
+    (reference,) = run_campaign(settings, progress=False)
+    with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None, silence_logs=logging.ERROR) as cluster:
+        (result,) = run_campaign(dataclasses.replace(settings, out_dir=tmp_path / "dask", sequential=False,
+                                                     scheduler=cluster.scheduler_address), progress=False)
+        worker = next(iter(cluster.scheduler_info["workers"]))
+    assert (result.status, result.worker, result.attempts) == ("ok", worker, 1)
+    assert result.states_sha256 == reference.states_sha256 is not None
