@@ -59,7 +59,7 @@ TIME_TOLERANCE_S = 1e-9
 
 @dataclass
 class Violations:
-    """Violations of one rule: how many, by which nodes, and the first one."""
+    """Summary of one rule's violations: how many, by which nodes, and the first one."""
 
     count: int = 0
     nodes: set[str] = field(default_factory=set)
@@ -77,53 +77,68 @@ class Item:
     node: str
 
 
+@dataclass(frozen=True)
+class Violation:
+    """One broken rule: which, by which node, where (step, if any) and how."""
+
+    rule: str
+    node: str
+    detail: str
+    step: int | None = None
+
+
 @dataclass
 class Report:
-    """The verdict on one recording."""
+    """The verdict on one recording: every violation, in the order found."""
 
     path: Path
     n_messages: int = 0
     nodes: set[str] = field(default_factory=set)
-    found: dict[str, Violations] = field(default_factory=lambda: defaultdict(Violations))
+    violations: list[Violation] = field(default_factory=list)
 
     def add(self, rule: str, node: str, detail: str, step: int | None = None) -> None:
-        """Count one violation of ``rule`` by ``node`` (the first one's ``detail`` and ``step`` are kept)."""
-        v = self.found[rule]
-        if v.count == 0:
-            v.first, v.first_step = detail, step
-        v.count += 1
-        v.nodes.add(node)
+        """Record one violation of ``rule`` by ``node``."""
+        self.violations.append(Violation(rule, node, detail, step))
 
     def only(self, node: str) -> Report:
-        """The report restricted to the violations of ``node`` (counts of the others dropped)."""
-        kept = Report(self.path, self.n_messages, self.nodes)
-        for rule, v in self.found.items():
-            if node in v.nodes:
-                kept.found[rule] = Violations(v.count, {node}, v.first_step, v.first)
-        return kept
+        """The report restricted to the violations of ``node``."""
+        return Report(self.path, self.n_messages, self.nodes, [v for v in self.violations if v.node == node])
+
+    @property
+    def found(self) -> dict[str, Violations]:
+        """Per violated rule: how many violations, by which nodes, and the first one (the one of the
+        lowest step, else the first found)."""
+        found: dict[str, Violations] = {}
+        for v in self.violations:
+            summary = found.setdefault(v.rule, Violations(first_step=v.step, first=v.detail))
+            summary.count += 1
+            summary.nodes.add(v.node)
+            if v.step is not None and (summary.first_step is None or v.step < summary.first_step):
+                summary.first_step, summary.first = v.step, v.detail
+        return found
 
     @property
     def conforming(self) -> bool:
         """Whether no rule was violated."""
-        return not self.found
+        return not self.violations
 
     def lines(self) -> list[str]:
         """One line per violated rule, then the verdict."""
-        out = []
+        out, found = [], self.found
         for rule in RULES:
-            if (v := self.found.get(rule)) is not None:
+            if (v := found.get(rule)) is not None:
                 where = f"first at step {v.first_step}" if v.first_step is not None else "first"
                 out.append(f"{rule} [{', '.join(sorted(v.nodes))}]: {v.count} violation{'s' * (v.count != 1)}; "
                            f"{where}: {v.first}")
-        verdict = "conforming" if self.conforming else f"NOT conforming ({len(self.found)} of {len(RULES)} rules)"
+        verdict = "conforming" if self.conforming else f"NOT conforming ({len(found)} of {len(RULES)} rules)"
         out.append(f"{self.path}: {verdict}; {self.n_messages} messages, nodes {', '.join(sorted(self.nodes))}")
         return out
 
     def as_json(self) -> dict[str, Any]:
         """JSON-able form: the verdict and, per rule, whether it held and its first violation."""
-        rules = {}
+        rules, found = {}, self.found
         for rule in RULES:
-            v = self.found.get(rule, Violations())
+            v = found.get(rule, Violations())
             rules[rule] = {"ok": v.count == 0, "violations": v.count, "nodes": sorted(v.nodes),
                            "first_step": v.first_step, "first": v.first}
         return {"recording": str(self.path), "conforming": self.conforming, "messages": self.n_messages,

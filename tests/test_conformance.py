@@ -130,7 +130,8 @@ MUTATIONS = {  # name: (edit, violated rule, first offending step)
     "state step missing": (_drop("plant/state", 30), "state_steps", 31),
     "state step repeated": (_set("plant/state", 30, step=29), "state_steps", 29),
     "state time jumps": (_set("plant/state", 40, time_s=40.5 * DT_S), "state_time", 40),
-    "command answers no state": (_set("controller/command", 21, step=N + 5), "command_answers", N + 5),
+    "command answers no state": (_set("controller/command", N + 1, step=N + 5), "command_answers", N + 5),
+    "command step repeated": (_set("controller/command", 21, step=20), "command_answers", 20),
     "command time is not its state's": (_set("controller/command", 12, time_s=0.5), "command_answers", 12),
     "command power above the controller's bound": (_set("controller/command", 7, power_w=351.0), "power_bounds", 7),
     "applied power above the plant's bound": (_set("plant/state", 8, power_w=400.0), "power_bounds", 8),
@@ -189,10 +190,16 @@ def test_unfinished_file_fails_finished(tmp_path):
 def test_node_filter_reports_only_that_node(tmp_path, capsys):
     msgs = clean_run()
     _set("controller/command", 7, power_w=351.0)(msgs)
+    _set("plant/state", 9, power_w=400.0)(msgs)
+    _set("plant/state", 10, power_w=400.0)(msgs)
     path = write(tmp_path / "m.mcap", msgs)
-    assert conformance.main([str(path), "--node", "plant"]) == 0
+    assert conformance.main([str(path)]) == 1
+    assert "power_bounds [controller, plant]: 3 violations; first at step 7" in capsys.readouterr().out
+    assert conformance.main([str(path), "--node", "plant"]) == 1
+    assert "power_bounds [plant]: 2 violations; first at step 9" in capsys.readouterr().out
     assert conformance.main([str(path), "--node", "controller"]) == 1
     assert "power_bounds [controller]: 1 violation; first at step 7" in capsys.readouterr().out
+    assert conformance.main([str(path), "--node", "recorder"]) == 0
 
 
 @pytest.mark.parametrize("make, message", [
