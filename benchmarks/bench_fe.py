@@ -1,8 +1,15 @@
 """Benchmark of the FE plant: the default 4 x 10 mm layer (1000 steps, IN625) vs the
 textbook scikit-fem approach on the same mesh.
 
-Usage: ``python benchmarks/bench_fe.py [--h-um 25] [--baseline-steps 5]
+Usage: ``python benchmarks/bench_fe.py [--h-um 25] [--compare-steps 100] [--baseline-steps 5]
 [--baseline-mem-gb 16] [--baseline-timeout-s 600]``.  Last line of stdout is JSON.
+
+Same scheme, two operators: the first ``--compare-steps`` steps of the layer are run with the
+explicit enthalpy scheme on the tensor-product operator (``fast_ms_per_step``) and on the
+scikit-fem-assembled CSR operator (``csr_ms_per_step``, ``Settings.operator = "csr"``), one
+step of each in turn so both see the same machine load (medians; ``load_avg`` before/after).
+``explicit_csr_speedup`` = csr / fast: what the tensor path gains over the same explicit
+scheme with a CSR matrix.  ``speedup_vs_baseline`` compares with implicit ``splu`` stepping.
 
 Baseline (as scikit-fem's heat-equation example): assemble ``K`` and ``M`` with
 ``Basis(mesh, ElementHex1(), intorder=2)``, factorise ``A = M + dt alpha K`` once with
@@ -14,6 +21,7 @@ down; if it fails, its fields are null and the reason is reported.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import resource
@@ -101,9 +109,37 @@ def layer(h_um: float) -> dict:
                 final_area_mm2=obs.area_m2 * 1e6)
 
 
+def compare_operators(h_um: float, n_steps: int) -> dict:
+    """Per-step wall time of the same explicit scheme with either operator (module docstring)."""
+    import numpy as np
+
+    from fe_node.scenarios import scenario
+    from fe_node.solver import ThermalModel
+
+    sc = scenario("layer", h_fine_m=h_um * 1e-6)
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    csr = ThermalModel(dataclasses.replace(sc.settings, operator="csr"), sc.plan)
+    csr_setup = time.perf_counter() - t0
+    fast = ThermalModel(sc.settings, sc.plan)
+    times, area = {"fast": [], "csr": []}, {}
+    for _ in range(n_steps):
+        cmd = sc.profile.command(fast.step_index)
+        for name, model in (("fast", fast), ("csr", csr)):
+            t = time.perf_counter()
+            area[name] = model.step(*cmd).area_m2
+            times[name].append(time.perf_counter() - t)
+    fast_ms, csr_ms = (float(np.median(times[k])) * 1e3 for k in ("fast", "csr"))
+    return dict(fast_ms_per_step=fast_ms, csr_ms_per_step=csr_ms, explicit_csr_speedup=csr_ms / fast_ms,
+                compare_steps=n_steps, csr_setup_s=csr_setup, csr_nnz=int(csr.operator.matrix.nnz),
+                compare_area_rel_diff=abs(area["csr"] - area["fast"]) / area["fast"],
+                load_avg=[load0, os.getloadavg()[0]])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--h-um", type=float, default=25.0)
+    ap.add_argument("--compare-steps", type=int, default=100)
     ap.add_argument("--baseline-steps", type=int, default=5)
     ap.add_argument("--baseline-mem-gb", type=float, default=16.0,
                     help="address-space limit of the splu baseline (it needs ~11 GB at 25 µm)")
@@ -115,6 +151,8 @@ def main() -> None:
         return
     res = layer(a.h_um)
     print(f"layer: {res}", file=sys.stderr)
+    res.update(compare_operators(a.h_um, a.compare_steps))
+    print(f"operators: {res}", file=sys.stderr)
     res.update(run_baseline(a.h_um, a.baseline_steps, a.baseline_mem_gb, a.baseline_timeout_s))
     b = res.get("baseline_ms_per_step")
     res["speedup_vs_baseline"] = b / res["ms_per_step"] if b else None
