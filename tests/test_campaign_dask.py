@@ -59,7 +59,7 @@ def _compare(tmp_path: Path, jobs: list[Job], launch_args: tuple[str, ...]) -> N
 
 
 def test_two_worker_cluster_gives_the_sequential_dataset_bit_for_bit(tmp_path):
-    _compare(tmp_path, _jobs((60, 20, 20)), SHORT)
+    _compare(tmp_path, _jobs((40, 12, 12)), SHORT)
 
 
 @pytest.mark.slow

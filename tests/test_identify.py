@@ -184,8 +184,9 @@ def test_failed_run_keeps_its_partial_recording(tmp_path):
     launcher.write_text(FAILING_LAUNCHER)
     settings = IdentifySettings(runs=select_ident_runs(["ident-layer-p250-s2"]), out_dir=tmp_path / "ident",
                                 launcher=launcher, python=sys.executable)
-    (result,) = run_identification(settings, progress=False)
+    (result,) = run_identification(settings, progress=False)  # on a LocalCluster of 2 workers, retried once
     assert result.status == "failed" and "exit status 1" in result.detail and "ident_seed = 2" in result.detail
+    assert (result.attempts, result.exit_status) == (2, 1) and "ident_seed = 2" in result.output_tail
     assert Path(result.recording) == tmp_path / "ident" / "ident-layer-p250-s2.partial.mcap"
     assert Path(result.recording).is_file() and not (tmp_path / "ident" / "ident-layer-p250-s2.mcap").exists()
     # only the partial recording: the job config went to a temporary directory
@@ -196,8 +197,11 @@ def test_cli_user_errors_exit_2(tmp_path, capsys):
     assert main(["identify", "--runs", "nope", "--out-dir", str(tmp_path)]) == 2
     assert main(["identify", "--workers", "0", "--out-dir", str(tmp_path)]) == 2
     assert main(["identify", "--timeout", "0", "--out-dir", str(tmp_path)]) == 2
+    assert main(["identify", "--retries", "-1", "--out-dir", str(tmp_path)]) == 2
+    assert main(["identify", "--scheduler", "http://x:1", "--out-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 3 and "unknown identification run(s) nope" in err[0] and "--workers" in err[1]
+    assert len(err) == 5 and "unknown identification run(s) nope" in err[0] and "--workers" in err[1]
+    assert "--timeout" in err[2] and "--retries" in err[3] and "--scheduler must be tcp://HOST:PORT" in err[4]
     assert not any(tmp_path.iterdir())
 
 
