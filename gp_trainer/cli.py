@@ -169,6 +169,13 @@ def _runner_settings(args: argparse.Namespace) -> dict:
                 launch_args=launch_args)
 
 
+def _interrupted(command: str, out_dir: Path) -> int:
+    """Ctrl-C: the running launchers were sent SIGINT (they stop their nodes); exit status 130."""
+    print(f"{PROG} {command}: interrupted; the complete recordings in {out_dir} are kept and a re-run skips them",
+          file=sys.stderr)
+    return 130
+
+
 def _report_failures(results: list, label: Callable[[Any], str]) -> None:
     """For every run that failed after its retries: which, exit status and the last lines of its output."""
     for r in results:
@@ -307,7 +314,10 @@ def _campaign(args: argparse.Namespace) -> int:
     from gp_trainer.campaign import CampaignSettings, run_campaign, summary_json
 
     settings = CampaignSettings(cases=tuple(args.cases), **_runner_settings(args))
-    results = run_campaign(settings, progress=not args.no_progress)
+    try:
+        results = run_campaign(settings, progress=not args.no_progress)
+    except KeyboardInterrupt:
+        return _interrupted("campaign", settings.out_dir)
     for r in results:
         print(f"case {r.case}: {r.status} ({r.wall_s:.1f} s) {r.recording} {r.detail}".rstrip())
     _report_failures(results, lambda r: f"case {r.case}")
@@ -325,7 +335,10 @@ def _identify(args: argparse.Namespace) -> int:
     )
 
     settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None)), **_runner_settings(args))
-    results = run_identification(settings, progress=not args.no_progress)
+    try:
+        results = run_identification(settings, progress=not args.no_progress)
+    except KeyboardInterrupt:
+        return _interrupted("identify", settings.out_dir)
     for r in results:
         print(f"{r.name}: {r.status} ({r.wall_s:.1f} s) {r.recording} {r.detail}".rstrip())
     _report_failures(results, lambda r: r.name)
