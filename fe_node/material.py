@@ -150,6 +150,8 @@ class Constitutive:
         self._p_a[-1] = phi_liq - h_liq * self._p_b[-1]
         self.max_diffusivity = float(self.k_ref * self._p_b.max())
         """Largest k/(rho cp) [m²/s] of the table (explicit stability)."""
+        self.liquid_heat_capacity = m.rho * cpl
+        """rho cp above the liquidus [J/(m³ K)]; ``H`` is linear in ``T`` there."""
 
     def _index(self, h):
         i = np.asarray((h - self._h0) * self._inv_dh).astype(np.intp)

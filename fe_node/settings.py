@@ -46,6 +46,21 @@ class Settings:
         Top-surface convection coefficient [W/(m² K)] (gas flow; 10 by default).
     emissivity : float
         Top-surface emissivity [-] (IN625 about 0.4-0.5).
+    powder_layer_m : float
+        Thickness of a powder layer on top of the dense plate [m]; 0 (default) = bare plate,
+        the plant the shipped GP model was trained on.  Powder elements conduct
+        ``powder_k_w_mk`` at 500 °C (scaling with T like the dense metal) and hold
+        ``powder_packing`` of the dense heat capacity; an element whose mean nodal temperature
+        passes the liquidus consolidates (docs/fe.md).
+    powder_packing : float
+        Packing density of the powder bed, relative to the dense metal [-].
+    powder_k_w_mk : float
+        Powder-bed conductivity at 500 °C [W/(m K)] (IN625: 1.01, ASME J. Manuf. Sci. Eng.
+        140(11):111008).
+    evaporation : bool
+        Evaporative cooling of the top surface (:func:`fe_node.boundary.evaporation_flux`),
+        default off.  With it on, the boiling-point cap of the convection/radiation loss is
+        not needed to keep temperatures physical but is kept.
     min_substeps : int
         Least explicit sub-steps per step (default 1: as many as stability needs).  The time
         error of the default step is ``dt_convergence_pct`` of ``python -m fe_node validate``.
@@ -69,6 +84,10 @@ class Settings:
     t_amb_k: float = 300.0
     h_conv_w_m2k: float = 10.0
     emissivity: float = 0.4
+    powder_layer_m: float = 0.0
+    powder_packing: float = 0.55
+    powder_k_w_mk: float = 1.01
+    evaporation: bool = False
     min_substeps: int = 1
     operator: str = "tensor"
 
@@ -86,6 +105,14 @@ class Settings:
             raise ValueError(f"settings: emissivity must be in [0, 1], got {self.emissivity}")
         if isinstance(self.min_substeps, bool) or not isinstance(self.min_substeps, int) or self.min_substeps < 1:
             raise ValueError(f"settings: min_substeps must be an integer >= 1, got {self.min_substeps!r}")
+        if not (0 <= self.powder_layer_m <= self.fine_depth_m):
+            raise ValueError(f"settings: powder_layer_m must be in [0, fine_depth_m], got {self.powder_layer_m}")
+        if not 0 < self.powder_packing <= 1:
+            raise ValueError(f"settings: powder_packing must be in (0, 1], got {self.powder_packing}")
+        if not self.powder_k_w_mk > 0:
+            raise ValueError(f"settings: powder_k_w_mk must be > 0, got {self.powder_k_w_mk}")
+        if not isinstance(self.evaporation, bool):
+            raise ValueError(f"settings: evaporation must be true or false, got {self.evaporation!r}")
         if self.operator not in OPERATORS:
             raise ValueError(f"settings: operator must be one of {', '.join(OPERATORS)}, got {self.operator!r}")
         if self.h_conv_w_m2k < 0:

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from fe_node.boundary import loss_flux
+from fe_node.boundary import evaporate, loss_flux
 from fe_node.material import Constitutive
 from fe_node.mesh import Grid, graded_axis
 from fe_node.observe import Observation, bilinear, interp_matrix, pool_geometry
@@ -34,13 +34,17 @@ from fe_node.source import surface_load
 
 
 def build_grid(settings: Settings, plan: ScanPlan) -> Grid:
-    """Graded grid: fine band of size ``h_fine_m`` around the tracks, graded outwards."""
+    """Graded grid: fine band of size ``h_fine_m`` around the tracks, graded outwards; the
+    plate's top at z = 0, a powder layer (``powder_layer_m``, elements <= ``h_fine_m``) above it."""
     s = settings
     x0, x1, y0, y1 = plan.bounds()
     ax = dict(h=s.h_fine_m, growth=s.growth, h_max=s.h_max_m)
     xs = graded_axis(x0 - s.margin_m, x1 + s.margin_m, x0 - s.fine_pad_m, x1 + s.fine_pad_m, **ax)
     ys = graded_axis(y0 - s.margin_m, y1 + s.margin_m, y0 - s.fine_pad_m, y1 + s.fine_pad_m, **ax)
     zs = graded_axis(-s.depth_m, 0.0, -s.fine_depth_m, 0.0, **ax)
+    if s.powder_layer_m > 0:
+        n = math.ceil(s.powder_layer_m / s.h_fine_m - 1e-9)
+        zs = np.concatenate([zs, np.linspace(0.0, s.powder_layer_m, n + 1)[1:]])
     return Grid(xs, ys, zs)
 
 
@@ -98,6 +102,7 @@ class ThermalModel:
         self.settings, self.plan = settings, plan
         self.grid = build_grid(settings, plan)
         self.law = Constitutive(settings.material)
+        self._powder = self._powder_layers()
         self.operator = self._build_operator()
         self._a_top = self.grid.top_areas()
         self._h = np.full(self.grid.solver_shape, float(self.law.enthalpy(settings.t0_k)))
@@ -108,12 +113,67 @@ class ThermalModel:
         self._absorbed = 0.0
         self._lost = 0.0
 
+    def _powder_layers(self) -> dict | None:
+        """Powder state: first powder element layer, consolidated elements (``None``: no powder)."""
+        if self.settings.powder_layer_m == 0:
+            return None
+        zc = 0.5 * (self.grid.zs[1:] + self.grid.zs[:-1])
+        k0 = int(np.argmax(zc > 0))
+        ny, nz, nx = self.grid.solver_shape
+        return dict(k0=k0, consolidated=np.zeros((ny - 1, nz - 1 - k0, nx - 1), dtype=bool))
+
+    def _initial_weights(self):
+        """Per-element (kw, rho_w) [-] in solver element order: dense plate, powder above (``None``: all 1)."""
+        if self._powder is None:
+            return None, None
+        s = self.settings
+        ny, nz, nx = self.grid.solver_shape
+        powder = np.arange(nz - 1) >= self._powder["k0"]
+        k_dense = float(s.material.k(773.15))                  # the powder value is given at 500 °C
+        kw = np.where(powder, s.powder_k_w_mk / k_dense, 1.0)[None, :, None]
+        rho_w = np.where(powder, s.powder_packing, 1.0)[None, :, None]
+        shape = (ny - 1, nz - 1, nx - 1)
+        return np.broadcast_to(kw, shape).ravel(), np.broadcast_to(rho_w, shape).ravel()
+
     def _build_operator(self):
         """The ``Settings.operator`` implementation of the forms on this grid (solver node order)."""
+        kw, rho_w = self._initial_weights()
         if self.settings.operator == "csr":
             mesh, perm = self.grid.skfem_mesh()
-            return CsrOperator(mesh, order=perm)
-        return TensorOperator(self.grid)
+            self._csr_elements = self.grid.element_order(mesh)
+            sk = (None, None) if kw is None else (np.empty_like(kw), np.empty_like(rho_w))
+            if kw is not None:
+                sk[0][self._csr_elements], sk[1][self._csr_elements] = kw, rho_w
+            return CsrOperator(mesh, *sk, order=perm)
+        return TensorOperator(self.grid, kw, rho_w)
+
+    def reweight(self, elements, kw, rho_w) -> None:
+        """Change the weights of solver elements (flat indices), keeping each node's energy.
+
+        The operator and lumped mass are updated, nodal enthalpies rescaled so that ``m_i H_i``
+        is unchanged, and the stability limit (sub-steps) recomputed.
+        """
+        energy = self._m * self._h
+        el = np.asarray(elements, dtype=np.intp)
+        self.operator.reweight(self._csr_elements[el] if self.settings.operator == "csr" else el, kw, rho_w)
+        self._set_time_step()
+        np.divide(energy, self._m, out=self._h)
+
+    def _consolidate(self) -> None:
+        """Powder elements whose mean nodal temperature passed the liquidus become consolidated
+        metal: the layer's mass smeared over its volume, ``kw = rho_w = packing`` (docs/fe.md)."""
+        p = self._powder
+        t = self.law.temperature(self._h[:, p["k0"]:, :])
+        mean = 0.125 * (t[:-1, :-1, :-1] + t[:-1, :-1, 1:] + t[:-1, 1:, :-1] + t[:-1, 1:, 1:]
+                        + t[1:, :-1, :-1] + t[1:, :-1, 1:] + t[1:, 1:, :-1] + t[1:, 1:, 1:])
+        new = (mean > self.settings.material.t_liquidus) & ~p["consolidated"]
+        if np.any(new):
+            p["consolidated"] |= new
+            j, k, i = np.nonzero(new)
+            ny, nz, nx = self.grid.solver_shape
+            el = np.ravel_multi_index((j, k + p["k0"], i), (ny - 1, nz - 1, nx - 1))
+            packing = self.settings.powder_packing
+            self.reweight(el, packing, packing)
 
     def _set_time_step(self) -> None:
         """Sub-steps and update factors from the current weights (stability limit, module docstring)."""
@@ -124,6 +184,7 @@ class ThermalModel:
         self._dt_sub = self.settings.dt_s / self.n_substeps
         self._c = (self._dt_sub * self.law.k_ref) / self._m
         self._c_top = self._dt_sub / self._m[:, -1, :]
+        self._k_evap = self._dt_sub * self._a_top / self._m[:, -1, :]
 
     @property
     def done(self) -> bool:
@@ -165,6 +226,8 @@ class ThermalModel:
                                     s.absorptivity, s.beam_radius_m)
             self._substep(load)
             self._s = min(self._s + ds, total)
+        if self._powder is not None:
+            self._consolidate()
         self.step_index += 1
         return self._observe(power_w, speed_m_s)
 
@@ -174,6 +237,21 @@ class ThermalModel:
         explicit_update(self._h, self.operator, self.law, self._c, load.T - q, self._c_top)
         self._absorbed += float(np.sum(load)) * self._dt_sub
         self._lost += float(q.sum()) * self._dt_sub
+        if self.settings.evaporation:
+            self._evaporate()
+
+    def _evaporate(self) -> None:
+        """Evaporative cooling of liquid top nodes, implicit per node (:func:`fe_node.boundary.evaporate`)."""
+        top = self._h[:, -1, :]
+        t = self.law.temperature(top)
+        hot = t > self.settings.material.t_liquidus
+        if not np.any(hot):
+            return
+        cap = self.law.liquid_heat_capacity
+        t_new = evaporate(t[hot], self._k_evap[hot], cap, self.settings.material.t_boil)
+        dh = cap * (t[hot] - t_new)
+        top[hot] -= dh
+        self._lost += float(np.sum(dh * self._m[:, -1, :][hot]))
 
     def initial_observation(self) -> Observation:
         """Observation of the initial state (step 0, laser at the plan start, off)."""

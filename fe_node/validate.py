@@ -11,8 +11,9 @@
   area with the default sub-steps vs 8 times as many (``dt_convergence_pct``).
 * IN625 reference: the melting column of :mod:`fe_node.reference`
   (``in625_reference_error_pct``: largest nodal temperature error, % of the surface rise).
-* Powder: the single-track area with the default powder layer on over the bare plate
-  (``powder_area_ratio``, :class:`~fe_node.settings.Settings` ``powder_layer_m``).
+* Powder: the same single track on a 25 µm powder layer over the bare plate
+  (``powder_area_ratio``, :class:`~fe_node.settings.Settings` ``powder_layer_m``), and its
+  peak temperature with evaporative cooling on (``peak_temperature_evaporation_k``).
 """
 from __future__ import annotations
 
@@ -42,14 +43,18 @@ def fe_eagar_tsai_area(case: EagarTsaiCase, h_fine_m: float, track_m: float = 3e
     return float(np.mean(areas[-n_avg:]))
 
 
-def track_area(settings: Settings, track_m: float = 3e-3, power_w: float = 250.0, speed_m_s: float = 0.8,
-               n_avg: int = 10) -> float:
-    """Top-surface melt-pool area [m²] of a single track (mean of the last ``n_avg`` steps)."""
+POWDER_LAYER_M = 25e-6
+"""Powder layer of the powder check [m] (one element at the default mesh)."""
+
+
+def track(settings: Settings, track_m: float = 3e-3, power_w: float = 250.0, speed_m_s: float = 0.8,
+          n_avg: int = 10) -> tuple[float, float]:
+    """Single track: top-surface melt-pool area [m²] (mean of the last ``n_avg`` steps) and peak temperature [K]."""
     model = ThermalModel(settings, ScanPlan.single(track_m))
-    areas = []
+    obs = []
     while not model.done:
-        areas.append(model.step(power_w, speed_m_s).area_m2)
-    return float(np.mean(areas[-n_avg:]))
+        obs.append(model.step(power_w, speed_m_s))
+    return float(np.mean([o.area_m2 for o in obs[-n_avg:]])), float(max(o.t_peak_k for o in obs))
 
 
 def validate(h_fine_m: float = 25e-6, progress: bool = False) -> dict:
@@ -59,7 +64,9 @@ def validate(h_fine_m: float = 25e-6, progress: bool = False) -> dict:
     fe_h = fe_eagar_tsai_area(case, h_fine_m)
     fe_h2 = fe_eagar_tsai_area(case, h_fine_m / 2)
     obs = run_open_loop(scenario("double-track", h_fine_m=h_fine_m), progress=progress)
-    areas = {n: track_area(Settings(h_fine_m=h_fine_m, min_substeps=n)) for n in (1, 8)}
+    areas = {n: track(Settings(h_fine_m=h_fine_m, min_substeps=n))[0] for n in (1, 8)}
+    powder = track(Settings(h_fine_m=h_fine_m, powder_layer_m=POWDER_LAYER_M))[0]
+    _, peak_evaporation = track(Settings(h_fine_m=h_fine_m, evaporation=True))
     reference = in625_reference(Settings(h_fine_m=h_fine_m))
     return dict(
         energy_error_pct=float(max(abs(o.energy_error_pct) for o in obs)),
@@ -73,6 +80,9 @@ def validate(h_fine_m: float = 25e-6, progress: bool = False) -> dict:
         in625_reference_error_pct=reference["error_pct"],
         in625_reference=reference,
         peak_temperature_k=float(max(o.t_peak_k for o in obs)),
+        peak_temperature_evaporation_k=peak_evaporation,
+        powder_area_ratio=powder / areas[1],
+        powder_layer_um=round(POWDER_LAYER_M * 1e6, 6),
         eagar_tsai_case=dict(case.as_dict(), fe_area_mm2=fe_h * 1e6,
                              analytic_area_mm2=analytic * 1e6, h_um=round(h_fine_m * 1e6, 6)),
     )

@@ -1,0 +1,75 @@
+"""Switchable physics of the plant (default off): powder layer with consolidation, evaporative cooling."""
+import numpy as np
+import pytest
+
+from fe_node.boundary import evaporate, evaporation_flux
+from fe_node.scan import ScanPlan
+from fe_node.settings import Settings
+from fe_node.solver import ThermalModel
+
+COARSE = dict(h_fine_m=40e-6, margin_m=0.5e-3, depth_m=0.6e-3, fine_pad_m=120e-6,
+              fine_depth_m=120e-6, h_max_m=0.2e-3)
+
+
+def run(**kw):
+    model = ThermalModel(Settings(**COARSE, **kw), ScanPlan.single(1.2e-3))
+    obs = [model.step(250.0, 0.8) for _ in range(30)]
+    return model, obs
+
+
+@pytest.fixture(scope="module")
+def bare():
+    return run()
+
+
+def mean_area(obs):
+    return float(np.mean([o.area_m2 for o in obs[-5:]]))
+
+
+def test_defaults_are_the_trained_plant():
+    s = Settings()
+    assert s.powder_layer_m == 0 and s.evaporation is False and s.min_substeps == 1 and s.operator == "tensor"
+
+
+def test_powder_layer_enlarges_the_pool_and_consolidates(bare):
+    model, obs = run(powder_layer_m=40e-6)
+    ratio = mean_area(obs) / mean_area(bare[1])
+    assert 1.1 < ratio < 1.8                       # 40 µm: x1.34 at 25 µm powder, x2.2 at 50 µm
+    assert model.grid.zs[-1] == pytest.approx(40e-6)
+    cons = model._powder["consolidated"]
+    ys = 0.5 * (model.grid.ys[1:] + model.grid.ys[:-1])
+    xs = 0.5 * (model.grid.xs[1:] + model.grid.xs[:-1])
+    j, _, i = np.nonzero(cons)
+    assert cons.sum() > 20 and np.all(np.abs(ys[j]) < 150e-6) and xs[i].max() > 0.8e-3   # along the track
+    assert max(abs(o.energy_error_pct) for o in obs) < 1e-6
+    assert obs[-1].t_peak_k > bare[1][-1].t_peak_k           # powder insulates the spot
+
+
+def test_reweight_keeps_energy_and_recomputes_the_limit():
+    model, _ = run(powder_layer_m=40e-6)
+    e0, n0 = model._energy(), model.n_substeps
+    ny, nz, nx = model.grid.solver_shape
+    powder = np.ravel_multi_index((np.arange(10), np.full(10, nz - 2), np.arange(10)), (ny - 1, nz - 1, nx - 1))
+    model.reweight(powder, 8.0, 0.5)                 # 16x the dense diffusivity
+    assert model._energy() == pytest.approx(e0, rel=1e-14)
+    assert model.n_substeps > n0
+
+
+def test_evaporation_caps_the_peak_temperature(bare):
+    model, obs = run(evaporation=True)
+    peak_bare = max(o.t_peak_k for o in bare[1])
+    peak = max(o.t_peak_k for o in obs)
+    assert peak_bare > 1e4 and 3200 < peak < 5000
+    # the evaporated heat is counted as lost: the balance still closes
+    assert obs[-1].energy_lost_j > 10 * bare[1][-1].energy_lost_j
+    assert max(abs(o.energy_error_pct) for o in obs) < 1e-6
+    assert 0.3 < mean_area(obs) / mean_area(bare[1]) < 1.0
+
+
+def test_evaporation_flux_and_implicit_solve():
+    t_boil = 3190.0
+    assert evaporation_flux(1623.0, t_boil) < 1e3 < evaporation_flux(t_boil, t_boil) < 1e9
+    t_star, k, cap = np.array([3500.0, 8000.0, 20000.0]), np.full(3, 4.0), 6.2e6   # k = dt A / m at 25 µm
+    t = evaporate(t_star, k, cap, t_boil)
+    assert np.allclose(cap * (t - t_star) + k * evaporation_flux(t, t_boil), 0.0, atol=1e-6 * cap)
+    assert np.all(t < t_star) and t[-1] < 6000.0
