@@ -216,9 +216,13 @@ def read_states(path: str | os.PathLike[str]) -> list[Any]:
         Missing, empty, truncated or invalid recording, or no plant states in it.
     """
     from messages.recording import RecordingError as ReaderError
-    from messages.recording import read_messages
+    from messages.recording import is_finished, read_messages
 
     try:
+        if not is_finished(path):
+            raise ReaderError(f"{path}: truncated recording (the recorder did not finish it); to train on its "
+                              "complete chunks, recover it first: python -m messages.recording recover FILE --out "
+                              "FIXED.mcap")
         states = list(read_messages(path, STATE_CHANNEL))
     except ReaderError as exc:
         raise RecordingError(str(exc)) from None

@@ -83,6 +83,18 @@ def _finished(stream: BinaryIO) -> bool:
     return tail[0] == Opcode.FOOTER and tail.endswith(MAGIC)
 
 
+def is_finished(path: str | Path) -> bool:
+    """Whether the recorder finished the file (footer present); ``False`` for a truncated one.
+
+    Raises
+    ------
+    RecordingError
+        Missing, empty or non-MCAP file.
+    """
+    with _open(Path(path)) as stream:
+        return _finished(stream)
+
+
 @dataclass
 class Recording:
     """Everything readable from one MCAP file, finished or truncated.

@@ -88,7 +88,7 @@ def _record(path: Path, states, *, finish: bool = True) -> Path:
     from messages.recorder import McapRecorder
     from messages.topics import PLANT_STATE
 
-    recorder = McapRecorder(path, "gp-test")
+    recorder = McapRecorder(path, "gp-test", path.open("wb"))
     for s in states:
         msg = MeltPoolState(run_id="gp-test", step=s.step, time_s=s.time_s, laser_x_mm=0.0, laser_y_mm=0.0,
                             scan_dir_x=1.0, scan_dir_y=0.0, track=s.track, area_mm2=s.area_mm2,

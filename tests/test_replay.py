@@ -60,7 +60,7 @@ def test_replay_drives_the_controller_node(fe_recording, hub, run_id):
 
 @pytest.mark.parametrize("args, message", [
     (["missing.mcap"], "recording not found"),
-    (["README.md"], "unreadable"),
+    (["README.md"], "not an MCAP file"),
     (["X", "--rate-scale", "0"], "--rate-scale must be finite and > 0"),
     (["X", "--rate-scale", "nan"], "--rate-scale must be finite and > 0"),
 ])
