@@ -38,6 +38,7 @@ the other jobs are kept.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import hashlib
 import json
@@ -49,6 +50,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -339,11 +341,32 @@ def run_job(spec: RunSpec, job: Job, attempt: int = 1) -> JobResult:
                      attempt, returncode, worker, _tail(output))
 
 
+def _parent_death_sigint() -> Callable[[], None] | None:
+    """On Linux, a ``preexec_fn`` asking the kernel to send the launcher SIGINT when the thread
+    that started it dies (a killed Dask worker or campaign): the launcher then stops its nodes
+    instead of running on, orphaned, while the job is run again elsewhere. None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    pr_set_pdeathsig, sigint = ctypes.c_int(1), ctypes.c_ulong(signal.SIGINT)  # built before fork
+
+    def preexec() -> None:
+        prctl(pr_set_pdeathsig, sigint)
+
+    return preexec
+
+
+_PARENT_DEATH_SIGINT = _parent_death_sigint()
+
+
 def _launch(spec: RunSpec, job: Job, partial: Path, config: Path | None) -> tuple[int, str]:
     """Run the launcher to the end (or the timeout): exit status and its merged stdout/stderr."""
     partial.parent.mkdir(parents=True, exist_ok=True)
     proc = subprocess.Popen(job_command(spec, job, partial, config), cwd=REPO_ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+                            stderr=subprocess.STDOUT, text=True, preexec_fn=_PARENT_DEATH_SIGINT)
     with _RUNNING_LOCK:
         _RUNNING[str(partial)] = proc
     try:
