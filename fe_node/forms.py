@@ -12,6 +12,9 @@ Transient heat conduction of the powder bed in enthalpy form with the Kirchhoff 
 ``k_powder / k`` in powder), both constant per element.  The Galerkin forms:
 
 * :data:`conduction` ``kw grad u . grad v`` — the stiffness ``K_w`` [m] (``k_ref`` factored out);
+* :data:`conduction_z` ``kw du/dz dv/dz`` — its vertical part ``K_z``: with an effective
+  anisotropic liquid conductivity (Marangoni flow) the horizontal and vertical fluxes act on
+  their own Kirchhoff variables, ``K_w phi_xy + K_z (phi_z - phi_xy)`` (:mod:`fe_node.material`);
 * :data:`mass` ``rho_w u v`` — the mass, lumped by row sums to nodal volumes ``m`` [m³];
 * :data:`laser` — eq. 6 in its c -> 0 limit, a surface Gaussian per unit absorbed power [1/m²];
 * :data:`facet_area` ``v`` on the top facets — lumped facet areas ``A`` [m²] carrying the
@@ -32,6 +35,12 @@ from skfem.helpers import dot, grad
 def conduction(u, v, w):
     """``kw grad u . grad v`` [1/m² per m³]; ``w.kw`` per-element conductivity weight [-]."""
     return w.kw * dot(grad(u), grad(v))
+
+
+@BilinearForm
+def conduction_z(u, v, w):
+    """``kw du/dz dv/dz``: the vertical part of :data:`conduction`."""
+    return w.kw * grad(u)[2] * grad(v)[2]
 
 
 @BilinearForm

@@ -18,7 +18,8 @@ rho = 8440 kg/m³, cp = 405 + 0.247 T[°C] J/(kg K), k = 9.5 + 0.0150 T[°C] W/(
 capped at the solidus, latent heat L = 2.8e5 J/kg, solidus 1563 K, liquidus 1623 K
 (Special Metals datasheet melting range 1290-1350 °C).
 
-Liquid choices (documented assumptions):
+Liquid choices (documented assumptions; an effective, optionally anisotropic liquid
+conductivity for Marangoni flow is a plant option, see :meth:`Constitutive.mushy_integral`):
 
 * k in the liquid stays at its solidus value, 28.85 W/(m K).  The paper's FE model is
   conduction only with no Marangoni enhancement, and the tabulated set of the open-source
@@ -167,6 +168,19 @@ class Constitutive:
         """Kirchhoff variable phi [K] from enthalpy ``h`` [J/m³] (any shape)."""
         i = self._index(h)
         return self._p_a[i] + self._p_b[i] * h
+
+    def mushy_integral(self, h):
+        """``psi = int_solidus^T f_liq(s) ds`` [K] at enthalpy ``h`` [J/m³] (any shape).
+
+        With a liquid conductivity enhanced by ``f`` (ramping with the liquid fraction
+        ``f_liq``), the Kirchhoff variable becomes ``phi + (f - 1) psi`` (k = k_ref above the
+        solidus).
+        """
+        m = self.material
+        t = self.temperature(h)
+        dt = m.t_liquidus - m.t_solidus
+        return np.where(t < m.t_liquidus, np.maximum(t - m.t_solidus, 0.0) ** 2 / (2 * dt),
+                        0.5 * dt + (t - m.t_liquidus))
 
     def enthalpy(self, t):
         """Volumetric enthalpy [J/m³] at temperature ``t`` [K] (setup use, exact)."""

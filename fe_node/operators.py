@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from fe_node.forms import conduction, mass
+from fe_node.forms import conduction, conduction_z, mass
 from fe_node.mesh import Grid, fe1d
 
 
@@ -53,6 +53,8 @@ class CsrOperator:
         ``order[i]`` = mesh node of the operator's node ``i`` (default identity).
     intorder : int
         Quadrature order (2 integrates trilinear boxes exactly).
+    vertical : bool
+        Also assemble ``K_z`` (``conduction_z``) for :meth:`vertical`.
 
     Attributes
     ----------
@@ -62,7 +64,7 @@ class CsrOperator:
         ``m`` [m³].
     """
 
-    def __init__(self, mesh, kw=None, rho_w=None, order=None, intorder: int = 2):
+    def __init__(self, mesh, kw=None, rho_w=None, order=None, intorder: int = 2, vertical: bool = False):
         from skfem import Basis
 
         basis = Basis(mesh, mesh.elem(), intorder=intorder)
@@ -70,6 +72,7 @@ class CsrOperator:
         inv = np.arange(n) if order is None else np.argsort(np.asarray(order))
         coo = conduction.elemental(basis, kw=1.0)
         self._unit = coo.data.reshape(nb * nb, nt)                 # (local entry, element)
+        self._unit_z = conduction_z.elemental(basis, kw=1.0).data.reshape(nb * nb, nt) if vertical else None
         rows, cols = (inv[i].reshape(nb * nb, nt) for i in coo.indices)
         pattern = sp.csr_matrix((np.ones(rows.size), (rows.ravel(), cols.ravel())), shape=(n, n))
         pattern.sum_duplicates()
@@ -84,6 +87,10 @@ class CsrOperator:
         self.matrix.data = np.bincount(self._slot.ravel(), (self._unit * self.kw).ravel(), minlength=keys.size)
         self.lumped_mass = np.bincount(self._dofs.ravel(), (self._me * self.rho_w).ravel(), minlength=n)
         self.n_nodes, self.n_elements = n, nt
+        self.matrix_z = None
+        if vertical:        # same element dof pairs as K_w: same slots
+            self.matrix_z = pattern.copy()
+            self.matrix_z.data = np.bincount(self._slot.ravel(), (self._unit_z * self.kw).ravel(), minlength=keys.size)
 
     def _element_eigenvalues(self, nb: int, nt: int, chunk: int = 1 << 15) -> np.ndarray:
         """Largest eigenvalue of each element pair (K_e, diag(m_e)) [1/m²], shape (nt,)."""
@@ -98,6 +105,10 @@ class CsrOperator:
         """``K_w u`` with the shape of ``u`` (flat size n_nodes)."""
         return (self.matrix @ np.ravel(u)).reshape(np.shape(u))
 
+    def vertical(self, u: np.ndarray) -> np.ndarray:
+        """``K_z u`` with the shape of ``u`` (needs ``vertical=True``)."""
+        return (self.matrix_z @ np.ravel(u)).reshape(np.shape(u))
+
     def reweight(self, elements, kw, rho_w) -> None:
         """Set the weights of ``elements`` (flat indices) to ``kw``, ``rho_w`` [-]; updates K_w and m."""
         el = np.asarray(elements, dtype=np.intp).ravel()
@@ -105,6 +116,9 @@ class CsrOperator:
         rho_w = np.broadcast_to(np.asarray(rho_w, dtype=float), el.shape)
         _check_positive(kw, rho_w)
         np.add.at(self.matrix.data, self._slot[:, el].ravel(), (self._unit[:, el] * (kw - self.kw[el])).ravel())
+        if self.matrix_z is not None:
+            np.add.at(self.matrix_z.data, self._slot[:, el].ravel(),
+                      (self._unit_z[:, el] * (kw - self.kw[el])).ravel())
         np.add.at(self.lumped_mass, self._dofs[:, el].ravel(), (self._me[:, el] * (rho_w - self.rho_w[el])).ravel())
         self.kw[el], self.rho_w[el] = kw, rho_w
 
@@ -113,17 +127,20 @@ class CsrOperator:
         return float(np.max(self.kw / self.rho_w * self._lam_e))
 
 
-def box_stiffness(hx, hy, hz) -> np.ndarray:
-    """Unit ``conduction`` element matrices of axis-aligned boxes [m], local node ``4 b_y + 2 b_z + b_x``.
+def box_stiffness(hx, hy, hz, vertical_only: bool = False) -> np.ndarray:
+    """Unit ``conduction`` (or ``conduction_z``) element matrices of axis-aligned boxes [m].
 
     Parameters
     ----------
     hx, hy, hz : ndarray, shape (n,)
         Box edge lengths [m].
+    vertical_only : bool
+        Only the ``z`` term (``conduction_z``).
 
     Returns
     -------
     ndarray, shape (n, 8, 8)
+        Local node ``4 b_y + 2 b_z + b_x`` (corner bits along y, z, x).
     """
     def k1(h):
         return np.array([[1.0, -1.0], [-1.0, 1.0]])[None] / h[:, None, None]
@@ -134,7 +151,8 @@ def box_stiffness(hx, hy, hz) -> np.ndarray:
     def kron3(a, b, c):   # kron(a, b, c) per box: rows (y, z, x), columns (y, z, x)
         return np.einsum("nab,ncd,nef->nacebdf", a, b, c).reshape(-1, 8, 8)
 
-    return kron3(m1(hy), m1(hz), k1(hx)) + kron3(k1(hy), m1(hz), m1(hx)) + kron3(m1(hy), k1(hz), m1(hx))
+    z = kron3(m1(hy), k1(hz), m1(hx))
+    return z if vertical_only else kron3(m1(hy), m1(hz), k1(hx)) + kron3(k1(hy), m1(hz), m1(hx)) + z
 
 
 class TensorOperator:
@@ -145,6 +163,8 @@ class TensorOperator:
     grid : Grid
     kw, rho_w : array_like, shape (n_elements,), optional
         Per-element weights [-] in element order ``(ny - 1, nz - 1, nx - 1)`` (default 1).
+    vertical : bool
+        Also provide ``K_z`` (``conduction_z``) for :meth:`vertical`.
 
     Attributes
     ----------
@@ -152,8 +172,8 @@ class TensorOperator:
         ``m`` [m³].
     """
 
-    def __init__(self, grid: Grid, kw=None, rho_w=None):
-        self.grid = grid
+    def __init__(self, grid: Grid, kw=None, rho_w=None, vertical: bool = False):
+        self.grid, self._vertical = grid, vertical
         self.shape = grid.solver_shape
         ny, nz, nx = self.shape
         self.elem_shape = (ny - 1, nz - 1, nx - 1)
@@ -168,13 +188,13 @@ class TensorOperator:
 
     def _layered(self, kz, rz) -> None:
         """Kronecker factors for layer weights ``kz``, ``rz`` (nz - 1,) and the correction of the rest."""
-        self._kz, self._rz = kz.copy(), rz.copy()
         kx, mx = fe1d(self.grid.xs)
         ky, my = fe1d(self.grid.ys)
         kz_w, mz_w = fe1d(self.grid.zs, kz)
         a = sp.kron(my, mz_w)
         b = sp.kron(ky, mz_w) + sp.kron(my, kz_w)
         self._ab = sp.vstack([a, b]).tocsr()
+        self._cz = sp.kron(my, kz_w).tocsr() if self._vertical else None
         self._p = a.shape[0]
         self._kd, self._ko = kx.diagonal(), kx.diagonal(1)
         self._md, self._mo = mx.diagonal(), mx.diagonal(1)
@@ -183,7 +203,7 @@ class TensorOperator:
         self.lumped_mass = sy[:, None, None] * sz[None, :, None] * sx[None, None, :]
         dk = self.kw - kz[None, :, None]
         dr = self.rho_w - rz[None, :, None]
-        self._corr = None
+        self._corr = self._corr_z = None
         self._add(np.flatnonzero(dk), dk.ravel()[np.flatnonzero(dk)], np.flatnonzero(dr),
                   dr.ravel()[np.flatnonzero(dr)])
 
@@ -199,10 +219,13 @@ class TensorOperator:
             j, k, i = np.unravel_index(el_k, self.elem_shape)
             ke = box_stiffness(self._h[2][i], self._h[0][j], self._h[1][k]) * dk[:, None, None]
             c = self._corners(el_k)
-            n = self.n_nodes
-            delta = sp.csr_matrix((ke.ravel(), (np.repeat(c, 8, axis=1).ravel(), np.tile(c, (1, 8)).ravel())),
-                                  shape=(n, n))
+            rows, cols, n = np.repeat(c, 8, axis=1).ravel(), np.tile(c, (1, 8)).ravel(), self.n_nodes
+            delta = sp.csr_matrix((ke.ravel(), (rows, cols)), shape=(n, n))
             self._corr = delta if self._corr is None else self._corr + delta
+            if self._vertical:
+                kz = box_stiffness(self._h[2][i], self._h[0][j], self._h[1][k], vertical_only=True)
+                delta = sp.csr_matrix(((kz * dk[:, None, None]).ravel(), (rows, cols)), shape=(n, n))
+                self._corr_z = delta if self._corr_z is None else self._corr_z + delta
         if len(el_r):
             j, k, i = np.unravel_index(el_r, self.elem_shape)
             v8 = self._h[0][j] * self._h[1][k] * self._h[2][i] / 8.0 * dr
@@ -223,6 +246,16 @@ class TensorOperator:
         out[:, :-1] += dn
         if self._corr is not None:
             out.reshape(-1)[:] += self._corr @ np.ravel(u)
+        return out.reshape(np.shape(u))
+
+    def vertical(self, u: np.ndarray) -> np.ndarray:
+        """``K_z u`` = ``Mx (x) My (x) Kz_w`` u (+ correction) with the shape of ``u`` (needs ``vertical=True``)."""
+        v = self._cz @ np.reshape(u, (self._p, self.shape[2]))
+        out = v * self._md
+        out[:, 1:] += v[:, :-1] * self._mo
+        out[:, :-1] += v[:, 1:] * self._mo
+        if self._corr_z is not None:
+            out.reshape(-1)[:] += self._corr_z @ np.ravel(u)
         return out.reshape(np.shape(u))
 
     def reweight(self, elements, kw, rho_w) -> None:

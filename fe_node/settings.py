@@ -61,6 +61,10 @@ class Settings:
         Evaporative cooling of the top surface (:func:`fe_node.boundary.evaporation_flux`),
         default off.  With it on, the boiling-point cap of the convection/radiation loss is
         not needed to keep temperatures physical but is kept.
+    liquid_k_factor_xy, liquid_k_factor_z : float
+        Effective liquid conductivity of Marangoni flow: the conductivity in the horizontal
+        (x, y) and vertical (z) directions is multiplied by ``1 + (f - 1) f_liq``, ``f_liq`` the
+        liquid fraction (default 1, 1: off; docs/fe.md).
     min_substeps : int
         Least explicit sub-steps per step (default 1: as many as stability needs).  The time
         error of the default step is ``dt_convergence_pct`` of ``python -m fe_node validate``.
@@ -88,6 +92,8 @@ class Settings:
     powder_packing: float = 0.55
     powder_k_w_mk: float = 1.01
     evaporation: bool = False
+    liquid_k_factor_xy: float = 1.0
+    liquid_k_factor_z: float = 1.0
     min_substeps: int = 1
     operator: str = "tensor"
 
@@ -111,6 +117,9 @@ class Settings:
             raise ValueError(f"settings: powder_packing must be in (0, 1], got {self.powder_packing}")
         if not self.powder_k_w_mk > 0:
             raise ValueError(f"settings: powder_k_w_mk must be > 0, got {self.powder_k_w_mk}")
+        for name in ("liquid_k_factor_xy", "liquid_k_factor_z"):
+            if not 1 <= getattr(self, name) <= 20:
+                raise ValueError(f"settings: {name} must be in [1, 20], got {getattr(self, name)}")
         if not isinstance(self.evaporation, bool):
             raise ValueError(f"settings: evaporation must be true or false, got {self.evaporation!r}")
         if self.operator not in OPERATORS:

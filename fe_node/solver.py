@@ -57,8 +57,12 @@ def check_command(power_w: float, speed_m_s: float) -> None:
 
 
 def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, top_w: np.ndarray,
-                    c_top: np.ndarray) -> None:
+                    c_top: np.ndarray, liquid_factors: tuple[float, float] = (1.0, 1.0)) -> None:
     """One forward-Euler sub-step of ``m dH/dt = -k_ref K_w phi(H) + top``, in place.
+
+    With liquid conductivity factors ``(f_xy, f_z)`` the conduction term is
+    ``K_w phi_xy + K_z (phi_z - phi_xy)``, ``phi_d = phi + (f_d - 1) psi``
+    (:meth:`~fe_node.material.Constitutive.mushy_integral`).
 
     Parameters
     ----------
@@ -74,8 +78,17 @@ def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, t
         Net power into the top nodes (laser load minus losses) [W].
     c_top : ndarray, shape (ny, nx)
         ``dt_sub / m`` of the top nodes [s/m³].
+    liquid_factors : (float, float)
+        Horizontal and vertical liquid conductivity factors [-].
     """
-    kphi = operator(law.kirchhoff(h))
+    f_xy, f_z = liquid_factors
+    if f_xy == f_z == 1.0:
+        kphi = operator(law.kirchhoff(h))
+    else:
+        psi = law.mushy_integral(h)
+        kphi = operator(law.kirchhoff(h) + (f_xy - 1.0) * psi)
+        if f_z != f_xy:
+            kphi += operator.vertical((f_z - f_xy) * psi)
     kphi *= c
     h -= kphi
     h[:, -1, :] += top_w * c_top
@@ -144,8 +157,16 @@ class ThermalModel:
             sk = (None, None) if kw is None else (np.empty_like(kw), np.empty_like(rho_w))
             if kw is not None:
                 sk[0][self._csr_elements], sk[1][self._csr_elements] = kw, rho_w
-            return CsrOperator(mesh, *sk, order=perm)
-        return TensorOperator(self.grid, kw, rho_w)
+            return CsrOperator(mesh, *sk, order=perm, vertical=self._anisotropic)
+        return TensorOperator(self.grid, kw, rho_w, vertical=self._anisotropic)
+
+    @property
+    def _anisotropic(self) -> bool:
+        return self.settings.liquid_k_factor_xy != self.settings.liquid_k_factor_z
+
+    @property
+    def _liquid_factors(self) -> tuple[float, float]:
+        return (self.settings.liquid_k_factor_xy, self.settings.liquid_k_factor_z)
 
     def reweight(self, elements, kw, rho_w) -> None:
         """Change the weights of solver elements (flat indices), keeping each node's energy.
@@ -179,7 +200,8 @@ class ThermalModel:
         """Sub-steps and update factors from the current weights (stability limit, module docstring)."""
         self._m = np.reshape(self.operator.lumped_mass, self.grid.solver_shape)
         lam = self.operator.stability_eigenvalue()
-        dt_stable = 0.9 * 2.0 / (self.law.max_diffusivity * lam)
+        alpha = self.law.max_diffusivity * max(1.0, *self._liquid_factors)
+        dt_stable = 0.9 * 2.0 / (alpha * lam)
         self.n_substeps = max(self.settings.min_substeps, math.ceil(self.settings.dt_s / dt_stable))
         self._dt_sub = self.settings.dt_s / self.n_substeps
         self._c = (self._dt_sub * self.law.k_ref) / self._m
@@ -234,7 +256,7 @@ class ThermalModel:
     def _substep(self, load) -> None:
         """One explicit sub-step (losses at the start temperature, capped at boiling)."""
         q = self._a_top * loss_flux(self.law.temperature(self._h[:, -1, :]), self.settings)
-        explicit_update(self._h, self.operator, self.law, self._c, load.T - q, self._c_top)
+        explicit_update(self._h, self.operator, self.law, self._c, load.T - q, self._c_top, self._liquid_factors)
         self._absorbed += float(np.sum(load)) * self._dt_sub
         self._lost += float(q.sum()) * self._dt_sub
         if self.settings.evaporation:

@@ -4,7 +4,7 @@ import pytest
 import scipy.sparse as sp
 from skfem import Basis, ElementHex1, FacetBasis, MeshTet
 
-from fe_node.forms import conduction, facet_area, laser, mass
+from fe_node.forms import conduction, conduction_z, facet_area, laser, mass
 from fe_node.mesh import Grid, graded_axis
 from fe_node.operators import CsrOperator, TensorOperator, box_stiffness
 from fe_node.source import surface_load
@@ -53,11 +53,14 @@ def test_operators_equal_forms_on_random_weights(setup, layered):
     sk_kw[eorder], sk_rho[eorder] = kw, rho_w
     k_ref, m_ref = skfem_reference(basis, sk_kw, sk_rho)
     k_ref, m_ref = k_ref[perm][:, perm], m_ref[perm]
+    nqp = basis.X.shape[-1]
+    kz_ref = conduction_z.assemble(basis, kw=np.repeat(sk_kw[:, None], nqp, axis=1))[perm][:, perm]
     u = rng.standard_normal(g.n_nodes)
-    tensor = TensorOperator(g, kw, rho_w)
-    csr = CsrOperator(mesh, sk_kw, sk_rho, order=perm)
+    tensor = TensorOperator(g, kw, rho_w, vertical=True)
+    csr = CsrOperator(mesh, sk_kw, sk_rho, order=perm, vertical=True)
     for op in (tensor, csr):
         assert close(op(u.reshape(g.solver_shape)).ravel(), k_ref @ u)
+        assert close(op.vertical(u.reshape(g.solver_shape)).ravel(), kz_ref @ u)
         assert close(np.ravel(op.lumped_mass), m_ref)
     assert abs(tensor.assembled() - k_ref).max() <= 1e-12 * abs(k_ref).max()
     assert tensor.stability_eigenvalue() == pytest.approx(csr.stability_eigenvalue(), rel=1e-9)
@@ -73,13 +76,14 @@ def test_reweight_equals_fresh_operator(setup):
     sk = np.empty(n, dtype=np.intp)
     sk[eorder] = np.arange(n)       # skfem element of each solver element
     u = rng.standard_normal(g.n_nodes)
-    fresh = TensorOperator(g, kw, rho_w)
-    t, c = TensorOperator(g), CsrOperator(mesh, order=perm)
+    fresh = TensorOperator(g, kw, rho_w, vertical=True)
+    t, c = TensorOperator(g, vertical=True), CsrOperator(mesh, order=perm, vertical=True)
     lam0 = t.stability_eigenvalue()
     t.reweight(el, kw[el], rho_w[el])
     c.reweight(eorder[el], kw[el], rho_w[el])
     for op in (t, c):
         assert close(op(u), fresh(u)) and close(np.ravel(op.lumped_mass), np.ravel(fresh.lumped_mass))
+        assert close(op.vertical(u), fresh.vertical(u))
         assert op.stability_eigenvalue() == pytest.approx(fresh.stability_eigenvalue(), rel=1e-9)
     assert t.stability_eigenvalue() > lam0        # the limit follows the weights
 
@@ -121,7 +125,8 @@ def test_laser_and_facet_forms_equal_the_closed_forms(setup):
     assert f.sum() == pytest.approx(1.0, rel=1e-6) and close(f, exact, 1e-6)
 
 
-@pytest.mark.parametrize("physics", [{}, dict(powder_layer_m=40e-6, evaporation=True)])
+@pytest.mark.parametrize("physics", [{}, dict(powder_layer_m=40e-6, evaporation=True, liquid_k_factor_xy=2.0,
+                                              liquid_k_factor_z=1.5)])
 def test_thermal_model_same_with_either_operator(physics):
     from fe_node.scan import ScanPlan
     from fe_node.settings import Settings
