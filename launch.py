@@ -14,7 +14,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -29,8 +29,8 @@ from messages.launch.service import LaunchService, RunFailed, free_loopback_endp
 DEFAULT_CONTROLLER = "preview-mpc"
 CONTROLLER_CHOICES = ("mpc", "preview-mpc", "pid", "feedforward", "open-loop", "none")
 COMPARED = ("open-loop", "pid", "feedforward", "mpc", "preview-mpc")
-NODE_OPTIONS = ("setpoint_mm2", "learning_state", "model", "max_steps", "h_um", "fallback", "command_timeout_s",
-                "config", "compare")  # options of the default nodes: an error with --nodes, never silently ignored
+NODE_OPTIONS = ("scenario", "controller", "setpoint_mm2", "learning_state", "model", "max_steps", "h_um", "fallback",
+                "command_timeout_s", "config", "compare")  # the default nodes' options: refused with --nodes
 DEFAULT_SETPOINT_MM2 = round(ControllerSettings.set_point_m2 * 1e6, 9)
 
 
@@ -83,8 +83,7 @@ class RunOptions:
 
 
 def check_config(opts: RunOptions) -> None:
-    """Validate the scenario and the TOML configuration as the nodes will read them, before
-    any node starts (raises :class:`UsageError` with the offending table and key)."""
+    """Validate scenario and TOML configuration as the nodes will read them (:class:`UsageError` naming the key)."""
     from fe_node.scenarios import NAMES, scenario
     from messages.config import build, load_toml
 
@@ -132,8 +131,8 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog="With no options: a 4 x 10 mm bidirectional IN625 layer, hatch 0.1 mm, 800 mm/s, "
                        f"nominal 250 W, under {DEFAULT_CONTROLLER}, recorded to recordings/.")
     add = p.add_argument
-    add("--scenario", default="layer", help="plant scenario: layer, single-track, double-track, table2-case1..9, ...")
-    add("--controller", default=DEFAULT_CONTROLLER, help=f"one of {', '.join(CONTROLLER_CHOICES)} "
+    add("--scenario", help="plant scenario: layer, single-track, double-track, table2-case1..9, ...")
+    add("--controller", help=f"{DEFAULT_CONTROLLER} (default) or one of {', '.join(CONTROLLER_CHOICES)} "
         "('none': the plant plays the scenario's open-loop profile)")
     add("--setpoint-mm2", type=float, help=f"melt-pool area set point [mm²] (default {DEFAULT_SETPOINT_MM2:g})")
     add("--config", type=Path, help="TOML run configuration: [plant] and [controller] tables of settings")
@@ -148,7 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
     add("--json", action="store_true", help="print a JSON summary as the last line")
     add("--compare", action="store_true", help=f"run {', '.join(COMPARED)} on the same plant; table and figure")
     add("--report", type=Path, metavar="RECORDING", help="only the Table 4 metrics and figure of a recording")
-    add("--nodes", type=Path, metavar="FILE", help="declarative node list (TOML [[node]] tables) replacing the default")
+    add("--nodes", type=Path, metavar="FILE", help="declarative node list replacing the default (TOML [[node]] tables: "
+        "name, module or command, args, main, wait_ready, roles)")
     add("--run-id", help="run identifier (default: derived from the recording name)")
     add("--hub", metavar="ENDPOINT", help="zenoh endpoint of the run's hub (default: a free loopback port)")
     add("--zenoh-config", type=Path, metavar="FILE",
@@ -161,8 +161,8 @@ def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None
            zenoh_config: Path | None = None) -> tuple[int, float]:
     """Run one list of nodes to its end; returns (exit status, wall time [s])."""
     run_id = run_id or "".join(c if c.isalnum() or c in "_.-" else "_" for c in out.stem)[-64:].lstrip("_.-")
-    specs = [s if s.module != "messages.recorder" or "--out" in s.args else
-             NodeSpec(s.name, s.module, s.args + ("--out", str(out)), s.wait_ready, s.main) for s in specs]
+    specs = [replace(s, args=s.args + ("--out", str(out))) if s.module == "messages.recorder" and "--out" not in s.args
+             else s for s in specs]
     service = LaunchService(run_id=run_id, hub=hub or free_loopback_endpoint(), zenoh_config=zenoh_config,
                             progress=progress)
     started = time.monotonic()
@@ -206,8 +206,8 @@ def main(argv: list[str] | None = None) -> int:
 
             setpoint = ["--setpoint-mm2", str(args.setpoint_mm2)] if args.setpoint_mm2 else []
             return report_main([str(args.report), "--json", *setpoint])
-        opts = RunOptions(args.scenario, args.controller, args.setpoint_mm2, args.config, args.max_steps, args.h_um,
-                          args.model, args.learning_state, args.fallback, args.command_timeout_s)
+        opts = RunOptions(**{f.name: getattr(args, f.name) for f in fields(RunOptions)}
+                          | {"scenario": args.scenario or "layer", "controller": args.controller or DEFAULT_CONTROLLER})
         specs = load_node_list(args.nodes) if args.nodes is not None else None
         if specs is None:
             check_config(opts)
@@ -220,7 +220,8 @@ def main(argv: list[str] | None = None) -> int:
             folder = args.out or Path("recordings") / f"{stamp}-compare-{opts.scenario}"
             writable_recording(folder / "comparison.md")
         else:
-            out = args.out or Path("recordings") / f"{stamp}-{opts.scenario}-{opts.controller}.mcap"
+            name = "nodes" if specs else f"{opts.scenario}-{opts.controller}"
+            out = args.out or Path("recordings") / f"{stamp}-{name}.mcap"
             writable_recording(out)
     except UsageError as err:
         return exit_usage(parser.prog, err)
