@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from fe_node.forms import conduction, conduction_z, mass
+from fe_node.forms import conduction, conduction_z, facet_area, mass
 from fe_node.mesh import Grid, fe1d
 
 
@@ -58,8 +58,12 @@ class CsrOperator:
 
     Attributes
     ----------
+    mesh : skfem.Mesh
+        The mesh.
     matrix : scipy.sparse.csr_matrix, shape (n_nodes, n_nodes)
         ``K_w`` [m].
+    matrix_z : scipy.sparse.csr_matrix or None
+        ``K_z`` [m] (with ``vertical=True``).
     lumped_mass : ndarray, shape (n_nodes,)
         ``m`` [m³].
     """
@@ -87,6 +91,7 @@ class CsrOperator:
         self.matrix.data = np.bincount(self._slot.ravel(), (self._unit * self.kw).ravel(), minlength=keys.size)
         self.lumped_mass = np.bincount(self._dofs.ravel(), (self._me * self.rho_w).ravel(), minlength=n)
         self.n_nodes, self.n_elements = n, nt
+        self.mesh, self._inv = mesh, inv
         self.matrix_z = None
         if vertical:        # same element dof pairs as K_w: same slots
             self.matrix_z = pattern.copy()
@@ -104,6 +109,15 @@ class CsrOperator:
     def __call__(self, u: np.ndarray) -> np.ndarray:
         """``K_w u`` with the shape of ``u`` (flat size n_nodes)."""
         return (self.matrix @ np.ravel(u)).reshape(np.shape(u))
+
+    def facet_areas(self, facets: np.ndarray) -> np.ndarray:
+        """Lumped areas [m²] of boundary ``facets`` (``facet_area`` on a ``FacetBasis``), shape (n_nodes,)."""
+        from skfem import FacetBasis
+
+        areas = facet_area.assemble(FacetBasis(self.mesh, self.mesh.elem(), facets=facets, intorder=2))
+        out = np.empty_like(areas)
+        out[self._inv] = areas
+        return out
 
     def vertical(self, u: np.ndarray) -> np.ndarray:
         """``K_z u`` with the shape of ``u`` (needs ``vertical=True``)."""

@@ -117,7 +117,7 @@ class ThermalModel:
         self.law = Constitutive(settings.material)
         self._powder = self._powder_layers()
         self.operator = self._build_operator()
-        self._a_top = self.grid.top_areas()
+        self._a_top = self._top_areas()
         self._h = np.full(self.grid.solver_shape, float(self.law.enthalpy(settings.t0_k)))
         self._set_time_step()
         self._e0 = self._energy()
@@ -167,6 +167,14 @@ class ThermalModel:
     @property
     def _liquid_factors(self) -> tuple[float, float]:
         return (self.settings.liquid_k_factor_xy, self.settings.liquid_k_factor_z)
+
+    def _top_areas(self) -> np.ndarray:
+        """Lumped top-face areas [m²], shape (ny, nx): the ``facet_area`` form on the top facets
+        (CSR operator) or its closed form on the box grid (tensor operator)."""
+        if self.settings.operator != "csr":
+            return self.grid.top_areas()
+        top = self.operator.mesh.facets_satisfying(lambda x: np.isclose(x[2], self.grid.zs[-1], rtol=0, atol=1e-12))
+        return self.operator.facet_areas(top).reshape(self.grid.solver_shape)[:, -1, :]
 
     def reweight(self, elements, kw, rho_w) -> None:
         """Change the weights of solver elements (flat indices), keeping each node's energy.
