@@ -249,7 +249,8 @@ class Forwarder:
         """Counts for the node's last log line and ``end`` event."""
         sent = ", ".join(f"{ch} {n}" for ch, n in sorted(self.sent.items())) or "nothing"
         return (f"sent {sent}; {self.images.n_skipped} images decimated, {self.queue.dropped} dropped "
-                f"(queue full), {sum(self.invalid.values())} invalid, {self.unwatched} not watched")
+                f"(queue full), {sum(self.invalid.values())} invalid, {self.unwatched} not watched; "
+                f"{time.process_time():.2f} s CPU")
 
 
 def serve(bus: NodeBus, server: LiveServer, settings: LiveSettings, stop: StopFlag) -> int:

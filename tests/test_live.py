@@ -174,3 +174,20 @@ def test_rate_gate_admits_at_most_one_per_period():
         now[0] += 1e-3
     assert 29 <= admitted <= 30 and admitted + gate.n_skipped == 1000
 
+
+
+def test_shipped_layout_uses_only_served_channels_and_fields():
+    """Every plot path and the image topic of docs/foxglove-layout.json is a live channel and schema field."""
+    from messages.codec import json_schema
+    from messages.topics import PLANT_TEMPERATURE as IMAGES
+
+    layout = json.loads((Path(__file__).resolve().parent.parent / "docs" / "foxglove-layout.json").read_text())
+    channels = {t.channel: t for t in TOPICS.values()}
+    paths = [p["value"] for panel in layout["configById"].values() for p in panel.get("paths", [])]
+    assert paths
+    for path in paths:
+        channel, _, field = path.partition(".")
+        assert channel in channels, path
+        assert field.split("[")[0] in json_schema(channels[channel])["properties"], path
+    images = [panel["imageMode"]["imageTopic"] for panel in layout["configById"].values() if "imageMode" in panel]
+    assert images == [IMAGES.channel]
