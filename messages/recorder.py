@@ -312,6 +312,11 @@ class RunTracker:
         """Whether the run ended by its nodes' own (confirmed) end events."""
         return bool(self.expected or self.started - {self.own_node}) and not self.waiting_for()
 
+    def every_started_node_ended(self) -> bool:
+        """Whether every node that started (expected or not) has a confirmed end: only then can
+        recorded messages be matched against published counts."""
+        return self.started - {self.own_node} <= set(self.ended)
+
     def published(self) -> Counter[str]:
         """Per topic, what the ended nodes reported published."""
         total: Counter[str] = Counter()
@@ -419,7 +424,7 @@ class Intake:
         """The closing ``meltloop.counts`` metadata (without ``recorded``) and, if incomplete, why."""
         ended = self.tracker.all_ended()
         published = self.tracker.published()
-        missing, extra = reconcile(published, self.from_nodes, ended)
+        missing, extra = reconcile(published, self.from_nodes, ended and self.tracker.every_started_node_ended())
         reasons = []
         if stopped_by:
             reasons.append(f"stopped by {stopped_by}")

@@ -48,3 +48,34 @@ def finish(proc: subprocess.Popen[str], timeout: float = 30) -> tuple[int, str]:
         out, _ = proc.communicate()
         raise AssertionError(f"process did not end in {timeout} s; output:\n{out}") from None
     return proc.returncode, out
+
+
+RECORDER_NODE = """
+[[node]]
+name = "recorder"
+module = "messages.recorder"
+args = ["--expect", "plant", "--expect", "controller"]
+"""
+
+
+def controller_node(controller: str = "pid") -> str:
+    """The ``[[node]]`` table of a controller node at the default set point, recorded."""
+    return f"""
+[[node]]
+name = "controller"
+module = "controller_node"
+args = ["--controller", "{controller}", "--setpoint-mm2", "0.063", "--require", "recorder"]
+"""
+
+
+def start_node_list(tmp_path: Path, name: str, nodes_toml: str, *extra: str) -> tuple[subprocess.Popen[str], Path]:
+    """Start ``launch.py --nodes`` on ``nodes_toml`` (written to ``<name>.toml``), recording to
+    ``<name>.mcap``; returns the process (output captured) and the recording path."""
+    nodes = tmp_path / f"{name}.toml"
+    nodes.write_text(nodes_toml)
+    out = tmp_path / f"{name}.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(out), "--no-progress", *extra],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+    )
+    return proc, out

@@ -9,7 +9,6 @@ import json
 import re
 import subprocess
 import sys
-import time
 
 from messages.recording import read_messages
 from tests.conftest import REPO
@@ -49,17 +48,14 @@ def test_plain_sensor_imports_only_json_zenoh_and_the_standard_library():
 def test_plain_json_plant_under_launch_passes_the_conformance_checker(tmp_path):
     nodes, out = tmp_path / "nodes.toml", tmp_path / "plain.mcap"
     nodes.write_text(NODES.format(python=json.dumps(sys.executable), steps=STEPS))
-    started = time.monotonic()
     run = subprocess.run([sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(out), "--no-progress"],
                          cwd=REPO, capture_output=True, text=True, timeout=60)
-    wall_s = time.monotonic() - started
     output = run.stdout + run.stderr
     assert run.returncode == 0, output
     assert "authenticating router, per-node access control" in output
     assert ("started plant (pid " in output and f"): {sys.executable} tests/nodes/plain_sensor.py --steps {STEPS} "
             "--rate-hz 1000 --require recorder --require controller --run-id plain --connect tcp/127.0.0.1:"
             in output), output
-    assert wall_s < 30, wall_s
 
     check = subprocess.run([sys.executable, "-m", "messages.conformance", str(out)], cwd=REPO, capture_output=True,
                            text=True, timeout=60)

@@ -6,13 +6,12 @@ import json
 import re
 import signal
 import subprocess
-import sys
 import time
 
 from messages.bus import BusSettings, NodeBus, StopFlag
 from messages.recording import is_complete, metadata, read_messages
 from messages.topics import LOG, PLANT_DIAGNOSTICS, PLANT_STATE
-from tests.conftest import REPO, finish, spawn
+from tests.conftest import RECORDER_NODE, controller_node, finish, spawn, start_node_list
 
 FE = ("--h-um", "40")
 TIMEOUT_S = 2.0
@@ -70,29 +69,14 @@ def test_controller_killed_plant_applies_the_safe_power_within_100_ms_of_the_liv
 
 
 def launch_nodes(tmp_path, plant_args: list[str], controller: str = "pid") -> tuple[subprocess.Popen[str], object]:
-    nodes = tmp_path / "nodes.toml"
-    nodes.write_text(f"""
-[[node]]
-name = "recorder"
-module = "messages.recorder"
-args = ["--expect", "plant", "--expect", "controller"]
-
-[[node]]
-name = "controller"
-module = "controller_node"
-args = ["--controller", "{controller}", "--setpoint-mm2", "0.063", "--require", "recorder"]
-
+    plant = f"""
 [[node]]
 name = "plant"
 module = "fe_node"
 args = {json.dumps([*FE, "--require", "recorder", "--require", "controller", *plant_args])}
 main = true
-""")
-    out = tmp_path / "run.mcap"
-    proc = subprocess.Popen([sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(out), "--no-progress"],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)
-    return proc, out
+"""
+    return start_node_list(tmp_path, "run", RECORDER_NODE + controller_node(controller) + plant)
 
 
 def test_controller_killed_under_launch_ends_the_run_nonzero(tmp_path):

@@ -10,29 +10,17 @@ from __future__ import annotations
 import json
 import re
 import subprocess
-import sys
 
 import pytest
 
 from messages.recording import metadata, read_messages
-from tests.conftest import REPO, finish
+from tests.conftest import RECORDER_NODE, controller_node, finish, start_node_list
 
 STEPS = 150
 
 
 def start_run(tmp_path, name: str, count: int) -> tuple[subprocess.Popen[str], object]:
-    nodes = tmp_path / f"{name}.toml"
-    nodes.write_text(f"""
-[[node]]
-name = "recorder"
-module = "messages.recorder"
-args = ["--expect", "plant", "--expect", "controller"]
-
-[[node]]
-name = "controller"
-module = "controller_node"
-args = ["--controller", "mpc", "--setpoint-mm2", "0.063", "--require", "recorder"]
-
+    fuzzer_and_plant = f"""
 [[node]]
 name = "fuzzer"
 module = "tests.nodes.fuzzer"
@@ -46,12 +34,8 @@ module = "fe_node"
 args = ["--h-um", "40", "--max-steps", "{STEPS}", "--command-timeout-s", "30",
         "--require", "recorder", "--require", "controller", "--require", "fuzzer"]
 main = true
-""")
-    out = tmp_path / f"{name}.mcap"
-    proc = subprocess.Popen([sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(out), "--no-progress"],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)
-    return proc, out
+"""
+    return start_node_list(tmp_path, name, RECORDER_NODE + controller_node("mpc") + fuzzer_and_plant)
 
 
 @pytest.fixture(scope="module")

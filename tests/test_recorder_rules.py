@@ -138,6 +138,28 @@ def test_reconcile_finds_missing_and_extra_per_topic():
     assert reconcile(published, recorded, False) == ({"run/events": 1}, {})
 
 
+def test_no_extra_is_claimed_while_an_unexpected_node_has_not_reported():
+    tracker = RunTracker(("plant",), drain_s=1.0)
+    intake = Intake(RUN, tracker)
+    for node in ("plant", "helper"):  # "helper" started but is not expected and never ends
+        tracker.on_event(event(node, "start"), 1.0)
+        intake.from_nodes["run/events"] += 1
+    tracker.on_event(event("plant", "end", {"run/events": 2}), 2.0, "end")
+    intake.from_nodes["run/events"] += 1
+    tracker.gone("plant", 2.1)
+    tracker.poll(2.1)
+    assert tracker.all_ended() and not tracker.every_started_node_ended()
+    counts, reason = intake.summary(None)
+    assert json.loads(counts["extra"]) == {} and counts["complete"] == "true", (counts, reason)
+    tracker.on_event(event("helper", "end", {"run/events": 2}), 3.0, "end")
+    tracker.gone("helper", 3.0)
+    tracker.poll(3.0)
+    intake.from_nodes["run/events"] += 1
+    intake.from_nodes["plant/state"] += 1  # now every node reported: a message nobody published is extra
+    counts, _ = intake.summary(None)
+    assert json.loads(counts["extra"]) == {"plant/state": 1} and counts["complete"] == "false"
+
+
 # --- the whole loop, with a fake bus ------------------------------------------------------------
 
 class FakeStop(threading.Event):

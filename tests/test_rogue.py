@@ -12,12 +12,11 @@ from __future__ import annotations
 import json
 import re
 import subprocess
-import sys
 
 import pytest
 
 from messages.recording import metadata, read_messages
-from tests.conftest import REPO, finish
+from tests.conftest import RECORDER_NODE, controller_node, finish, start_node_list
 from tests.nodes.rogue import FORGED_POWER_W
 
 STEPS = 150
@@ -25,18 +24,7 @@ COUNT = 10_000
 
 
 def start_run(tmp_path, name: str, count: int) -> tuple[subprocess.Popen[str], object]:
-    nodes = tmp_path / f"{name}.toml"
-    nodes.write_text(f"""
-[[node]]
-name = "recorder"
-module = "messages.recorder"
-args = ["--expect", "plant", "--expect", "controller"]
-
-[[node]]
-name = "controller"
-module = "controller_node"
-args = ["--controller", "pid", "--setpoint-mm2", "0.063", "--require", "recorder"]
-
+    rogue_and_plant = f"""
 [[node]]
 name = "rogue"
 module = "tests.nodes.rogue"
@@ -48,12 +36,8 @@ module = "fe_node"
 args = ["--h-um", "40", "--max-steps", "{STEPS}", "--command-timeout-s", "30",
         "--require", "recorder", "--require", "controller", "--require", "rogue"]
 main = true
-""")
-    out = tmp_path / f"{name}.mcap"
-    proc = subprocess.Popen([sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(out), "--no-progress"],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)
-    return proc, out
+"""
+    return start_node_list(tmp_path, name, RECORDER_NODE + controller_node("pid") + rogue_and_plant)
 
 
 @pytest.fixture(scope="module")
