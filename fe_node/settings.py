@@ -61,6 +61,10 @@ class Settings:
         Evaporative cooling of the top surface (:func:`fe_node.boundary.evaporation_flux`),
         default off.  With it on, the boiling-point cap of the convection/radiation loss is
         not needed to keep temperatures physical but is kept.
+    plate_h_w_m2k : float
+        Build-plate heat sink: heat transfer coefficient [W/(m² K)] from the bottom face to the
+        plate at ``t0_k``; 0 (default) = insulated.  ``k_plate / L`` of the plate below the
+        domain, e.g. 10 W/(m K) / 10 mm = 1000.
     liquid_k_factor_xy, liquid_k_factor_z : float
         Effective liquid conductivity of Marangoni flow: the conductivity in the horizontal
         (x, y) and vertical (z) directions is multiplied by ``1 + (f - 1) f_liq``, ``f_liq`` the
@@ -92,6 +96,7 @@ class Settings:
     powder_packing: float = 0.55
     powder_k_w_mk: float = 1.01
     evaporation: bool = False
+    plate_h_w_m2k: float = 0.0
     liquid_k_factor_xy: float = 1.0
     liquid_k_factor_z: float = 1.0
     min_substeps: int = 1
@@ -117,6 +122,8 @@ class Settings:
             raise ValueError(f"settings: powder_packing must be in (0, 1], got {self.powder_packing}")
         if not self.powder_k_w_mk > 0:
             raise ValueError(f"settings: powder_k_w_mk must be > 0, got {self.powder_k_w_mk}")
+        if not 0 <= self.plate_h_w_m2k < float("inf"):
+            raise ValueError(f"settings: plate_h_w_m2k must be finite and >= 0, got {self.plate_h_w_m2k}")
         for name in ("liquid_k_factor_xy", "liquid_k_factor_z"):
             if not 1 <= getattr(self, name) <= 20:
                 raise ValueError(f"settings: {name} must be in [1, 20], got {getattr(self, name)}")

@@ -116,8 +116,9 @@ class ThermalModel:
         self.grid = build_grid(settings, plan)
         self.law = Constitutive(settings.material)
         self._powder = self._powder_layers()
-        self.operator = self._build_operator()
-        self._a_top = self._top_areas()
+        self.operator = self._build_operator(*self._initial_weights())
+        self._a_top, self._a_bottom = self._face_areas()
+        self.layer = 0
         self._h = np.full(self.grid.solver_shape, float(self.law.enthalpy(settings.t0_k)))
         self._set_time_step()
         self._e0 = self._energy()
@@ -135,22 +136,27 @@ class ThermalModel:
         ny, nz, nx = self.grid.solver_shape
         return dict(k0=k0, consolidated=np.zeros((ny - 1, nz - 1 - k0, nx - 1), dtype=bool))
 
-    def _initial_weights(self):
-        """Per-element (kw, rho_w) [-] in solver element order: dense plate, powder above (``None``: all 1)."""
+    def _initial_weights(self, layer_only: bool = False):
+        """Per-element (kw, rho_w) [-] in solver element order: dense plate, powder above (``None``: all 1).
+
+        ``layer_only``: the per-z-layer values, shape (nz - 1,).
+        """
         if self._powder is None:
             return None, None
         s = self.settings
         ny, nz, nx = self.grid.solver_shape
         powder = np.arange(nz - 1) >= self._powder["k0"]
         k_dense = float(s.material.k(773.15))                  # the powder value is given at 500 °C
-        kw = np.where(powder, s.powder_k_w_mk / k_dense, 1.0)[None, :, None]
-        rho_w = np.where(powder, s.powder_packing, 1.0)[None, :, None]
+        kw = np.where(powder, s.powder_k_w_mk / k_dense, 1.0)
+        rho_w = np.where(powder, s.powder_packing, 1.0)
+        if layer_only:
+            return kw, rho_w
         shape = (ny - 1, nz - 1, nx - 1)
-        return np.broadcast_to(kw, shape).ravel(), np.broadcast_to(rho_w, shape).ravel()
+        return (np.broadcast_to(kw[None, :, None], shape).ravel(), np.broadcast_to(rho_w[None, :, None], shape).ravel())
 
-    def _build_operator(self):
-        """The ``Settings.operator`` implementation of the forms on this grid (solver node order)."""
-        kw, rho_w = self._initial_weights()
+    def _build_operator(self, kw, rho_w):
+        """The ``Settings.operator`` implementation of the forms on this grid (solver node order),
+        with per-element weights in solver element order (``None``: 1)."""
         if self.settings.operator == "csr":
             mesh, perm = self.grid.skfem_mesh()
             self._csr_elements = self.grid.element_order(mesh)
@@ -168,13 +174,58 @@ class ThermalModel:
     def _liquid_factors(self) -> tuple[float, float]:
         return (self.settings.liquid_k_factor_xy, self.settings.liquid_k_factor_z)
 
-    def _top_areas(self) -> np.ndarray:
-        """Lumped top-face areas [m²], shape (ny, nx): the ``facet_area`` form on the top facets
-        (CSR operator) or its closed form on the box grid (tensor operator)."""
+    def _face_areas(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lumped top- and bottom-face areas [m²], shapes (ny, nx): the ``facet_area`` form on the
+        facets (CSR operator) or its closed form on the box grid (tensor operator)."""
         if self.settings.operator != "csr":
-            return self.grid.top_areas()
-        top = self.operator.mesh.facets_satisfying(lambda x: np.isclose(x[2], self.grid.zs[-1], rtol=0, atol=1e-12))
-        return self.operator.facet_areas(top).reshape(self.grid.solver_shape)[:, -1, :]
+            return self.grid.top_areas(), self.grid.top_areas()
+        faces = []
+        for z, k in ((self.grid.zs[-1], -1), (self.grid.zs[0], 0)):
+            facets = self.operator.mesh.facets_satisfying(lambda x, z=z: np.isclose(x[2], z, rtol=0, atol=1e-12))
+            faces.append(self.operator.facet_areas(facets).reshape(self.grid.solver_shape)[:, k, :])
+        return faces[0], faces[1]
+
+    def _element_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """Current (kw, rho_w) [-] per element, flat in solver element order."""
+        op = self.operator
+        if self.settings.operator == "csr":
+            return op.kw[self._csr_elements], op.rho_w[self._csr_elements]
+        return op.kw.ravel().copy(), op.rho_w.ravel().copy()
+
+    def add_layer(self) -> None:
+        """Spread a new powder layer (``powder_layer_m``, at the preheat temperature) and restart the plan.
+
+        Elements keep their weights (consolidated tracks stay consolidated); the new powder's
+        enthalpy is brought in, not absorbed, so it is added to the reference energy of the balance.
+
+        Raises
+        ------
+        RuntimeError
+            Without a powder layer (``powder_layer_m = 0``) or before the plan is done.
+        """
+        s, g = self.settings, self.grid
+        if self._powder is None or not self.done:
+            raise RuntimeError("add_layer needs powder_layer_m > 0 and a finished scan plan")
+        kw, rho_w = self._element_weights()
+        e_before = self._energy()
+        n = math.ceil(s.powder_layer_m / s.h_fine_m - 1e-9)
+        ny, nz, nx = g.solver_shape
+        self.grid = Grid(g.xs, g.ys, np.concatenate([g.zs, g.zs[-1] + np.linspace(0.0, s.powder_layer_m, n + 1)[1:]]))
+        kw_p, rho_p = (float(w[-1]) for w in self._initial_weights(layer_only=True))
+        old, new = (ny - 1, nz - 1, nx - 1), (ny - 1, n, nx - 1)
+        kw = np.concatenate([kw.reshape(old), np.full(new, kw_p)], axis=1).ravel()
+        rho_w = np.concatenate([rho_w.reshape(old), np.full(new, rho_p)], axis=1).ravel()
+        p = self._powder
+        p["consolidated"] = np.concatenate([p["consolidated"], np.zeros(new, dtype=bool)], axis=1)
+        self.operator = self._build_operator(kw, rho_w)
+        self._a_top, self._a_bottom = self._face_areas()
+        h = np.full(self.grid.solver_shape, float(self.law.enthalpy(s.t0_k)))
+        h[:, :nz, :] = self._h
+        self._h = h
+        self._set_time_step()
+        self._e0 += self._energy() - e_before
+        self._s = 0.0
+        self.layer += 1
 
     def reweight(self, elements, kw, rho_w) -> None:
         """Change the weights of solver elements (flat indices), keeping each node's energy.
@@ -215,6 +266,7 @@ class ThermalModel:
         self._c = (self._dt_sub * self.law.k_ref) / self._m
         self._c_top = self._dt_sub / self._m[:, -1, :]
         self._k_evap = self._dt_sub * self._a_top / self._m[:, -1, :]
+        self._c_bottom = self._dt_sub / self._m[:, 0, :]
 
     @property
     def done(self) -> bool:
@@ -264,6 +316,11 @@ class ThermalModel:
     def _substep(self, load) -> None:
         """One explicit sub-step (losses at the start temperature, capped at boiling)."""
         q = self._a_top * loss_flux(self.law.temperature(self._h[:, -1, :]), self.settings)
+        s = self.settings
+        if s.plate_h_w_m2k > 0:
+            q_plate = self._a_bottom * s.plate_h_w_m2k * (self.law.temperature(self._h[:, 0, :]) - s.t0_k)
+            self._h[:, 0, :] -= q_plate * self._c_bottom
+            self._lost += float(q_plate.sum()) * self._dt_sub
         explicit_update(self._h, self.operator, self.law, self._c, load.T - q, self._c_top, self._liquid_factors)
         self._absorbed += float(np.sum(load)) * self._dt_sub
         self._lost += float(q.sum()) * self._dt_sub

@@ -1,0 +1,49 @@
+"""Layer-by-layer builds on the plant (powder spread on top, plan restarted) and the build-plate sink."""
+import numpy as np
+import pytest
+
+from fe_node.scan import ScanPlan
+from fe_node.settings import Settings
+from fe_node.solver import ThermalModel
+
+COARSE = dict(h_fine_m=40e-6, margin_m=0.5e-3, depth_m=0.6e-3, fine_pad_m=120e-6,
+              fine_depth_m=120e-6, h_max_m=0.2e-3, powder_layer_m=25e-6)
+
+
+def build(n_layers, **kw):
+    model = ThermalModel(Settings(**{**COARSE, **kw}), ScanPlan.layer(2, 0.8e-3, 0.1e-3))
+    layers = []
+    for layer in range(n_layers):
+        if layer:
+            model.add_layer()
+        obs = []
+        while not model.done:
+            obs.append(model.step(250.0, 0.8))
+        layers.append(obs)
+    return model, layers
+
+
+def test_two_layers_build_up_heat_and_keep_energy():
+    model, (first, second) = build(2)
+    assert model.layer == 1 and model.grid.zs[-1] == pytest.approx(50e-6)
+    cons = model._powder["consolidated"].sum(axis=(0, 2))
+    assert cons[0] > 20 and cons[1] > 20                       # both layers' tracks consolidated
+    a1, a2 = (np.mean([o.area_m2 for o in obs[-5:]]) for obs in (first, second))
+    assert a2 > 1.2 * a1                                       # no dwell between layers: heat builds up
+    assert max(abs(o.energy_error_pct) for o in first + second) < 1e-6
+    bare = ThermalModel(Settings(**{**COARSE, "powder_layer_m": 0.0}), ScanPlan.single(0.2e-3))
+    while not bare.done:
+        bare.step(100.0, 0.8)
+    fresh = ThermalModel(Settings(**COARSE), ScanPlan.single(0.2e-3))
+    for not_ready in (bare, fresh):                          # no powder; plan not finished
+        with pytest.raises(RuntimeError):
+            not_ready.add_layer()
+
+
+def test_build_plate_sink_removes_heat():
+    kw = dict(depth_m=0.25e-3, fine_depth_m=100e-6)
+    insulated, obs0 = build(1, **kw)
+    cooled, obs1 = build(1, plate_h_w_m2k=1e5, **kw)
+    assert cooled.temperature().mean() < insulated.temperature().mean()
+    assert obs1[0][-1].energy_lost_j > obs0[0][-1].energy_lost_j
+    assert max(abs(o.energy_error_pct) for o in obs1[0]) < 1e-6
