@@ -140,9 +140,9 @@ def _runner_options(p: argparse.ArgumentParser, unit: str) -> None:
     from gp_trainer.campaign import CampaignSettings
 
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, default=None,
+    where.add_argument("--workers", type=int, default=argparse.SUPPRESS,
                        help=f"worker processes of the local Dask cluster, i.e. {unit}s run at the same time "
-                       f"(default {CampaignSettings.workers})")
+                       f"(default: {CampaignSettings.workers})")
     where.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
                        help="run on this existing Dask cluster instead (workers must see this repository "
                        "and --out-dir at the same paths)")
@@ -164,7 +164,7 @@ def _runner_settings(args: argparse.Namespace) -> dict:
 
     launch_args = (*(("--max-steps", str(args.max_steps)) if args.max_steps is not None else ()),
                    *(("--h-um", repr(args.h_um)) if args.h_um is not None else ()))
-    return dict(out_dir=args.out_dir, workers=CampaignSettings.workers if args.workers is None else args.workers,
+    return dict(out_dir=args.out_dir, workers=getattr(args, "workers", CampaignSettings.workers),
                 scheduler=args.scheduler, sequential=args.sequential, retries=args.retries, timeout_s=args.timeout,
                 launch_args=launch_args)
 
