@@ -81,9 +81,10 @@ DEFAULTS = PlantSettings()
 
 
 def n_steps(scenario: Scenario) -> int:
-    """Steps to the end of the plan at the profile's lowest speed (exact for a constant speed)."""
+    """Steps to the end of the plan (times ``n_layers``) at the profile's lowest speed (exact for a constant speed)."""
     v_min = scenario.profile.speed_m_s.range()[0]
-    return math.ceil(scenario.plan.total_length / (v_min * scenario.settings.dt_s) - 1e-9)
+    per_layer = math.ceil(scenario.plan.total_length / (v_min * scenario.settings.dt_s) - 1e-9)
+    return per_layer * scenario.settings.n_layers
 
 
 def describe(scenario: Scenario) -> dict:

@@ -173,7 +173,7 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
         v_min = speed.range()[0]
         if not v_min > 0:
             raise ValueError(f"profile: speed must be > 0, got min {v_min} m/s")
-        n_steps = math.ceil(plan.total_length / (v_min * settings.dt_s) - 1e-9)
+        n_steps = math.ceil(plan.total_length / (v_min * settings.dt_s) - 1e-9) * settings.n_layers
         power = ident_power(ident["ident_seed"], ident["ident_mean_w"], ident["ident_amplitude_w"],
                             n_steps, settings.dt_s)
     return Scenario(name=name, settings=settings, plan=plan, profile=Profile(power, speed, settings.dt_s))

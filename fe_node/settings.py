@@ -61,6 +61,10 @@ class Settings:
         Evaporative cooling of the top surface (:func:`fe_node.boundary.evaporation_flux`),
         default off.  With it on, the boiling-point cap of the convection/radiation loss is
         not needed to keep temperatures physical but is kept.
+    n_layers : int
+        Layers built one on top of the other (default 1): after each pass over the scan plan
+        a new ``powder_layer_m`` of powder is spread and the plan restarts
+        (:meth:`fe_node.solver.ThermalModel.add_layer`); more than 1 needs a powder layer.
     plate_h_w_m2k : float
         Build-plate heat sink: heat transfer coefficient [W/(m² K)] from the bottom face to the
         plate at ``t0_k``; 0 (default) = insulated.  ``k_plate / L`` of the plate below the
@@ -96,6 +100,7 @@ class Settings:
     powder_packing: float = 0.55
     powder_k_w_mk: float = 1.01
     evaporation: bool = False
+    n_layers: int = 1
     plate_h_w_m2k: float = 0.0
     liquid_k_factor_xy: float = 1.0
     liquid_k_factor_z: float = 1.0
@@ -122,6 +127,10 @@ class Settings:
             raise ValueError(f"settings: powder_packing must be in (0, 1], got {self.powder_packing}")
         if not self.powder_k_w_mk > 0:
             raise ValueError(f"settings: powder_k_w_mk must be > 0, got {self.powder_k_w_mk}")
+        if isinstance(self.n_layers, bool) or not isinstance(self.n_layers, int) or self.n_layers < 1:
+            raise ValueError(f"settings: n_layers must be an integer >= 1, got {self.n_layers!r}")
+        if self.n_layers > 1 and self.powder_layer_m == 0:
+            raise ValueError("settings: n_layers > 1 needs powder_layer_m > 0 (the layer thickness)")
         if not 0 <= self.plate_h_w_m2k < float("inf"):
             raise ValueError(f"settings: plate_h_w_m2k must be finite and >= 0, got {self.plate_h_w_m2k}")
         for name in ("liquid_k_factor_xy", "liquid_k_factor_z"):

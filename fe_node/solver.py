@@ -204,7 +204,7 @@ class ThermalModel:
             Without a powder layer (``powder_layer_m = 0``) or before the plan is done.
         """
         s, g = self.settings, self.grid
-        if self._powder is None or not self.done:
+        if self._powder is None or not self.layer_done:
             raise RuntimeError("add_layer needs powder_layer_m > 0 and a finished scan plan")
         kw, rho_w = self._element_weights()
         e_before = self._energy()
@@ -269,9 +269,14 @@ class ThermalModel:
         self._c_bottom = self._dt_sub / self._m[:, 0, :]
 
     @property
-    def done(self) -> bool:
-        """True once the laser has reached the end of the scan plan."""
+    def layer_done(self) -> bool:
+        """True once the laser has reached the end of the scan plan in the current layer."""
         return self._s >= self.plan.total_length * (1 - 1e-12)
+
+    @property
+    def done(self) -> bool:
+        """True once the last layer's scan plan is done (``Settings.n_layers``)."""
+        return self.layer_done and self.layer + 1 >= self.settings.n_layers
 
     @property
     def time_s(self) -> float:
@@ -289,11 +294,14 @@ class ThermalModel:
         """Advance one step ``dt_s`` with laser power [W] and scan speed [m/s].
 
         The laser moves ``speed * dt`` along the plan; past the end of the plan it is
-        off.  Returns the observation at the end of the step.
+        off.  A step after the end of a layer's plan first spreads the next layer
+        (:meth:`add_layer`).  Returns the observation at the end of the step.
         """
         check_command(power_w, speed_m_s)
         if self.done:
             raise RuntimeError("scan plan finished: no more steps")
+        if self.layer_done:
+            self.add_layer()
         s = self.settings
         ds = speed_m_s * self._dt_sub
         n_pos = max(1, math.ceil(ds / (s.beam_radius_m / 20)))

@@ -11,15 +11,11 @@ COARSE = dict(h_fine_m=40e-6, margin_m=0.5e-3, depth_m=0.6e-3, fine_pad_m=120e-6
 
 
 def build(n_layers, **kw):
-    model = ThermalModel(Settings(**{**COARSE, **kw}), ScanPlan.layer(2, 0.8e-3, 0.1e-3))
-    layers = []
-    for layer in range(n_layers):
-        if layer:
-            model.add_layer()
-        obs = []
-        while not model.done:
-            obs.append(model.step(250.0, 0.8))
-        layers.append(obs)
+    model = ThermalModel(Settings(**{**COARSE, **kw}, n_layers=n_layers), ScanPlan.layer(2, 0.8e-3, 0.1e-3))
+    layers = [[] for _ in range(n_layers)]
+    while not model.done:
+        obs = model.step(250.0, 0.8)
+        layers[model.layer].append(obs)
     return model, layers
 
 
@@ -38,6 +34,8 @@ def test_two_layers_build_up_heat_and_keep_energy():
     for not_ready in (bare, fresh):                          # no powder; plan not finished
         with pytest.raises(RuntimeError):
             not_ready.add_layer()
+    with pytest.raises(ValueError, match="n_layers"):
+        Settings(n_layers=3)
 
 
 def test_build_plate_sink_removes_heat():
