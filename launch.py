@@ -21,7 +21,7 @@ from typing import Any
 
 from controller_node.settings import ControllerSettings
 from controller_node.summary import comparison_table, summarise, table_line
-from messages.bus import BusSettings, StopFlag
+from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.launch.node import NodeSpec, load_node_list
 from messages.launch.service import LaunchService, RunFailed, free_loopback_endpoint, writable_recording
@@ -78,8 +78,10 @@ class RunOptions:
             return self.setpoint_mm2
         from messages.config import load_toml
 
-        table = load_toml(self.config).get("controller", {})
-        return float(table.get("set_point_m2", DEFAULT_SETPOINT_MM2 * 1e-6)) * 1e6
+        value = load_toml(self.config).get("controller", {}).get("set_point_m2", DEFAULT_SETPOINT_MM2 * 1e-6)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise UsageError(f"{self.config} [controller] set_point_m2 must be a number, got {value!r}")
+        return float(value) * 1e6
 
 
 def check_config(opts: RunOptions) -> None:
@@ -158,13 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None, progress: bool,
-           zenoh_config: Path | None = None) -> tuple[int, float]:
+           zenoh_file: Path | None = None) -> tuple[int, float]:
     """Run one list of nodes to its end; returns (exit status, wall time [s])."""
     run_id = run_id or "".join(c if c.isalnum() or c in "_.-" else "_" for c in out.stem)[-64:].lstrip("_.-")
     specs = [replace(s, args=s.args + ("--out", str(out))) if s.module == "messages.recorder" and "--out" not in s.args
              else s for s in specs]
-    service = LaunchService(run_id=run_id, hub=hub or free_loopback_endpoint(), zenoh_config=zenoh_config,
-                            progress=progress)
+    service = LaunchService(run_id, hub or free_loopback_endpoint(), zenoh_file, progress=progress)
     started = time.monotonic()
     try:
         status = service.run(specs, StopFlag())
@@ -213,8 +214,8 @@ def main(argv: list[str] | None = None) -> int:
             check_config(opts)
         elif given := [f"--{k.replace('_', '-')}" for k in NODE_OPTIONS if getattr(args, k) not in (None, False)]:
             raise UsageError(f"{', '.join(given)} cannot be combined with --nodes (give them to the nodes in the list)")
-        BusSettings(run_id=args.run_id or "default", connect=(args.hub,) if args.hub else (),
-                    zenoh_config=args.zenoh_config)
+        zenoh_config(BusSettings(run_id=args.run_id or "default", connect=(args.hub,) if args.hub else (),
+                                 zenoh_config=args.zenoh_config))  # validates, and loads a --zenoh-config file
         stamp = f"{datetime.now(UTC):%Y%m%d-%H%M%S}"
         if args.compare:
             folder = args.out or Path("recordings") / f"{stamp}-compare-{opts.scenario}"
@@ -232,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(result))
         return status
     status, wall_s = launch(specs or default_nodes(opts, out), out, args.run_id, args.hub, progress, args.zenoh_config)
+    summary = {"status": status, "wall_s": round(wall_s, 2), "recording": str(out)}
     if specs is None:
         summary = summarise(out, opts.scenario, opts.controller, opts.setpoint() if opts.closed_loop else None,
                             status, wall_s)
@@ -239,8 +241,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[launch] recording: {out}")
         if status == 0 and summary.get("complete") is False:
             status = summary["status"] = 1  # the nodes ended normally, but the run did not finish
-    else:
-        summary = {"status": status, "wall_s": round(wall_s, 2), "recording": str(out)}
     if args.json:
         print(json.dumps(summary))
     return status

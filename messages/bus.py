@@ -19,6 +19,7 @@ import argparse
 import json
 import os
 import queue
+import secrets
 import signal
 import threading
 import time
@@ -127,7 +128,7 @@ def zenoh_config(settings: BusSettings, credentials: tuple[str, str] | None = No
         try:
             config = zenoh.Config.from_file(str(settings.zenoh_config))
         except Exception as err:  # zenoh raises its own error types
-            raise UsageError(f"cannot load zenoh config {settings.zenoh_config}: {err}") from None
+            raise UsageError(f"--zenoh-config {settings.zenoh_config}: cannot load: {err}") from None
     else:
         config = zenoh.Config()
         config.insert_json5("mode", '"client"' if credentials else '"peer"')
@@ -241,32 +242,43 @@ class TopicPublisher:
         self._bus = bus
         self._publisher = publisher
 
-    def put(self, msg: Any) -> None:
-        """Encode (validating) and publish ``msg``; raises :class:`MessageError` if invalid."""
+    def put(self, msg: Any) -> float:
+        """Encode (validating) and publish ``msg``; raises :class:`MessageError` if invalid.
+
+        Returns the monotonic time [s] at which the encoded message was handed to zenoh (a
+        free-running plant times its round trips from there, as a bare ping-pong does).
+        """
         if not isinstance(msg, self.topic.type):
             raise MessageError(f"{self.topic.channel} carries {self.topic.type.__name__}, not {type(msg).__name__}")
-        self._publisher.put(encode(msg))
+        payload = encode(msg)
+        t = time.monotonic()
+        self._publisher.put(payload)
         self._bus.published[self.topic.suffix] = self._bus.published.get(self.topic.suffix, 0) + 1
+        return t
 
 
 class Inbox:
     """Messages of one topic received by a node, decoded in the node's loop.
 
-    The zenoh callback only appends the raw payload to a queue. :meth:`get` decodes and
-    validates (including that the message's ``run_id`` is the run of its key); invalid
-    payloads are dropped and counted in :attr:`n_invalid`, with the last reason kept in
-    :attr:`last_error`.
+    The zenoh callback only stamps the arrival time and appends the raw payload to a queue; it
+    runs on zenoh's network thread (no hand-over to another Python thread first). :meth:`get`
+    decodes and validates (including that the message's ``run_id`` is the run of its key);
+    invalid payloads are dropped and counted in :attr:`n_invalid`, with the last reason kept in
+    :attr:`last_error`. :attr:`received_t` is the arrival time of the message :meth:`get`
+    returned last: a node that reads its inbox only at its own ticks still knows when each
+    message came in.
     """
 
     def __init__(self, topic: Topic, run_id: str | None = None) -> None:
         self.topic = topic
         self.run_id = run_id
-        self._queue: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[tuple[float, str, bytes]] = queue.SimpleQueue()
         self.n_invalid = 0
         self.last_error = ""
+        self.received_t = 0.0
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self._queue.put((str(sample.key_expr), sample.payload.to_bytes()))
+        self._queue.put((time.monotonic(), str(sample.key_expr), sample.payload.to_bytes()))
 
     def get(self, timeout: float | None = None) -> Any | None:
         """Next valid message, waiting up to ``timeout`` s (``None``: do not wait); ``None`` if none."""
@@ -274,33 +286,89 @@ class Inbox:
         while True:
             try:
                 if deadline is None:
-                    key, payload = self._queue.get_nowait()
+                    t, key, payload = self._queue.get_nowait()
                 else:
-                    key, payload = self._queue.get(timeout=max(0.0, deadline - time.monotonic()))
+                    t, key, payload = self._queue.get(timeout=max(0.0, deadline - time.monotonic()))
             except queue.Empty:
                 return None
-            try:
-                msg = decode(self.topic, payload)
-            except MessageError as err:
-                self.n_invalid += 1
-                self.last_error = str(err)
-                continue
-            if self.run_id is not None and getattr(msg, "run_id", self.run_id) != self.run_id:
-                self.n_invalid += 1
-                self.last_error = (
-                    f"{self.topic.channel}: run_id {msg.run_id!r} does not match the key's run {self.run_id!r}"
-                )
-                continue
-            if self.topic.per_node and key.rpartition("/")[2] != message_node(msg):
-                self.n_invalid += 1
-                self.last_error = f"{self.topic.channel}: node {message_node(msg)!r} published under {key!r}"
-                continue
-            return msg
+            msg = self._valid(key, payload)
+            if msg is not None:
+                self.received_t = t
+                return msg
+
+    def _valid(self, key: str, payload: bytes) -> Any | None:
+        """The decoded message if ``payload`` on ``key`` is a valid one of this inbox, else ``None`` (counted)."""
+        try:
+            msg = decode(self.topic, payload)
+        except MessageError as err:
+            self.n_invalid += 1
+            self.last_error = str(err)
+            return None
+        if self.run_id is not None and getattr(msg, "run_id", self.run_id) != self.run_id:
+            self.n_invalid += 1
+            self.last_error = (
+                f"{self.topic.channel}: run_id {msg.run_id!r} does not match the key's run {self.run_id!r}"
+            )
+            return None
+        if self.topic.per_node and key.rpartition("/")[2] != message_node(msg):
+            self.n_invalid += 1
+            self.last_error = f"{self.topic.channel}: node {message_node(msg)!r} published under {key!r}"
+            return None
+        return msg
 
     def drain(self) -> Iterator[Any]:
         """Every valid message already queued, oldest first."""
         while (msg := self.get()) is not None:
             yield msg
+
+
+class NewestInbox(Inbox):
+    """Messages of one topic for a loop that answers only the newest one, without a queue hop.
+
+    No Python callback: zenoh queues the samples in its own channel, and :meth:`newest` blocks
+    in zenoh (the GIL released) until one arrives, so the network thread never waits for the
+    GIL and the message reaches the waiting thread directly. :meth:`newest` then takes every
+    sample already queued, validates them like :class:`Inbox` (invalid ones are dropped and
+    counted) and returns the newest valid message with the number of older valid ones it
+    replaced. :meth:`wake` makes a blocked :meth:`newest` return (with ``None``) from another
+    thread, e.g. on a stop request; it never leaves this process.
+
+    Use it from one thread only (the one that calls :meth:`newest`).
+    """
+
+    CAPACITY = 4096  # samples zenoh queues before its network thread waits for this reader
+
+    def __init__(self, topic: Topic, run_id: str, session: zenoh.Session, key: str) -> None:
+        super().__init__(topic, run_id)
+        self._session = session
+        self._key = key
+        self._wake_token = secrets.token_bytes(16)  # a wake-up is this payload, put session-locally
+        self.subscriber = session.declare_subscriber(key, zenoh.handlers.FifoChannel(self.CAPACITY))
+
+    def newest(self) -> tuple[Any | None, int]:
+        """Block until something arrives; (newest valid message or ``None``, older valid ones skipped).
+
+        ``None`` comes back after a :meth:`wake` or when everything that arrived was invalid.
+        """
+        samples = [self.subscriber.recv()]
+        while (more := self.subscriber.try_recv()) is not None:
+            samples.append(more)
+        newest, n_valid = None, 0
+        for sample in samples:
+            payload = sample.payload.to_bytes()
+            if payload == self._wake_token:
+                continue
+            msg = self._valid(str(sample.key_expr), payload)
+            if msg is not None:
+                newest, n_valid = msg, n_valid + 1
+        return newest, max(0, n_valid - 1)
+
+    def wake(self) -> None:
+        """Make a blocked :meth:`newest` return (a sample only this session sees)."""
+        self._session.put(self._key, self._wake_token, allowed_destination=zenoh.Locality.SESSION_LOCAL)
+
+    def get(self, timeout: float | None = None) -> Any | None:
+        raise TypeError("a NewestInbox is read with newest()")
 
 
 @dataclass
@@ -364,8 +432,17 @@ class NodeBus:
         """Subscribe to ``topic`` of this run; messages queue until the node reads them."""
         assert self.session is not None
         box = Inbox(topic, self.run_id)
-        sub = self.session.declare_subscriber(key_expr(self.run_id, topic), box._on_sample)
+        sub = self.session.declare_subscriber(key_expr(self.run_id, topic),
+                                              zenoh.handlers.Callback(box._on_sample, indirect=os.environ.get("IND") == "1"))
         self._declared.append(sub)
+        return box
+
+    def newest_inbox(self, topic: Topic) -> NewestInbox:
+        """Subscribe to ``topic`` of this run for a loop that answers only the newest message
+        (:class:`NewestInbox`: a blocking wait in zenoh, no callback, no queue hop)."""
+        assert self.session is not None
+        box = NewestInbox(topic, self.run_id, self.session, key_expr(self.run_id, topic))
+        self._declared.append(box.subscriber)
         return box
 
     def subscribe_raw(self, key: str, callback: Any) -> None:

@@ -50,6 +50,18 @@ def tls_settings(ca: Path, cert: Path | None = None, key: Path | None = None) ->
     return tls
 
 
+def router_config(credentials: RunCredentials, endpoint: str, tls: dict | None = None):
+    """The zenoh configuration of a run's authenticating hub: a router listening on ``endpoint``
+    that checks every link against ``credentials`` and applies the run's access control."""
+    config = zenoh_config(BusSettings(run_id=credentials.run_id, connect=(), listen=(endpoint,)))
+    config.insert_json5("mode", '"router"')
+    for path, value in credentials.hub_settings().items():
+        config.insert_json5(path, value)
+    if tls is not None:
+        config.insert_json5("transport/link/tls", json.dumps(tls))
+    return config
+
+
 def write_node_configs(credentials: RunCredentials, endpoint: str, out_dir: Path, ca: Path | None) -> list[Path]:
     """One client configuration per node (mode 0600); returns their paths."""
     paths = []
@@ -106,12 +118,7 @@ def serve(run_id: str, endpoint: str, roles: dict[str, tuple[str, ...]], out_dir
     stop = StopFlag()
     with RunCredentials(run_id, roles) as credentials:
         write_node_configs(credentials, endpoint, out_dir, ca)
-        config = zenoh_config(BusSettings(run_id=run_id, connect=(), listen=(endpoint,)))
-        config.insert_json5("mode", '"router"')
-        for path, value in credentials.hub_settings().items():
-            config.insert_json5(path, value)
-        if ca is not None:
-            config.insert_json5("transport/link/tls", json.dumps(tls_settings(ca, cert, key)))
+        config = router_config(credentials, endpoint, tls_settings(ca, cert, key) if ca is not None else None)
         try:
             session = zenoh.open(config)
         except zenoh.ZError as err:

@@ -103,3 +103,16 @@ def test_bad_node_list_exit_2(tmp_path):
     out = subprocess.run([sys.executable, "launch.py", "--nodes", str(bad)], cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 2
     assert out.stderr.count("\n") == 1 and "without 'module'" in out.stderr
+
+
+def test_verdict_of_a_run():
+    from messages.launch.service import verdict
+
+    assert verdict([("rec", None, False), ("plant", None, True)], None, 1.0, 15.0) == (None, None, "")
+    assert verdict([("rec", None, False), ("plant", 0, True)], None, 1.0, 15.0) == (None, 1.0, "")
+    assert verdict([("rec", 0, False), ("plant", 0, True)], 1.0, 2.0, 15.0) == (0, 1.0, "")
+    assert verdict([("rec", None, False), ("plant", 0, True)], 1.0, 17.0, 15.0) == (
+        1, 1.0, "rec still running 15 s after the run finished")
+    assert verdict([("rec", 2, False), ("plant", None, True)], None, 1.0, 15.0) == (
+        1, None, "node rec exited with status 2")
+    assert verdict([("rec", None, False), ("aux", 0, False)], None, 1.0, 15.0) == (None, None, "")

@@ -19,11 +19,12 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 from messages.auth import RunCredentials
 from messages.bus import SUPERVISOR_ENV, BusSettings, StopFlag, wait_for_nodes, zenoh_config
 from messages.cli import UsageError
+from messages.hub import router_config
 from messages.launch.node import NodeProcess, NodeSpec
 from messages.launch.progress import ProgressObserver
 
@@ -46,6 +47,72 @@ def writable_recording(path: Path) -> Path:
     return path
 
 
+@dataclass
+class Console:
+    """The run's output: node and supervisor lines, one at a time, around the progress bar."""
+
+    out: TextIO = sys.stdout
+    observer: ProgressObserver | None = None
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def emit(self, line: str) -> None:
+        """Print one line."""
+        with self._lock:
+            if self.observer is not None:
+                self.observer.writer(self._print)(line)
+            else:
+                self._print(line)
+
+    def _print(self, line: str) -> None:
+        print(line, file=self.out, flush=True)
+
+
+def open_hub(stack: contextlib.ExitStack, run_id: str, endpoint: str, zenoh_file: Path | None,
+             roles: dict[str, tuple[str, ...]] | None) -> tuple[Any, RunCredentials | None]:
+    """Open the run's hub session (closed with ``stack``): with ``roles`` and no ``zenoh_file``,
+    an authenticating router with fresh credentials for those nodes (:mod:`messages.hub`); else a
+    plain session from ``zenoh_file`` or the loopback defaults.
+
+    Raises
+    ------
+    RunFailed
+        If the hub cannot listen on ``endpoint``.
+    """
+    import zenoh
+
+    credentials = None
+    if roles is not None and zenoh_file is None:
+        credentials = stack.enter_context(RunCredentials(run_id, roles))
+        config = router_config(credentials, endpoint)
+    else:
+        config = zenoh_config(BusSettings(run_id=run_id, connect=(), listen=(endpoint,), zenoh_config=zenoh_file))
+    try:
+        return stack.enter_context(zenoh.open(config)), credentials
+    except zenoh.ZError as err:
+        raise RunFailed(f"cannot open the run's hub on {endpoint}: {str(err).split(' at ')[0]}") from None
+
+
+def verdict(codes: list[tuple[str, int | None, bool]], finished_at: float | None, now_s: float,
+            grace_s: float) -> tuple[int | None, float | None, str]:
+    """One look at a run's nodes, given as (name, exit status or None, main).
+
+    Returns the run's exit status (``None``: go on), when a main node finished (monotonic s) and,
+    for a failure, why: any node failing fails the run; the run is done when every node ended
+    with 0; after a main node finished, the others get ``grace_s`` to end by themselves.
+    """
+    for name, code, main in codes:
+        if code not in (None, 0):
+            return 1, finished_at, f"node {name} exited with status {code}"
+        if code == 0 and main and finished_at is None:
+            finished_at = now_s
+    if all(code == 0 for _, code, _ in codes):
+        return 0, finished_at, ""
+    if finished_at is not None and now_s - finished_at > grace_s:
+        late = [name for name, code, _ in codes if code is None]
+        return 1, finished_at, f"{', '.join(late)} still running {grace_s:.0f} s after the run finished"
+    return None, finished_at, ""
+
+
 class RunFailed(RuntimeError):
     """The run could not start or a node failed: reported in one line, exit status 1."""
 
@@ -54,21 +121,10 @@ class RunFailed(RuntimeError):
 class LaunchService:
     """Spawns, watches and stops the nodes of one run.
 
-    Attributes
-    ----------
-    run_id : str
-        The run's key namespace.
-    hub : str
-        zenoh endpoint the hub listens on and every node connects to.
-    zenoh_config : Path or None
-        A zenoh configuration file for the hub and every node; it then defines security
-        (no generated credentials).
-    authenticate : bool
-        Per-run credentials and access control (default). Off: an open peer hub on loopback.
-    ready_timeout_s : float
-        How long a node may take to become ready [s].
-    finish_grace_s : float
-        How long the other nodes may take to end after a main node finished [s].
+    ``hub``: the endpoint the hub listens on and every node connects to; ``zenoh_config``: a file
+    for the hub and every node, which then defines security; ``authenticate``: per-run
+    credentials and access control (default); ``ready_timeout_s`` / ``finish_grace_s`` [s]: how
+    long a node may take to become ready / the others to end after a main node finished.
     """
 
     run_id: str
@@ -78,24 +134,12 @@ class LaunchService:
     ready_timeout_s: float = 120.0
     finish_grace_s: float = 15.0
     progress: bool = False
-    out: TextIO = sys.stdout
+    console: Console = field(default_factory=lambda: Console())
     nodes: list[NodeProcess] = field(default_factory=list)
-    _lock: threading.Lock = field(default_factory=threading.Lock)
-    _observer: ProgressObserver | None = None
 
     def say(self, text: str) -> None:
         """Print a supervisor line, ``[launch] ...``."""
-        self._emit(f"[launch] {text}")
-
-    def _emit(self, line: str) -> None:
-        with self._lock:
-            if self._observer is not None:
-                self._observer.writer(self._print)(line)
-            else:
-                self._print(line)
-
-    def _print(self, line: str) -> None:
-        print(line, file=self.out, flush=True)
+        self.console.emit(f"[launch] {text}")
 
     def run(self, specs: list[NodeSpec], stop: StopFlag) -> int:
         """Start ``specs`` in order, supervise until the run ends, stop everything.
@@ -108,32 +152,19 @@ class LaunchService:
         RunFailed
             If the hub cannot be opened.
         """
-        import zenoh
-
         with contextlib.ExitStack() as stack:
-            credentials = None
-            if self.authenticate and self.zenoh_config is None:
-                credentials = stack.enter_context(RunCredentials(self.run_id, {s.name: s.roles for s in specs}))
-            config = zenoh_config(BusSettings(run_id=self.run_id, connect=(), listen=(self.hub,),
-                                              zenoh_config=self.zenoh_config))
-            if credentials is not None:
-                config.insert_json5("mode", '"router"')
-                for key, value in credentials.hub_settings().items():
-                    config.insert_json5(key, value)
-            try:
-                session = stack.enter_context(zenoh.open(config))
-            except zenoh.ZError as err:
-                raise RunFailed(f"cannot open the run's hub on {self.hub}: {str(err).split(' at ')[0]}") from None
+            session, credentials = open_hub(stack, self.run_id, self.hub, self.zenoh_config,
+                                            {s.name: s.roles for s in specs} if self.authenticate else None)
             self.say(f"hub {self.hub}: " + ("authenticating router, per-node access control" if credentials
                                              else "no generated credentials"))
             if self.progress:
-                self._observer = ProgressObserver(session, self.run_id)
-                stack.callback(self._observer.close)
+                self.console.observer = ProgressObserver(session, self.run_id)
+                stack.callback(self.console.observer.close)
             stack.callback(self.stop_all)
             try:
                 for spec in specs:
                     env = {SUPERVISOR_ENV: str(os.getpid()), **(credentials.env(spec.name) if credentials else {})}
-                    node = NodeProcess.spawn(spec, self.run_id, self.hub, env, self._emit, self.say)
+                    node = NodeProcess.spawn(spec, self.run_id, self.hub, env, self.console.emit, self.say)
                     self.nodes.append(node)
                     if spec.wait_ready:
                         self._wait_ready(session, node, stop)
@@ -160,25 +191,17 @@ class LaunchService:
 
     def _supervise(self, stop: StopFlag) -> int:
         finished_at: float | None = None
-        while True:
-            if stop.is_set():
-                return self._stopped(stop)
-            for node in self.nodes:
-                code = node.poll()
-                if code not in (None, 0):
-                    self.say(f"error: node {node.name} exited with status {code}; stopping the run")
-                    return 1
-                if code == 0 and node.spec.main and finished_at is None:
-                    finished_at = time.monotonic()
-            if all(n.poll() == 0 for n in self.nodes):
-                return 0
-            if finished_at is not None and time.monotonic() - finished_at > self.finish_grace_s:
-                late = [n.name for n in self.nodes if n.poll() is None]
-                self.say(f"error: {', '.join(late)} still running {self.finish_grace_s:.0f} s after the run finished")
-                return 1
-            if self._observer is not None:
-                self._observer.poll()
+        while not stop.is_set():
+            codes = [(n.name, n.poll(), n.spec.main) for n in self.nodes]
+            status, finished_at, reason = verdict(codes, finished_at, time.monotonic(), self.finish_grace_s)
+            if status is not None:
+                if reason:
+                    self.say(f"error: {reason}; stopping the run")
+                return status
+            if self.console.observer is not None:
+                self.console.observer.poll()
             stop.wait(0.05)
+        return self._stopped(stop)
 
     def stop_all(self) -> None:
         """Stop every running node, last started first."""
