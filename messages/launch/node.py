@@ -167,6 +167,12 @@ class NodeProcess:
         """The exit status, or ``None`` while running."""
         return self.process.poll()
 
+    def check_alive(self) -> None:
+        """Raise :class:`ChildProcessError` if the node has exited (e.g. while waiting for it to be ready)."""
+        if self.process.poll() is not None:
+            raise ChildProcessError(f"node {self.name} exited with status {self.process.returncode} before it was "
+                                    "ready")
+
     def stop(self) -> None:
         """Stop the node: SIGINT, then SIGTERM, then SIGKILL, each after its timeout."""
         escalation = ((signal.SIGINT, self.sigint_timeout_s), (signal.SIGTERM, self.sigterm_timeout_s),

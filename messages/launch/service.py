@@ -142,16 +142,9 @@ class LaunchService:
         self.console.emit(f"[launch] {text}")
 
     def run(self, specs: list[NodeSpec], stop: StopFlag) -> int:
-        """Start ``specs`` in order, supervise until the run ends, stop everything.
-
-        Returns 0 (run ended normally), 1 (a node failed), or 128 + the signal number of a
-        stop request (130 SIGINT, 143 SIGTERM).
-
-        Raises
-        ------
-        RunFailed
-            If the hub cannot be opened.
-        """
+        """Start ``specs`` in order, supervise until the run ends, stop everything; returns 0 (ended
+        normally), 1 (a node failed), 130/143 (stopped by SIGINT/SIGTERM). Raises :class:`RunFailed`
+        if the hub cannot be opened."""
         with contextlib.ExitStack() as stack:
             session, credentials = open_hub(stack, self.run_id, self.hub, self.zenoh_config,
                                             {s.name: s.roles for s in specs} if self.authenticate else None)
@@ -167,9 +160,9 @@ class LaunchService:
                     node = NodeProcess.spawn(spec, self.run_id, self.hub, env, self.console.emit, self.say)
                     self.nodes.append(node)
                     if spec.wait_ready:
-                        self._wait_ready(session, node, stop)
+                        wait_for_nodes(session, self.run_id, [node.name], stop, self.ready_timeout_s, node.check_alive)
                 return self._supervise(stop)
-            except RunFailed as err:
+            except (RunFailed, ChildProcessError) as err:
                 self.say(f"error: {err}; stopping the run")
                 return 1
             except TimeoutError as err:
@@ -177,13 +170,6 @@ class LaunchService:
                     return self._stopped(stop)
                 self.say(f"error: {err}; stopping the run")
                 return 1
-
-    def _wait_ready(self, session, node: NodeProcess, stop: StopFlag) -> None:
-        def check() -> None:
-            if node.poll() is not None:
-                raise RunFailed(f"node {node.name} exited with status {node.poll()} before it was ready")
-
-        wait_for_nodes(session, self.run_id, [node.name], stop, self.ready_timeout_s, check)
 
     def _stopped(self, stop: StopFlag) -> int:
         self.say(f"{stop.signal_name or 'stop requested'}; stopping the nodes")
