@@ -65,8 +65,9 @@ def comparison_table(scenario: str, setpoint_mm2: float, rows: list[dict[str, An
     lines = [("| controller | max overshoot [%] | max undershoot [%] | steady-state RMSE [%] | turnaround RMSE [%] "
               "| along-track RMSE [%] | wall time [s] |"),
              "|---|---:|---:|---:|---:|---:|---:|"]
-    lines += [f"| {r['controller']} | {r['overshoot_pct']:.1f} | {r['undershoot_pct']:.1f} | {r['steady_rmse_pct']:.2f} "
-              f"| {_cell(r['rmse_turnaround_pct'])} | {_cell(r['rmse_along_pct'])} | {r['wall_s']:.1f} |" for r in rows]
+    lines += [f"| {r['controller']} | {r['overshoot_pct']:.1f} | {r['undershoot_pct']:.1f} "
+              f"| {r['steady_rmse_pct']:.2f} | {_cell(r['rmse_turnaround_pct'])} | {_cell(r['rmse_along_pct'])} "
+              f"| {r['wall_s']:.1f} |" for r in rows]
     return heading + "\n\n" + "\n".join(lines) + "\n"
 
 
