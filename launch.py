@@ -234,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
         return status
     status, wall_s = launch(specs or default_nodes(opts, out), out, args.run_id, args.hub, progress, args.zenoh_config)
     summary = {"status": status, "wall_s": round(wall_s, 2), "recording": str(out)}
-    if specs is None:
+    if specs is None and out.exists():  # (no recording: the run failed before its recorder started, said above)
         summary = summarise(out, opts.scenario, opts.controller, opts.setpoint() if opts.closed_loop else None,
                             status, wall_s)
         print(table_line(summary))

@@ -77,3 +77,16 @@ def test_launch_refuses_default_node_options_with_a_node_list(tmp_path):
                          cwd=REPO, capture_output=True, text=True, timeout=60)
     assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
     assert "--setpoint-mm2, --h-um cannot be combined with --nodes" in run.stderr
+
+
+def test_launch_with_its_hub_port_in_use_fails_in_one_line():
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        run = subprocess.run([sys.executable, "launch.py", "--hub", f"tcp/127.0.0.1:{port}", "--max-steps", "5"],
+                             cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 1 and run.stdout == "", run.stdout
+    assert run.stderr.count("\n") == 1 and "cannot open the run's hub" in run.stderr, run.stderr
