@@ -45,37 +45,46 @@ def evaporation_flux(t, t_boil: float):
     return L_VAP_J_KG * (1.0 - RECONDENSATION) * p_sat * np.sqrt(MOLAR_MASS_KG_MOL / (2.0 * np.pi * R_GAS * t))
 
 
-def evaporate(t_star: np.ndarray, k: np.ndarray, heat_capacity: float, t_boil: float,
-              n_iter: int = 30) -> np.ndarray:
+def evaporate(t_star: np.ndarray, k: np.ndarray, heat_capacity: float, t_boil: float, t_low: float,
+              n_iter: int = 100) -> np.ndarray:
     """Backward-Euler temperatures of liquid surface nodes that lose evaporative heat.
 
-    Solves ``C (T - T*) + k q_evap(T) = 0`` per node by Newton from ``T*`` (``f`` is increasing
-    and convex, so the iterates decrease monotonically to the root).  Implicit because the
-    flux is stiff: ``dq/dT`` reaches 1e7 W/(m² K) at 4000 K, 10x the explicit limit at 50 µs.
+    Solves ``f(T) = C (T - T*) + k q_evap(T) = 0`` per node: ``f`` increases on
+    ``[t_low, T*]`` from ``f(t_low) <= 0`` to ``f(T*) >= 0``; Newton steps that leave the
+    bracket are replaced by bisection (``q_evap`` is convex near boiling but concave above
+    ~2e4 K, where a plain Newton step overshoots).  Implicit because the flux is stiff:
+    ``dq/dT`` reaches 1e7 W/(m² K) at 4000 K, 10x the explicit limit at 50 µs.
 
     Parameters
     ----------
     t_star : ndarray, shape (n,)
-        Temperatures after the explicit update [K] (liquid: above the liquidus).
+        Temperatures after the explicit update [K], above ``t_low``.
     k : ndarray, shape (n,)
         ``dt A / m`` of the nodes [s/m].
     heat_capacity : float
-        Liquid volumetric heat capacity C [J/(m³ K)].
+        Liquid volumetric heat capacity C [J/(m³ K)] (``H`` linear in ``T`` above ``t_low``).
     t_boil : float
         Boiling point [K].
+    t_low : float
+        Lower end of the bracket [K] (the liquidus).
 
     Returns
     -------
     ndarray, shape (n,)
-        New temperatures [K].
+        New temperatures [K] in ``[t_low, T*]``.
     """
-    t = t_star.copy()
     b = L_VAP_J_KG * MOLAR_MASS_KG_MOL / R_GAS
+    lo, hi = np.full_like(t_star, t_low), t_star.copy()
+    t = t_star.copy()
     for _ in range(n_iter):
         q = evaporation_flux(t, t_boil)
         f = heat_capacity * (t - t_star) + k * q
-        dt = f / (heat_capacity + k * q * (b / t**2 - 0.5 / t))
-        t -= dt
-        if np.all(np.abs(dt) < 1e-9 * t):
+        hi = np.where(f > 0, t, hi)
+        lo = np.where(f <= 0, t, lo)
+        new = t - f / (heat_capacity + k * q * (b / t**2 - 0.5 / t))
+        new = np.where((new > lo) & (new < hi), new, 0.5 * (lo + hi))
+        done = np.abs(new - t) < 1e-13 * t
+        t = new
+        if np.all(done):
             break
     return t

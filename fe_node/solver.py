@@ -343,7 +343,8 @@ class ThermalModel:
         if not np.any(hot):
             return
         cap = self.law.liquid_heat_capacity
-        t_new = evaporate(t[hot], self._k_evap[hot], cap, self.settings.material.t_boil)
+        m = self.settings.material
+        t_new = evaporate(t[hot], self._k_evap[hot], cap, m.t_boil, m.t_liquidus)
         dh = cap * (t[hot] - t_new)
         top[hot] -= dh
         self._lost += float(np.sum(dh * self._m[:, -1, :][hot]))
