@@ -15,8 +15,9 @@ def run_open_loop(sc: Scenario, progress: bool = False) -> list[Observation]:
     Returns the observations after each step (step 1 ... N).  ``progress`` shows a tqdm
     bar on stderr.
     """
-    model = ThermalModel(sc.settings, sc.plan)
-    n_est = int(np.ceil(sc.plan.total_length / (sc.profile.speed_m_s.range()[0] * sc.settings.dt_s)))
+    model = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
+    plans = sc.layer_plans or (sc.plan,) * sc.settings.n_layers
+    n_est = int(np.ceil(sum(p.total_length for p in plans) / (sc.profile.speed_m_s.range()[0] * sc.settings.dt_s)))
     out = []
     with tqdm(total=n_est, disable=not progress, unit="step", leave=False) as bar:
         while not model.done:

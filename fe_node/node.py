@@ -83,8 +83,8 @@ DEFAULTS = PlantSettings()
 def n_steps(scenario: Scenario) -> int:
     """Steps to the end of the plan (times ``n_layers``) at the profile's lowest speed (exact for a constant speed)."""
     v_min = scenario.profile.speed_m_s.range()[0]
-    per_layer = math.ceil(scenario.plan.total_length / (v_min * scenario.settings.dt_s) - 1e-9)
-    return per_layer * scenario.settings.n_layers
+    plans = scenario.layer_plans or (scenario.plan,) * scenario.settings.n_layers
+    return sum(math.ceil(p.total_length / (v_min * scenario.settings.dt_s) - 1e-9) for p in plans)
 
 
 def describe(scenario: Scenario) -> dict:
@@ -268,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
         return exit_usage(parser.prog, err)
     stop = StopFlag()
     t0 = time.perf_counter()
-    model = ThermalModel(scenario.settings, scenario.plan)
+    model = ThermalModel(scenario.settings, scenario.plan, scenario.layer_plans)
     setup_s = time.perf_counter() - t0
     return run_node(parser.prog, NODE_NAME, bus_settings,
                     lambda bus: run(bus, scenario, model, settings, stop, setup_s))

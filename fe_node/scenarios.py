@@ -29,6 +29,11 @@ power staircase at a constant 800 mm/s. Each level holds for a uniform random 3-
 ``dt_s`` and is uniform in ``[ident_mean_w - ident_amplitude_w, ident_mean_w + ident_amplitude_w]``
 (defaults 250 +- 60 W); ``ident_seed`` (default 0) seeds ``numpy.random.default_rng``, so the
 same seed gives the same profile. The levels are not clipped to the 150-300 W window above.
+
+``part``: a real part built layer by layer, 250 W at 800 mm/s: the STL ``part_stl`` (default
+the shipped 1.5 mm x 0.5 mm cylinder, :data:`fe_node.part.EXAMPLE_STL`) sliced every
+``powder_layer_m`` (default 50 µm) and hatched every ``hatch_m`` (default 0.1 mm) by PySLM
+(:mod:`fe_node.part`, needs ``pythonslm``); ``n_layers`` defaults to all the part's layers.
 """
 from __future__ import annotations
 
@@ -66,7 +71,7 @@ _TABLE = {
     "ident-layer": (4, 10e-3, 1e-4, None, S_CONST),
     "ident-double-track": (2, 5e-3, 1e-4, None, S_CONST),
 }
-NAMES = tuple(_TABLE)
+NAMES = (*_TABLE, "part")
 DEFAULT = "layer"
 
 # identification overrides and their defaults (ident-* scenarios only)
@@ -123,6 +128,8 @@ class Scenario:
     settings: Settings
     plan: ScanPlan
     profile: Profile
+    layer_plans: tuple[ScanPlan, ...] | None = None
+    """One plan per layer (``part``); ``plan`` is the first.  ``None``: ``plan`` in every layer."""
 
 
 def scenario(name: str = DEFAULT, **overrides) -> Scenario:
@@ -144,6 +151,8 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
     ValueError
         Unknown name or override, or invalid values.
     """
+    if name == "part":
+        return _part(**overrides)
     if name not in _TABLE:
         raise ValueError(f"unknown scenario {name!r}; choose from {', '.join(NAMES)}")
     n, length, hatch, power, speed = _TABLE[name]
@@ -177,3 +186,21 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
         power = ident_power(ident["ident_seed"], ident["ident_mean_w"], ident["ident_amplitude_w"],
                             n_steps, settings.dt_s)
     return Scenario(name=name, settings=settings, plan=plan, profile=Profile(power, speed, settings.dt_s))
+
+
+def _part(part_stl: str | None = None, hatch_m: float = 1e-4, power_w: float = 250.0, speed_m_s: float = 0.8,
+          **settings_kw) -> Scenario:
+    """The ``part`` scenario (module docstring); ``settings_kw`` are :class:`Settings` fields."""
+    from fe_node.part import EXAMPLE_STL, part_plans
+
+    unknown = set(settings_kw) - Settings.field_names()
+    if unknown:
+        raise ValueError(f"unknown scenario override {sorted(unknown)[0]!r} for 'part'")
+    layer_m = settings_kw.setdefault("powder_layer_m", 50e-6)
+    plans = part_plans(EXAMPLE_STL if part_stl is None else part_stl, layer_m, hatch_m)
+    n = settings_kw.setdefault("n_layers", len(plans))
+    if not 1 <= n <= len(plans):
+        raise ValueError(f"scenario part: n_layers must be in [1, {len(plans)}] for this part, got {n}")
+    settings = replace(Settings(), **settings_kw)
+    profile = Profile(Signal(float(power_w)), Signal(float(speed_m_s)), settings.dt_s)
+    return Scenario(name="part", settings=settings, plan=plans[0], profile=profile, layer_plans=plans[:n])

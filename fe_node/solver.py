@@ -33,11 +33,12 @@ from fe_node.settings import Settings
 from fe_node.source import surface_load
 
 
-def build_grid(settings: Settings, plan: ScanPlan) -> Grid:
+def build_grid(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None) -> Grid:
     """Graded grid: fine band of size ``h_fine_m`` around the tracks, graded outwards; the
     plate's top at z = 0, a powder layer (``powder_layer_m``, elements <= ``h_fine_m``) above it."""
     s = settings
-    x0, x1, y0, y1 = plan.bounds()
+    b = np.array([p.bounds() for p in (layer_plans or (plan,))])
+    x0, x1, y0, y1 = b[:, 0].min(), b[:, 1].max(), b[:, 2].min(), b[:, 3].max()
     ax = dict(h=s.h_fine_m, growth=s.growth, h_max=s.h_max_m)
     xs = graded_axis(x0 - s.margin_m, x1 + s.margin_m, x0 - s.fine_pad_m, x1 + s.fine_pad_m, **ax)
     ys = graded_axis(y0 - s.margin_m, y1 + s.margin_m, y0 - s.fine_pad_m, y1 + s.fine_pad_m, **ax)
@@ -101,6 +102,9 @@ class ThermalModel:
     ----------
     settings : Settings
     plan : ScanPlan
+    layer_plans : tuple of ScanPlan, optional
+        One plan per layer (``Settings.n_layers`` of them, the first being ``plan``); default:
+        ``plan`` in every layer.
 
     Attributes
     ----------
@@ -111,9 +115,11 @@ class ThermalModel:
         Steps done so far.
     """
 
-    def __init__(self, settings: Settings, plan: ScanPlan):
-        self.settings, self.plan = settings, plan
-        self.grid = build_grid(settings, plan)
+    def __init__(self, settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None):
+        if layer_plans is not None and (len(layer_plans) != settings.n_layers or layer_plans[0] != plan):
+            raise ValueError("thermal model: layer_plans must hold n_layers plans, the first being plan")
+        self.settings, self.plan, self._layer_plans = settings, plan, layer_plans
+        self.grid = build_grid(settings, plan, layer_plans)
         self.law = Constitutive(settings.material)
         self._powder = self._powder_layers()
         self.operator = self._build_operator(*self._initial_weights())
@@ -193,7 +199,7 @@ class ThermalModel:
         return op.kw.ravel().copy(), op.rho_w.ravel().copy()
 
     def add_layer(self) -> None:
-        """Spread a new powder layer (``powder_layer_m``, at the preheat temperature) and restart the plan.
+        """Spread a new powder layer (``powder_layer_m``, at the preheat temperature) and start the next plan.
 
         Elements keep their weights (consolidated tracks stay consolidated); the new powder's
         enthalpy is brought in, not absorbed, so it is added to the reference energy of the balance.
@@ -226,6 +232,8 @@ class ThermalModel:
         self._e0 += self._energy() - e_before
         self._s = 0.0
         self.layer += 1
+        if self._layer_plans is not None:
+            self.plan = self._layer_plans[self.layer]
 
     def reweight(self, elements, kw, rho_w) -> None:
         """Change the weights of solver elements (flat indices), keeping each node's energy.

@@ -69,7 +69,7 @@ def test_table2_geometry():
 
 
 def test_profiles_stay_in_process_window():
-    for name in NAMES:
+    for name in (n for n in NAMES if n != "part"):          # part: tests/test_fe_part.py (needs PySLM)
         sc = scenario(name)
         p = [sc.profile.command(i) for i in range(400)]
         # ident-* staircases leave the 150-300 W window by design (250 +- 60 W; tests/test_identify.py)
