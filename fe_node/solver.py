@@ -28,6 +28,7 @@ from fe_node.material import Constitutive
 from fe_node.mesh import Grid, graded_axis
 from fe_node.observe import Observation, bilinear, interp_matrix, pool_geometry
 from fe_node.operators import CsrOperator, TensorOperator
+from fe_node.powder import PowderBed
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.source import surface_load
@@ -109,6 +110,10 @@ class ThermalModel:
     Attributes
     ----------
     grid : Grid
+    powder : PowderBed or None
+        Powder and consolidated elements (``None`` without a powder layer).
+    layer : int
+        Current layer (0 first).
     n_substeps : int
         Explicit sub-steps per step.
     step_index : int
@@ -121,7 +126,8 @@ class ThermalModel:
         self.settings, self.plan, self._layer_plans = settings, plan, layer_plans
         self.grid = build_grid(settings, plan, layer_plans)
         self.law = Constitutive(settings.material)
-        self._powder = self._powder_layers()
+        ny, nz, nx = self.grid.solver_shape
+        self.powder = PowderBed(settings, self.grid.zs, (ny - 1, nx - 1)) if settings.powder_layer_m > 0 else None
         self.operator = self._build_operator(*self._initial_weights())
         self._a_top, self._a_bottom = self._face_areas()
         self.layer = 0
@@ -133,30 +139,12 @@ class ThermalModel:
         self._absorbed = 0.0
         self._lost = 0.0
 
-    def _powder_layers(self) -> dict | None:
-        """Powder state: first powder element layer, consolidated elements (``None``: no powder)."""
-        if self.settings.powder_layer_m == 0:
-            return None
-        zc = 0.5 * (self.grid.zs[1:] + self.grid.zs[:-1])
-        k0 = int(np.argmax(zc > 0))
-        ny, nz, nx = self.grid.solver_shape
-        return dict(k0=k0, consolidated=np.zeros((ny - 1, nz - 1 - k0, nx - 1), dtype=bool))
-
-    def _initial_weights(self, layer_only: bool = False):
-        """Per-element (kw, rho_w) [-] in solver element order: dense plate, powder above (``None``: all 1).
-
-        ``layer_only``: the per-z-layer values, shape (nz - 1,).
-        """
-        if self._powder is None:
+    def _initial_weights(self):
+        """Per-element (kw, rho_w) [-] in solver element order: dense plate, powder above (``None``: all 1)."""
+        if self.powder is None:
             return None, None
-        s = self.settings
         ny, nz, nx = self.grid.solver_shape
-        powder = np.arange(nz - 1) >= self._powder["k0"]
-        k_dense = float(s.material.k(773.15))                  # the powder value is given at 500 °C
-        kw = np.where(powder, s.powder_k_w_mk / k_dense, 1.0)
-        rho_w = np.where(powder, s.powder_packing, 1.0)
-        if layer_only:
-            return kw, rho_w
+        kw, rho_w = self.powder.layer_weights(nz - 1)
         shape = (ny - 1, nz - 1, nx - 1)
         return (np.broadcast_to(kw[None, :, None], shape).ravel(), np.broadcast_to(rho_w[None, :, None], shape).ravel())
 
@@ -210,19 +198,17 @@ class ThermalModel:
             Without a powder layer (``powder_layer_m = 0``) or before the plan is done.
         """
         s, g = self.settings, self.grid
-        if self._powder is None or not self.layer_done:
+        if self.powder is None or not self.layer_done:
             raise RuntimeError("add_layer needs powder_layer_m > 0 and a finished scan plan")
         kw, rho_w = self._element_weights()
         e_before = self._energy()
         n = math.ceil(s.powder_layer_m / s.h_fine_m - 1e-9)
         ny, nz, nx = g.solver_shape
         self.grid = Grid(g.xs, g.ys, np.concatenate([g.zs, g.zs[-1] + np.linspace(0.0, s.powder_layer_m, n + 1)[1:]]))
-        kw_p, rho_p = (float(w[-1]) for w in self._initial_weights(layer_only=True))
         old, new = (ny - 1, nz - 1, nx - 1), (ny - 1, n, nx - 1)
-        kw = np.concatenate([kw.reshape(old), np.full(new, kw_p)], axis=1).ravel()
-        rho_w = np.concatenate([rho_w.reshape(old), np.full(new, rho_p)], axis=1).ravel()
-        p = self._powder
-        p["consolidated"] = np.concatenate([p["consolidated"], np.zeros(new, dtype=bool)], axis=1)
+        kw = np.concatenate([kw.reshape(old), np.full(new, self.powder.kw_powder)], axis=1).ravel()
+        rho_w = np.concatenate([rho_w.reshape(old), np.full(new, self.powder.packing)], axis=1).ravel()
+        self.powder.grow(n)
         self.operator = self._build_operator(kw, rho_w)
         self._a_top, self._a_bottom = self._face_areas()
         h = np.full(self.grid.solver_shape, float(self.law.enthalpy(s.t0_k)))
@@ -248,20 +234,10 @@ class ThermalModel:
         np.divide(energy, self._m, out=self._h)
 
     def _consolidate(self) -> None:
-        """Powder elements whose mean nodal temperature passed the liquidus become consolidated
-        metal: the layer's mass smeared over its volume, ``kw = rho_w = packing`` (docs/fe.md)."""
-        p = self._powder
-        t = self.law.temperature(self._h[:, p["k0"]:, :])
-        mean = 0.125 * (t[:-1, :-1, :-1] + t[:-1, :-1, 1:] + t[:-1, 1:, :-1] + t[:-1, 1:, 1:]
-                        + t[1:, :-1, :-1] + t[1:, :-1, 1:] + t[1:, 1:, :-1] + t[1:, 1:, 1:])
-        new = (mean > self.settings.material.t_liquidus) & ~p["consolidated"]
-        if np.any(new):
-            p["consolidated"] |= new
-            j, k, i = np.nonzero(new)
-            ny, nz, nx = self.grid.solver_shape
-            el = np.ravel_multi_index((j, k + p["k0"], i), (ny - 1, nz - 1, nx - 1))
-            packing = self.settings.powder_packing
-            self.reweight(el, packing, packing)
+        """Re-weight the powder elements that melted this step (:meth:`fe_node.powder.PowderBed.consolidate`)."""
+        melted = self.powder.consolidate(self.law.temperature(self._h[:, self.powder.k0:, :]))
+        if len(melted):
+            self.reweight(melted, self.powder.packing, self.powder.packing)
 
     def _set_time_step(self) -> None:
         """Sub-steps and update factors from the current weights (stability limit, module docstring)."""
@@ -324,7 +300,7 @@ class ThermalModel:
                                     s.absorptivity, s.beam_radius_m)
             self._substep(load)
             self._s = min(self._s + ds, total)
-        if self._powder is not None:
+        if self.powder is not None:
             self._consolidate()
         self.step_index += 1
         return self._observe(power_w, speed_m_s)

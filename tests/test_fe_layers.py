@@ -22,7 +22,7 @@ def build(n_layers, **kw):
 def test_two_layers_build_up_heat_and_keep_energy():
     model, (first, second) = build(2)
     assert model.layer == 1 and model.grid.zs[-1] == pytest.approx(50e-6)
-    cons = model._powder["consolidated"].sum(axis=(0, 2))
+    cons = model.powder.consolidated.sum(axis=(0, 2))
     assert cons[0] > 20 and cons[1] > 20                       # both layers' tracks consolidated
     a1, a2 = (np.mean([o.area_m2 for o in obs[-5:]]) for obs in (first, second))
     assert a2 > 1.2 * a1                                       # no dwell between layers: heat builds up

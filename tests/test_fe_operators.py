@@ -142,4 +142,4 @@ def test_thermal_model_same_with_either_operator(physics):
     assert obs[1].area_m2 == pytest.approx(obs[0].area_m2, rel=1e-12)
     assert close(models[1].temperature(), models[0].temperature(), 1e-11)
     if physics:
-        assert models[0]._powder["consolidated"].sum() > 0
+        assert models[0].powder.consolidated.sum() > 0

@@ -29,7 +29,7 @@ def test_part_scenario_builds_layer_by_layer():
         obs = model.step(*sc.profile.command(model.step_index))
         layers.add(model.layer)
     assert layers == {0, 1} and model.grid.zs[-1] == pytest.approx(100e-6)
-    assert abs(obs.energy_error_pct) < 1e-6 and model._powder["consolidated"].sum() > 0
+    assert abs(obs.energy_error_pct) < 1e-6 and model.powder.consolidated.sum() > 0
 
 
 def test_part_scenario_errors():

@@ -38,7 +38,7 @@ def test_powder_layer_enlarges_the_pool_and_consolidates(bare):
     ratio = mean_area(obs) / mean_area(bare[1])
     assert 1.1 < ratio < 1.8                       # 40 µm: x1.34 at 25 µm powder, x2.2 at 50 µm
     assert model.grid.zs[-1] == pytest.approx(40e-6)
-    cons = model._powder["consolidated"]
+    cons = model.powder.consolidated
     ys = 0.5 * (model.grid.ys[1:] + model.grid.ys[:-1])
     xs = 0.5 * (model.grid.xs[1:] + model.grid.xs[:-1])
     j, _, i = np.nonzero(cons)
