@@ -8,8 +8,9 @@
   (``Kd, Md`` 1-D linear-element matrices, ``Mz_w, Kz_w`` weighted by layer); elements whose
   weights differ from their layer's are added as a sparse correction ``sum_e dw_e K_e``.
 
-Both give the same ``K_w u`` and ``m`` (``tests/test_fe_operators.py``: 1e-12 on random weights)
-and the explicit stability bound :meth:`stability_eigenvalue`, recomputed whenever weights change:
+Both give the same ``K_w u``, ``m`` and, with ``vertical=True``, ``K_z u`` of ``conduction_z``
+(``tests/test_fe_operators.py``: 1e-12 on random weights) and the explicit stability bound
+:meth:`stability_eigenvalue`, recomputed whenever weights change:
 ``lambda_max(M_L^-1 K_w) <= max_e (kw_e / rho_w_e) lambda_e`` with ``lambda_e`` the largest
 eigenvalue of the element pair (``K_e``, lumped ``M_e``) (Fried's element bound; ``4 / h_min²``
 for a box).
