@@ -323,52 +323,55 @@ class Inbox:
 
 
 class NewestInbox(Inbox):
-    """Messages of one topic for a loop that answers only the newest one, without a queue hop.
+    """Messages of one topic for a loop that answers only the newest one, without a callback.
 
-    No Python callback: zenoh queues the samples in its own channel, and :meth:`newest` blocks
-    in zenoh (the GIL released) until one arrives, so the network thread never waits for the
-    GIL and the message reaches the waiting thread directly. :meth:`newest` then takes every
-    sample already queued, validates them like :class:`Inbox` (invalid ones are dropped and
-    counted) and returns the newest valid message with the number of older valid ones it
-    replaced. :meth:`wake` makes a blocked :meth:`newest` return (with ``None``) from another
-    thread, e.g. on a stop request; it never leaves this process.
-
-    Use it from one thread only (the one that calls :meth:`newest`).
+    zenoh queues the samples in its own channel and :meth:`newest` blocks in zenoh (the GIL
+    released, no poll) until one arrives: the network thread never waits for the GIL and the
+    sample reaches the reading thread directly. :meth:`newest` then takes every sample already
+    queued, validates them like :class:`Inbox` (invalid ones are dropped and counted) and
+    returns the newest valid message with the number of older valid ones it replaced.
+    :meth:`wake` makes a blocked :meth:`newest` return from another thread, e.g. on a stop
+    request (a sample put with a random payload that never leaves this session). Read it from
+    one thread only.
     """
 
-    CAPACITY = 4096  # samples zenoh queues before its network thread waits for this reader
+    CAPACITY = 4096  # samples zenoh queues before its network thread waits for the reader
 
-    def __init__(self, topic: Topic, run_id: str, session: zenoh.Session, key: str) -> None:
+    def __init__(self, topic: Topic, run_id: str, session: zenoh.Session) -> None:
         super().__init__(topic, run_id)
         self._session = session
-        self._key = key
-        self._wake_token = secrets.token_bytes(16)  # a wake-up is this payload, put session-locally
-        self.subscriber = session.declare_subscriber(key, zenoh.handlers.FifoChannel(self.CAPACITY))
+        self._key = key_expr(run_id, topic)
+        self._wake_payload = secrets.token_bytes(16)
+        self.subscriber = session.declare_subscriber(self._key, zenoh.handlers.FifoChannel(self.CAPACITY))
 
     def newest(self) -> tuple[Any | None, int]:
-        """Block until something arrives; (newest valid message or ``None``, older valid ones skipped).
+        """Block until something arrives; (newest valid message, older valid ones skipped).
 
-        ``None`` comes back after a :meth:`wake` or when everything that arrived was invalid.
+        The message is ``None`` after a :meth:`wake`, or when everything that arrived was invalid.
         """
         samples = [self.subscriber.recv()]
-        while (more := self.subscriber.try_recv()) is not None:
-            samples.append(more)
+        while (sample := self.subscriber.try_recv()) is not None:
+            samples.append(sample)
+        t = time.monotonic()
         newest, n_valid = None, 0
         for sample in samples:
             payload = sample.payload.to_bytes()
-            if payload == self._wake_token:
+            if payload == self._wake_payload:
                 continue
             msg = self._valid(str(sample.key_expr), payload)
             if msg is not None:
-                newest, n_valid = msg, n_valid + 1
+                newest, n_valid, self.received_t = msg, n_valid + 1, t
         return newest, max(0, n_valid - 1)
 
     def wake(self) -> None:
-        """Make a blocked :meth:`newest` return (a sample only this session sees)."""
-        self._session.put(self._key, self._wake_token, allowed_destination=zenoh.Locality.SESSION_LOCAL)
+        """Make a blocked :meth:`newest` return."""
+        self._session.put(self._key, self._wake_payload, allowed_destination=zenoh.Locality.SESSION_LOCAL)
 
     def get(self, timeout: float | None = None) -> Any | None:
         raise TypeError("a NewestInbox is read with newest()")
+
+
+INDIRECT = os.environ.get("IND") == "1"
 
 
 @dataclass
@@ -430,19 +433,23 @@ class NodeBus:
 
     def inbox(self, topic: Topic) -> Inbox:
         """Subscribe to ``topic`` of this run; messages queue until the node reads them."""
-        assert self.session is not None
-        box = Inbox(topic, self.run_id)
-        sub = self.session.declare_subscriber(key_expr(self.run_id, topic),
-                                              zenoh.handlers.Callback(box._on_sample, indirect=os.environ.get("IND") == "1"))
-        self._declared.append(sub)
-        return box
+        return self._subscribe(Inbox(topic, self.run_id))
 
     def newest_inbox(self, topic: Topic) -> NewestInbox:
         """Subscribe to ``topic`` of this run for a loop that answers only the newest message
         (:class:`NewestInbox`: a blocking wait in zenoh, no callback, no queue hop)."""
         assert self.session is not None
-        box = NewestInbox(topic, self.run_id, self.session, key_expr(self.run_id, topic))
+        box = NewestInbox(topic, self.run_id, self.session)
         self._declared.append(box.subscriber)
+        return box
+
+    def _subscribe(self, box: Inbox) -> Inbox:
+        # The callback runs on zenoh's network thread itself (not handed to another Python thread
+        # first): one thread hop, not two, between the socket and the node's loop.
+        assert self.session is not None
+        sub = self.session.declare_subscriber(key_expr(self.run_id, box.topic),
+                                              zenoh.handlers.Callback(box._on_sample, indirect=INDIRECT))
+        self._declared.append(sub)
         return box
 
     def subscribe_raw(self, key: str, callback: Any) -> None:
