@@ -18,7 +18,9 @@ It never slows the loop:
 - decoding and validation (schema, run id, publishing node — invalid messages are dropped and
   counted, as the recorder does) happen in the node's own loop;
 - publishing to clients never blocks: the SDK keeps a bounded backlog per client and drops its
-  oldest messages for a slow client.
+  oldest messages for a slow client;
+- the loop takes what arrived in batches at most every 20 ms, and the process runs at niceness
+  ``--nice`` (10), so the loop's own nodes get the CPU first when it is scarce.
 
 It publishes no contract topic (no role), only its own start/end events and log lines. It ends
 when the plant's liveliness token goes (after draining what already arrived, ``--drain-s``), or
@@ -33,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import threading
 import time
@@ -55,6 +58,9 @@ DEFAULT_QUEUE_SIZE = 4096
 CLIENT_BACKLOG = 1024
 """Messages buffered per WebSocket client before the SDK drops that client's oldest ones."""
 POLL_S = 0.1
+BATCH_S = 0.02
+"""Least time between two batches of the loop: at most 50 wake-ups a second, whatever the message rate."""
+DEFAULT_NICE = 10
 
 
 @dataclass(frozen=True)
@@ -66,7 +72,8 @@ class LiveSettings:
     image_max_hz: float = DEFAULT_IMAGE_MAX_HZ
     queue_size: int = DEFAULT_QUEUE_SIZE
     plant: str = "plant"
-    drain_s: float = 0.2
+    drain_s: float = 0.05
+    nice: int = DEFAULT_NICE
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
@@ -79,6 +86,8 @@ class LiveSettings:
             raise UsageError(f"--drain-s must be in [0, 60], got {self.drain_s}")
         if not self.host:
             raise UsageError("--host must not be empty")
+        if not 0 <= self.nice <= 19:
+            raise UsageError(f"--nice must be in 0..19, got {self.nice}")
 
 
 def schema_bytes(topic: Topic) -> bytes:
@@ -260,7 +269,8 @@ def serve(bus: NodeBus, server: LiveServer, settings: LiveSettings, stop: StopFl
         bus.subscribe_raw(key_expr(bus.run_id, topic), forwarder.callback(topic))
     plant_gone = bus.watch_presence(settings.plant)
     config = {"host": settings.host, "port": server.port, "image_max_hz": settings.image_max_hz,
-              "queue_size": settings.queue_size, "plant": settings.plant, "client_backlog": CLIENT_BACKLOG}
+              "queue_size": settings.queue_size, "plant": settings.plant, "drain_s": settings.drain_s,
+              "nice": settings.nice, "client_backlog": CLIENT_BACKLOG}
     bus.ready(config=config, stop=stop)
     print(f"serving run {bus.run_id} on ws://{settings.host}:{server.port} (Foxglove WebSocket; "
           f"images <= {settings.image_max_hz:g} Hz)", flush=True)
@@ -268,8 +278,11 @@ def serve(bus: NodeBus, server: LiveServer, settings: LiveSettings, stop: StopFl
     gone_at: float | None = None
     reported_drops = reported_invalid = False
     while not stop.is_set():
-        for topic, key, payload in forwarder.queue.take_all(POLL_S):
+        batch = forwarder.queue.take_all(POLL_S)
+        for topic, key, payload in batch:
             last_time_ns = max(last_time_ns, forwarder.forward(topic, key, payload) or 0)
+        if batch:
+            time.sleep(BATCH_S)  # let messages gather: few wake-ups of this process while the loop runs
         if forwarder.queue.dropped and not reported_drops:
             reported_drops = True
             bus.log(LogLevel.WARNING, f"live view falling behind: {forwarder.queue.dropped} messages dropped "
@@ -304,7 +317,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "when full (default: %(default)s)")
     parser.add_argument("--plant", default="plant",
                         help="node whose end (liveliness token gone) ends the live view (default: %(default)s)")
-    parser.add_argument("--drain-s", type=float, default=0.2,
+    parser.add_argument("--nice", type=int, default=DEFAULT_NICE,
+                        help="scheduling niceness of this process, so that the loop's nodes get the CPU first "
+                             "(default: %(default)s; 0: as the other nodes)")
+    parser.add_argument("--drain-s", type=float, default=0.05,
                         help="after the plant ended, forward what still arrives for this long [s] (default: "
                              "%(default)s)")
     add_bus_arguments(parser)
@@ -317,7 +333,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         bus_settings = bus_settings_from_args(args)
-        settings = LiveSettings(args.host, args.port, args.image_max_hz, args.queue_size, args.plant, args.drain_s)
+        settings = LiveSettings(args.host, args.port, args.image_max_hz, args.queue_size, args.plant, args.drain_s,
+                                args.nice)
+        os.nice(settings.nice)  # before any thread starts: zenoh's and the server's threads inherit it
         server = LiveServer(settings, f"meltloop {bus_settings.run_id}")
     except UsageError as err:
         return exit_usage(parser.prog, err)
