@@ -128,6 +128,10 @@ class DropOldestQueue:
         self.n_taken += len(taken)
         return taken
 
+    def wake(self) -> None:
+        """End a :meth:`take_all` wait early (e.g. the run ended)."""
+        self._wake.set()
+
     def __len__(self) -> int:
         return len(self._items)
 
@@ -268,6 +272,7 @@ def serve(bus: NodeBus, server: LiveServer, settings: LiveSettings, stop: StopFl
     for topic in TOPICS.values():
         bus.subscribe_raw(key_expr(bus.run_id, topic), forwarder.callback(topic))
     plant_gone = bus.watch_presence(settings.plant)
+    threading.Thread(target=lambda: (plant_gone.wait(), forwarder.queue.wake()), daemon=True).start()
     config = {"host": settings.host, "port": server.port, "image_max_hz": settings.image_max_hz,
               "queue_size": settings.queue_size, "plant": settings.plant, "drain_s": settings.drain_s,
               "nice": settings.nice, "client_backlog": CLIENT_BACKLOG}
@@ -277,11 +282,12 @@ def serve(bus: NodeBus, server: LiveServer, settings: LiveSettings, stop: StopFl
     last_time_ns = 0
     gone_at: float | None = None
     reported_drops = reported_invalid = False
+    timeout_s = POLL_S
     while not stop.is_set():
-        batch = forwarder.queue.take_all(POLL_S)
+        batch = forwarder.queue.take_all(timeout_s)
         for topic, key, payload in batch:
             last_time_ns = max(last_time_ns, forwarder.forward(topic, key, payload) or 0)
-        if batch:
+        if batch and gone_at is None:
             time.sleep(BATCH_S)  # let messages gather: few wake-ups of this process while the loop runs
         if forwarder.queue.dropped and not reported_drops:
             reported_drops = True
@@ -293,8 +299,10 @@ def serve(bus: NodeBus, server: LiveServer, settings: LiveSettings, stop: StopFl
                     "counted)", time_s=last_time_ns / 1e9)
         if plant_gone.is_set():
             gone_at = gone_at or time.monotonic()
-            if not len(forwarder.queue) and time.monotonic() - gone_at >= settings.drain_s:
+            timeout_s = settings.drain_s - (time.monotonic() - gone_at)
+            if timeout_s <= 0 and not len(forwarder.queue):
                 break
+            timeout_s = max(timeout_s, 0.0)
     reason = "stopped" if stop.is_set() else f"plant {settings.plant!r} went away"
     summary = f"{reason}; {forwarder.summary()}"
     bus.log(LogLevel.INFO, summary, time_s=last_time_ns / 1e9)
