@@ -14,6 +14,12 @@ SIGMA_SB = 5.670374419e-8
 """Stefan-Boltzmann constant [W/(m² K^4)]."""
 
 
+def loss_flux_slope(t: np.ndarray, settings: Settings) -> np.ndarray:
+    """``d q_loss / dT`` [W/(m² K)] at ``t`` [K] (0 above the boiling cap)."""
+    s = settings
+    return np.where(t < s.material.t_boil, s.h_conv_w_m2k + 4.0 * s.emissivity * SIGMA_SB * t**3, 0.0)
+
+
 def loss_flux(t: np.ndarray, settings: Settings) -> np.ndarray:
     """Convection + radiation flux [W/m²] at surface temperatures ``t`` [K] (any shape)."""
     s = settings

@@ -164,6 +164,14 @@ class Constitutive:
         i = self._index(h)
         return self._t_a[i] + self._t_b[i] * h
 
+    def temperature_slope(self, h):
+        """``dT / dH`` [K m³/J] at enthalpy ``h`` (the table's slope)."""
+        return self._t_b[self._index(h)]
+
+    def kirchhoff_slope(self, h):
+        """``d phi / d H`` [K m³/J] at enthalpy ``h`` (the table's slope; small in the mushy range)."""
+        return self._p_b[self._index(h)]
+
     def kirchhoff(self, h):
         """Kirchhoff variable phi [K] from enthalpy ``h`` [J/m³] (any shape)."""
         i = self._index(h)

@@ -65,6 +65,11 @@ class Settings:
         Layers built one on top of the other (default 1): after each pass over the scan plan
         a new ``powder_layer_m`` of powder is spread and the plan restarts
         (:meth:`fe_node.solver.ThermalModel.add_layer`); more than 1 needs a powder layer.
+    dwell_s : float
+        Time between layers (recoating, laser off) [s]; 0 (default) = none.  Simulated by
+        implicit steps of at most ``dwell_step_s`` (:mod:`fe_node.dwell`).
+    dwell_step_s : float
+        Largest implicit dwell step [s].
     plate_h_w_m2k : float
         Build-plate heat sink: heat transfer coefficient [W/(m² K)] from the bottom face to the
         plate at ``t0_k``; 0 (default) = insulated.  ``k_plate / L`` of the plate below the
@@ -101,6 +106,8 @@ class Settings:
     powder_k_w_mk: float = 1.01
     evaporation: bool = False
     n_layers: int = 1
+    dwell_s: float = 0.0
+    dwell_step_s: float = 0.05
     plate_h_w_m2k: float = 0.0
     liquid_k_factor_xy: float = 1.0
     liquid_k_factor_z: float = 1.0
@@ -131,6 +138,9 @@ class Settings:
             raise ValueError(f"settings: n_layers must be an integer >= 1, got {self.n_layers!r}")
         if self.n_layers > 1 and self.powder_layer_m == 0:
             raise ValueError("settings: n_layers > 1 needs powder_layer_m > 0 (the layer thickness)")
+        if not (0 <= self.dwell_s < float("inf") and 0 < self.dwell_step_s < float("inf")):
+            raise ValueError(f"settings: dwell_s must be >= 0 and dwell_step_s > 0, got {self.dwell_s}, "
+                             f"{self.dwell_step_s}")
         if not 0 <= self.plate_h_w_m2k < float("inf"):
             raise ValueError(f"settings: plate_h_w_m2k must be finite and >= 0, got {self.plate_h_w_m2k}")
         for name in ("liquid_k_factor_xy", "liquid_k_factor_z"):

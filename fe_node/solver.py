@@ -23,7 +23,8 @@ import math
 
 import numpy as np
 
-from fe_node.boundary import evaporate, loss_flux
+from fe_node.boundary import evaporate, loss_flux, loss_flux_slope
+from fe_node.dwell import implicit_step
 from fe_node.material import Constitutive
 from fe_node.mesh import Grid, graded_axis
 from fe_node.observe import Observation, bilinear, interp_matrix, pool_geometry
@@ -32,6 +33,9 @@ from fe_node.powder import PowderBed
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.source import surface_load
+
+DWELL_EXPLICIT_S = 2e-3
+"""Explicit part of a dwell [s] (:meth:`ThermalModel._dwell`)."""
 
 
 def build_grid(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None) -> Grid:
@@ -200,6 +204,8 @@ class ThermalModel:
         s, g = self.settings, self.grid
         if self.powder is None or not self.layer_done:
             raise RuntimeError("add_layer needs powder_layer_m > 0 and a finished scan plan")
+        if s.dwell_s > 0:
+            self._dwell(s.dwell_s)
         kw, rho_w = self._element_weights()
         e_before = self._energy()
         n = math.ceil(s.powder_layer_m / s.h_fine_m - 1e-9)
@@ -220,6 +226,31 @@ class ThermalModel:
         self.layer += 1
         if self._layer_plans is not None:
             self.plan = self._layer_plans[self.layer]
+
+    def _dwell(self, duration_s: float) -> None:
+        """Cool for ``duration_s`` with the laser off; losses counted.
+
+        The first ``DWELL_EXPLICIT_S`` explicitly (the melt pool's steep gradients would make a
+        long implicit step overshoot: the trilinear stiffness is no M-matrix), then implicit steps
+        (:mod:`fe_node.dwell`) doubling from ``DWELL_EXPLICIT_S`` up to ``dwell_step_s``.
+        """
+        s = self.settings
+        n_explicit = min(math.ceil(DWELL_EXPLICIT_S / self._dt_sub), math.floor(duration_s / self._dt_sub))
+        no_load = np.zeros((1, 1))
+        for _ in range(n_explicit):
+            self._substep(no_load)
+        left, dt = duration_s - n_explicit * self._dt_sub, DWELL_EXPLICIT_S
+        while left > 1e-12 * duration_s:
+            dt = min(2 * dt, s.dwell_step_s, left)
+            b, db = np.zeros_like(self._h), np.zeros_like(self._h)
+            t_top = self.law.temperature(self._h[:, -1, :])
+            b[:, -1, :] = self._a_top * loss_flux(t_top, s)
+            db[:, -1, :] = self._a_top * loss_flux_slope(t_top, s)
+            if s.plate_h_w_m2k > 0:
+                b[:, 0, :] += self._a_bottom * s.plate_h_w_m2k * (self.law.temperature(self._h[:, 0, :]) - s.t0_k)
+                db[:, 0, :] += self._a_bottom * s.plate_h_w_m2k
+            self._lost += implicit_step(self._h, self.operator, self.law, self._m, dt, b, db)
+            left -= dt
 
     def reweight(self, elements, kw, rho_w) -> None:
         """Change the weights of solver elements (flat indices), keeping each node's energy.

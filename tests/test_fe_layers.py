@@ -45,3 +45,15 @@ def test_build_plate_sink_removes_heat():
     assert cooled.temperature().mean() < insulated.temperature().mean()
     assert obs1[0][-1].energy_lost_j > obs0[0][-1].energy_lost_j
     assert max(abs(o.energy_error_pct) for o in obs1[0]) < 1e-6
+
+
+def test_dwell_between_layers_cools_implicitly():
+    _, (_, no_dwell) = build(2)
+    runs = {step: build(2, dwell_s=0.5, dwell_step_s=step, plate_h_w_m2k=1e3) for step in (0.05, 0.01)}
+    model, (_, second) = runs[0.05]
+    a0, a1 = (np.mean([o.area_m2 for o in obs[-5:]]) for obs in (no_dwell, second))
+    assert a1 < 0.9 * a0                                       # the heat of layer 1 has spread
+    assert model.temperature().min() > 300.0 - 1e-6            # no undershoot from the implicit steps
+    assert max(abs(o.energy_error_pct) for o in second) < 1e-6
+    lost = [r[1][1][-1].energy_lost_j for r in runs.values()]
+    assert lost[0] == pytest.approx(lost[1], rel=0.02)         # converged in the dwell step
