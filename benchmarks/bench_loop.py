@@ -52,6 +52,7 @@ from launch import free_loopback_endpoint  # noqa: E402
 from messages.auth import RunCredentials  # noqa: E402
 from messages.bus import SUPERVISOR_ENV, BusSettings, StopFlag, wait_for_nodes, zenoh_config  # noqa: E402
 from messages.codec import MessageError, decode  # noqa: E402
+from messages.hub import router_config  # noqa: E402
 from messages.topics import CONTROLLER_DIAGNOSTICS, key_expr  # noqa: E402
 
 PINGPONG = str(REPO / "benchmarks" / "zenoh_pingpong.py")
@@ -92,11 +93,10 @@ class Hub:
         self.credentials = None
         if topology == "router":
             self.credentials = self._stack.enter_context(RunCredentials(run_id, NODES))
-        config = zenoh_config(BusSettings(run_id=run_id, connect=(), listen=(self.endpoint,)))
-        if self.credentials is not None:  # as messages.launch.service.LaunchService.run
-            config.insert_json5("mode", '"router"')
-            for key, value in self.credentials.hub_settings().items():
-                config.insert_json5(key, value)
+        if self.credentials is not None:  # the hub launch.py opens
+            config = router_config(self.credentials, self.endpoint)
+        else:
+            config = zenoh_config(BusSettings(run_id=run_id, connect=(), listen=(self.endpoint,)))
         self.session = self._stack.enter_context(zenoh.open(config))
 
     def close(self) -> None:
@@ -139,13 +139,10 @@ def pingpong(hub: Hub, rate_hz: float, duration_s: float) -> list[float]:
 
 def loop(hub: Hub, args: argparse.Namespace) -> tuple[dict, list[float], str]:
     """Run the surrogate against the controller; (plant stats, update times [µs], node output)."""
-    updates: list[float] = []
-
-    def on_diagnostics(sample: zenoh.Sample) -> None:
-        with contextlib.suppress(MessageError):
-            updates.append(decode(CONTROLLER_DIAGNOSTICS, sample.payload.to_bytes()).solve_time_us)
-
-    sub = hub.session.declare_subscriber(key_expr(hub.run_id, CONTROLLER_DIAGNOSTICS), on_diagnostics)
+    # queued by zenoh (no Python callback) and decoded after the loop: the bench stays light while it runs
+    capacity = int(args.rate_hz * (args.duration_s + 30)) + 1024
+    sub = hub.session.declare_subscriber(key_expr(hub.run_id, CONTROLLER_DIAGNOSTICS),
+                                         zenoh.handlers.FifoChannel(capacity))
     controller = spawn(["-m", "controller_node", "--controller", args.controller, *hub.common()],
                        hub.env("controller"))
     try:
@@ -158,6 +155,10 @@ def loop(hub: Hub, args: argparse.Namespace) -> tuple[dict, list[float], str]:
         if controller.poll() is None:
             controller.kill()
             controller.communicate()
+        updates = []
+        while (sample := sub.try_recv()) is not None:
+            with contextlib.suppress(MessageError):
+                updates.append(decode(CONTROLLER_DIAGNOSTICS, sample.payload.to_bytes()).solve_time_us)
         sub.undeclare()
     output = "\n".join([*(f"[plant] {line}" for line in plant_out.splitlines()[:-1]),
                         *(f"[controller] {line}" for line in controller_out.splitlines())])

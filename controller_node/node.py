@@ -13,16 +13,30 @@ plant's liveliness token disappears (the plant ended or died), or on SIGINT/SIGT
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from controller_node.registry import CONTROLLERS, make_controller
 from controller_node.settings import ControllerSettings
 from controller_node.types import ConfigurationError, Measurement
 from gp_trainer.atomic import atomic_write_bytes
 from messages import ControllerDiagnostics, LaserCommand, LogLevel, MeltPoolState
-from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
+from messages.bus import (
+    NewestInbox,
+    NodeBus,
+    StopFlag,
+    TopicPublisher,
+    add_bus_arguments,
+    bus_settings_from_args,
+    run_node,
+)
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.config import as_dict, build, load_toml
 from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE
@@ -89,62 +103,150 @@ def inadmissible(step: int, last_step: int | None) -> str | None:
 
 
 def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, plant: str, config: dict) -> int:
-    """Answer plant states until the plant goes away or a stop is requested."""
-    states = bus.inbox(PLANT_STATE)
+    """Answer plant states until the plant goes away or a stop is requested.
+
+    The states are answered on a thread of their own that blocks in zenoh until a state arrives
+    (:class:`~messages.bus.NewestInbox`: no poll timeout, no queue hop) and publishes the command
+    before anything else; this thread waits for a stop request (signals are handled here) or the
+    plant's departure, then wakes it.
+    """
+    states = bus.newest_inbox(PLANT_STATE)
     commands = bus.publisher(LASER_COMMAND)
     diagnostics = bus.publisher(CONTROLLER_DIAGNOSTICS)
     plant_gone = bus.watch_presence(plant)
     bus.ready(config=config, stop=stop)
-    n_skipped = n_impossible = 0
+    loop = AnswerLoop(bus, controller, settings, states, commands, diagnostics,
+                      done=lambda: stop.is_set() or plant_gone.is_set())
+    worker = threading.Thread(target=loop.serve, name="answer-states", daemon=True)
+    gc.collect()
+    gc.freeze()  # what exists now lives to the end: keep it out of the collections on the hot path
+    worker.start()
+    while worker.is_alive() and not loop.done():
+        stop.wait(0.05)
+    states.wake()
+    worker.join()
+    if loop.error is not None:
+        raise loop.error
+    if loop.status != 0:
+        return loop.status
+    reason = "stopped" if stop.is_set() else f"plant '{plant}' went away"
+    summary = (f"{reason}; {controller.n_fallbacks} fallbacks, {states.n_invalid} invalid and "
+               f"{loop.n_impossible} impossible states dropped, {loop.n_skipped} skipped")
+    bus.log(LogLevel.INFO, summary, time_s=loop.last_time_s)
+    bus.end_detail(summary)
+    return 0
+
+
+DIAGNOSTICS_DELAY_S = 100e-6
+"""The diagnostics of an answer leave this long after its command (when the plant's states come
+at least :data:`PAUSE_MIN_PERIODS` times this apart): on a machine with few cores they would
+otherwise take the CPU the command needs on its way to the plant."""
+PAUSE_MIN_PERIODS = 4
+
+
+@dataclass
+class AnswerLoop:
+    """The controller's hot path: newest state in, command out first, its diagnostics after."""
+
+    bus: NodeBus
+    controller: Any
+    settings: ControllerSettings
+    states: NewestInbox
+    commands: TopicPublisher
+    diagnostics: TopicPublisher
+    done: Callable[[], bool]
+    n_skipped: int = 0
+    n_impossible: int = 0
     last_step: int | None = None
-    last_time_s = 0.0
-    while not stop.is_set() and not plant_gone.is_set():
-        state = states.get(timeout=0.05)
-        if state is None:
-            continue
-        for newer in states.drain():  # free-running plant: answer the newest state only
-            state, n_skipped = newer, n_skipped + 1
-        reason = inadmissible(state.step, last_step)
+    last_time_s: float = 0.0
+    status: int = 0
+    error: BaseException | None = None
+    state_interval_s: float = 0.0
+    _last_arrival: float | None = None
+
+    def serve(self) -> None:
+        """Answer states until ``done()`` (checked after every wake-up); errors are kept for the caller.
+
+        A state is answered with its command at once; the answer's diagnostics follow after a
+        pause of :data:`DIAGNOSTICS_DELAY_S` without a new state (no pause when states come
+        faster than :data:`PAUSE_MIN_PERIODS` pauses apart), or right after the next command.
+        """
+        pending: ControllerDiagnostics | None = None
+        try:
+            while not self.done():
+                # free-running plant: answer the newest state only
+                state, skipped = self.states.newest(block=pending is None)
+                self.n_skipped += skipped
+                if state is None:
+                    if pending is not None:
+                        self.diagnostics.put(pending)
+                        pending = None
+                    continue
+                self._arrived(time.monotonic())
+                answered, diag = self.answer(state)
+                if pending is not None:
+                    self.diagnostics.put(pending)
+                pending = diag
+                if not answered:
+                    return
+                if pending is not None and self.pause():
+                    time.sleep(DIAGNOSTICS_DELAY_S)
+        except BaseException as err:  # re-raised on the node's main thread
+            self.error = err
+        finally:
+            if pending is not None and self.error is None:
+                self.diagnostics.put(pending)
+
+    def _arrived(self, t: float) -> None:
+        if self._last_arrival is not None:
+            self.state_interval_s = t - self._last_arrival
+        self._last_arrival = t
+
+    def pause(self) -> bool:
+        """Whether to hold the diagnostics back after a command (states come far enough apart)."""
+        return self.state_interval_s >= PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S
+
+    def answer(self, state: MeltPoolState) -> tuple[bool, ControllerDiagnostics | None]:
+        """Answer one state (or drop it, counted): publish its command; (``False`` if the controller
+        refused the plant, the diagnostics to publish)."""
+        bus, settings = self.bus, self.settings
+        reason = inadmissible(state.step, self.last_step)
         if reason is not None:
-            n_impossible += 1
-            if n_impossible == 1:
+            self.n_impossible += 1
+            if self.n_impossible == 1:
                 bus.log(LogLevel.WARNING, f"state dropped: {reason} (further ones are only counted)",
                         time_s=state.time_s)
-            continue
-        last_time_s = state.time_s
+            return True, None
+        self.last_time_s = state.time_s
+        controller = self.controller
         try:
             command, diag = controller.update(measurement_from_state(state))
         except ConfigurationError as err:
             bus.log(LogLevel.ERROR, str(err), time_s=state.time_s)
             bus.end_detail(f"refused: {err}")
             print(f"python -m controller_node: error: {err}", file=sys.stderr)
-            return 2
-        last_step = state.step
+            self.status = 2
+            return False, None
+        self.last_step = state.step
         power = command.power_w
         # the core guarantees this; never trust it blindly
         if not settings.power_min_w <= power <= settings.power_max_w:
             bus.log(LogLevel.ERROR, f"controller produced {power} W outside bounds; not published", time_s=state.time_s)
-            continue
-        commands.put(LaserCommand(
+            return True, None
+        self.commands.put(LaserCommand(
             run_id=bus.run_id, step=command.step, time_s=state.time_s, power_w=power,
             speed_mm_s=command.speed_m_s * 1e3, controller=controller.name,
         ))
-        diagnostics.put(ControllerDiagnostics(
+        return True, ControllerDiagnostics(
             run_id=bus.run_id, step=command.step, time_s=state.time_s, controller=controller.name,
             status=diag.status[:64], solve_time_us=diag.solve_time_s * 1e6, fallback=diag.fallback,
-            n_fallbacks=diag.n_fallbacks, n_dropped=states.n_invalid + n_skipped + n_impossible,
+            n_fallbacks=diag.n_fallbacks, n_dropped=self.states.n_invalid + self.n_skipped + self.n_impossible,
             setpoint_mm2=settings.set_point_m2 * 1e6,
             predicted_area_mm2=[a * 1e6 for a in diag.predicted_area_m2],
             predicted_power_w=list(diag.predicted_power_w),
             model_std_mm2=None if diag.model_std_m2 is None else diag.model_std_m2 * 1e6,
             feedforward_w=diag.feedforward_w,
-        ))
-    reason = "stopped" if stop.is_set() else f"plant '{plant}' went away"
-    summary = (f"{reason}; {controller.n_fallbacks} fallbacks, {states.n_invalid} invalid and "
-               f"{n_impossible} impossible states dropped, {n_skipped} skipped")
-    bus.log(LogLevel.INFO, summary, time_s=last_time_s)
-    bus.end_detail(summary)
-    return 0
+        )
 
 
 def build_parser() -> argparse.ArgumentParser:

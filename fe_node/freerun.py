@@ -1,16 +1,18 @@
 """Free-running plant loop shared by sensor-like nodes (example sensor, GP surrogate).
 
 A free-running plant behaves like a camera or pyrometer: it publishes ``MeltPoolState`` at a
-fixed rate and never waits for the controller. Between two publishes it takes whatever
-``LaserCommand`` arrives; at each tick it applies the newest applicable command and echoes the
-applied power in the state it publishes. A command is applicable (:class:`~fe_node.commands.CommandGate`)
+fixed rate and never waits for the controller. Between two publishes it sleeps while whatever
+``LaserCommand`` arrives is queued with its arrival time (no wake-up per command); at each tick
+it takes them, applies the newest applicable command and echoes the applied power in the state
+it publishes. A command is applicable (:class:`~fe_node.commands.CommandGate`)
 if its step is newer than the last applied one, at most one after the newest published state (no
 controller can answer a state not yet published) and not more than ``RING`` − 1 steps late, and
 its power and speed lie within the bounds; every other command is dropped and counted. The
 command answering state k (``step = k + 1``) is *on time* if it arrives before state k+1 is
-published; otherwise that step is a deadline miss. The fallback (default: the safe power) applies
-as soon as the controller's liveliness token is gone, or when no command was applied for
-``timeout_s``.
+published; otherwise that step is a deadline miss. Round trips run from the moment a state is
+handed to zenoh to the command's arrival in this process, as a bare zenoh ping-pong is timed.
+The fallback (default: the safe power) applies as soon as the controller's liveliness token is
+gone, or when no command was applied for ``timeout_s``.
 
 Functional core: :class:`CommandLatch` (which command applies, deadline and round-trip
 bookkeeping; no I/O, time passed in). Thin shell: :func:`run_free` (zenoh, clock, loop).
@@ -19,6 +21,7 @@ bookkeeping; no I/O, time passed in). Thin shell: :func:`run_free` (zenoh, clock
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import threading
 import time
@@ -228,6 +231,12 @@ def state_message(run_id: str, step: int, time_s: float, s: PlantSample, power_w
     )
 
 
+def sleep_until(t: float) -> None:
+    """Sleep until monotonic time ``t`` [s] (at once if it has passed)."""
+    while (remaining := t - time.monotonic()) > 0:
+        time.sleep(remaining)
+
+
 def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: FreeRunSettings, stop: StopFlag,
              source: str, controller_gone: threading.Event) -> FreeRunStats:
     """Publish states at ``settings.rate_hz`` until the step/time limit or a stop; apply the newest command.
@@ -246,21 +255,19 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     step = misses = 0
     command_source = "open-loop"
     started = next_tick = time.monotonic()
-    states.put(state_message(bus.run_id, 0, 0.0, sample, power, speed, source))
-    latch.published(0, time.monotonic())
+    latch.published(0, states.put(state_message(bus.run_id, 0, 0.0, sample, power, speed, source)))
     end_t = None if settings.duration_s is None else started + settings.duration_s
+    gc.collect()
+    gc.freeze()  # what exists now lives to the end: keep it out of the collections on the hot path
     while not stop.is_set() and (settings.max_steps is None or step < settings.max_steps):
         next_tick += period
         if next_tick < time.monotonic() - period:  # overrun by more than a period: restart the schedule
             next_tick = time.monotonic()
         if end_t is not None and next_tick > end_t:
             break
-        while (remaining := next_tick - time.monotonic()) > 0:
-            cmd = inbox.get(timeout=remaining)
-            if cmd is not None:
-                latch.offer(cmd, time.monotonic())
-        for cmd in inbox.drain():
-            latch.offer(cmd, time.monotonic())
+        sleep_until(next_tick)
+        for cmd in inbox.drain():  # each stamped with its arrival time in the subscriber
+            latch.offer(cmd, inbox.received_t)
         step += 1
         now = time.monotonic()
         gone = controller_gone.is_set()
@@ -273,8 +280,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
         command_source = new_source
         misses += latch.missed(step)
         sample = plant.step(power, speed, dt)
-        states.put(state_message(bus.run_id, step, step * dt, sample, power, speed, source))
-        latch.published(step, time.monotonic())
+        latch.published(step, states.put(state_message(bus.run_id, step, step * dt, sample, power, speed, source)))
         if step % settings.diagnostics_every == 0:
             diagnostics.put(PlantDiagnostics(
                 run_id=bus.run_id, step=step, time_s=step * dt, step_wall_ms=(time.monotonic() - now) * 1e3,
@@ -283,7 +289,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
             ))
     wall = time.monotonic() - started
     for cmd in inbox.drain():  # count what is still queued
-        latch.offer(cmd, time.monotonic())
+        latch.offer(cmd, inbox.received_t)
     stats = FreeRunStats(step, wall, misses, latch.n_late, latch.gate.n_dropped + inbox.n_invalid,
                          latch.gate.counts[Verdict.OUT_OF_BOUNDS], inbox.n_invalid, latch.n_fallbacks,
                          tuple(latch.rtt_s))

@@ -23,14 +23,14 @@ class _Inbox:
     def __init__(self, states, stop):
         self.states, self.stop, self.n_invalid = list(states), stop, 0
 
-    def get(self, timeout=None):
+    def newest(self, block=True):
         if not self.states:
             self.stop.set()
-            return None
-        return self.states.pop(0)
+            return None, 0
+        return self.states.pop(0), 0
 
-    def drain(self):
-        return []
+    def wake(self):
+        pass
 
 
 class _Publisher:
@@ -47,7 +47,7 @@ class _Bus:
     def __init__(self, states, stop):
         self._inbox, self.pubs, self.logs = _Inbox(states, stop), {}, []
 
-    def inbox(self, topic):
+    def newest_inbox(self, topic):
         return self._inbox
 
     def publisher(self, topic):
