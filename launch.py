@@ -1,11 +1,8 @@
 """Start a meltloop run: recorder, controller and plant as separate processes over zenoh.
 
-A run is a declarative list of nodes (:class:`messages.launch.node.NodeSpec`). The launch
-service (:mod:`messages.launch.service`) opens the run's hub on loopback with fresh per-run
-credentials and per-node access control, starts each node as its own process in order and
-waits for it to be ready, and ends the run when any node fails. Ctrl-C / SIGTERM stops the
-nodes in reverse order (SIGINT, then SIGTERM, then SIGKILL), so the recorder finishes last.
-The run report (:mod:`controller_node.summary`) prints the Table-4 line over the fixed window.
+The options become a declarative node list; the launch service (:mod:`messages.launch.service`)
+runs it behind an authenticating hub, and the run report (:mod:`controller_node.summary`) prints
+the Table-4 line over the fixed window.
 """
 
 from __future__ import annotations
@@ -25,12 +22,13 @@ from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.launch.node import NodeSpec, load_node_list
 from messages.launch.service import LaunchService, RunFailed, free_loopback_endpoint, writable_recording
+from messages.live import DEFAULT_PORT, check_port
 
 DEFAULT_CONTROLLER = "preview-mpc"
 CONTROLLER_CHOICES = ("mpc", "preview-mpc", "pid", "feedforward", "open-loop", "none")
 COMPARED = ("open-loop", "pid", "feedforward", "mpc", "preview-mpc")
 NODE_OPTIONS = ("scenario", "controller", "setpoint_mm2", "learning_state", "model", "max_steps", "h_um", "fallback",
-                "command_timeout_s", "config", "compare")  # the default nodes' options: refused with --nodes
+                "command_timeout_s", "config", "compare", "live")  # the default nodes' options: refused with --nodes
 DEFAULT_SETPOINT_MM2 = round(ControllerSettings.set_point_m2 * 1e6, 9)
 
 
@@ -48,6 +46,7 @@ class RunOptions:
     learning_state: Path | None = None
     fallback: str | None = None
     command_timeout_s: float | None = None
+    live: int | None = None  # serve the run live over the Foxglove WebSocket protocol on this port
 
     def __post_init__(self) -> None:
         checks = [
@@ -59,6 +58,7 @@ class RunOptions:
             (self.command_timeout_s is None or 0 < self.command_timeout_s <= 60,
              "--command-timeout-s must be in (0, 60]"),
             (self.config is None or self.config.is_file(), f"--config: file not found: {self.config}"),
+            (self.live is None or 1 <= self.live <= 65535, "--live: the port must be in 1..65535"),
             (self.model is None or self.model.is_file(), f"--model: file not found: {self.model}"),
             (self.learning_state is None or self.controller == "preview-mpc",
              "--learning-state needs --controller preview-mpc"),
@@ -76,12 +76,10 @@ class RunOptions:
         """The set point [mm²]: the option, else the [controller] table's, else the default."""
         if self.setpoint_mm2 is not None:
             return self.setpoint_mm2
-        from messages.config import load_toml
+        from messages.config import build, load_toml
 
-        value = load_toml(self.config).get("controller", {}).get("set_point_m2", DEFAULT_SETPOINT_MM2 * 1e-6)
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise UsageError(f"{self.config} [controller] set_point_m2 must be a number, got {value!r}")
-        return float(value) * 1e6
+        table = {k: v for k, v in load_toml(self.config).get("controller", {}).items() if k != "name"}
+        return build(ControllerSettings, table, f"{self.config} [controller]").set_point_m2 * 1e6
 
 
 def check_config(opts: RunOptions) -> None:
@@ -123,23 +121,25 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
     optional = {"--max-steps": opts.max_steps, "--h-um": opts.h_um, "--fallback": opts.fallback,
                 "--command-timeout-s": opts.command_timeout_s}
     plant += [item for flag, value in optional.items() if value is not None for item in (flag, str(value))]
+    if opts.live is not None:  # the plant waits for it (every state served), the recorder for its end
+        recorder, plant = recorder + ["--expect", "live"], plant + ["--require", "live"]
+        nodes.insert(0, NodeSpec("live", "messages.live", ("--require", "recorder", "--port", str(opts.live)),
+                                 wait_ready=False))
     return [NodeSpec("recorder", "messages.recorder", tuple(recorder)), *nodes,
             NodeSpec("plant", "fe_node", tuple(plant), main=True)]
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Command-line interface of ``python launch.py``."""
-    p = ArgumentParser(prog="python launch.py", description=__doc__.split("\n\n")[0],
-                       epilog="With no options: a 4 x 10 mm bidirectional IN625 layer, hatch 0.1 mm, 800 mm/s, "
-                       f"nominal 250 W, under {DEFAULT_CONTROLLER}, recorded to recordings/.")
+    p = ArgumentParser(prog="python launch.py", description=__doc__.split("\n\n")[0], epilog="With no options: a 4 x "
+                       f"10 mm IN625 layer, hatch 0.1 mm, 800 mm/s, under {DEFAULT_CONTROLLER}, into recordings/.")
     add = p.add_argument
     add("--scenario", help="plant scenario: layer, single-track, double-track, table2-case1..9, ...")
     add("--controller", help=f"{DEFAULT_CONTROLLER} (default) or one of {', '.join(CONTROLLER_CHOICES)} "
         "('none': the plant plays the scenario's open-loop profile)")
     add("--setpoint-mm2", type=float, help=f"melt-pool area set point [mm²] (default {DEFAULT_SETPOINT_MM2:g})")
     add("--config", type=Path, help="TOML run configuration: [plant] and [controller] tables of settings")
-    add("--learning-state", type=Path, metavar="FILE",
-        help="preview-mpc learns over layers: start from FILE if it exists, write what this run learned to it")
+    add("--learning-state", type=Path, metavar="FILE", help="preview-mpc: start from FILE's learning, write this run's")
     add("--model", type=Path, help="model file (default: the controller's shipped model in gp_trainer/models/)")
     add("--max-steps", type=int, help="end the run after this many plant steps")
     add("--h-um", type=float, help="fine FE element size [µm]")
@@ -149,12 +149,12 @@ def build_parser() -> argparse.ArgumentParser:
     add("--json", action="store_true", help="print a JSON summary as the last line")
     add("--compare", action="store_true", help=f"run {', '.join(COMPARED)} on the same plant; table and figure")
     add("--report", type=Path, metavar="RECORDING", help="only the Table 4 metrics and figure of a recording")
-    add("--nodes", type=Path, metavar="FILE", help="declarative node list replacing the default (TOML [[node]] tables: "
-        "name, module or command, args, main, wait_ready, roles)")
+    add("--nodes", type=Path, metavar="FILE", help="TOML node list replacing the default nodes (docs/node-contract.md)")
     add("--run-id", help="run identifier (default: derived from the recording name)")
     add("--hub", metavar="ENDPOINT", help="zenoh endpoint of the run's hub (default: a free loopback port)")
-    add("--zenoh-config", type=Path, metavar="FILE",
-        help="zenoh JSON5 configuration for the hub and every node; it then defines security (no per-run credentials)")
+    add("--zenoh-config", type=Path, metavar="FILE", help="zenoh JSON5 file for hub and nodes (no per-run credentials)")
+    add("--live", nargs="?", type=int, const=DEFAULT_PORT, metavar="PORT", help="also serve the run live to Foxglove "
+        f"on ws://127.0.0.1:{DEFAULT_PORT} or PORT (docs/live.md)")
     add("--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal anyway)")
     return p
 
@@ -175,8 +175,7 @@ def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None
 
 
 def compare(opts: RunOptions, folder: Path, args: argparse.Namespace, progress: bool) -> tuple[int, dict[str, Any]]:
-    """Run every compared controller on the same plant; write ``comparison.md`` and ``comparison.png``.
-    Stops at the first run that fails, does not finish or has no metrics."""
+    """Run every compared controller on one plant (stop at the first failure); ``comparison.md`` and ``.png``."""
     from controller_node.report import WINDOW_START_S, plot, read_trace
 
     rows, traces = [], {}
@@ -212,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         specs = load_node_list(args.nodes) if args.nodes is not None else None
         if specs is None:
             check_config(opts)
+            if opts.live is not None:
+                check_port(opts.live)
         elif given := [f"--{k.replace('_', '-')}" for k in NODE_OPTIONS if getattr(args, k) not in (None, False)]:
             raise UsageError(f"{', '.join(given)} cannot be combined with --nodes (give them to the nodes in the list)")
         zenoh_config(BusSettings(run_id=args.run_id or "default", connect=(args.hub,) if args.hub else (),
@@ -222,8 +223,7 @@ def main(argv: list[str] | None = None) -> int:
             writable_recording(folder / "comparison.md")
         else:
             name = "nodes" if specs else f"{opts.scenario}-{opts.controller}"
-            out = args.out or Path("recordings") / f"{stamp}-{name}.mcap"
-            writable_recording(out)
+            out = writable_recording(args.out or Path("recordings") / f"{stamp}-{name}.mcap")
     except UsageError as err:
         return exit_usage(parser.prog, err)
     progress = not args.no_progress and sys.stderr.isatty()  # a bar only on a terminal, not in logs

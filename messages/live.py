@@ -90,6 +90,18 @@ class LiveSettings:
             raise UsageError(f"--nice must be in 0..19, got {self.nice}")
 
 
+def check_port(port: int, host: str = "127.0.0.1") -> None:
+    """Refuse a port already taken on ``host`` before a run starts (:class:`UsageError` naming ``--live``)."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError as err:
+            raise UsageError(f"--live {port}: cannot serve on {host}:{port}: {err.strerror or err}") from None
+
+
 def schema_bytes(topic: Topic) -> bytes:
     """The ``jsonschema`` data of ``topic``'s channel, byte for byte what the recorder writes."""
     return json.dumps(json_schema(topic)).encode()

@@ -191,3 +191,44 @@ def test_shipped_layout_uses_only_served_channels_and_fields():
         assert field.split("[")[0] in json_schema(channels[channel])["properties"], path
     images = [panel["imageMode"]["imageTopic"] for panel in layout["configById"].values() if "imageMode" in panel]
     assert images == [IMAGES.channel]
+
+
+def test_launch_live_serves_the_default_nodes_run(tmp_path):
+    """``launch.py --live PORT``: a client subscribed to /plant/state receives the run's states."""
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO, free_endpoint
+
+    port = int(free_endpoint().rsplit(":", 1)[1])
+    out = tmp_path / "live.mcap"
+    proc = subprocess.Popen([sys.executable, "launch.py", "--live", str(port), "--max-steps", "60", "--h-um", "40",
+                             "--controller", "pid", "--out", str(out), "--no-progress"], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    steps = []
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                ws = connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"])
+                break
+            except OSError:
+                time.sleep(0.05)
+        with ws:
+            channels = {}
+            while "/plant/state" not in channels:
+                frame = ws.recv(timeout=30)
+                if isinstance(frame, str) and json.loads(frame).get("op") == "advertise":
+                    channels |= {c["topic"]: c["id"] for c in json.loads(frame)["channels"]}
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": channels["/plant/state"]}]}))
+            while True:
+                try:
+                    frame = ws.recv(timeout=30)
+                except (ConnectionClosed, TimeoutError):
+                    break
+                if isinstance(frame, bytes) and frame[0] == 1:  # message data: op, subscription, log time, payload
+                    steps.append(json.loads(frame[13:])["step"])
+    finally:
+        status, output = finish(proc, timeout=120)
+    assert status == 0, output
+    assert steps and steps == sorted(steps) and steps[-1] == 60, (steps[:5], steps[-5:])
