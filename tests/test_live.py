@@ -220,7 +220,8 @@ def test_launch_live_serves_the_default_nodes_run(tmp_path):
                 frame = ws.recv(timeout=30)
                 if isinstance(frame, str) and json.loads(frame).get("op") == "advertise":
                     channels |= {c["topic"]: c["id"] for c in json.loads(frame)["channels"]}
-            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": channels["/plant/state"]}]}))
+            subscription = {"id": 1, "channelId": channels["/plant/state"]}
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [subscription]}))
             while True:
                 try:
                     frame = ws.recv(timeout=30)
