@@ -230,27 +230,45 @@ class ThermalModel:
     def _dwell(self, duration_s: float) -> None:
         """Cool for ``duration_s`` with the laser off; losses counted.
 
-        The first ``DWELL_EXPLICIT_S`` explicitly (the melt pool's steep gradients would make a
-        long implicit step overshoot: the trilinear stiffness is no M-matrix), then implicit steps
-        (:mod:`fe_node.dwell`) doubling from ``DWELL_EXPLICIT_S`` up to ``dwell_step_s``.
+        The first ``DWELL_EXPLICIT_S`` explicitly, then implicit steps (:mod:`fe_node.dwell`)
+        doubling from ``DWELL_EXPLICIT_S`` up to ``dwell_step_s``.  The trilinear stiffness is no
+        M-matrix, so a long implicit step over the steep gradients of a fresh track can undershoot:
+        a step that cools any node below the coldest temperature before it (or whose CG fails) is
+        undone and retried at a quarter of its length.
         """
         s = self.settings
         n_explicit = min(math.ceil(DWELL_EXPLICIT_S / self._dt_sub), math.floor(duration_s / self._dt_sub))
         no_load = np.zeros((1, 1))
         for _ in range(n_explicit):
             self._substep(no_load)
-        left, dt = duration_s - n_explicit * self._dt_sub, DWELL_EXPLICIT_S
+        left, dt = duration_s - n_explicit * self._dt_sub, DWELL_EXPLICIT_S / 2
         while left > 1e-12 * duration_s:
             dt = min(2 * dt, s.dwell_step_s, left)
-            b, db = np.zeros_like(self._h), np.zeros_like(self._h)
-            t_top = self.law.temperature(self._h[:, -1, :])
-            b[:, -1, :] = self._a_top * loss_flux(t_top, s)
-            db[:, -1, :] = self._a_top * loss_flux_slope(t_top, s)
-            if s.plate_h_w_m2k > 0:
-                b[:, 0, :] += self._a_bottom * s.plate_h_w_m2k * (self.law.temperature(self._h[:, 0, :]) - s.t0_k)
-                db[:, 0, :] += self._a_bottom * s.plate_h_w_m2k
-            self._lost += implicit_step(self._h, self.operator, self.law, self._m, dt, b, db)
+            before = self._h.copy()
+            t_floor = min(s.t_amb_k, float(self.law.temperature(before.min()))) - 1e-3
+            try:
+                lost = self._implicit_dwell_step(dt)
+            except RuntimeError:
+                lost = None
+            if lost is None or float(self.law.temperature(self._h.min())) < t_floor:
+                if dt <= self._dt_sub:
+                    raise RuntimeError("dwell: implicit step failed at the explicit step size")
+                self._h, dt = before, dt / 8
+                continue
+            self._lost += lost
             left -= dt
+
+    def _implicit_dwell_step(self, dt: float) -> float:
+        """One implicit dwell step of ``dt`` [s] with the top and plate losses; returns the energy lost [J]."""
+        s = self.settings
+        b, db = np.zeros_like(self._h), np.zeros_like(self._h)
+        t_top = self.law.temperature(self._h[:, -1, :])
+        b[:, -1, :] = self._a_top * loss_flux(t_top, s)
+        db[:, -1, :] = self._a_top * loss_flux_slope(t_top, s)
+        if s.plate_h_w_m2k > 0:
+            b[:, 0, :] += self._a_bottom * s.plate_h_w_m2k * (self.law.temperature(self._h[:, 0, :]) - s.t0_k)
+            db[:, 0, :] += self._a_bottom * s.plate_h_w_m2k
+        return implicit_step(self._h, self.operator, self.law, self._m, dt, b, db)
 
     def reweight(self, elements, kw, rho_w) -> None:
         """Change the weights of solver elements (flat indices), keeping each node's energy.
