@@ -17,6 +17,11 @@ from controller_node.qp_osqp import OSQPBackend
 from controller_node.synthetic import AnalyticMeltPoolModel, multitrack_temperature, run_closed_loop
 
 SET_POINT = 0.07e-6
+
+
+def _settings(**fields) -> ControllerSettings:
+    """Controller settings at this file's set point (the synthetic plant's operating point)."""
+    return ControllerSettings(set_point_m2=SET_POINT, **fields)
 PLANT = AnalyticMeltPoolModel()
 # The controller's model differs from the plant (gains, lag, preheat exponent).
 MODEL = AnalyticMeltPoolModel(alpha=0.25, n_p=1.1, n_t=0.55)
@@ -27,14 +32,14 @@ MODEL = AnalyticMeltPoolModel(alpha=0.25, n_p=1.1, n_t=0.55)
 SYNTHETIC_MPC = MPCSettings(
     disturbance_gain=0.2, integral_gain=0.0, power_scale_w=None, feedforward=FeedForwardSettings()
 )
-SYNTHETIC = ControllerSettings(mpc=SYNTHETIC_MPC)
+SYNTHETIC = _settings(mpc=SYNTHETIC_MPC)
 
 SETTING_VARIANTS = {
-    "default": ControllerSettings(),
+    "default": _settings(),
     "default-move": SYNTHETIC,
-    "steady-state": ControllerSettings(mpc=dataclasses.replace(SYNTHETIC_MPC, input_penalty="steady_state")),
+    "steady-state": _settings(mpc=dataclasses.replace(SYNTHETIC_MPC, input_penalty="steady_state")),
     # tight area bounds and rate limits so that soft constraints and rate rows bind
-    "tight": ControllerSettings(mpc=dataclasses.replace(SYNTHETIC_MPC, area_max_m2=0.09e-6, area_min_m2=0.05e-6,
+    "tight": _settings(mpc=dataclasses.replace(SYNTHETIC_MPC, area_max_m2=0.09e-6, area_min_m2=0.05e-6,
                                                         rate_min_w=-20.0, rate_max_w=15.0)),
 }
 
@@ -104,7 +109,7 @@ def _metrics(area: np.ndarray, start: int = 20) -> tuple[float, float, float]:
 
 def test_mpc_tracks_set_point_through_hot_track_starts() -> None:
     temps = multitrack_temperature(4, 120)  # T jumps to ~1200-1300 K at each new track
-    open_loop = run_closed_loop(make_controller("open-loop", ControllerSettings()), PLANT, temps)
+    open_loop = run_closed_loop(make_controller("open-loop", _settings()), PLANT, temps)
     mpc = make_controller("mpc", SYNTHETIC, MODEL)
     run = run_closed_loop(mpc, PLANT, temps, area0_m2=0.03e-6, power0_w=100.0)
     rmse, over, under = _metrics(run.area_m2)
@@ -126,7 +131,7 @@ def test_disturbance_estimate_removes_offset_under_strong_mismatch() -> None:
     temps = np.full(300, 600.0)
     offsets = {}
     for gain in (0.0, 0.2):
-        settings = ControllerSettings(mpc=dataclasses.replace(SYNTHETIC_MPC, disturbance_gain=gain))
+        settings = _settings(mpc=dataclasses.replace(SYNTHETIC_MPC, disturbance_gain=gain))
         run = run_closed_loop(make_controller("mpc", settings, wrong), PLANT, temps)
         offsets[gain] = float(np.mean(run.area_m2[-50:])) / SET_POINT - 1.0
     assert abs(offsets[0.0]) > 0.03
@@ -137,7 +142,7 @@ def test_prediction_diagnostics_are_consistent() -> None:
     mpc = make_controller("mpc", SYNTHETIC, MODEL)
     m = Measurement(1, 50e-6, 0.05e-6, 800.0, 200.0, 0.8)
     cmd, diag = mpc.update(m)
-    h = ControllerSettings().mpc.horizon
+    h = _settings().mpc.horizon
     assert diag.status == "ok" and not diag.fallback and cmd.step == 2
     assert len(diag.predicted_area_m2) == h and len(diag.predicted_power_w) == h
     assert diag.predicted_power_w[0] == pytest.approx(cmd.power_w)
@@ -151,9 +156,9 @@ def test_prediction_diagnostics_are_consistent() -> None:
 
 def test_mpc_feedforward_term_is_added_with_sensitivity_gain() -> None:
     ff = FeedForwardSettings(enabled=True, direct_gain=0.0, differential_gain=1.0)
-    with_ff = make_controller("mpc", ControllerSettings(mpc=dataclasses.replace(SYNTHETIC_MPC, feedforward=ff,
+    with_ff = make_controller("mpc", _settings(mpc=dataclasses.replace(SYNTHETIC_MPC, feedforward=ff,
                                                                                  disturbance_gain=0.0)), MODEL)
-    without = make_controller("mpc", ControllerSettings(mpc=dataclasses.replace(SYNTHETIC_MPC, disturbance_gain=0.0)),
+    without = make_controller("mpc", _settings(mpc=dataclasses.replace(SYNTHETIC_MPC, disturbance_gain=0.0)),
                               MODEL)
     m0 = Measurement(0, 0.0, 0.07e-6, 600.0, 250.0, 0.8)
     m1 = Measurement(1, 50e-6, 0.07e-6, 620.0, 250.0, 0.8)
@@ -202,7 +207,7 @@ def test_model_guard_clips_state_and_power_gains() -> None:
 
 def test_default_mpc_plans_compensated_power_with_fixed_temperature_gain() -> None:
     """Default (FE) tuning: Δp_ff = K_T (T − T_ref) is added to the plan; the QP sees p − Δp_ff."""
-    s = ControllerSettings()
+    s = _settings()
     ff = s.mpc.feedforward
     assert ff.enabled and ff.direct_gain == 1.0 and ff.gain_w_per_k is not None and ff.gain_w_per_k < 0
     mpc = make_controller("mpc", s, MODEL)
@@ -226,12 +231,12 @@ def test_integral_action_removes_offset_and_freezes_outside_its_band() -> None:
     offsets = {}
     for gain in (0.0, 0.05):
         mpc_settings = dataclasses.replace(SYNTHETIC_MPC, disturbance_gain=0.0, integral_gain=gain)
-        run = run_closed_loop(make_controller("mpc", ControllerSettings(mpc=mpc_settings), wrong), PLANT, temps)
+        run = run_closed_loop(make_controller("mpc", _settings(mpc=mpc_settings), wrong), PLANT, temps)
         offsets[gain] = float(np.mean(run.area_m2[-50:])) / SET_POINT - 1.0
     assert abs(offsets[0.0]) > 0.03
     assert abs(offsets[0.05]) < 0.005
     # far outside the band (e.g. a hot track start) the integral does not move
-    mpc = make_controller("mpc", ControllerSettings(mpc=dataclasses.replace(SYNTHETIC_MPC, integral_gain=0.05,
+    mpc = make_controller("mpc", _settings(mpc=dataclasses.replace(SYNTHETIC_MPC, integral_gain=0.05,
                                                                              disturbance_gain=0.0)), wrong)
     for step in range(5):
         mpc.update(Measurement(step, step * 50e-6, 2.0 * SET_POINT, 600.0, 200.0, 0.8))
