@@ -17,7 +17,7 @@ from controller_node.model import linearise
 from controller_node.synthetic import AnalyticMeltPoolModel, multitrack_temperature, run_closed_loop
 
 MODEL = AnalyticMeltPoolModel()
-SET_POINT = 0.07e-6
+SET_POINT = ControllerSettings().set_point_m2  # the controllers below use the default
 
 
 def _m(step: int, area: float = SET_POINT, t: float = 300.0, power: float = 250.0) -> Measurement:
