@@ -13,6 +13,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+from messages.types import LASER_POWER_MAX_W
+
 __all__ = ["ControllerSettings", "MPCSettings", "PreviewSettings", "PIDSettings", "FeedForwardSettings",
            "FE_TEMPERATURE_GAIN_W_PER_K", "FE_MPC_TEMPERATURE_GAIN_W_PER_K", "FE_REFERENCE_TEMPERATURE_K"]
 
@@ -161,8 +163,8 @@ class MPCSettings:
     r: float = 0.1
     q_f: float = 20.0
     input_penalty: Literal["steady_state", "move"] = "move"
-    rate_min_w: float = -350.0
-    rate_max_w: float = 350.0
+    rate_min_w: float = -LASER_POWER_MAX_W
+    rate_max_w: float = LASER_POWER_MAX_W
     area_min_m2: float = 0.0
     area_max_m2: float = 0.5e-6
     slack_linear: float = 100.0
@@ -279,7 +281,7 @@ class PreviewSettings:
     q: float = 1.0
     q_f: float = 20.0
     r: float = 3.0
-    power_scale_w: float = 350.0
+    power_scale_w: float = LASER_POWER_MAX_W
     area_min_m2: float = 0.0
     area_max_m2: float = 0.5e-6
     slack_linear: float = 100.0
@@ -365,7 +367,7 @@ class ControllerSettings:
 
     set_point_m2: float = 0.063e-6
     power_min_w: float = 0.0
-    power_max_w: float = 350.0
+    power_max_w: float = LASER_POWER_MAX_W
     nominal_power_w: float = 250.0
     nominal_speed_m_s: float = 0.8
     max_age_steps: int = 1

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 from messages import LaserCommand
 from messages.cli import UsageError
+from messages.types import LASER_POWER_MAX_W
 
 FALLBACKS = ("safe", "hold")
 
@@ -46,7 +47,7 @@ class CommandPolicy:
     """
 
     power_min_w: float = 0.0
-    power_max_w: float = 350.0
+    power_max_w: float = LASER_POWER_MAX_W
     speed_min_m_s: float = 0.05
     speed_max_m_s: float = 5.0
     timeout_s: float = 5.0

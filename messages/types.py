@@ -82,6 +82,11 @@ class MeltPoolState(Message, frozen=True, kw_only=True):
     source: Literal["fe", "sensor", "replay", "surrogate"] = "fe"
 
 
+LASER_POWER_MAX_W = 350.0
+"""Highest power of the process (paper Table 3, p_u) [W]: the one default of the controller's and
+the plant's power bounds (each node still enforces its own configured bounds)."""
+
+
 class LaserCommand(Message, frozen=True, kw_only=True):
     """Laser set-points published by the controller for one step.
 
