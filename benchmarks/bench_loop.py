@@ -60,9 +60,13 @@ NODES = {"plant": ("plant",), "controller": ("controller",), "ping": ("plant",),
 BUSY_LOOP = "import os, sys\nos.sched_setaffinity(0, {int(sys.argv[1])})\nwhile True:\n    pass\n"
 
 
+FIFO_PRIORITY: int | None = None  # --fifo-priority: every node process under SCHED_FIFO at this priority
+
+
 def spawn(argv: list[str], env: dict[str, str]) -> subprocess.Popen[str]:
     """``python argv`` in its own process group, output captured, ``env`` added."""
-    return subprocess.Popen([sys.executable, "-u", *argv], cwd=REPO, stdout=subprocess.PIPE,
+    prefix = [] if FIFO_PRIORITY is None else ["chrt", "--fifo", str(FIFO_PRIORITY)]
+    return subprocess.Popen([*prefix, sys.executable, "-u", *argv], cwd=REPO, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True,
                             env={**os.environ, **env})
 
@@ -182,7 +186,12 @@ def main() -> int:
                         help="bare ping-pong before and after the loop, each [s] (default: %(default)s)")
     parser.add_argument("--load", action="store_true", help="run a busy loop on one core during the measurement")
     parser.add_argument("--load-cpu", type=int, default=0, help="the core of --load (default: %(default)s)")
+    parser.add_argument("--fifo-priority", type=int, metavar="N",
+                        help="run every node process (ping, pong, plant, controller) under SCHED_FIFO priority N "
+                             "(chrt; needs CAP_SYS_NICE): how a real-time deployment would run them")
     args = parser.parse_args()
+    global FIFO_PRIORITY
+    FIFO_PRIORITY = args.fifo_priority
     run_id = f"bench-loop-{os.getpid()}"
     load_at_start = os.getloadavg()[0]
     busy = start_load(args.load_cpu) if args.load else None
@@ -222,6 +231,7 @@ def main() -> int:
         "loadavg_1min_at_start": round(load_at_start, 2), "loadavg_1min_at_end": round(os.getloadavg()[0], 2),
         "cpu_busy_pct_during_loop": round(100.0 * (cpu1[0] - cpu0[0]) / max(1, cpu1[1] - cpu0[1]), 1),
         "load": f"busy loop on cpu {args.load_cpu}" if args.load else "none added",
+        "scheduling": f"SCHED_FIFO {args.fifo_priority}" if args.fifo_priority is not None else "default",
         "python": platform.python_version(),
     }
     print(json.dumps(result))
