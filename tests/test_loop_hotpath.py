@@ -1,0 +1,197 @@
+"""The loop's hot path keeps its behaviour: newest state answered and the rest counted, wake-ups,
+arrival stamps, the command before its diagnostics and every diagnostics published (no timing
+assertions: timings live in benchmarks/bench_loop.py)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from controller_node.node import DIAGNOSTICS_DELAY_S, PAUSE_MIN_PERIODS, AnswerLoop
+from controller_node.registry import make_controller
+from controller_node.settings import ControllerSettings
+from fe_node.commands import CommandPolicy
+from fe_node.freerun import CommandLatch, FreeRunSettings, PlantSample, run_free
+from messages import LaserCommand, MeltPoolState, encode
+from messages.bus import BusSettings, NodeBus
+from messages.topics import LASER_COMMAND, PLANT_STATE, key_expr
+
+
+def state(run_id: str, step: int) -> MeltPoolState:
+    return MeltPoolState(run_id=run_id, step=step, time_s=step * 50e-6, laser_x_mm=0.0, laser_y_mm=0.0,
+                         scan_dir_x=1.0, scan_dir_y=0.0, track=0, area_mm2=0.06, t_ahead_k=300.0, power_w=250.0,
+                         speed_mm_s=800.0)
+
+
+def wait_for(predicate, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.01)
+
+
+def test_newest_inbox_returns_the_newest_valid_state_and_counts_the_others(hub, run_id):
+    with NodeBus("controller", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        box = bus.newest_inbox(PLANT_STATE)
+        raw = bus.session.declare_publisher(key_expr(run_id, PLANT_STATE))
+        pub = bus.publisher(PLANT_STATE)
+        for step in (1, 2):
+            pub.put(state(run_id, step))
+        raw.put(b"garbage")
+        raw.put(encode(state("another-run", 7)))
+        pub.put(state(run_id, 3))
+        time.sleep(0.3)  # everything queued before the read
+        newest, skipped = box.newest()
+        assert newest == state(run_id, 3) and skipped == 2
+        assert box.n_invalid == 2 and "does not match" in box.last_error
+        assert box.newest(block=False) == (None, 0)  # nothing left; returns at once
+        raw.undeclare()
+
+
+def test_newest_inbox_wakes_a_blocked_reader_without_counting_anything(hub, run_id):
+    with NodeBus("controller", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        box = bus.newest_inbox(PLANT_STATE)
+        got = []
+        reader = threading.Thread(target=lambda: got.append(box.newest()), daemon=True)
+        reader.start()
+        time.sleep(0.2)
+        assert reader.is_alive()  # blocked: nothing arrived
+        box.wake()
+        reader.join(5)
+        assert not reader.is_alive() and got == [(None, 0)] and box.n_invalid == 0
+        bus.publisher(PLANT_STATE).put(state(run_id, 5))  # still receives afterwards
+        wait_for(lambda: box.newest(block=False)[0] is not None)
+
+
+def test_inbox_stamps_arrival_not_reading(hub, run_id):
+    with NodeBus("plant", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        box = bus.inbox(LASER_COMMAND)
+        before = time.monotonic()
+        handed = bus.publisher(LASER_COMMAND).put(
+            LaserCommand(run_id=run_id, step=1, time_s=0.0, power_w=200.0, speed_mm_s=800.0, controller="t"))
+        assert before <= handed <= time.monotonic()  # put returns when it handed the message to zenoh
+        time.sleep(0.5)
+        read_at = time.monotonic()
+        assert box.get(timeout=5) is not None
+        assert handed <= box.received_t < read_at - 0.3  # when it arrived, not when it was read
+
+
+class _States:
+    """A NewestInbox stand-in: hands out scripted states, then sets ``stop``."""
+
+    def __init__(self, states, stop, stop_with_last=False):
+        self.states, self.stop, self.n_invalid, self.stop_with_last = list(states), stop, 0, stop_with_last
+
+    def newest(self, block=True):
+        if not self.states:
+            if block:
+                self.stop.set()
+            return None, 0
+        if self.stop_with_last and len(self.states) == 1:
+            self.stop.set()  # the run stops while the last state is being answered
+        return self.states.pop(0), 0
+
+
+class _Publisher:
+    def __init__(self, log):
+        self.log = log
+
+    def put(self, msg):
+        self.log.append(msg)
+        return time.monotonic()
+
+
+class _Bus:
+    run_id = "t"
+
+    def log(self, level, text, time_s=0.0):
+        pass
+
+
+@pytest.mark.parametrize("stop_with_last", [False, True])
+def test_answer_loop_publishes_each_command_before_its_diagnostics_and_every_diagnostics(stop_with_last):
+    stop = threading.Event()
+    sent: list = []
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+    states = _States([state("t", k) for k in range(5)], stop, stop_with_last)
+    loop = AnswerLoop(_Bus(), make_controller("pid", settings), settings, states, _Publisher(sent), _Publisher(sent),
+                      done=stop.is_set)
+    loop.serve()
+    assert loop.error is None
+    kinds = [(type(m).__name__, m.step) for m in sent]
+    commands = [s for k, s in kinds if k == "LaserCommand"]
+    diagnostics = [s for k, s in kinds if k == "ControllerDiagnostics"]
+    assert commands == diagnostics == [1, 2, 3, 4, 5]
+    for step in commands:
+        assert kinds.index(("LaserCommand", step)) < kinds.index(("ControllerDiagnostics", step))
+
+
+@pytest.mark.parametrize(("interval_s", "pause"), [(PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S, True),
+                                                    (PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S * 0.9, False),
+                                                    (0.0, False)])
+def test_diagnostics_pause_only_when_states_come_far_enough_apart(interval_s, pause):
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+    loop = AnswerLoop(_Bus(), None, settings, None, None, None, done=lambda: True)
+    loop._arrived(0.0)
+    loop._arrived(interval_s)
+    assert loop.state_interval_s == pytest.approx(interval_s) and loop.pause() is pause
+
+
+class _Plant:
+    def initial(self) -> PlantSample:
+        return PlantSample(0.06e-6, 300.0, 0.0, 0.0, (1.0, 0.0), 0)
+
+    def step(self, power_w, speed_m_s, dt_s) -> PlantSample:
+        return self.initial()
+
+
+class _Commands:
+    """An Inbox stand-in: the command answering each published state arrived 100 µs after it."""
+
+    def __init__(self, published):
+        self.published, self.n_invalid, self.received_t, self._given = published, 0, 0.0, 0
+
+    def drain(self):
+        while self._given < len(self.published):
+            step, t = self.published[self._given]
+            self._given += 1
+            self.received_t = t + 100e-6
+            yield LaserCommand(run_id="t", step=step + 1, time_s=0.0, power_w=200.0, speed_mm_s=800.0,
+                               controller="t")
+
+
+class _PlantBus:
+    run_id = "t"
+
+    def __init__(self):
+        self.published: list[tuple[int, float]] = []
+        self.commands = _Commands(self.published)
+
+    def publisher(self, topic):
+        bus = self
+
+        class _Pub:
+            def put(self, msg):
+                t = time.monotonic()
+                if topic is PLANT_STATE:
+                    bus.published.append((msg.step, t))
+                return t
+
+        return _Pub()
+
+    def inbox(self, topic):
+        return self.commands
+
+    def log(self, level, text, time_s=0.0):
+        pass
+
+
+def test_free_running_plant_times_commands_from_their_arrival_not_from_its_tick():
+    bus = _PlantBus()
+    latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
+    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=200.0, max_steps=20), threading.Event(),
+                     "surrogate", threading.Event())
+    assert stats.steps == 20 and stats.misses == 0 and len(stats.rtt_s) == len(bus.published) == 21
+    assert all(r == pytest.approx(100e-6, abs=1e-9) for r in stats.rtt_s)  # not up to the 5 ms tick period
