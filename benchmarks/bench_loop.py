@@ -16,7 +16,8 @@ plant and the controller connect to each other directly). ``--topology router``:
 ``launch.py`` runs, an authenticating zenoh router with per-node access control in the bench
 process (:class:`messages.auth.RunCredentials`) and every node its client (each message crosses
 the router). ``--load`` starts a busy loop on one core (a ``stress``-like process) for the whole
-measurement.
+measurement; ``--fifo-priority N`` runs every node process under ``SCHED_FIFO`` (``chrt``).
+``docs/realtime.md`` has the measured figures.
 
 Prints the node output, then, as the last line, JSON: the loop's round trip state → command
 (``rtt_median_us``, ``rtt_p99_us``), the achieved rate, the share of steps whose command arrived
@@ -27,7 +28,8 @@ load (1-minute load average at the start and end, the machine's CPU use during t
 busy loop if any) and context. The numbers depend on what else runs on the machine; the ratio,
 measured in the same run, much less.
 
-Usage: ``python benchmarks/bench_loop.py --rate-hz 2000 [--duration-s 5] [--topology router] [--load]``
+Usage: ``python benchmarks/bench_loop.py --rate-hz 2000 [--duration-s 5] [--topology router] [--load]
+[--fifo-priority 10]``
 """
 
 from __future__ import annotations
