@@ -29,6 +29,7 @@ from controller_node.types import ConfigurationError, Measurement
 from gp_trainer.atomic import atomic_write_bytes
 from messages import ControllerDiagnostics, LaserCommand, LogLevel, MeltPoolState
 from messages.bus import (
+    Inbox,
     NewestInbox,
     NodeBus,
     StopFlag,
@@ -39,7 +40,7 @@ from messages.bus import (
 )
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.config import as_dict, build, load_toml
-from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE
+from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE, RUN_EVENTS
 
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "gp_trainer" / "models" / "in625_gp.json"
 NODE_NAME = "controller"
@@ -114,6 +115,7 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
     commands = bus.publisher(LASER_COMMAND)
     diagnostics = bus.publisher(CONTROLLER_DIAGNOSTICS)
     plant_gone = bus.watch_presence(plant)
+    plant_events = bus.inbox(RUN_EVENTS)
     bus.ready(config=config, stop=stop)
     loop = AnswerLoop(bus, controller, settings, states, commands, diagnostics,
                       done=lambda: stop.is_set() or plant_gone.is_set())
@@ -129,12 +131,27 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
         raise loop.error
     if loop.status != 0:
         return loop.status
-    reason = "stopped" if stop.is_set() else f"plant '{plant}' went away"
+    lost = not stop.is_set() and not ended(plant_events, plant, PLANT_END_WAIT_S)
+    reason = "stopped" if stop.is_set() else f"plant '{plant}' " + ("lost (no end event)" if lost else "ended")
     summary = (f"{reason}; {controller.n_fallbacks} fallbacks, {states.n_invalid} invalid and "
                f"{loop.n_impossible} impossible states dropped, {loop.n_skipped} skipped")
-    bus.log(LogLevel.INFO, summary, time_s=loop.last_time_s)
+    bus.log(LogLevel.ERROR if lost else LogLevel.INFO, summary, time_s=loop.last_time_s)
     bus.end_detail(summary)
-    return 0
+    return 1 if lost else 0
+
+
+PLANT_END_WAIT_S = 0.5
+"""How long after the plant's token went its ``end`` event may still arrive (it is published
+about 50 ms before the token goes)."""
+
+
+def ended(events: Inbox, node: str, wait_s: float) -> bool:
+    """Whether ``node``'s ``end`` event is among the run events received (waiting up to ``wait_s``)."""
+    deadline = time.monotonic() + wait_s
+    while (event := events.get(timeout=max(0.0, deadline - time.monotonic()))) is not None:
+        if event.node == node and event.event == "end":
+            return True
+    return False
 
 
 DIAGNOSTICS_DELAY_S = 100e-6

@@ -48,7 +48,7 @@ def test_pid_node_answers_each_state_and_exits_when_the_plant_goes(hub, run_id):
         assert last.n_dropped == 2 and last.setpoint_mm2 == 0.07
     status, out = finish(node, timeout=20)  # the plant's token vanished: the node ends by itself
     assert status == 0, out
-    assert "plant 'plant' went away" in out
+    assert "plant 'plant' ended" in out
 
 
 def test_mpc_node_without_model_file_exits_2(tmp_path):

@@ -36,4 +36,4 @@ def test_example_sensor_closes_the_loop_with_the_controller_node(hub, run_id):
     assert all(s.power_w in applied for s in seen_states)  # the plant echoes an applied power
     assert seen_states[-1].power_w != 250.0  # the controller's commands were applied
     status, out = finish(controller, timeout=20)
-    assert status == 0 and "plant 'plant' went away" in out, out
+    assert status == 0 and "plant 'plant' ended" in out, out

@@ -111,7 +111,7 @@ def test_plant_killed_controller_notices_and_stops(hub, run_id):
         killed = time.monotonic()
         status, out = finish(controller, timeout=15)
         finish(plant)
-    assert status == 0 and "plant 'plant' went away" in out, out
+    assert status == 1 and "plant 'plant' lost (no end event)" in out, out
     assert time.monotonic() - killed < 5
 
 

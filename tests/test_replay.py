@@ -55,7 +55,7 @@ def test_replay_drives_the_controller_node(fe_recording, hub, run_id):
     assert [c.step for c in answered] == [s.step + 1 for s in original]  # 5 ms apart: every state answered
     assert "replayed 13 of 13 states; 13 commands received" in out
     status, out = finish(controller, timeout=20)
-    assert status == 0 and "plant 'plant' went away" in out, out
+    assert status == 0 and "plant 'plant' ended" in out, out
 
 
 @pytest.mark.parametrize("args, message", [
