@@ -42,7 +42,6 @@ from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.config import as_dict, build, load_toml
 from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE, RUN_EVENTS
 
-DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "gp_trainer" / "models" / "in625_gp.json"
 NODE_NAME = "controller"
 
 
@@ -62,19 +61,28 @@ def measurement_from_state(state: MeltPoolState) -> Measurement:
     )
 
 
+def default_model_path(name: str) -> Path | None:
+    """The shipped model file of controller ``name`` (``None``: it needs no model)."""
+    if name == "preview-mpc":
+        from gp_trainer.narx import DEFAULT_MODEL_PATH
+    elif name in ("mpc", "feedforward"):
+        from gp_trainer.model import DEFAULT_MODEL_PATH
+    else:
+        return None
+    return DEFAULT_MODEL_PATH
+
+
 def load_model(name: str, path: Path | None):
     """The model for controllers that need one (``mpc``, ``feedforward``: the one-step GP;
     ``preview-mpc``: the delay-aware model), else ``None``."""
-    if name not in ("mpc", "feedforward", "preview-mpc"):
+    default = default_model_path(name)
+    if default is None:
         return None
     from gp_trainer.errors import GPTrainerError
     from gp_trainer.model import GPModel
-    from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel
+    from gp_trainer.narx import NarxGPModel
 
-    if name == "preview-mpc":
-        loader, path = NarxGPModel.load, path or DEFAULT_MODEL_PATH
-    else:
-        loader, path = GPModel.load, path or DEFAULT_MODEL
+    loader, path = (NarxGPModel.load if name == "preview-mpc" else GPModel.load), path or default
     try:
         return loader(path)
     except (GPTrainerError, OSError) as err:
@@ -272,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--controller", default="preview-mpc", choices=CONTROLLERS,
                         help="control law (default: %(default)s)")
     parser.add_argument("--model", type=Path,
-                        help=f"GP model file (default: {DEFAULT_MODEL.relative_to(DEFAULT_MODEL.parents[2])})")
+                        help="model file (default: the controller's shipped model in gp_trainer/models/)")
     parser.add_argument("--setpoint-mm2", type=float, help="melt-pool area set point [mm²]")
     parser.add_argument("--config", type=Path,
                         help="TOML run configuration; its [controller] table holds ControllerSettings fields")
@@ -303,8 +311,8 @@ def main(argv: list[str] | None = None) -> int:
             load_learning_state(controller, args.learning_state)
     except UsageError as err:
         return exit_usage(parser.prog, err)
-    config = {"controller": args.controller, "model": str(args.model or DEFAULT_MODEL) if model else None,
-              **as_dict(settings)}
+    model_file = args.model or default_model_path(args.controller)
+    config = {"controller": args.controller, "model": str(model_file) if model else None, **as_dict(settings)}
     stop = StopFlag()
     status = run_node(parser.prog, NODE_NAME, bus_settings,
                       lambda bus: run(bus, controller, settings, stop, args.plant, config))

@@ -41,6 +41,11 @@ class _Publisher:
         self.sent.append(message)
 
 
+class _Empty:
+    def get(self, timeout=None):
+        return None
+
+
 class _Bus:
     run_id = "t"
 
@@ -49,6 +54,9 @@ class _Bus:
 
     def newest_inbox(self, topic):
         return self._inbox
+
+    def inbox(self, topic):  # the run events (the plant's end): none here, the run is stopped
+        return _Empty()
 
     def publisher(self, topic):
         return self.pubs.setdefault(topic.suffix if hasattr(topic, "suffix") else str(topic), _Publisher())
