@@ -41,7 +41,12 @@ DEFAULT_HUB = "tcp/127.0.0.1:7447"
 DEFAULT_LISTEN = "tcp/127.0.0.1:0"
 SUPERVISOR_ENV = "MELTLOOP_SUPERVISOR_PID"
 REQUIRE_TIMEOUT_S = 60.0
-_RUN_ID_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
+_NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
+
+
+def is_name(text: str) -> bool:
+    """Whether ``text`` is a valid run id or node name: 1-64 letters, digits, ``_.-``, not starting with ``_.-``."""
+    return 1 <= len(text) <= 64 and set(text) <= _NAME_CHARS and text[0] not in "_.-"
 
 
 @dataclass(frozen=True)
@@ -73,7 +78,7 @@ class BusSettings:
     require: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        if not (1 <= len(self.run_id) <= 64) or not set(self.run_id) <= _RUN_ID_CHARS or self.run_id[0] in "_.-":
+        if not is_name(self.run_id):
             raise UsageError(f"invalid run id {self.run_id!r}: use 1-64 letters, digits, '_', '.', '-'")
         for endpoint in self.connect + self.listen:
             proto, sep, address = endpoint.partition("/")
@@ -82,7 +87,7 @@ class BusSettings:
         if self.zenoh_config is not None and not self.zenoh_config.is_file():
             raise UsageError(f"zenoh config file not found: {self.zenoh_config}")
         for node in self.require:
-            if not (1 <= len(node) <= 64) or not set(node) <= _RUN_ID_CHARS or node[0] in "_.-":
+            if not is_name(node):
                 raise UsageError(f"invalid node name {node!r} for --require: use 1-64 letters, digits, '_', '.', '-'")
 
 

@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 
 from messages.auth import ROLES, RunCredentials
-from messages.bus import BusSettings, StopFlag, zenoh_config
+from messages.bus import BusSettings, StopFlag, is_name, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 
 
@@ -33,9 +33,8 @@ def parse_nodes(items: list[str]) -> dict[str, tuple[str, ...]]:
     for item in items:
         name, _, given = item.partition(":")
         node_roles = tuple(r for r in given.split("+") if r) if given else ((name,) if name in ROLES else ())
-        if not name or not set(node_roles) <= set(ROLES):
+        if not is_name(name) or not set(node_roles) <= set(ROLES):
             raise UsageError(f"--node {item!r}: expected NAME or NAME:ROLE with ROLE among {', '.join(ROLES)}")
-        BusSettings(require=(name,))  # validates the name
         roles[name] = node_roles
     if not roles:
         raise UsageError("--node: give at least one node")

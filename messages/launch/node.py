@@ -20,9 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from messages.auth import ROLES
+from messages.bus import is_name
 from messages.cli import UsageError
-
-_NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
 
 
 @dataclass(frozen=True)
@@ -60,7 +59,7 @@ class NodeSpec:
     command: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        if not self.name or not set(self.name) <= _NAME_CHARS or self.name[0] in "_.-":
+        if not is_name(self.name):
             raise UsageError(f"invalid node name {self.name!r}")
         if not self.module and not self.command:
             raise UsageError(f"node {self.name!r} without 'module' or 'command' (give exactly one)")
