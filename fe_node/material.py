@@ -154,8 +154,16 @@ class Constitutive:
         self.liquid_heat_capacity = m.rho * cpl
         """rho cp above the liquidus [J/(m³ K)]; ``H`` is linear in ``T`` there."""
 
-    def _index(self, h):
-        i = np.asarray((h - self._h0) * self._inv_dh).astype(np.intp)
+    def workspace(self, shape) -> tuple[np.ndarray, np.ndarray]:
+        """Scratch arrays ``(float, intp)`` of ``shape`` for :meth:`kirchhoff` on a hot path."""
+        return np.empty(shape), np.empty(shape, dtype=np.intp)
+
+    def _index(self, h, work=None):
+        """Table interval of each ``h``, clipped to the table (in ``work``'s arrays if given)."""
+        x, i = work if work is not None else self.workspace(np.shape(h))
+        np.subtract(h, self._h0, out=x)
+        x *= self._inv_dh
+        i[...] = x                                  # truncation, as ``astype``
         return np.clip(i, 0, self._imax, out=i)
 
     def temperature(self, h):
@@ -172,10 +180,19 @@ class Constitutive:
         """``d phi / d H`` [K m³/J] at enthalpy ``h`` (the table's slope; small in the mushy range)."""
         return self._p_b[self._index(h)]
 
-    def kirchhoff(self, h):
-        """Kirchhoff variable phi [K] from enthalpy ``h`` [J/m³] (any shape)."""
-        i = self._index(h)
-        return self._p_a[i] + self._p_b[i] * h
+    def kirchhoff(self, h, out=None, work=None):
+        """Kirchhoff variable phi [K] from enthalpy ``h`` [J/m³] (any shape).
+
+        ``out`` (h's shape) receives the result and ``work`` (:meth:`workspace`) holds the
+        intermediates: no array is allocated on the explicit stepping path.
+        """
+        h = np.asarray(h, dtype=float)
+        work = work if work is not None else self.workspace(h.shape)
+        i = self._index(h, work)
+        out = np.take(self._p_b, i, out=out)
+        out *= h
+        out += np.take(self._p_a, i, out=work[0])
+        return out
 
     def mushy_integral(self, h):
         """``psi = int_solidus^T f_liq(s) ds`` [K] at enthalpy ``h`` [J/m³] (any shape).

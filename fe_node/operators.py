@@ -107,9 +107,13 @@ class CsrOperator:
             lam[s:s + chunk] = np.linalg.eigvalsh(d[:, :, None] * ke * d[:, None, :])[:, -1]
         return lam
 
-    def __call__(self, u: np.ndarray) -> np.ndarray:
-        """``K_w u`` with the shape of ``u`` (flat size n_nodes)."""
-        return (self.matrix @ np.ravel(u)).reshape(np.shape(u))
+    def __call__(self, u: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``K_w u`` with the shape of ``u`` (flat size n_nodes); into ``out`` if given."""
+        r = (self.matrix @ np.ravel(u)).reshape(np.shape(u))
+        if out is None:
+            return r
+        out[...] = r
+        return out
 
     def facet_areas(self, facets: np.ndarray) -> np.ndarray:
         """Lumped areas [m²] of boundary ``facets`` (``facet_area`` on a ``FacetBasis``), shape (n_nodes,)."""
@@ -199,6 +203,7 @@ class TensorOperator:
         self._h = [np.diff(a) for a in (grid.ys, grid.zs, grid.xs)]
         hmin = np.minimum(np.minimum.outer(self._h[0], self._h[1])[:, :, None], self._h[2][None, None, :])
         self._lam_e = 4.0 / hmin**2
+        self._scratch = None
         self._layered(self.kw[0, :, 0], self.rho_w[0, :, 0])
 
     def _layered(self, kz, rz) -> None:
@@ -246,22 +251,29 @@ class TensorOperator:
             v8 = self._h[0][j] * self._h[1][k] * self._h[2][i] / 8.0 * dr
             np.add.at(self.lumped_mass.reshape(-1), self._corners(el_r).ravel(), np.repeat(v8, 8))
 
-    def __call__(self, u: np.ndarray) -> np.ndarray:
-        """Return ``K_w u`` with the shape of ``u`` (solver order, flat or (ny, nz, nx))."""
-        nx = self.shape[2]
-        vw = self._ab @ np.reshape(u, (self._p, nx))
-        v, w = vw[: self._p], vw[self._p:]
-        out = v * self._kd
-        out += w * self._md
-        up = v[:, :-1] * self._ko          # couplings (i, i+1): contributions to row i+1
-        up += w[:, :-1] * self._mo
-        out[:, 1:] += up
-        dn = v[:, 1:] * self._ko           # contributions to row i
-        dn += w[:, 1:] * self._mo
-        out[:, :-1] += dn
+    def __call__(self, u: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Return ``K_w u`` with the shape of ``u`` (solver order, flat or (ny, nz, nx)).
+
+        ``out`` (contiguous, ``u``'s size) receives the result; the x pass then runs in the
+        operator's own scratch arrays, so a step allocates only the (y, z) product.
+        """
+        p, nx = self._p, self.shape[2]
+        if self._scratch is None:
+            self._scratch = (np.empty((p, nx)), np.empty((p, nx - 1)), np.empty((p, nx - 1)))
+        full, e1, e2 = self._scratch
+        vw = self._ab @ np.reshape(u, (p, nx))
+        v, w = vw[:p], vw[p:]
+        res = np.multiply(v, self._kd, out=None if out is None else np.reshape(out, (p, nx)))
+        res += np.multiply(w, self._md, out=full)
+        up = np.multiply(v[:, :-1], self._ko, out=e1)     # couplings (i, i+1): contributions to row i+1
+        up += np.multiply(w[:, :-1], self._mo, out=e2)
+        res[:, 1:] += up
+        dn = np.multiply(v[:, 1:], self._ko, out=e1)      # contributions to row i
+        dn += np.multiply(w[:, 1:], self._mo, out=e2)
+        res[:, :-1] += dn
         if self._corr is not None:
-            out.reshape(-1)[:] += self._corr @ np.ravel(u)
-        return out.reshape(np.shape(u))
+            res.reshape(-1)[:] += self._corr @ np.ravel(u)
+        return res.reshape(np.shape(u)) if out is None else out
 
     def vertical(self, u: np.ndarray) -> np.ndarray:
         """``K_z u`` = ``Mx (x) My (x) Kz_w`` u (+ correction) with the shape of ``u`` (needs ``vertical=True``)."""

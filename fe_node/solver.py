@@ -62,8 +62,22 @@ def check_command(power_w: float, speed_m_s: float) -> None:
         raise ValueError(f"speed must be finite and > 0 m/s, got {speed_m_s}")
 
 
+class StepWork:
+    """Scratch arrays of one explicit sub-step on a grid of ``shape`` (solver order).
+
+    Re-used every sub-step: fresh multi-megabyte temporaries cost page faults that
+    doubled the step time on the shipped layer (``docs/fe.md``, "Step cost").
+    """
+
+    def __init__(self, law: Constitutive, shape: tuple[int, ...]):
+        self.phi = np.empty(shape)
+        self.kphi = np.empty(shape)
+        self.table = law.workspace(shape)
+
+
 def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, top_w: np.ndarray,
-                    c_top: np.ndarray, liquid_factors: tuple[float, float] = (1.0, 1.0)) -> None:
+                    c_top: np.ndarray, liquid_factors: tuple[float, float] = (1.0, 1.0),
+                    work: StepWork | None = None) -> None:
     """One forward-Euler sub-step of ``m dH/dt = -k_ref K_w phi(H) + top``, in place.
 
     With liquid conductivity factors ``(f_xy, f_z)`` the conduction term is
@@ -86,13 +100,17 @@ def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, t
         ``dt_sub / m`` of the top nodes [s/m³].
     liquid_factors : (float, float)
         Horizontal and vertical liquid conductivity factors [-].
+    work : StepWork, optional
+        Scratch arrays of ``h``'s shape (default: allocated for this call).
     """
+    work = work if work is not None else StepWork(law, h.shape)
+    phi = law.kirchhoff(h, out=work.phi, work=work.table)
     f_xy, f_z = liquid_factors
     if f_xy == f_z == 1.0:
-        kphi = operator(law.kirchhoff(h))
+        kphi = operator(phi, out=work.kphi)
     else:
         psi = law.mushy_integral(h)
-        kphi = operator(law.kirchhoff(h) + (f_xy - 1.0) * psi)
+        kphi = operator(phi + (f_xy - 1.0) * psi, out=work.kphi)
         if f_z != f_xy:
             kphi += operator.vertical((f_z - f_xy) * psi)
     kphi *= c
@@ -136,6 +154,7 @@ class ThermalModel:
         self._a_top, self._a_bottom = self._face_areas()
         self.layer = 0
         self._h = np.full(self.grid.solver_shape, float(self.law.enthalpy(settings.t0_k)))
+        self._work: StepWork | None = None
         self._set_time_step()
         self._e0 = self._energy()
         self._s = 0.0
@@ -291,6 +310,8 @@ class ThermalModel:
     def _set_time_step(self) -> None:
         """Sub-steps and update factors from the current weights (stability limit, module docstring)."""
         self._m = np.reshape(self.operator.lumped_mass, self.grid.solver_shape)
+        if self._work is None or self._work.phi.shape != self._m.shape:
+            self._work = StepWork(self.law, self._m.shape)
         lam = self.operator.stability_eigenvalue()
         alpha = self.law.max_diffusivity * max(1.0, *self._liquid_factors)
         dt_stable = 0.9 * 2.0 / (alpha * lam)
@@ -362,7 +383,8 @@ class ThermalModel:
             q_plate = self._a_bottom * s.plate_h_w_m2k * (self.law.temperature(self._h[:, 0, :]) - s.t0_k)
             self._h[:, 0, :] -= q_plate * self._c_bottom
             self._lost += float(q_plate.sum()) * self._dt_sub
-        explicit_update(self._h, self.operator, self.law, self._c, load.T - q, self._c_top, self._liquid_factors)
+        explicit_update(self._h, self.operator, self.law, self._c, load.T - q, self._c_top, self._liquid_factors,
+                        self._work)
         self._absorbed += float(np.sum(load)) * self._dt_sub
         self._lost += float(q.sum()) * self._dt_sub
         if self.settings.evaporation:
