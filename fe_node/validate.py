@@ -64,7 +64,8 @@ def validate(h_fine_m: float = 25e-6, progress: bool = False) -> dict:
     fe_h = fe_eagar_tsai_area(case, h_fine_m)
     fe_h2 = fe_eagar_tsai_area(case, h_fine_m / 2)
     obs = run_open_loop(scenario("double-track", h_fine_m=h_fine_m), progress=progress)
-    areas = {n: track(Settings(h_fine_m=h_fine_m, min_substeps=n))[0] for n in (1, 8)}
+    n_default = ThermalModel(Settings(h_fine_m=h_fine_m), ScanPlan.single(1e-3)).n_substeps
+    areas = {n: track(Settings(h_fine_m=h_fine_m, min_substeps=n))[0] for n in (n_default, 8 * n_default)}
     powder = track(Settings(h_fine_m=h_fine_m, powder_layer_m=POWDER_LAYER_M))[0]
     _, peak_evaporation = track(Settings(h_fine_m=h_fine_m, evaporation=True))
     reference = in625_reference(Settings(h_fine_m=h_fine_m))
@@ -75,13 +76,14 @@ def validate(h_fine_m: float = 25e-6, progress: bool = False) -> dict:
         mesh_convergence_pct=100 * (fe_h - fe_h2) / fe_h2,
         mesh_convergence_h_um=[round(h_fine_m * 1e6, 6), round(h_fine_m * 0.5e6, 6)],
         fe_area_h2_mm2=fe_h2 * 1e6,
-        dt_convergence_pct=100 * (areas[1] - areas[8]) / areas[8],
-        dt_convergence_area_mm2=dict(default=areas[1] * 1e6, substeps_x8=areas[8] * 1e6),
+        dt_convergence_pct=100 * (areas[n_default] - areas[8 * n_default]) / areas[8 * n_default],
+        dt_convergence_area_mm2=dict(default=areas[n_default] * 1e6, substeps_x8=areas[8 * n_default] * 1e6),
+        dt_convergence_substeps=[n_default, 8 * n_default],
         in625_reference_error_pct=reference["error_pct"],
         in625_reference=reference,
         peak_temperature_k=float(max(o.t_peak_k for o in obs)),
         peak_temperature_evaporation_k=peak_evaporation,
-        powder_area_ratio=powder / areas[1],
+        powder_area_ratio=powder / areas[n_default],
         powder_layer_um=round(POWDER_LAYER_M * 1e6, 6),
         eagar_tsai_case=dict(case.as_dict(), fe_area_mm2=fe_h * 1e6,
                              analytic_area_mm2=analytic * 1e6, h_um=round(h_fine_m * 1e6, 6)),

@@ -29,7 +29,7 @@ def mean_area(obs):
 
 def test_defaults_are_the_trained_plant():
     s = Settings()
-    assert s.powder_layer_m == 0 and s.evaporation is False and s.min_substeps == 1 and s.operator == "tensor"
+    assert s.powder_layer_m == 0 and s.evaporation is False and s.min_substeps == 3 and s.operator == "tensor"
     assert s.liquid_k_factor_xy == s.liquid_k_factor_z == 1.0
 
 
