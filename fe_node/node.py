@@ -28,12 +28,13 @@ from fe_node.image import temperature_image
 from fe_node.observe import Observation
 from fe_node.scenarios import NAMES, Scenario
 from fe_node.scenarios import scenario as build_scenario
+from fe_node.scene import laser_pose, scene_update
 from fe_node.solver import ThermalModel
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
 from messages.bus import Inbox, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
 from messages.cli import ArgumentParser, UsageError, exit_usage
 from messages.config import load_toml
-from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE, PLANT_TEMPERATURE
+from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_LASER, PLANT_SCENE, PLANT_STATE, PLANT_TEMPERATURE
 
 NODE_NAME = "plant"
 POLL_S = 0.005  # a waiting plant looks at the controller's liveliness this often [s]
@@ -102,7 +103,7 @@ def state_message(run_id: str, obs: Observation) -> MeltPoolState:
         scan_dir_x=obs.direction[0], scan_dir_y=obs.direction[1], track=obs.track, area_mm2=obs.area_m2 * 1e6,
         t_ahead_k=obs.t_ahead_k, power_w=obs.power_w, speed_mm_s=obs.speed_m_s * 1e3, width_um=obs.width_m * 1e6,
         length_um=obs.length_m * 1e6, depth_um=obs.depth_m * 1e6, cross_section_mm2=obs.cross_section_m2 * 1e6,
-        t_peak_k=obs.t_peak_k, source="fe", **preview_fields(obs),
+        t_peak_k=obs.t_peak_k, layer=obs.layer, source="fe", **preview_fields(obs),
     )
 
 
@@ -155,6 +156,9 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
     states = bus.publisher(PLANT_STATE)
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
     images = bus.publisher(PLANT_TEMPERATURE, express=False)
+    lasers = bus.publisher(PLANT_LASER)
+    scenes = bus.publisher(PLANT_SCENE, express=False)
+    scene_layer = None
     waiter = None if settings.open_loop else CommandWaiter(bus.inbox(LASER_COMMAND), policy)
     gone = threading.Event() if waiter is None else bus.watch_presence(settings.controller)
     total = n_steps(scenario) if settings.max_steps is None else min(n_steps(scenario), settings.max_steps)
@@ -168,6 +172,10 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
     t_min, t_max = scenario.settings.t0_k, scenario.settings.material.t_liquidus + 600.0
     while not stop.is_set():
         states.put(state_message(bus.run_id, obs))
+        lasers.put(laser_pose(obs))
+        if obs.layer != scene_layer:
+            scenes.put(scene_update(model.plan, obs, scenario.part_stl))
+            scene_layer = obs.layer
         if obs.step % settings.image_every == 0:
             image, _ = model.temperature_image()
             images.put(temperature_image(image, obs.time_s, t_min, t_max))

@@ -50,6 +50,10 @@ class Observation:
         Scan-plan preview: distance scanned on the current track and left to its end [m].
     next_track : bool
         Another track follows the current one.
+    layer : int
+        Layer of the build (0 first).
+    z_top_m : float
+        Height of the current top surface above the plate's top [m].
     """
 
     step: int
@@ -74,6 +78,8 @@ class Observation:
     track_travelled_m: float = 0.0
     track_remaining_m: float = 0.0
     next_track: bool = False
+    layer: int = 0
+    z_top_m: float = 0.0
 
 
 def interp_matrix(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:

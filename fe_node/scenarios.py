@@ -40,6 +40,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -130,6 +131,8 @@ class Scenario:
     profile: Profile
     layer_plans: tuple[ScanPlan, ...] | None = None
     """One plan per layer (``part``); ``plan`` is the first.  ``None``: ``plan`` in every layer."""
+    part_stl: Path | None = None
+    """The part's STL (``part``; shown in Foxglove by :mod:`fe_node.scene`)."""
 
 
 def scenario(name: str = DEFAULT, **overrides) -> Scenario:
@@ -197,10 +200,12 @@ def _part(part_stl: str | None = None, hatch_m: float = 1e-4, power_w: float = 2
     if unknown:
         raise ValueError(f"unknown scenario override {sorted(unknown)[0]!r} for 'part'")
     layer_m = settings_kw.setdefault("powder_layer_m", 50e-6)
-    plans = part_plans(EXAMPLE_STL if part_stl is None else part_stl, layer_m, hatch_m)
+    stl = Path(EXAMPLE_STL if part_stl is None else part_stl)
+    plans = part_plans(stl, layer_m, hatch_m)
     n = settings_kw.setdefault("n_layers", len(plans))
     if not 1 <= n <= len(plans):
         raise ValueError(f"scenario part: n_layers must be in [1, {len(plans)}] for this part, got {n}")
     settings = replace(Settings(), **settings_kw)
     profile = Profile(Signal(float(power_w)), Signal(float(speed_m_s)), settings.dt_s)
-    return Scenario(name="part", settings=settings, plan=plans[0], profile=profile, layer_plans=plans[:n])
+    return Scenario(name="part", settings=settings, plan=plans[0], profile=profile, layer_plans=plans[:n],
+                    part_stl=stl)

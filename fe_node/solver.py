@@ -429,6 +429,7 @@ class ThermalModel:
         travelled, remaining, follows = self.plan.preview(self._s)
         return Observation(
             track_travelled_m=travelled, track_remaining_m=remaining, next_track=follows,
+            layer=self.layer, z_top_m=float(g.zs[-1]),
             step=self.step_index, time_s=self.time_s, x_m=float(xy[0]), y_m=float(xy[1]),
             direction=(float(d[0]), float(d[1])), track=int(track),
             power_w=float(power_w), speed_m_s=float(speed_m_s), **geo,

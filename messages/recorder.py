@@ -75,10 +75,13 @@ WARNINGS_LOGGED = 20
 
 
 def log_time_ns(msg: Any) -> int:
-    """Process time of a message in ns: ``time_s`` or the Foxglove ``timestamp``."""
+    """Process time of a message in ns: ``time_s``, the Foxglove ``timestamp``, or the latest of a
+    ``foxglove.SceneUpdate``'s entities (it has at least one)."""
     if hasattr(msg, "time_s"):
         return int(round(msg.time_s * 1e9))
-    return msg.timestamp.to_ns()
+    if hasattr(msg, "timestamp"):
+        return msg.timestamp.to_ns()
+    return max(entity.timestamp.to_ns() for entity in msg.entities)
 
 
 class RecordingWriteError(Exception):

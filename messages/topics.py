@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from messages.foxglove import Log, RawImage
+from messages.foxglove import Log, PoseInFrame, RawImage, SceneUpdate
 from messages.types import ControllerDiagnostics, LaserCommand, MeltPoolState, PlantDiagnostics, RunEvent
 
 PREFIX = "meltloop"
@@ -51,6 +51,8 @@ class Topic:
 PLANT_STATE = Topic("plant/state", MeltPoolState, "meltloop.MeltPoolState", 16 * 1024)
 PLANT_DIAGNOSTICS = Topic("plant/diagnostics", PlantDiagnostics, "meltloop.PlantDiagnostics", 16 * 1024)
 PLANT_TEMPERATURE = Topic("plant/temperature", RawImage, "foxglove.RawImage", 4 * 1024 * 1024)
+PLANT_LASER = Topic("plant/laser", PoseInFrame, "foxglove.PoseInFrame", 4 * 1024)
+PLANT_SCENE = Topic("plant/scene", SceneUpdate, "foxglove.SceneUpdate", 4 * 1024 * 1024)
 LASER_COMMAND = Topic("controller/command", LaserCommand, "meltloop.LaserCommand", 16 * 1024)
 CONTROLLER_DIAGNOSTICS = Topic(
     "controller/diagnostics", ControllerDiagnostics, "meltloop.ControllerDiagnostics", 64 * 1024
@@ -60,7 +62,8 @@ LOG = Topic("log", Log, "foxglove.Log", 32 * 1024, per_node=True)
 
 TOPICS: dict[str, Topic] = {
     t.suffix: t
-    for t in (PLANT_STATE, PLANT_DIAGNOSTICS, PLANT_TEMPERATURE, LASER_COMMAND, CONTROLLER_DIAGNOSTICS, RUN_EVENTS, LOG)
+    for t in (PLANT_STATE, PLANT_DIAGNOSTICS, PLANT_TEMPERATURE, PLANT_LASER, PLANT_SCENE, LASER_COMMAND,
+              CONTROLLER_DIAGNOSTICS, RUN_EVENTS, LOG)
 }
 
 

@@ -79,6 +79,8 @@ class MeltPoolState(Message, frozen=True, kw_only=True):
         "Scan-plan preview: time until the laser reaches the end of the current track [s]."))] | None = None
     next_track: Annotated[bool, msgspec.Meta(description=(
         "Scan-plan preview: another track starts where this one ends (false on the last track)."))] | None = None
+    layer: Annotated[int, msgspec.Meta(ge=0, le=1_000_000, description=(
+        "Layer of a multi-layer build, 0 first (track indices restart in each layer)."))] | None = None
     source: Literal["fe", "sensor", "replay", "surrogate"] = "fe"
 
 

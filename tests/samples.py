@@ -13,15 +13,32 @@ from messages import (
     RunEvent,
     Timestamp,
 )
+from messages.foxglove import (
+    IDENTITY,
+    Color,
+    LinePrimitive,
+    LineType,
+    ModelPrimitive,
+    Pose,
+    PoseInFrame,
+    Quaternion,
+    SceneEntity,
+    SceneUpdate,
+    Vector3,
+)
 from messages.topics import (
     CONTROLLER_DIAGNOSTICS,
     LASER_COMMAND,
     LOG,
     PLANT_DIAGNOSTICS,
+    PLANT_LASER,
+    PLANT_SCENE,
     PLANT_STATE,
     PLANT_TEMPERATURE,
     RUN_EVENTS,
 )
+
+ORIGIN = Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=IDENTITY)
 
 
 def sample_messages(run_id: str, step: int = 3):
@@ -93,6 +110,23 @@ def sample_messages(run_id: str, step: int = 3):
                 step=9,
                 data=bytes(range(18)),
             ),
+        ),
+        (
+            PLANT_LASER,
+            PoseInFrame(timestamp=Timestamp.from_seconds(t), frame_id="plate", pose=Pose(
+                position=Vector3(x=-5e-3, y=1e-4, z=5e-5), orientation=Quaternion.about_z(3.141592653589793))),
+        ),
+        (
+            PLANT_SCENE,
+            SceneUpdate(entities=[
+                SceneEntity(timestamp=Timestamp.from_seconds(t), frame_id="plate", id="scan_plan", lines=[LinePrimitive(
+                    type=LineType.LINE_LIST, pose=ORIGIN, thickness=2.0, scale_invariant=True,
+                    points=[Vector3(x=-5e-3, y=0.0, z=0.0), Vector3(x=5e-3, y=0.0, z=0.0)],
+                    color=Color(r=0.2, g=0.6, b=1.0, a=1.0))]),
+                SceneEntity(timestamp=Timestamp.from_seconds(t), frame_id="plate", id="part", models=[ModelPrimitive(
+                    pose=ORIGIN, scale=Vector3(x=1e-3, y=1e-3, z=1e-3), color=Color(r=0.7, g=0.7, b=0.7, a=0.4),
+                    override_color=True, media_type="model/stl", data=b"solid x\nendsolid x\n")]),
+            ]),
         ),
         (
             RUN_EVENTS,

@@ -35,7 +35,13 @@ def test_short_mpc_run_is_complete_valid_and_reported(tmp_path):
     assert all(recorded[topic] >= n for topic, n in published.items()), (published, recorded)
     assert counts["/plant/state"] == 201 and counts["/controller/command"] == 201  # one answer per state
     assert counts["/plant/temperature"] >= 20 and counts["/log"] >= 2
+    assert counts["/plant/laser"] == 201 and counts["/plant/scene"] == 1      # one layer: one scene
     states = list(read_messages(out, "/plant/state"))
+    poses = list(read_messages(out, "/plant/laser"))
+    assert all(abs(p.pose.position.x * 1e3 - s.laser_x_mm) < 1e-9 and p.frame_id == "plate"
+               for p, s in zip(poses, states, strict=True))
+    scene = next(iter(read_messages(out, "/plant/scene")))
+    assert [e.id for e in scene.entities] == ["scan_plan"] and len(scene.entities[0].lines[0].points) == 8
     commands = {c.step: c for c in read_messages(out, "/controller/command")}
     assert all(s.power_w == commands[s.step].power_w for s in states[1:])  # the plant applied what was commanded
     assert all(0.0 <= c.power_w <= 350.0 for c in commands.values())

@@ -4,7 +4,10 @@ import pytest
 
 from fe_node.part import EXAMPLE_STL, part_plans
 from fe_node.scenarios import scenario
+from fe_node.scene import laser_pose, part_model, scene_update
 from fe_node.solver import ThermalModel
+from messages import decode, encode
+from messages.topics import PLANT_LASER, PLANT_SCENE
 
 pytest.importorskip("pyslm")
 
@@ -24,11 +27,20 @@ def test_part_scenario_builds_layer_by_layer():
     sc = scenario("part", n_layers=2, hatch_m=0.3e-3, h_fine_m=40e-6, powder_layer_m=50e-6)
     assert sc.settings.n_layers == 2 and len(sc.layer_plans) == 2 and sc.plan == sc.layer_plans[0]
     model = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
-    layers = set()
+    layers, scenes = set(), {}
     while not model.done:
         obs = model.step(*sc.profile.command(model.step_index))
         layers.add(model.layer)
+        if obs.layer not in scenes:      # what the plant node publishes on /plant/scene
+            scenes[obs.layer] = decode(PLANT_SCENE, encode(scene_update(model.plan, obs, sc.part_stl)))
+        pose = laser_pose(obs).pose
+        assert (pose.position.x, pose.position.y, pose.position.z) == (obs.x_m, obs.y_m, obs.z_top_m)
     assert layers == {0, 1} and model.grid.zs[-1] == pytest.approx(100e-6)
+    for layer, scene in scenes.items():       # the tracks lie on that layer's top, the part is there
+        assert [e.id for e in scene.entities] == ["scan_plan", "part"]
+        points = scene.entities[0].lines[0].points
+        assert len(points) == 2 * len(sc.layer_plans[layer].tracks)
+        assert [p.z for p in points] == pytest.approx([50e-6 * (layer + 1)] * len(points))
     assert abs(obs.energy_error_pct) < 1e-6 and model.powder.consolidated.sum() > 0
 
 
@@ -39,3 +51,27 @@ def test_part_scenario_errors():
         scenario("part", part_stl="/nonexistent.stl")
     with pytest.raises(ValueError, match="unknown scenario override"):
         scenario("part", bogus=1)
+
+
+def test_part_model_sits_where_its_scan_paths_are():
+    import trimesh
+
+    model = part_model(EXAMPLE_STL)
+    assert model.media_type == "model/stl" and model.data == EXAMPLE_STL.read_bytes()
+    lo, hi = trimesh.load(EXAMPLE_STL, file_type="stl").bounds * model.scale.x + np.array(
+        [model.pose.position.x, model.pose.position.y, model.pose.position.z])
+    assert lo[2] == pytest.approx(0.0, abs=1e-12) and hi[2] == pytest.approx(0.5e-3)
+    ends = np.array([p for plan in part_plans(EXAMPLE_STL, 50e-6, 100e-6) for t in plan.tracks for p in t])
+    assert np.all(ends >= lo[:2] - 1e-9) and np.all(ends <= hi[:2] + 1e-9)
+    assert (lo[:2] + hi[:2]) == pytest.approx([0.0, 0.0], abs=1e-12)
+
+
+def test_laser_pose_heads_along_the_scan_direction():
+    sc = scenario("double-track", h_fine_m=40e-6)
+    model = ThermalModel(sc.settings, sc.plan)
+    obs = model.step(250.0, 0.8)
+    assert decode(PLANT_LASER, encode(laser_pose(obs))).pose.orientation.w == pytest.approx(1.0)   # +x
+    while obs.track == 0:
+        obs = model.step(250.0, 0.8)
+    q = laser_pose(obs).pose.orientation                                                            # -x: pi about z
+    assert obs.direction[0] == -1.0 and (q.z, q.w) == (pytest.approx(1.0), pytest.approx(0.0, abs=1e-12))

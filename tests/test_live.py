@@ -191,6 +191,8 @@ def test_shipped_layout_uses_only_served_channels_and_fields():
         assert field.split("[")[0] in json_schema(channels[channel])["properties"], path
     images = [panel["imageMode"]["imageTopic"] for panel in layout["configById"].values() if "imageMode" in panel]
     assert images == [IMAGES.channel]
+    scene_topics = {t for panel in layout["configById"].values() for t in panel.get("topics", {})}
+    assert scene_topics == {"/plant/scene", "/plant/laser"} and scene_topics <= set(channels)
 
 
 def test_launch_live_serves_the_default_nodes_run(tmp_path):
