@@ -27,8 +27,8 @@ from messages.live import DEFAULT_PORT, check_port
 DEFAULT_CONTROLLER = "preview-mpc"
 CONTROLLER_CHOICES = ("mpc", "preview-mpc", "pid", "feedforward", "open-loop", "none")
 COMPARED = ("open-loop", "pid", "feedforward", "mpc", "preview-mpc")
-NODE_OPTIONS = ("scenario", "controller", "setpoint_mm2", "learning_state", "model", "max_steps", "h_um", "fallback",
-                "command_timeout_s", "config", "compare", "live")  # the default nodes' options: refused with --nodes
+NODE_OPTIONS = ("scenario", "part", "layers", "controller", "setpoint_mm2", "learning_state", "model", "max_steps",
+                "h_um", "fallback", "command_timeout_s", "config", "compare", "live")  # refused with --nodes
 DEFAULT_SETPOINT_MM2 = round(ControllerSettings.set_point_m2 * 1e6, 9)
 
 
@@ -37,6 +37,8 @@ class RunOptions:
     """What one default run consists of (validated command-line options; SI inside the nodes)."""
 
     scenario: str = "layer"
+    part: Path | None = None
+    layers: int | None = None
     controller: str = DEFAULT_CONTROLLER
     setpoint_mm2: float | None = None
     config: Path | None = None
@@ -53,6 +55,9 @@ class RunOptions:
             (self.controller in CONTROLLER_CHOICES, f"--controller: choose one of {', '.join(CONTROLLER_CHOICES)}"),
             (self.setpoint_mm2 is None or 0 < self.setpoint_mm2 < 0.5, "--setpoint-mm2 must be in (0, 0.5)"),
             (self.max_steps is None or self.max_steps >= 1, "--max-steps must be >= 1"),
+            (self.part is None or self.scenario == "part", "--part needs --scenario part"),
+            (self.part is None or self.part.is_file(), f"--part: file not found: {self.part}"),
+            (self.layers is None or self.layers >= 1, "--layers must be >= 1"),
             (self.h_um is None or 0 < self.h_um <= 1000, "--h-um must be in (0, 1000] µm"),
             (self.fallback in (None, "safe", "hold"), "--fallback must be 'safe' or 'hold'"),
             (self.command_timeout_s is None or 0 < self.command_timeout_s <= 60,
@@ -66,6 +71,11 @@ class RunOptions:
         for ok, message in checks:
             if not ok:
                 raise UsageError(message)
+
+    @property
+    def plant_overrides(self) -> dict[str, Any]:
+        """``--part`` and ``--layers`` as scenario overrides (as the plant node applies them)."""
+        return {k: v for k, v in (("part_stl", self.part and str(self.part)), ("n_layers", self.layers)) if v}
 
     @property
     def closed_loop(self) -> bool:
@@ -95,9 +105,9 @@ def check_config(opts: RunOptions) -> None:
         raise UsageError(f"{opts.config}: unknown table(s) {', '.join(sorted(unknown))}; expected [plant], "
                          "[controller]")
     try:
-        scenario(opts.scenario, **data.get("plant", {}))
+        scenario(opts.scenario, **{**data.get("plant", {}), **opts.plant_overrides})
     except (ValueError, TypeError) as err:
-        raise UsageError(f"{opts.config} [plant]: {err}") from None
+        raise UsageError(f"{opts.config} [plant]: {err}" if opts.config else str(err)) from None
     table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
     build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint() * 1e-6)
 
@@ -119,7 +129,7 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
     else:
         plant += ["--open-loop"]
     optional = {"--max-steps": opts.max_steps, "--h-um": opts.h_um, "--fallback": opts.fallback,
-                "--command-timeout-s": opts.command_timeout_s}
+                "--command-timeout-s": opts.command_timeout_s, "--part": opts.part, "--layers": opts.layers}
     plant += [item for flag, value in optional.items() if value is not None for item in (flag, str(value))]
     if opts.live is not None:  # the plant waits for it (every state served), the recorder for its end
         recorder, plant = recorder + ["--expect", "live"], plant + ["--require", "live"]
@@ -135,6 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
                        f"10 mm IN625 layer, hatch 0.1 mm, 800 mm/s, under {DEFAULT_CONTROLLER}, into recordings/.")
     add = p.add_argument
     add("--scenario", help="plant scenario: layer, single-track, double-track, table2-case1..9, ...")
+    add("--part", type=Path, metavar="STL", help="--scenario part: the STL to slice and build (default: the example)")
+    add("--layers", type=int, help="layers to build (--scenario part: default all of the part's)")
     add("--controller", help=f"{DEFAULT_CONTROLLER} (default) or one of {', '.join(CONTROLLER_CHOICES)} "
         "('none': the plant plays the scenario's open-loop profile)")
     add("--setpoint-mm2", type=float, help=f"melt-pool area set point [mm²] (default {DEFAULT_SETPOINT_MM2:g})")

@@ -227,6 +227,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--power-w", type=float, help="nominal / open-loop power [W] (scenario default)")
     parser.add_argument("--speed-mm-s", type=float, help="scan speed [mm/s] (scenario default)")
     parser.add_argument("--h-um", type=float, help="fine element size [µm] (default: converged 25 µm)")
+    parser.add_argument("--part", type=Path, metavar="STL", help="scenario part: the part to build (default: the "
+                        "shipped example)")
+    parser.add_argument("--layers", type=int, help="layers to build (scenario part: default all of the part's)")
     parser.add_argument("--config", type=Path,
                         help="TOML run configuration; its [plant] table overrides plant settings")
     parser.add_argument("--open-loop", action="store_true",
@@ -268,7 +271,11 @@ def main(argv: list[str] | None = None) -> int:
                 "power_w": args.power_w,
                 "speed_m_s": None if args.speed_mm_s is None else args.speed_mm_s * 1e-3,
                 "h_fine_m": None if args.h_um is None else args.h_um * 1e-6,
+                "part_stl": None if args.part is None else str(args.part),
+                "n_layers": args.layers,
             }.items() if v is not None}
+            if args.part is not None and args.scenario != "part":
+                raise ValueError("--part needs --scenario part")
             scenario = build_scenario(args.scenario, **{**plant_table, **overrides})
         except ValueError as err:
             raise UsageError(str(err)) from None

@@ -24,6 +24,10 @@ CASES = [
     (["launch.py", "--run-id", "bad id"], "invalid run id"),
     (["launch.py", "--hub", "nonsense"], "invalid zenoh endpoint"),
     (["launch.py", "--max-steps", "x"], "invalid int value"),
+    (["launch.py", "--part", "fe_node/parts/cylinder_d1.5_h0.5_mm.stl"], "--part needs --scenario part"),
+    (["launch.py", "--scenario", "part", "--part", "missing.stl"], "--part: file not found: missing.stl"),
+    (["launch.py", "--layers", "0"], "--layers must be >= 1"),
+    (["-m", "fe_node", "--part", "fe_node/parts/cylinder_d1.5_h0.5_mm.stl"], "--part needs --scenario part"),
     # the FE plant node
     (["-m", "fe_node", "--max-steps", "0"], "--max-steps must be >= 1"),
     (["-m", "fe_node", "--command-timeout-s", "0"], "--command-timeout-s must be finite and > 0"),

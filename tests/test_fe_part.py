@@ -75,3 +75,21 @@ def test_laser_pose_heads_along_the_scan_direction():
         obs = model.step(250.0, 0.8)
     q = laser_pose(obs).pose.orientation                                                            # -x: pi about z
     assert obs.direction[0] == -1.0 and (q.z, q.w) == (pytest.approx(1.0), pytest.approx(0.0, abs=1e-12))
+
+
+def test_launch_builds_a_part_and_shows_it(tmp_path):
+    """``launch.py --scenario part --part STL --layers N``: the plant builds it, the recording holds the scene."""
+    from messages.recording import read_messages
+    from tests.test_end_to_end import run_launch
+
+    out = tmp_path / "part.mcap"
+    status, output = run_launch("--scenario", "part", "--part", str(EXAMPLE_STL), "--layers", "3", "--max-steps",
+                                "20", "--h-um", "40", "--out", str(out))
+    assert status == 0, output
+    config = next(e for e in read_messages(out, "/run/events") if e.node == "plant" and e.event == "start")
+    assert '"n_layers": 3' in config.config_json
+    scene = next(iter(read_messages(out, "/plant/scene")))
+    assert [e.id for e in scene.entities] == ["scan_plan", "part"] and scene.entities[1].models[0].data[:5] == b"\0" * 5
+    status, output = run_launch("--scenario", "part", "--layers", "11")
+    assert status == 2 and output.strip() == ("python launch.py: error: scenario part: n_layers must be in [1, 10] "
+                                              "for this part, got 11")
