@@ -32,6 +32,8 @@ from .types import ConfigurationError, Measurement
 __all__ = ["PreviewMPC"]
 
 LEARNING_FORMAT = "meltloop-preview-learning-1"
+MEAN_POWER = 2
+"""Column of ψ = (T ahead, steps since the track started, mean lagged power) that depends on the plan."""
 PERIOD_TOLERANCE = 0.01
 """Relative difference between the plant's and the model's sample period that is refused."""
 
@@ -72,6 +74,7 @@ class PreviewMPC(Controller):
         e[:self._n_x] = model.power_temperature_coefficients
         self._e0 = float(e[0])
         self._toeplitz_e = np.where(inside, e[np.clip(lag, 0, n_p - 1)], 0.0)
+        self._mean_window = inside / n_p        # ∂ψ₂/∂u: the mean power of x̂[k+m]'s lag window
         self._theta_p = np.r_[b, model.power_square_coefficients]
         self._mean_weights = np.full(n_p, 1.0 / n_p)
         self._psi = np.empty((h, 3))
@@ -238,13 +241,15 @@ class PreviewMPC(Controller):
         psi[1:, 0] = forecast[:-1]
         psi[:, 1] = np.minimum(s_psi, self._s_cap)
         psi[:, 2] = window @ self._mean_weights
-        r_mean, r_var = model.residual.predict(psi, None if ps.uncertainty_z > 0 else 1, single_precision_kernel=True)
+        r_mean, r_var, r_slope = model.residual.predict_with_slope(psi, MEAN_POWER, None if ps.uncertainty_z > 0 else 1,
+                                                                   single_precision_kernel=True)
         tw = temps[self._t_index]                                      # (H, n_T)
         z = (model.intercept + window @ model.power_coefficients + (window * window) @ model.power_square_coefficients
              + tw @ model.temperature_coefficients + (tw[:, :self._n_tq] ** 2) @ model.temperature_square_coefficients
              + (window[:, :self._n_x] * tw[:, :1]) @ model.power_temperature_coefficients + r_mean)
         slope = model.area_slope(z)
-        dz = self._toeplitz_b + 2.0 * self._toeplitz_q * plan[None, :] + self._toeplitz_e * tw[:, :1]
+        dz = (self._toeplitz_b + 2.0 * self._toeplitz_q * plan[None, :] + self._toeplitz_e * tw[:, :1]
+              + r_slope[:, None] * self._mean_window)        # the GP residual's power sensitivity too
         jac = slope[:, None] * dz                                                              # ∂x̂/∂u, (H, H)
         # the target of row m is state k+m: its states since its track's start, and whether it is past a turn
         s_target = since + j + 1 if to_end is None else np.where(j + 1 <= to_end, since + j + 1, j - to_end)

@@ -280,7 +280,7 @@ class PreviewSettings:
     horizon: int = 40
     q: float = 1.0
     q_f: float = 20.0
-    r: float = 3.0
+    r: float = 1.0
     power_scale_w: float = LASER_POWER_MAX_W
     area_min_m2: float = 0.0
     area_max_m2: float = 0.5e-6

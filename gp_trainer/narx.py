@@ -299,12 +299,27 @@ class ResidualGP:
         ``single_precision_kernel`` evaluates the kernel's exponential in float32 (relative error
         ~1e-7 of each kernel value; the controller's hot path, where it is 3× faster).
         """
+        mean, var, _ = self.predict_with_slope(psi, None, n_variance, single_precision_kernel)
+        return mean, var
+
+    def predict_with_slope(self, psi: np.ndarray, column: int | None, n_variance: int | None = None,
+                           single_precision_kernel: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """:meth:`predict` and the mean's derivative with respect to input ``column`` of ψ, shape (m,)
+        [target units per unit of that input] (``None`` for ``column=None``).
+
+        For the SE-ARD kernel ``∂k(ψ, ψ_i)/∂ψ_c = k (W_ic − w_c) g_c`` with ``w = (ψ − μ) g``,
+        ``g = 1 / (scale ℓ)`` and ``W_i`` the training inputs in the same units.
+        """
         w = (np.atleast_2d(psi) - self.input_mean) * self._g
         exponent = w @ self._W.T + self._half - 0.5 * np.einsum("ij,ij->i", w, w)[:, None]
         k = np.exp(exponent.astype(np.float32)).astype(float) if single_precision_kernel else np.exp(exponent)
         rows = k.shape[0] if n_variance is None else min(n_variance, k.shape[0])
         v = k[:rows] @ self._var_f.T
-        return k @ self._mean_w, np.maximum(self.prior_variance - np.einsum("ij,ij->i", v, v), 0.0)
+        mean = k @ self._mean_w
+        slope = None
+        if column is not None:
+            slope = self._g[column] * (k @ (self._W[:, column] * self._mean_w) - w[:, column] * mean)
+        return mean, np.maximum(self.prior_variance - np.einsum("ij,ij->i", v, v), 0.0), slope
 
     def to_dict(self) -> dict[str, Any]:
         return {"inputs": self.inputs.tolist(), "targets": self.targets.tolist(), "signal_std": self.signal_std,

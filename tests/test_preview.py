@@ -206,6 +206,38 @@ def test_prediction_matches_the_model_along_the_previous_plan():
     assert np.allclose(diag.predicted_area_m2, expected, rtol=1e-4, atol=0.0)
 
 
+def test_jacobian_is_the_models_own_including_the_gp_residual():
+    """The QP's ∂x̂/∂u is the finite-difference derivative of the model's prediction (lag part and
+    GP residual, whose input ψ holds the mean lagged power) around the shifted previous plan."""
+    runs = []
+    for seed in range(3):   # a plant with a term in the mean lagged power that only the residual GP can learn
+        run = synthetic_run(seed)
+        mean_p = np.convolve(run.power_w, np.full(8, 1 / 8))[:len(run)]
+        runs.append(RunSeries(run.name, run.area_m2 + 2e-12 * (mean_p - 225.0) ** 2, run.t_ahead_k, run.power_w,
+                              run.track, DT))
+    model = NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity",
+                            n_train=60, n_restarts=1, profile_length=50)
+    settings = ControllerSettings(set_point_m2=C0, preview=PreviewSettings(horizon=12, r=1.0, turn_learning_gain=0.0))
+    ctrl = PreviewMPC(settings, model)
+    run = runs[0]
+    for k in range(40):
+        _, diag = ctrl.update(_measurement(k, run.area_m2[k], run.t_ahead_k[k], run.power_w[k]))
+    plan = np.r_[diag.predicted_power_w[1:], diag.predicted_power_w[-1:]]      # ū of the next update
+    _, diag = ctrl.update(_measurement(40, run.area_m2[40], run.t_ahead_k[40], run.power_w[40]))
+    gamma = ctrl.last_qp[0]
+    jac = gamma * settings.set_point_m2 / ctrl.qp.scale
+    t = np.r_[run.t_ahead_k[:41], np.full(12, run.t_ahead_k[40])]
+
+    def predicted(u):
+        p = np.r_[run.power_w[:41], u]
+        return model.predict_run(RunSeries("f", np.ones(53), t, p, np.zeros(53, dtype=int), DT))[0][40:52]
+
+    fd = np.column_stack([(predicted(plan + 1e-3 * e) - predicted(plan - 1e-3 * e)) / 2e-3 for e in np.eye(12)])
+    gp_part = jac - ctrl._toeplitz_b                          # what the lag part alone would give
+    assert np.abs(gp_part).max() > 0.05 * np.abs(ctrl._toeplitz_b).max()
+    assert np.allclose(jac, fd, rtol=0.0, atol=1e-4 * np.abs(fd).max())    # float32 kernel on the hot path
+
+
 def test_launch_refuses_a_plant_of_another_sample_period(tmp_path):
     """End to end: the FE plant at 100 µs against the 50 µs shipped model ends the run with the
     controller's one-line reason (exit 2 of the node, run failure 1 of the launcher)."""
