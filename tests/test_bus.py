@@ -43,9 +43,12 @@ def test_every_message_type_round_trips_through_another_process(hub, run_id):
             for topic, msg in sent:
                 assert received.get(topic.suffix) == msg, topic.suffix
             assert all(box.n_invalid == 0 for box in inboxes.values())
+            echo.terminate()  # while the hub (this test's session) still runs, as launch.py stops nodes
+            status, out = finish(echo, timeout=15)
     finally:
-        echo.terminate()
-        status, out = finish(echo, timeout=15)
+        if echo.poll() is None:
+            echo.kill()
+            echo.communicate()
     assert status == 0, out
 
 
