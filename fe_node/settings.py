@@ -78,6 +78,10 @@ class Settings:
         Effective liquid conductivity of Marangoni flow: the conductivity in the horizontal
         (x, y) and vertical (z) directions is multiplied by ``1 + (f - 1) f_liq``, ``f_liq`` the
         liquid fraction (default 1, 1: off; docs/fe.md).
+    window_m : float
+        Side of the fine window that follows the laser [m] (:mod:`fe_node.window`): the
+        ``h_fine_m`` band covers only this square around the laser, so the node count stays
+        bounded as the part grows.  0 (default): the band covers the whole scan plan.
     min_substeps : int
         Least explicit sub-steps per step (default 3; more if stability needs them).  Three
         keep the area within 1 % of the time-converged one at 25 µm (``dt_convergence_pct`` of
@@ -112,6 +116,7 @@ class Settings:
     plate_h_w_m2k: float = 0.0
     liquid_k_factor_xy: float = 1.0
     liquid_k_factor_z: float = 1.0
+    window_m: float = 0.0
     min_substeps: int = 3
     operator: str = "tensor"
 
@@ -160,6 +165,8 @@ class Settings:
                              f"{self.h_fine_m:g} m > beam radius {self.beam_radius_m:g} m")
         if self.h_max_m < self.h_fine_m:
             raise ValueError("settings: h_max_m must be >= h_fine_m")
+        if not (self.window_m == 0 or 8 * self.h_fine_m <= self.window_m < float("inf")):
+            raise ValueError(f"settings: window_m must be 0 (off) or >= 8 h_fine_m, got {self.window_m}")
         if self.fine_pad_m > self.margin_m or self.fine_depth_m > self.depth_m:
             raise ValueError("settings: refined band must lie inside the domain")
 

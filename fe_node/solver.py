@@ -33,25 +33,34 @@ from fe_node.powder import PowderBed
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.source import surface_load
+from fe_node.window import ahead, element_map, needs_move, transfer, window_axis
 
 DWELL_EXPLICIT_S = 2e-3
 """Explicit part of a dwell [s] (:meth:`ThermalModel._dwell`)."""
 
 
-def build_grid(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None) -> Grid:
-    """Graded grid: fine band of size ``h_fine_m`` around the tracks, graded outwards; the
+def build_grid(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None,
+               window_centre: np.ndarray | None = None) -> Grid:
+    """Graded grid: fine band of size ``h_fine_m`` around the tracks (or, with ``window_m > 0``, a
+    window of that side around ``window_centre``, :mod:`fe_node.window`), graded outwards; the
     plate's top at z = 0, a powder layer (``powder_layer_m``, elements <= ``h_fine_m``) above it."""
     s = settings
     b = np.array([p.bounds() for p in (layer_plans or (plan,))])
     x0, x1, y0, y1 = b[:, 0].min(), b[:, 1].max(), b[:, 2].min(), b[:, 3].max()
     ax = dict(h=s.h_fine_m, growth=s.growth, h_max=s.h_max_m)
-    xs = graded_axis(x0 - s.margin_m, x1 + s.margin_m, x0 - s.fine_pad_m, x1 + s.fine_pad_m, **ax)
-    ys = graded_axis(y0 - s.margin_m, y1 + s.margin_m, y0 - s.fine_pad_m, y1 + s.fine_pad_m, **ax)
+    axes = []
+    for k, (lo, hi) in enumerate(((x0, x1), (y0, y1))):
+        domain = (lo - s.margin_m, hi + s.margin_m)
+        band = (lo - s.fine_pad_m, hi + s.fine_pad_m)
+        if s.window_m > 0 and window_centre is not None:
+            axes.append(window_axis(*domain, *band, float(window_centre[k]), s.window_m, **ax))
+        else:
+            axes.append(graded_axis(*domain, *band, **ax))
     zs = graded_axis(-s.depth_m, 0.0, -s.fine_depth_m, 0.0, **ax)
     if s.powder_layer_m > 0:
         n = math.ceil(s.powder_layer_m / s.h_fine_m - 1e-9)
         zs = np.concatenate([zs, np.linspace(0.0, s.powder_layer_m, n + 1)[1:]])
-    return Grid(xs, ys, zs)
+    return Grid(axes[0], axes[1], zs)
 
 
 def check_command(power_w: float, speed_m_s: float) -> None:
@@ -146,7 +155,12 @@ class ThermalModel:
         if layer_plans is not None and (len(layer_plans) != settings.n_layers or layer_plans[0] != plan):
             raise ValueError("thermal model: layer_plans must hold n_layers plans, the first being plan")
         self.settings, self.plan, self._layer_plans = settings, plan, layer_plans
-        self.grid = build_grid(settings, plan, layer_plans)
+        _, start, direction = plan.locate(0.0)
+        self.grid = build_grid(settings, plan, layer_plans, ahead(start, direction, settings.window_m))
+        self.n_remeshes, self.remesh_energy_j = 0, 0.0
+        b = np.array([p.bounds() for p in (layer_plans or (plan,))])
+        pad = settings.fine_pad_m
+        self._bands = ((b[:, 0].min() - pad, b[:, 1].max() + pad), (b[:, 2].min() - pad, b[:, 3].max() + pad))
         self.law = Constitutive(settings.material)
         ny, nz, nx = self.grid.solver_shape
         self.powder = PowderBed(settings, self.grid.zs, (ny - 1, nx - 1)) if settings.powder_layer_m > 0 else None
@@ -357,6 +371,8 @@ class ThermalModel:
         if self.layer_done:
             self.add_layer()
         s = self.settings
+        if s.window_m > 0:
+            self._follow(speed_m_s * s.dt_s)
         ds = speed_m_s * self._dt_sub
         n_pos = max(1, math.ceil(ds / (s.beam_radius_m / 20)))
         total = self.plan.total_length
@@ -374,6 +390,33 @@ class ThermalModel:
             self._consolidate()
         self.step_index += 1
         return self._observe(power_w, speed_m_s)
+
+    def _follow(self, travel_m: float) -> None:
+        """Move the fine window ahead of the laser if this step would take it near the edge."""
+        _, points, directions = self.plan.locate(np.array([self._s, min(self._s + travel_m, self.plan.total_length)]))
+        g, s = self.grid, self.settings
+        if needs_move((g.xs, g.ys), self._bands, s.h_fine_m, points, s.window_m):
+            self.remesh(ahead(points[0], directions[0], s.window_m))
+
+    def remesh(self, window_centre: np.ndarray) -> None:
+        """Put the fine window at ``window_centre`` [m] (x, y) and carry the state over
+        (:func:`fe_node.window.transfer`); the energy the transfer changes is counted in
+        ``remesh_energy_j`` (and so in the balance)."""
+        old, e_before = self.grid, self._energy()
+        fresh = build_grid(self.settings, self.plan, self._layer_plans, window_centre)
+        new = Grid(fresh.xs, fresh.ys, old.zs)
+        jm, im = element_map(old.ys, new.ys), element_map(old.xs, new.xs)
+        shape = (len(old.ys) - 1, len(old.zs) - 1, len(old.xs) - 1)
+        kw, rho_w = (w.reshape(shape)[jm][:, :, im].ravel() for w in self._element_weights())
+        self._h = np.ascontiguousarray(transfer(self._h, old.xs, old.ys, new.xs, new.ys))
+        if self.powder is not None:
+            self.powder.consolidated = self.powder.consolidated[jm][:, :, im]
+        self.grid = new
+        self.operator = self._build_operator(kw, rho_w)
+        self._a_top, self._a_bottom = self._face_areas()
+        self._set_time_step()
+        self.remesh_energy_j += self._energy() - e_before
+        self.n_remeshes += 1
 
     def _substep(self, load) -> None:
         """One explicit sub-step (losses at the start temperature, capped at boiling)."""

@@ -1,0 +1,87 @@
+"""A fine window that follows the laser: a node count bounded as the part grows (``window_m``).
+
+:func:`fe_node.solver.build_grid` puts its ``h_fine_m`` band over the whole scan plan, so the
+node count grows with the part's plan area.  With ``Settings.window_m > 0`` the band in x and y
+covers only a square of that side around the laser; outside it the elements grow to ``h_max_m``
+as before.  The plant remeshes (:meth:`fe_node.solver.ThermalModel.step`) when the laser comes
+within ``window_m / 4`` of the window's edge (:func:`needs_move`); the new window is centred
+``window_m / 4`` ahead of the laser (:func:`ahead`).
+
+Transfer (:func:`transfer`): the window's edges lie on the lattice of the whole-plan band, so
+nodes that stay fine keep their coordinates and values; elsewhere the enthalpy is interpolated
+linearly along x and y (z is unchanged), and every new element takes the weights and the
+consolidation state of the old element that contains its centre.  Interpolation onto coarser
+elements does not conserve energy exactly; the change is counted by the model
+(``remesh_energy_j``) and shows in its energy balance.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fe_node.mesh import graded_axis
+from fe_node.observe import interp_matrix
+
+EDGE_FRACTION = 0.25
+"""Remesh when the laser is closer than this fraction of ``window_m`` to the window's edge; the
+new window's centre lies this fraction of ``window_m`` ahead of the laser."""
+
+
+def window_axis(lo: float, hi: float, band_lo: float, band_hi: float, centre: float, width: float, h: float,
+                growth: float, h_max: float) -> np.ndarray:
+    """Node coordinates [m] along one axis with the fine band cut to ``width`` around ``centre``.
+
+    ``band_lo``, ``band_hi`` bound the whole-plan fine band, whose spacing ``hf <= h`` (as
+    :func:`graded_axis` makes it) is the lattice the window's edges snap to.
+    """
+    n = max(1, math.ceil((band_hi - band_lo) / h - 1e-9))
+    hf = (band_hi - band_lo) / n
+    i0 = min(max(math.floor((centre - 0.5 * width - band_lo) / hf), 0), n - 1)
+    i1 = max(min(math.ceil((centre + 0.5 * width - band_lo) / hf), n), i0 + 1)
+    return graded_axis(lo, hi, band_lo + i0 * hf, band_lo + i1 * hf, hf * (1 + 1e-9), growth, h_max)
+
+
+def fine_extent(coords: np.ndarray, h_fine: float) -> tuple[float, float]:
+    """First and last coordinate [m] of the run of elements of size ``<= h_fine`` on an axis."""
+    fine = np.flatnonzero(np.diff(coords) <= h_fine * (1 + 1e-6))
+    return float(coords[fine[0]]), float(coords[fine[-1] + 1])
+
+
+def needs_move(axes: tuple[np.ndarray, np.ndarray], bands: tuple[tuple[float, float], ...], h_fine: float,
+               points: np.ndarray, width: float) -> bool:
+    """True if the window no longer holds ``EDGE_FRACTION * width`` of fine mesh around one of
+    ``points`` (shape (n, 2), [m]) on x or y, where the whole-plan band (``bands``) has it.
+
+    Parameters
+    ----------
+    axes : (ndarray, ndarray)
+        Node coordinates along x and y [m].
+    bands : ((float, float), (float, float))
+        The whole-plan fine band along x and y [m].
+    """
+    margin = EDGE_FRACTION * width
+    for coords, (band_lo, band_hi), axis in zip(axes, bands, (0, 1)):
+        lo, hi = fine_extent(coords, h_fine)
+        for p in points[:, axis]:
+            if max(band_lo, p - margin) < lo - 1e-3 * h_fine or min(band_hi, p + margin) > hi + 1e-3 * h_fine:
+                return True
+    return False
+
+
+def ahead(xy: np.ndarray, direction: np.ndarray, width: float) -> np.ndarray:
+    """The new window's centre [m]: ``EDGE_FRACTION * width`` ahead of the laser."""
+    return np.asarray(xy, dtype=float) + EDGE_FRACTION * width * np.asarray(direction, dtype=float)
+
+
+def element_map(old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """For each element of axis ``new``, the element of axis ``old`` containing its centre."""
+    centres = 0.5 * (new[1:] + new[:-1])
+    return np.clip(np.searchsorted(old, centres, side="right") - 1, 0, len(old) - 2)
+
+
+def transfer(h: np.ndarray, old_xs: np.ndarray, old_ys: np.ndarray, new_xs: np.ndarray,
+             new_ys: np.ndarray) -> np.ndarray:
+    """Nodal field of shape (ny, nz, nx) on the old x, y axes → the new ones (linear in x and y)."""
+    iy, ix = interp_matrix(old_ys, new_ys), interp_matrix(old_xs, new_xs)
+    return np.einsum("ab,bkc,dc->akd", iy, h, ix, optimize=True)

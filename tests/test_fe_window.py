@@ -1,0 +1,70 @@
+"""The fine window that follows the laser (``Settings.window_m``, :mod:`fe_node.window`)."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fe_node.scan import ScanPlan
+from fe_node.scenarios import scenario
+from fe_node.settings import Settings
+from fe_node.solver import ThermalModel
+from fe_node.window import transfer, window_axis
+
+COARSE = dict(h_fine_m=40e-6, margin_m=0.5e-3, depth_m=0.6e-3, fine_pad_m=120e-6, fine_depth_m=120e-6,
+              h_max_m=0.2e-3)
+
+
+def _run(settings, plan, n=None):
+    model = ThermalModel(settings, plan)
+    areas = []
+    while not model.done and (n is None or len(areas) < n):
+        areas.append(model.step(250.0, 0.8).area_m2)
+    return model, np.array(areas)
+
+
+def test_window_follows_the_laser_and_keeps_the_melt_pool():
+    """A 4-track layer with a 1.6 mm window: the area trace of the whole-plan mesh within 0.5 % rms,
+    on 55 % of the nodes (the plan is small), the energy the remeshes change small."""
+    plan = ScanPlan.layer(4, 3e-3, 1e-4)
+    full_model, full = _run(Settings(**COARSE), plan)
+    win_model, win = _run(Settings(**COARSE, window_m=1.6e-3), plan)
+    assert win_model.n_remeshes >= 8 and win_model.grid.n_nodes < 0.6 * full_model.grid.n_nodes
+    diff = (win - full)[20:] / full[20:].mean()
+    assert np.sqrt(np.mean(diff**2)) < 0.01 and np.abs(diff).max() < 0.04     # 0.65 %, 2.6 % here
+    assert abs(win_model.remesh_energy_j) < 0.02 * 4 * 3e-3 / 0.8 * 250.0 * 0.4
+
+
+def test_node_count_stays_bounded_as_the_track_grows():
+    nodes = {}
+    for window in (0.0, 1.2e-3):
+        for length in (2e-3, 8e-3):
+            settings = Settings(**{**COARSE, "h_max_m": 0.5e-3}, window_m=window)
+            nodes[window, length] = ThermalModel(settings, ScanPlan.single(length)).grid.n_nodes
+    full_growth = nodes[0.0, 8e-3] - nodes[0.0, 2e-3]            # the band covers the whole track
+    window_growth = nodes[1.2e-3, 8e-3] - nodes[1.2e-3, 2e-3]    # only coarse elements are added
+    assert full_growth > 1.5 * nodes[0.0, 2e-3] and window_growth < 0.15 * full_growth
+
+
+def test_nodes_that_stay_fine_keep_their_values():
+    band = (-1.0e-3, 9.0e-3)
+    a = window_axis(-2e-3, 10e-3, *band, centre=3e-3, width=2e-3, h=25e-6, growth=1.35, h_max=0.5e-3)
+    b = window_axis(-2e-3, 10e-3, *band, centre=3.6e-3, width=2e-3, h=25e-6, growth=1.35, h_max=0.5e-3)
+    shared = np.intersect1d(np.round(a / 1e-9), np.round(b / 1e-9)) * 1e-9
+    fine_shared = shared[(shared > 2.7e-3) & (shared < 3.9e-3)]
+    assert fine_shared.size >= 40                               # the overlap of the two windows
+    rng = np.random.default_rng(0)
+    h = rng.uniform(1e9, 5e9, (3, 2, a.size))
+    ys = np.array([0.0, 1e-4, 2e-4])
+    moved = transfer(h, a, ys, b, ys)
+    ia, ib = (np.searchsorted(x, fine_shared - 1e-12) for x in (a, b))
+    assert np.allclose(moved[:, :, ib], h[:, :, ia], rtol=1e-12, atol=0)
+
+
+def test_window_on_the_default_layer_scenario_and_its_validation():
+    sc = scenario("layer", h_fine_m=40e-6)
+    model = ThermalModel(replace(sc.settings, window_m=2e-3), sc.plan)
+    for _ in range(5):
+        model.step(250.0, 0.8)
+    assert model.grid.n_nodes < ThermalModel(sc.settings, sc.plan).grid.n_nodes
+    with pytest.raises(ValueError, match="window_m"):
+        Settings(window_m=1e-4)
