@@ -68,3 +68,5 @@ def test_window_on_the_default_layer_scenario_and_its_validation():
     assert model.grid.n_nodes < ThermalModel(sc.settings, sc.plan).grid.n_nodes
     with pytest.raises(ValueError, match="window_m"):
         Settings(window_m=1e-4)
+    with pytest.raises(ValueError, match="window_m needs powder_layer_m = 0"):
+        Settings(window_m=2e-3, powder_layer_m=25e-6)
