@@ -81,8 +81,7 @@ class Settings:
     window_m : float
         Side of the fine window that follows the laser [m] (:mod:`fe_node.window`): the
         ``h_fine_m`` band covers only this square around the laser, so the node count stays
-        bounded as the part grows.  0 (default): the band covers the whole scan plan.  Not with
-        a powder layer yet.
+        bounded as the part grows.  0 (default): the band covers the whole scan plan.
     min_substeps : int
         Least explicit sub-steps per step (default 3; more if stability needs them).  Three
         keep the area within 1 % of the time-converged one at 25 µm (``dt_convergence_pct`` of
@@ -168,9 +167,6 @@ class Settings:
             raise ValueError("settings: h_max_m must be >= h_fine_m")
         if not (self.window_m == 0 or 8 * self.h_fine_m <= self.window_m < float("inf")):
             raise ValueError(f"settings: window_m must be 0 (off) or >= 8 h_fine_m, got {self.window_m}")
-        if self.window_m > 0 and self.powder_layer_m > 0:
-            raise ValueError("settings: window_m needs powder_layer_m = 0 (the powder's consolidation is not "
-                             "carried across remeshes yet)")
         if self.fine_pad_m > self.margin_m or self.fine_depth_m > self.depth_m:
             raise ValueError("settings: refined band must lie inside the domain")
 

@@ -33,7 +33,7 @@ from fe_node.powder import PowderBed
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.source import surface_load
-from fe_node.window import ahead, element_map, needs_move, transfer, window_axis
+from fe_node.window import ConsolidationLattice, ahead, conserve, element_map, kept, needs_move, transfer, window_axis
 
 DWELL_EXPLICIT_S = 2e-3
 """Explicit part of a dwell [s] (:meth:`ThermalModel._dwell`)."""
@@ -164,10 +164,14 @@ class ThermalModel:
         self.law = Constitutive(settings.material)
         ny, nz, nx = self.grid.solver_shape
         self.powder = PowderBed(settings, self.grid.zs, (ny - 1, nx - 1)) if settings.powder_layer_m > 0 else None
+        self._lattice = None
+        if self.powder is not None and settings.window_m > 0:
+            self._lattice = ConsolidationLattice(*self._bands, settings.h_fine_m, self.powder.consolidated.shape[1])
         self.operator = self._build_operator(*self._initial_weights())
         self._a_top, self._a_bottom = self._face_areas()
         self.layer = 0
-        self._h = np.full(self.grid.solver_shape, float(self.law.enthalpy(settings.t0_k)))
+        self._h_ref = float(self.law.enthalpy(settings.t0_k))
+        self._h = np.full(self.grid.solver_shape, self._h_ref)
         self._work: StepWork | None = None
         self._set_time_step()
         self._e0 = self._energy()
@@ -248,6 +252,8 @@ class ThermalModel:
         kw = np.concatenate([kw.reshape(old), np.full(new, self.powder.kw_powder)], axis=1).ravel()
         rho_w = np.concatenate([rho_w.reshape(old), np.full(new, self.powder.packing)], axis=1).ravel()
         self.powder.grow(n)
+        if self._lattice is not None:
+            self._lattice.grow(n)
         self.operator = self._build_operator(kw, rho_w)
         self._a_top, self._a_bottom = self._face_areas()
         h = np.full(self.grid.solver_shape, float(self.law.enthalpy(s.t0_k)))
@@ -318,6 +324,9 @@ class ThermalModel:
     def _consolidate(self) -> None:
         """Re-weight the powder elements that melted this step (:meth:`fe_node.powder.PowderBed.consolidate`)."""
         melted = self.powder.consolidate(self.law.temperature(self._h[:, self.powder.k0:, :]))
+        if len(melted) and self._lattice is not None:
+            j, k, i = np.unravel_index(melted, (len(self.grid.ys) - 1, len(self.grid.zs) - 1, len(self.grid.xs) - 1))
+            self._lattice.mark(self.grid.xs, self.grid.ys, (j, k - self.powder.k0, i))
         if len(melted):
             self.reweight(melted, self.powder.packing, self.powder.packing)
 
@@ -407,14 +416,22 @@ class ThermalModel:
         new = Grid(fresh.xs, fresh.ys, old.zs)
         jm, im = element_map(old.ys, new.ys), element_map(old.xs, new.xs)
         shape = (len(old.ys) - 1, len(old.zs) - 1, len(old.xs) - 1)
-        kw, rho_w = (w.reshape(shape)[jm][:, :, im].ravel() for w in self._element_weights())
+        kw, rho_w = (w.reshape(shape)[jm][:, :, im] for w in self._element_weights())
         self._h = np.ascontiguousarray(transfer(self._h, old.xs, old.ys, new.xs, new.ys))
-        if self.powder is not None:
-            self.powder.consolidated = self.powder.consolidated[jm][:, :, im]
+        if self.powder is not None:     # powder: from the consolidation kept on the band's lattice
+            pb, k0 = self.powder, self.powder.k0
+            share = self._lattice.fraction(new.xs, new.ys)
+            pb.consolidated = share >= 1.0 - 1e-9
+            kw[:, k0:, :] = pb.kw_powder + share * (pb.packing - pb.kw_powder)
+            rho_w[:, k0:, :] = pb.packing
+        kw, rho_w = kw.ravel(), rho_w.ravel()
         self.grid = new
         self.operator = self._build_operator(kw, rho_w)
         self._a_top, self._a_bottom = self._face_areas()
         self._set_time_step()
+        tol = 1e-6 * self.settings.h_fine_m
+        fresh = ~(kept(old.ys, new.ys, tol)[:, None, None] & kept(old.xs, new.xs, tol)[None, None, :])
+        conserve(self._h, self._m, np.broadcast_to(fresh, self._h.shape), e_before, self._h_ref)
         self.remesh_energy_j += self._energy() - e_before
         self.n_remeshes += 1
 

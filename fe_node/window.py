@@ -7,12 +7,14 @@ as before.  The plant remeshes (:meth:`fe_node.solver.ThermalModel.step`) when t
 within ``window_m / 4`` of the window's edge (:func:`needs_move`); the new window is centred
 ``window_m / 4`` ahead of the laser (:func:`ahead`).
 
-Transfer (:func:`transfer`): the window's edges lie on the lattice of the whole-plan band, so
-nodes that stay fine keep their coordinates and values; elsewhere the enthalpy is interpolated
-linearly along x and y (z is unchanged), and every new element takes the weights and the
-consolidation state of the old element that contains its centre.  Interpolation onto coarser
-elements does not conserve energy exactly; the change is counted by the model
-(``remesh_energy_j``) and shows in its energy balance.
+Transfer (:func:`transfer`): the window's edges lie on the lattice of the whole-plan band,
+so nodes that stay fine keep their coordinates and values; elsewhere the enthalpy is
+interpolated linearly along x and y (z is unchanged), and the enthalpy above the preheat state
+at those interpolated nodes is scaled so that the energy is unchanged (:func:`conserve`;
+interpolation onto coarser elements overestimates the convex profile around the tracks).  The
+powder's consolidation is kept on the band's lattice (:class:`ConsolidationLattice`): each new
+powder element gets the conductivity of its consolidated share; other elements take the weights
+of the old element containing their centre.
 """
 from __future__ import annotations
 
@@ -85,3 +87,70 @@ def transfer(h: np.ndarray, old_xs: np.ndarray, old_ys: np.ndarray, new_xs: np.n
     """Nodal field of shape (ny, nz, nx) on the old x, y axes → the new ones (linear in x and y)."""
     iy, ix = interp_matrix(old_ys, new_ys), interp_matrix(old_xs, new_xs)
     return np.einsum("ab,bkc,dc->akd", iy, h, ix, optimize=True)
+
+
+def kept(old: np.ndarray, new: np.ndarray, tol: float) -> np.ndarray:
+    """True for the coordinates of axis ``new`` that are also nodes of axis ``old`` (within ``tol``)."""
+    i = np.clip(np.searchsorted(old, new), 1, len(old) - 1)
+    return np.minimum(np.abs(old[i] - new), np.abs(old[i - 1] - new)) <= tol
+
+
+def conserve(h: np.ndarray, mass: np.ndarray, interpolated: np.ndarray, energy_j: float, h_ref: float) -> float:
+    """Scale the enthalpy above ``h_ref`` at the ``interpolated`` nodes so that ``sum(mass * h)``
+    equals ``energy_j`` again (in place); returns the factor.  Linear interpolation onto coarser
+    elements overestimates a convex profile (the heat around the tracks) and so creates energy.
+    """
+    excess = float(np.sum(mass[interpolated] * (h[interpolated] - h_ref)))
+    deficit = energy_j - float(np.sum(mass * h))
+    factor = 1.0 + deficit / excess if excess > 0 else 1.0
+    h[interpolated] = h_ref + factor * (h[interpolated] - h_ref)
+    return factor
+
+
+class ConsolidationLattice:
+    """Which powder has consolidated, on the cells of the whole-plan band's lattice.
+
+    The window's elements change at every remesh; consolidation is a property of the material,
+    so it is kept here, independent of the mesh: a cell is consolidated once an element covering
+    it consolidated.  An element's consolidated fraction is the share of its cells that are.
+
+    Parameters
+    ----------
+    band_x, band_y : (float, float)
+        The whole-plan fine band along x and y [m].
+    h : float
+        ``h_fine_m`` [m] (the lattice spacing is the band's, ``<= h``).
+    n_layers : int
+        Powder element layers.
+    """
+
+    def __init__(self, band_x: tuple[float, float], band_y: tuple[float, float], h: float, n_layers: int):
+        self.edges = [np.linspace(lo, hi, max(1, math.ceil((hi - lo) / h - 1e-9)) + 1) for lo, hi in (band_x, band_y)]
+        self.melted = np.zeros((len(self.edges[1]) - 1, n_layers, len(self.edges[0]) - 1), dtype=bool)
+
+    def grow(self, n_layers: int) -> None:
+        """``n_layers`` new powder element layers on top."""
+        ny, _, nx = self.melted.shape
+        self.melted = np.concatenate([self.melted, np.zeros((ny, n_layers, nx), dtype=bool)], axis=1)
+
+    def _cells(self, axis: int, coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per element of ``coords``: the lattice cells ``a <= c < b`` whose centres it contains."""
+        e = self.edges[axis]
+        centres = 0.5 * (e[1:] + e[:-1])
+        return np.searchsorted(centres, coords[:-1]), np.searchsorted(centres, coords[1:])
+
+    def mark(self, xs: np.ndarray, ys: np.ndarray, elements: np.ndarray) -> None:
+        """Mark the cells of consolidated ``elements`` (indices (j, k, i) into the powder layers)."""
+        (ax, bx), (ay, by) = self._cells(0, xs), self._cells(1, ys)
+        for j, k, i in zip(*elements):
+            self.melted[ay[j]:by[j], k, ax[i]:bx[i]] = True
+
+    def fraction(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """Consolidated share [-] of every powder element of the grid (xs, ys), shape (ny - 1, n_layers, nx - 1);
+        0 for elements that hold no lattice cell (outside the band)."""
+        (ax, bx), (ay, by) = self._cells(0, xs), self._cells(1, ys)
+        s = np.zeros((self.melted.shape[0] + 1, self.melted.shape[1], self.melted.shape[2] + 1))
+        s[1:, :, 1:] = self.melted.cumsum(axis=0).cumsum(axis=2)
+        total = s[by][:, :, bx] - s[ay][:, :, bx] - s[by][:, :, ax] + s[ay][:, :, ax]
+        count = ((by - ay)[:, None] * (bx - ax)[None, :])[:, None, :]
+        return np.divide(total, count, out=np.zeros_like(total), where=count > 0)
