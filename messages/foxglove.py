@@ -174,19 +174,32 @@ class ModelPrimitive(Message, frozen=True, kw_only=True):
     data: bytes = b""
 
 
+Unused = Annotated[list[dict], msgspec.Meta(max_length=0, description="Always empty in meltloop.")]
+"""A field of a Foxglove schema that meltloop does not use: present (Foxglove's JSON schema lists
+every field) and empty."""
+
+
 class SceneEntity(Message, frozen=True, kw_only=True):
-    """``foxglove.SceneEntity`` with the primitive kinds meltloop uses (lines, models)."""
+    """``foxglove.SceneEntity``; meltloop draws lines and models, the other primitive lists stay empty."""
 
     timestamp: Timestamp
     frame_id: Annotated[str, msgspec.Meta(max_length=64)]
     id: Annotated[str, msgspec.Meta(max_length=64)]
     lifetime: Duration = Duration()
     frame_locked: bool = False
+    metadata: Unused = []
+    arrows: Unused = []
+    cubes: Unused = []
+    spheres: Unused = []
+    cylinders: Unused = []
     lines: list[LinePrimitive] = []
+    triangles: Unused = []
+    texts: Unused = []
     models: list[ModelPrimitive] = []
 
 
 class SceneUpdate(Message, frozen=True, kw_only=True):
-    """``foxglove.SceneUpdate``: entities replace earlier ones of the same id."""
+    """``foxglove.SceneUpdate``: entities replace earlier ones of the same id (no deletions)."""
 
+    deletions: Unused = []
     entities: Annotated[list[SceneEntity], msgspec.Meta(min_length=1, max_length=64)]
