@@ -94,3 +94,13 @@ def test_consolidation_lattice_and_energy_correction():
     h, mass = np.array([1.0, 3.0, 2.0]), np.array([1.0, 2.0, 1.0])
     factor = conserve(h, mass, np.array([False, True, True]), energy_j=7.0, h_ref=1.0)
     assert np.sum(mass * h) == pytest.approx(7.0) and h[0] == 1.0 and factor == pytest.approx(0.6)
+
+
+def test_both_operators_follow_the_window_alike():
+    sc = scenario("layer", h_fine_m=40e-6)
+    traces = {}
+    for operator in ("tensor", "csr"):
+        model = ThermalModel(replace(sc.settings, window_m=1.6e-3, operator=operator), sc.plan)
+        traces[operator] = np.array([model.step(250.0, 0.8).area_m2 for _ in range(120)])
+        assert model.n_remeshes >= 4
+    assert np.allclose(traces["csr"], traces["tensor"], rtol=1e-10, atol=0)
