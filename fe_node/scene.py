@@ -12,6 +12,7 @@ Frame ``plate``: x and y as the scan plan, z up, 0 at the plate's top; metres (F
 """
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 
@@ -68,8 +69,10 @@ def scene_update(plan: ScanPlan, obs: Observation, part_stl: Path | None = None)
     return SceneUpdate(entities=entities)
 
 
+@functools.lru_cache(maxsize=4)
 def part_model(stl_path: Path) -> ModelPrimitive:
-    """The STL as an embedded ``model/stl``, scaled mm → m and placed like its scan paths."""
+    """The STL as an embedded ``model/stl``, scaled mm → m and placed like its scan paths (read once
+    per file: every layer's scene holds it)."""
     import trimesh
 
     (x0, y0, z0), (x1, y1, _) = trimesh.load(stl_path, file_type="stl").bounds.tolist()

@@ -39,19 +39,24 @@ DWELL_EXPLICIT_S = 2e-3
 """Explicit part of a dwell [s] (:meth:`ThermalModel._dwell`)."""
 
 
+def plan_bands(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None):
+    """Per axis x, y: the domain (every layer's tracks plus ``margin_m``) and the whole-plan fine
+    band (plus ``fine_pad_m``) [m], as ``((domain_lo, domain_hi), (band_lo, band_hi))``."""
+    b = np.array([p.bounds() for p in (layer_plans or (plan,))])
+    s = settings
+    return tuple(((lo - s.margin_m, hi + s.margin_m), (lo - s.fine_pad_m, hi + s.fine_pad_m))
+                 for lo, hi in ((b[:, 0].min(), b[:, 1].max()), (b[:, 2].min(), b[:, 3].max())))
+
+
 def build_grid(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None,
                window_centre: np.ndarray | None = None) -> Grid:
     """Graded grid: fine band of size ``h_fine_m`` around the tracks (or, with ``window_m > 0``, a
     window of that side around ``window_centre``, :mod:`fe_node.window`), graded outwards; the
     plate's top at z = 0, a powder layer (``powder_layer_m``, elements <= ``h_fine_m``) above it."""
     s = settings
-    b = np.array([p.bounds() for p in (layer_plans or (plan,))])
-    x0, x1, y0, y1 = b[:, 0].min(), b[:, 1].max(), b[:, 2].min(), b[:, 3].max()
     ax = dict(h=s.h_fine_m, growth=s.growth, h_max=s.h_max_m)
     axes = []
-    for k, (lo, hi) in enumerate(((x0, x1), (y0, y1))):
-        domain = (lo - s.margin_m, hi + s.margin_m)
-        band = (lo - s.fine_pad_m, hi + s.fine_pad_m)
+    for k, (domain, band) in enumerate(plan_bands(settings, plan, layer_plans)):
         if s.window_m > 0 and window_centre is not None:
             axes.append(window_axis(*domain, *band, float(window_centre[k]), s.window_m, **ax))
         else:
@@ -158,9 +163,7 @@ class ThermalModel:
         _, start, direction = plan.locate(0.0)
         self.grid = build_grid(settings, plan, layer_plans, ahead(start, direction, settings.window_m))
         self.n_remeshes, self.remesh_energy_j = 0, 0.0
-        b = np.array([p.bounds() for p in (layer_plans or (plan,))])
-        pad = settings.fine_pad_m
-        self._bands = ((b[:, 0].min() - pad, b[:, 1].max() + pad), (b[:, 2].min() - pad, b[:, 3].max() + pad))
+        self._bands = tuple(band for _, band in plan_bands(settings, plan, layer_plans))
         self.law = Constitutive(settings.material)
         ny, nz, nx = self.grid.solver_shape
         self.powder = PowderBed(settings, self.grid.zs, (ny - 1, nx - 1)) if settings.powder_layer_m > 0 else None
@@ -256,7 +259,7 @@ class ThermalModel:
             self._lattice.grow(n)
         self.operator = self._build_operator(kw, rho_w)
         self._a_top, self._a_bottom = self._face_areas()
-        h = np.full(self.grid.solver_shape, float(self.law.enthalpy(s.t0_k)))
+        h = np.full(self.grid.solver_shape, self._h_ref)
         h[:, :nz, :] = self._h
         self._h = h
         self._set_time_step()
@@ -412,8 +415,8 @@ class ThermalModel:
         (:func:`fe_node.window.transfer`); the energy the transfer changes is counted in
         ``remesh_energy_j`` (and so in the balance)."""
         old, e_before = self.grid, self._energy()
-        fresh = build_grid(self.settings, self.plan, self._layer_plans, window_centre)
-        new = Grid(fresh.xs, fresh.ys, old.zs)
+        moved = build_grid(self.settings, self.plan, self._layer_plans, window_centre)
+        new = Grid(moved.xs, moved.ys, old.zs)
         jm, im = element_map(old.ys, new.ys), element_map(old.xs, new.xs)
         shape = (len(old.ys) - 1, len(old.zs) - 1, len(old.xs) - 1)
         kw, rho_w = (w.reshape(shape)[jm][:, :, im] for w in self._element_weights())
@@ -430,8 +433,8 @@ class ThermalModel:
         self._a_top, self._a_bottom = self._face_areas()
         self._set_time_step()
         tol = 1e-6 * self.settings.h_fine_m
-        fresh = ~(kept(old.ys, new.ys, tol)[:, None, None] & kept(old.xs, new.xs, tol)[None, None, :])
-        conserve(self._h, self._m, np.broadcast_to(fresh, self._h.shape), e_before, self._h_ref)
+        interpolated = ~(kept(old.ys, new.ys, tol)[:, None, None] & kept(old.xs, new.xs, tol)[None, None, :])
+        conserve(self._h, self._m, np.broadcast_to(interpolated, self._h.shape), e_before, self._h_ref)
         self.remesh_energy_j += self._energy() - e_before
         self.n_remeshes += 1
 
