@@ -18,6 +18,7 @@ from typing import Any
 
 from controller_node.settings import ControllerSettings
 from controller_node.summary import comparison_table, summarise, table_line
+from fe_node.scenarios import PART_NAMES
 from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.launch.node import NodeSpec, load_node_list
@@ -55,7 +56,7 @@ class RunOptions:
             (self.controller in CONTROLLER_CHOICES, f"--controller: choose one of {', '.join(CONTROLLER_CHOICES)}"),
             (self.setpoint_mm2 is None or 0 < self.setpoint_mm2 < 0.5, "--setpoint-mm2 must be in (0, 0.5)"),
             (self.max_steps is None or self.max_steps >= 1, "--max-steps must be >= 1"),
-            (self.part is None or self.scenario == "part", "--part needs --scenario part"),
+            (self.part is None or self.scenario in PART_NAMES, "--part needs --scenario part or ident-part"),
             (self.part is None or self.part.is_file(), f"--part: file not found: {self.part}"),
             (self.layers is None or self.layers >= 1, "--layers must be >= 1"),
             (self.h_um is None or 0 < self.h_um <= 1000, "--h-um must be in (0, 1000] µm"),
@@ -112,6 +113,31 @@ def check_config(opts: RunOptions) -> None:
     build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint() * 1e-6)
 
 
+def default_model(opts: RunOptions) -> Path | None:
+    """The model of the run's plant if it is not the controller's default: the part model
+    (``gp_trainer.narx.PART_MODEL_PATH``) for ``preview-mpc`` on a part scenario."""
+    if opts.scenario in PART_NAMES and opts.controller == "preview-mpc":
+        from gp_trainer.narx import PART_MODEL_PATH
+
+        return PART_MODEL_PATH
+    return None
+
+
+def part_nominal_power(opts: RunOptions) -> float | None:
+    """On a part scenario, every controller starts from the part's open-loop power (the scenario's,
+    ``fe_node.scenarios.PART_POWER_W`` or ``[plant] power_w``) unless ``[controller]
+    nominal_power_w`` is set; ``None`` elsewhere (the controller's own default)."""
+    if opts.scenario not in PART_NAMES:
+        return None
+    from fe_node.scenarios import PART_POWER_W
+    from messages.config import load_toml
+
+    data = load_toml(opts.config)
+    if "nominal_power_w" in data.get("controller", {}):
+        return None
+    return float(data.get("plant", {}).get("power_w", PART_POWER_W))
+
+
 def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
     """The declarative node list of a run: recorder, controller (unless ``none``), plant."""
     common = ["--config", str(opts.config)] if opts.config else []
@@ -122,7 +148,11 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
         recorder += ["--expect", "controller"]
         controller = ["--controller", opts.controller, "--setpoint-mm2", repr(opts.setpoint()), "--require",
                       "recorder", *common]
-        controller += ["--model", str(opts.model)] if opts.model else []
+        model = opts.model or default_model(opts)
+        controller += ["--model", str(model)] if model else []
+        controller += ["--preset", "part"] if opts.scenario in PART_NAMES else []
+        nominal = part_nominal_power(opts)
+        controller += ["--nominal-power-w", repr(nominal)] if nominal is not None else []
         controller += ["--learning-state", str(opts.learning_state)] if opts.learning_state else []
         nodes.append(NodeSpec("controller", "controller_node", tuple(controller)))
         plant += ["--require", "controller"]

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from controller_node.registry import CONTROLLERS, make_controller
-from controller_node.settings import ControllerSettings
+from controller_node.settings import PLANT_PRESETS, ControllerSettings, with_preset
 from controller_node.types import ConfigurationError, Measurement
 from gp_trainer.atomic import atomic_write_bytes
 from messages import ControllerDiagnostics, LaserCommand, LogLevel, MeltPoolState
@@ -282,8 +282,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--model", type=Path,
                         help="model file (default: the controller's shipped model in gp_trainer/models/)")
     parser.add_argument("--setpoint-mm2", type=float, help="melt-pool area set point [mm²]")
+    parser.add_argument("--nominal-power-w", type=float,
+                        help="power at laser-on and during the pool build-up [W] (default: [controller] "
+                             "nominal_power_w, else 250 W)")
     parser.add_argument("--config", type=Path,
                         help="TOML run configuration; its [controller] table holds ControllerSettings fields")
+    parser.add_argument("--preset", choices=tuple(PLANT_PRESETS),
+                        help="settings for another plant than the bare plate, under --config's "
+                             "(launch.py passes 'part' on a part scenario)")
     parser.add_argument("--plant", default="plant", help="name of the plant node to follow (default: %(default)s)")
     parser.add_argument("--learning-state", type=Path, metavar="FILE",
                         help="preview-mpc: start from what a previous layer learned (if FILE exists) and write "
@@ -300,8 +306,10 @@ def main(argv: list[str] | None = None) -> int:
         bus_settings = bus_settings_from_args(args)
         table = dict(load_toml(args.config).get("controller", {}))
         table.pop("name", None)  # the controller's name is a launch option
+        table = with_preset(table, args.preset)
         set_point = None if args.setpoint_mm2 is None else args.setpoint_mm2 * 1e-6
-        settings = build(ControllerSettings, table, "[controller]", set_point_m2=set_point)
+        settings = build(ControllerSettings, table, "[controller]", set_point_m2=set_point,
+                         nominal_power_w=args.nominal_power_w)
         model = load_model(args.controller, args.model)
         try:
             controller = make_controller(args.controller, settings, model)

@@ -393,3 +393,26 @@ class ControllerSettings:
             _check(isinstance(getattr(self, name), cls), f"ControllerSettings.{name} must be a {cls.__name__}")
         _check(self.mpc.area_min_m2 < self.set_point_m2 < self.mpc.area_max_m2,
                "ControllerSettings.set_point_m2 must lie inside the MPC area bounds")
+
+
+PLANT_PRESETS: dict[str, dict] = {
+    "part": {"preview": {"observer_gain": 1.0, "turn_learning_gain": 0.0, "learn_turn_profile": False}},
+}
+"""``[controller]`` values for a plant other than the bare plate, under the run's own ``[controller]``
+table (which wins). ``part`` (``launch.py --scenario part`` passes ``--preset part``): short hatch
+vectors of different lengths, so what one turnaround teaches does not carry to the next (κ = 0, no
+learned turn profile), and a part model whose error moves fast along a hatch (observer gain 1).
+Chosen by the sweep in docs/controller.md ("Parts")."""
+
+
+def with_preset(table: dict, preset: str | None) -> dict:
+    """``table`` (a ``[controller]`` TOML table) over ``PLANT_PRESETS[preset]``, nested tables merged."""
+    if preset is None:
+        return dict(table)
+    merged = {k: dict(v) if isinstance(v, dict) else v for k, v in PLANT_PRESETS[preset].items()}
+    for key, value in table.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = {**merged[key], **value}
+        else:
+            merged[key] = value
+    return merged

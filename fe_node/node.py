@@ -26,7 +26,7 @@ from pathlib import Path
 from fe_node.commands import FALLBACKS, CommandGate, CommandPolicy, Verdict
 from fe_node.image import temperature_image
 from fe_node.observe import Observation
-from fe_node.scenarios import NAMES, Scenario
+from fe_node.scenarios import NAMES, PART_NAMES, Scenario
 from fe_node.scenarios import scenario as build_scenario
 from fe_node.scene import laser_pose, scene_update
 from fe_node.solver import ThermalModel
@@ -274,8 +274,8 @@ def main(argv: list[str] | None = None) -> int:
                 "part_stl": None if args.part is None else str(args.part),
                 "n_layers": args.layers,
             }.items() if v is not None}
-            if args.part is not None and args.scenario != "part":
-                raise ValueError("--part needs --scenario part")
+            if args.part is not None and args.scenario not in PART_NAMES:
+                raise ValueError("--part needs --scenario part or ident-part")
             scenario = build_scenario(args.scenario, **{**plant_table, **overrides})
         except ValueError as err:
             raise UsageError(str(err)) from None

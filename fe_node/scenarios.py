@@ -30,10 +30,13 @@ power staircase at a constant 800 mm/s. Each level holds for a uniform random 3-
 (defaults 250 +- 60 W); ``ident_seed`` (default 0) seeds ``numpy.random.default_rng``, so the
 same seed gives the same profile. The levels are not clipped to the 150-300 W window above.
 
-``part``: a real part built layer by layer, 250 W at 800 mm/s: the STL ``part_stl`` (default
+``part``: a real part built layer by layer, 100 W at 800 mm/s: the STL ``part_stl`` (default
 the shipped 1.5 mm x 0.5 mm cylinder, :data:`fe_node.part.EXAMPLE_STL`) sliced every
 ``powder_layer_m`` (default 50 µm) and hatched every ``hatch_m`` (default 0.1 mm) by PySLM
 (:mod:`fe_node.part`, needs ``pythonslm``); ``n_layers`` defaults to all the part's layers.
+``ident-part``: the same part under a seeded random power staircase (the ``ident_*`` overrides
+above; the powder and the small part need far less power than the bare plate, so its
+identification runs choose lower means, :data:`gp_trainer.campaign.IDENT_PART_RUNS`).
 """
 from __future__ import annotations
 
@@ -72,17 +75,22 @@ _TABLE = {
     "ident-layer": (4, 10e-3, 1e-4, None, S_CONST),
     "ident-double-track": (2, 5e-3, 1e-4, None, S_CONST),
 }
-NAMES = (*_TABLE, "part")
+PART_NAMES = ("part", "ident-part")
+NAMES = (*_TABLE, *PART_NAMES)
 DEFAULT = "layer"
 
 # identification overrides and their defaults (ident-* scenarios only)
 IDENT_DEFAULTS = {"ident_seed": 0, "ident_mean_w": 250.0, "ident_amplitude_w": 60.0}
+PART_POWER_W = 100.0
+"""Open-loop power of the ``part`` scenario [W]; ``launch.py`` starts every controller from it on a part.
+On a 50 µm powder layer over the small part, 250 W (the bare plate's) gives 3-4× the bare plate's
+area and PID settles near 75 W for 0.063 mm² (docs/fe.md)."""
 IDENT_HOLD_STEPS = (3, 30)  # each power level holds this many steps (inclusive, uniform)
 
 
 def _ident_options(name: str, given: dict) -> dict:
     """Validated ``ident_*`` overrides of scenario ``name`` merged into the defaults."""
-    if given and _TABLE[name][3] is not None:
+    if given and name != "ident-part" and _TABLE[name][3] is not None:
         key = sorted(given)[0]
         raise ValueError(f"scenario override {key!r} is only valid for ident-* scenarios, not {name!r}")
     opts = {**IDENT_DEFAULTS, **given}
@@ -154,8 +162,8 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
     ValueError
         Unknown name or override, or invalid values.
     """
-    if name == "part":
-        return _part(**overrides)
+    if name in PART_NAMES:
+        return _part(name, **overrides)
     if name not in _TABLE:
         raise ValueError(f"unknown scenario {name!r}; choose from {', '.join(NAMES)}")
     n, length, hatch, power, speed = _TABLE[name]
@@ -191,21 +199,34 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
     return Scenario(name=name, settings=settings, plan=plan, profile=Profile(power, speed, settings.dt_s))
 
 
-def _part(part_stl: str | None = None, hatch_m: float = 1e-4, power_w: float = 250.0, speed_m_s: float = 0.8,
-          **settings_kw) -> Scenario:
-    """The ``part`` scenario (module docstring); ``settings_kw`` are :class:`Settings` fields."""
+def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w: float | None = None,
+          speed_m_s: float = 0.8, **settings_kw) -> Scenario:
+    """The ``part`` and ``ident-part`` scenarios (module docstring); ``settings_kw`` are
+    :class:`Settings` fields and, for ``ident-part``, the ``ident_*`` overrides."""
     from fe_node.part import EXAMPLE_STL, part_plans
 
+    ident_kw = {k: settings_kw.pop(k) for k in list(settings_kw) if k in IDENT_DEFAULTS}
     unknown = set(settings_kw) - Settings.field_names()
     if unknown:
-        raise ValueError(f"unknown scenario override {sorted(unknown)[0]!r} for 'part'")
+        raise ValueError(f"unknown scenario override {sorted(unknown)[0]!r} for {name!r}")
+    if ident_kw and name == "part":
+        raise ValueError(f"scenario override {sorted(ident_kw)[0]!r} is only valid for ident-* scenarios, not 'part'")
+    if ident_kw and power_w is not None:
+        raise ValueError(f"scenario override {sorted(ident_kw)[0]!r} conflicts with 'power_w' (a constant power)")
     layer_m = settings_kw.setdefault("powder_layer_m", 50e-6)
     stl = Path(EXAMPLE_STL if part_stl is None else part_stl)
     plans = part_plans(stl, layer_m, hatch_m)
     n = settings_kw.setdefault("n_layers", len(plans))
     if not 1 <= n <= len(plans):
-        raise ValueError(f"scenario part: n_layers must be in [1, {len(plans)}] for this part, got {n}")
+        raise ValueError(f"scenario {name}: n_layers must be in [1, {len(plans)}] for this part, got {n}")
     settings = replace(Settings(), **settings_kw)
-    profile = Profile(Signal(float(power_w)), Signal(float(speed_m_s)), settings.dt_s)
-    return Scenario(name="part", settings=settings, plan=plans[0], profile=profile, layer_plans=plans[:n],
+    if name == "ident-part" and power_w is None:
+        ident = _ident_options(name, ident_kw)
+        n_steps = sum(math.ceil(plan.total_length / (speed_m_s * settings.dt_s) - 1e-9) for plan in plans[:n])
+        power = ident_power(ident["ident_seed"], ident["ident_mean_w"], ident["ident_amplitude_w"],
+                            n_steps, settings.dt_s)
+    else:
+        power = Signal(PART_POWER_W if power_w is None else float(power_w))
+    profile = Profile(power, Signal(float(speed_m_s)), settings.dt_s)
+    return Scenario(name=name, settings=settings, plan=plans[0], profile=profile, layer_plans=plans[:n],
                     part_stl=stl)

@@ -56,6 +56,8 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from gp_trainer.errors import CampaignError
+from gp_trainer.narx import DEFAULT_MODEL_PATH as NARX_MODEL_PATH
+from gp_trainer.narx import PART_MODEL_PATH
 from gp_trainer.provenance import REPO_ROOT
 
 TABLE2_CASES = tuple(range(1, 10))
@@ -574,6 +576,8 @@ class IdentRun:
     mean_w: float
     amplitude_w: float
     seed: int
+    n_layers: int | None = None
+    """Layers to build (``ident-part``; None: the scenario's default)."""
 
     @property
     def name(self) -> str:
@@ -581,10 +585,11 @@ class IdentRun:
         return f"{self.scenario}-p{self.mean_w:g}-s{self.seed}"
 
     def job(self) -> Job:
-        """The launcher job: the scenario with its ``[plant]`` ``ident_*`` overrides."""
+        """The launcher job: the scenario with its ``[plant]`` ``ident_*`` (and ``n_layers``) overrides."""
+        layers = () if self.n_layers is None else (("n_layers", int(self.n_layers)),)
         return Job(self.name, self.scenario, plant=(("ident_seed", int(self.seed)),
                                                     ("ident_mean_w", float(self.mean_w)),
-                                                    ("ident_amplitude_w", float(self.amplitude_w))))
+                                                    ("ident_amplitude_w", float(self.amplitude_w)), *layers))
 
 
 @dataclass(frozen=True)
@@ -598,6 +603,8 @@ class FeedbackRun:
     scenario: str
     controller: str
     setpoint_mm2: float
+    n_layers: int | None = None
+    """Layers to build (``part``; None: the scenario's default)."""
 
     @property
     def name(self) -> str:
@@ -606,7 +613,8 @@ class FeedbackRun:
 
     def job(self) -> Job:
         """The launcher job: the scenario under the controller."""
-        return Job(self.name, self.scenario, args=("--setpoint-mm2", repr(self.setpoint_mm2)),
+        layers = () if self.n_layers is None else ("--layers", str(int(self.n_layers)))
+        return Job(self.name, self.scenario, args=("--setpoint-mm2", repr(self.setpoint_mm2), *layers),
                    controller=self.controller)
 
 
@@ -617,6 +625,50 @@ IDENT_RUNS = tuple(
 ) + tuple(FeedbackRun("double-track", "mpc", a) for a in (0.055, 0.063, 0.07)) + tuple(
     FeedbackRun("layer", "mpc", a) for a in (0.058, 0.068)) + tuple(
     FeedbackRun(scenario, "feedforward", 0.063) for scenario in ("double-track", "layer"))
+
+PART_IDENT_LAYERS = 4
+DEFAULT_PART_IDENT_DIR = Path("recordings/identification-part")
+IDENT_PART_RUNS = tuple(
+    IdentRun("ident-part", mean, 40.0, seed, PART_IDENT_LAYERS) for mean, seed in ((60.0, 11), (100.0, 12), (140.0, 13))
+) + tuple(FeedbackRun("part", "pid", a, PART_IDENT_LAYERS) for a in (0.055, 0.063, 0.07))
+"""The runs for a model of the ``part`` scenario (powder on a small part: far less power than the
+bare plate, 75 W median under PID at 0.063 mm²): random staircases at 60, 100, 140 W ± 40 W and the
+PID baseline at three set points, 4 layers each."""
+
+
+@dataclass(frozen=True)
+class IdentSet:
+    """The identification runs of one plant, where they are recorded, which are held out for model
+    selection and evaluation, and the model file ``narx`` writes from them.
+
+    Attributes
+    ----------
+    name : str
+        ``--plant`` of ``identify``, ``narx`` and ``evaluate``.
+    runs : tuple[IdentRun | FeedbackRun, ...]
+    out_dir : pathlib.Path
+    held_out : tuple[str, ...]
+        Recording stems (run names) held out.
+    model_path : pathlib.Path
+    """
+
+    name: str
+    runs: tuple[IdentRun | FeedbackRun, ...]
+    out_dir: Path
+    held_out: tuple[str, ...]
+    model_path: Path
+
+
+IDENT_SETS = {
+    "plate": IdentSet("plate", IDENT_RUNS, DEFAULT_IDENT_DIR,
+                      ("ident-layer-p250-s2", "ident-double-track-p250-s5", "ident-mpc-double-track-a0.063"),
+                      NARX_MODEL_PATH),
+    "part": IdentSet("part", IDENT_PART_RUNS, DEFAULT_PART_IDENT_DIR,
+                     ("ident-part-p100-s12", "ident-pid-part-a0.063"), PART_MODEL_PATH),
+}
+"""``plate``: the bare-plate scenarios (``layer``, ``double-track``; the default model);
+``part``: the ``part`` scenario (powder, the shipped example part; the model ``launch.py
+--scenario part`` uses)."""
 
 
 @dataclass(frozen=True)

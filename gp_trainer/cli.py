@@ -26,16 +26,14 @@ from typing import Any, NoReturn
 
 import numpy as np
 
+from gp_trainer.campaign import IDENT_SETS
 from gp_trainer.errors import DatasetError, GPTrainerError
 from gp_trainer.model import DEFAULT_MODEL_PATH, DEFAULT_RESTARTS
-from gp_trainer.narx import DEFAULT_MODEL_PATH as NARX_MODEL_PATH
 
 PROG = "python -m gp_trainer"
 DEFAULT_DATASET = Path("out/gp/dataset.npz")
 DEFAULT_RECORDINGS = Path("recordings/campaign")
 DEFAULT_PLOTS = Path("out/gp")
-DEFAULT_IDENT_RECORDINGS = Path("recordings/identification")
-NARX_HELD_OUT = ("ident-layer-p250-s2", "ident-double-track-p250-s5", "ident-mpc-double-track-a0.063")
 FE_SOURCE = "FE campaign: finite-element plant (fe_node) recordings, see dataset.recordings"
 RECORDED_SOURCE = "recordings whose plant is not identified as the FE node, see dataset.recordings"
 SYNTHETIC_SOURCE = "synthetic stand-in plant (gp_trainer.synthetic), NOT FE data"
@@ -87,10 +85,12 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=fmt,
         help="validate a model: the delay-aware one on held-out identification runs, a one-step one on the dataset",
     )
-    p.add_argument("--model", type=Path, default=NARX_MODEL_PATH,
-                   help="model file (a delay-aware model is evaluated on --recordings-dir, a one-step GP on --dataset)")
-    p.add_argument("--recordings-dir", type=Path, default=DEFAULT_IDENT_RECORDINGS,
-                   help="identification recordings (delay-aware model)")
+    _plant_option(p)
+    p.add_argument("--model", type=Path, default=None,
+                   help="model file (default: the --plant's delay-aware model; a delay-aware model is evaluated "
+                        "on --recordings-dir, a one-step GP on --dataset)")
+    p.add_argument("--recordings-dir", type=Path, default=None,
+                   help="identification recordings (delay-aware model; default: the --plant's)")
     p.add_argument("--dataset", type=Path, default=DEFAULT_DATASET, help="dataset file")
     p.add_argument("--plots-dir", type=Path, default=DEFAULT_PLOTS, help="where the PNG figures go")
     p.add_argument("--rollout-source", default="table2-case2", help="case of the multi-step forward simulation")
@@ -98,11 +98,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("narx", formatter_class=fmt,
                        help="select, fit and evaluate the delay-aware model (FIR + residual GP) of the preview MPC")
+    _plant_option(p)
     p.add_argument("recordings", nargs="*", type=Path,
-                   help="MCAP recordings (default: every complete run in recordings/identification)")
-    p.add_argument("--held-out", nargs="+", default=list(NARX_HELD_OUT),
-                   help="recording stems held out for selection and evaluation")
-    p.add_argument("--out", type=Path, default=None, help="model file (default: gp_trainer/models/in625_narx_gp.json)")
+                   help="MCAP recordings (default: every complete run of the --plant's identification directory)")
+    p.add_argument("--held-out", nargs="+", default=None,
+                   help="recording stems held out for selection and evaluation (default: the --plant's)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="model file (default: the --plant's model in gp_trainer/models/)")
     p.add_argument("--seed", type=int, default=0, help="seed of the GP point choice and optimiser restarts")
     p.add_argument(
         "--interaction",
@@ -118,21 +120,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out-dir", type=Path, default=DEFAULT_RECORDINGS, help="recordings directory")
     _runner_options(p, "case")
 
-    from gp_trainer.campaign import DEFAULT_IDENT_DIR, IDENT_RUNS
-
     p = sub.add_parser(
         "identify",
         formatter_class=fmt,
         help="record the identification runs (random power staircases, closed-loop runs) on Dask",
-        description="Record seeded random power-staircase runs of ident-layer and ident-double-track "
-        "(launch.py --controller none) and closed-loop runs, one MCAP each, on Dask distributed as `campaign`. "
-        "Runs: " + ", ".join(r.name for r in IDENT_RUNS),
+        description="Record seeded random power-staircase runs (launch.py --controller none) and closed-loop "
+        "runs, one MCAP each, on Dask distributed as `campaign`. "
+        + " ".join(f"--plant {s.name}: {', '.join(r.name for r in s.runs)}." for s in IDENT_SETS.values()),
     )
+    _plant_option(p)
     p.add_argument("--runs", nargs="+", metavar="NAME", default=argparse.SUPPRESS,
-                   help="only these runs (default: all)")
-    p.add_argument("--out-dir", type=Path, default=DEFAULT_IDENT_DIR, help="recordings directory")
+                   help="only these runs (default: all of the --plant's)")
+    p.add_argument("--out-dir", type=Path, default=None, help="recordings directory (default: the --plant's)")
     _runner_options(p, "run")
     return parser
+
+
+def _plant_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--plant", choices=tuple(IDENT_SETS), default="plate",
+                   help="plate: the bare-plate scenarios (layer, double track); part: the part scenario "
+                        "(powder, the example part)")
 
 
 def _runner_options(p: argparse.ArgumentParser, unit: str) -> None:
@@ -257,12 +264,14 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
     from gp_trainer.dataset import read_states
     from gp_trainer.narx import NarxGPModel, evaluate_model, series_from_states
 
+    ident = IDENT_SETS[args.plant]
     model = NarxGPModel.load(args.model)
-    paths = [args.recordings_dir / f"{name}.mcap" for name in NARX_HELD_OUT]
+    recordings_dir = args.recordings_dir or ident.out_dir
+    paths = [recordings_dir / f"{name}.mcap" for name in ident.held_out]
     missing = [p.name for p in paths if not p.is_file()]
     if missing:
-        raise DatasetError(f"held-out identification recordings missing in {args.recordings_dir} "
-                           f"({', '.join(missing)}): run `{PROG} identify`")
+        raise DatasetError(f"held-out identification recordings missing in {recordings_dir} "
+                           f"({', '.join(missing)}): run `{PROG} identify --plant {ident.name}`")
     result = evaluate_model(model, [series_from_states(read_states(p), p.stem) for p in paths])
     case2 = DEFAULT_RECORDINGS / f"{args.rollout_source}.mcap"
     result["rollout_case2_mape_pct"] = None
@@ -290,6 +299,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from gp_trainer.model import GPModel
     from gp_trainer.narx import is_model_file
 
+    args.model = args.model or IDENT_SETS[args.plant].model_path
     if is_model_file(args.model):
         return _evaluate_narx(args)
     model = GPModel.load(args.model)
@@ -334,7 +344,10 @@ def _identify(args: argparse.Namespace) -> int:
         summary_json,
     )
 
-    settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None)), **_runner_settings(args))
+    ident = IDENT_SETS[args.plant]
+    args.out_dir = args.out_dir or ident.out_dir
+    settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None), ident.runs),
+                                **_runner_settings(args))
     try:
         results = run_identification(settings, progress=not args.no_progress)
     except KeyboardInterrupt:
@@ -349,26 +362,24 @@ def _identify(args: argparse.Namespace) -> int:
 
 def _narx(args: argparse.Namespace) -> int:
     from gp_trainer.dataset import read_states
-    from gp_trainer.narx import (
-        DEFAULT_MODEL_PATH,
-        ROLLOUT_HORIZON,
-        select_and_fit,
-        series_from_states,
-    )
+    from gp_trainer.narx import ROLLOUT_HORIZON, select_and_fit, series_from_states
     from gp_trainer.provenance import REPO_ROOT
 
-    paths = args.recordings or sorted((REPO_ROOT / "recordings" / "identification").glob("*.mcap"))
+    ident = IDENT_SETS[args.plant]
+    held_out = args.held_out or ident.held_out
+    paths = args.recordings or sorted((REPO_ROOT / ident.out_dir).glob("*.mcap"))
     paths = [p for p in paths if not p.name.endswith(".partial.mcap")]
     if not paths:
-        raise DatasetError(f"no recordings given and none in recordings/identification (run `{PROG} identify`)")
+        raise DatasetError(f"no recordings given and none in {ident.out_dir} "
+                           f"(run `{PROG} identify --plant {ident.name}`)")
     runs = [series_from_states(read_states(p), p.stem) for p in paths]
-    held = [r for r in runs if r.name in args.held_out]
-    train = [r for r in runs if r.name not in args.held_out]
+    held = [r for r in runs if r.name in held_out]
+    train = [r for r in runs if r.name not in held_out]
     if not held or not train:
         raise DatasetError("need both training and held-out runs; "
                            f"held out {[r.name for r in held]} of {[r.name for r in runs]}")
     model, best, table = select_and_fit(train, held, seed=args.seed, interaction=args.interaction)
-    out = model.save(args.out or DEFAULT_MODEL_PATH)
+    out = model.save(args.out or ident.model_path)
     for row in table:
         print(f"lags p {row['n_power_lags']:2d}, T {row['n_temperature_lags']:2d}, output {row['output']:8s}, "
               f"squares {row['quadratic']!s:5s}, p×T {row['interaction']!s:5s}, ℓ >= {row['length_scale_floor']}: "

@@ -52,7 +52,9 @@ BUILD_UP_STEPS = 20
 """Samples whose target lies in the first 20 steps after laser-on (pool build-up) are not fitted."""
 DEFAULT_BOUNDS = HyperBounds()
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_narx_gp.json"
-"""The shipped delay-aware model (``python -m gp_trainer train`` writes it; the MPC loads it)."""
+"""The shipped delay-aware model of the bare plate (``python -m gp_trainer narx`` writes it; the MPC loads it)."""
+PART_MODEL_PATH = DEFAULT_MODEL_PATH.with_name("in625_part_narx_gp.json")
+"""The delay-aware model of the ``part`` scenario (``python -m gp_trainer narx --plant part``)."""
 
 
 def is_model_file(path: str | os.PathLike[str]) -> bool:
