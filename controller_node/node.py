@@ -298,18 +298,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
+    """The ``[controller]`` table of ``--config`` over ``--preset``, then ``--setpoint-mm2`` and
+    ``--nominal-power-w`` (:class:`UsageError` naming a bad key)."""
+    table = dict(load_toml(args.config).get("controller", {}))
+    table.pop("name", None)  # the controller's name is a launch option
+    set_point = None if args.setpoint_mm2 is None else args.setpoint_mm2 * 1e-6
+    return build(ControllerSettings, with_preset(table, args.preset), "[controller]", set_point_m2=set_point,
+                 nominal_power_w=args.nominal_power_w)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m controller_node``."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         bus_settings = bus_settings_from_args(args)
-        table = dict(load_toml(args.config).get("controller", {}))
-        table.pop("name", None)  # the controller's name is a launch option
-        table = with_preset(table, args.preset)
-        set_point = None if args.setpoint_mm2 is None else args.setpoint_mm2 * 1e-6
-        settings = build(ControllerSettings, table, "[controller]", set_point_m2=set_point,
-                         nominal_power_w=args.nominal_power_w)
+        settings = settings_from_args(args)
         model = load_model(args.controller, args.model)
         try:
             controller = make_controller(args.controller, settings, model)

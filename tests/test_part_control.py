@@ -1,0 +1,117 @@
+"""Control of a part: its identification runs, its model and what launch.py gives its controller."""
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from controller_node.settings import PLANT_PRESETS, ControllerSettings, with_preset
+from fe_node.scenarios import PART_POWER_W
+from gp_trainer.campaign import IDENT_PART_RUNS, IDENT_RUNS, IDENT_SETS, FeedbackRun, IdentRun, plant_toml
+from gp_trainer.cli import main as gp_main
+from gp_trainer.narx import DEFAULT_MODEL_PATH, PART_MODEL_PATH, NarxGPModel
+from launch import RunOptions, default_nodes
+from messages.config import build
+
+
+def _controller_args(opts: RunOptions, tmp_path: Path) -> list[str]:
+    nodes = {n.name: n for n in default_nodes(opts, tmp_path / "run.mcap")}
+    return list(nodes["controller"].args)
+
+
+def _value(args: list[str], flag: str) -> str | None:
+    return args[args.index(flag) + 1] if flag in args else None
+
+
+def test_part_identification_runs_build_four_layers_and_hold_out_named_runs():
+    open_loop = [r for r in IDENT_PART_RUNS if isinstance(r, IdentRun)]
+    feedback = [r for r in IDENT_PART_RUNS if isinstance(r, FeedbackRun)]
+    assert [r.name for r in open_loop] == ["ident-part-p60-s11", "ident-part-p100-s12", "ident-part-p140-s13"]
+    assert [r.name for r in feedback] == ["ident-pid-part-a0.055", "ident-pid-part-a0.063", "ident-pid-part-a0.07"]
+    for run in open_loop:
+        plant = tomllib.loads(plant_toml(run.job().plant))["plant"]
+        assert plant == {"ident_seed": run.seed, "ident_mean_w": run.mean_w, "ident_amplitude_w": 40.0,
+                         "n_layers": 4}
+    for run in feedback:
+        assert run.job().args == ("--setpoint-mm2", repr(run.setpoint_mm2), "--layers", "4")
+        assert run.job().controller == "pid" and run.job().scenario == "part"
+    assert all("n_layers" not in dict(r.job().plant) for r in IDENT_RUNS if isinstance(r, IdentRun))
+    for ident in IDENT_SETS.values():      # every held-out name is a run of its set (a typo would hold out nothing)
+        assert set(ident.held_out) < {r.name for r in ident.runs}
+    assert IDENT_SETS["plate"].model_path == DEFAULT_MODEL_PATH and IDENT_SETS["part"].model_path == PART_MODEL_PATH
+    assert IDENT_SETS["part"].out_dir != IDENT_SETS["plate"].out_dir
+
+
+def test_ident_part_scenario_is_a_seeded_staircase_over_every_layer():
+    pytest.importorskip("pyslm")
+    from fe_node.scenarios import scenario
+
+    a = scenario("ident-part", ident_seed=12, ident_mean_w=100.0, ident_amplitude_w=40.0, n_layers=2)
+    b = scenario("ident-part", ident_seed=12, ident_mean_w=100.0, ident_amplitude_w=40.0, n_layers=2)
+    assert a.profile == b.profile and len(a.layer_plans) == 2
+    steps = sum(round(p.total_length / (0.8 * a.settings.dt_s)) for p in a.layer_plans)
+    levels = [a.profile.command(k)[0] for k in range(steps)]
+    assert 60.0 <= min(levels) and max(levels) <= 140.0 and len(set(levels)) > 10   # new levels to the last layer
+    assert len(set(levels[steps // 2:])) > 5
+    assert scenario("part", n_layers=1).profile.command(5)[0] == PART_POWER_W
+    with pytest.raises(ValueError, match="ident_seed"):
+        scenario("part", ident_seed=1)
+    with pytest.raises(ValueError, match="ident_seed"):
+        scenario("ident-part", ident_seed=1, power_w=90.0)
+
+
+def test_launch_gives_a_part_run_the_part_model_preset_and_power(tmp_path):
+    args = _controller_args(RunOptions(scenario="part"), tmp_path)
+    assert _value(args, "--model") == str(PART_MODEL_PATH)
+    assert _value(args, "--preset") == "part" and float(_value(args, "--nominal-power-w")) == PART_POWER_W
+    pid = _controller_args(RunOptions(scenario="part", controller="pid"), tmp_path)
+    assert _value(pid, "--model") is None and float(_value(pid, "--nominal-power-w")) == PART_POWER_W
+    layer = _controller_args(RunOptions(scenario="layer"), tmp_path)
+    assert {"--model", "--preset", "--nominal-power-w"}.isdisjoint(layer)
+    config = tmp_path / "c.toml"
+    config.write_text("[plant]\npower_w = 80.0\n")
+    assert float(_value(_controller_args(RunOptions(scenario="part", config=config), tmp_path),
+                        "--nominal-power-w")) == 80.0
+    config.write_text("[controller]\nnominal_power_w = 120.0\n")   # the user's own nominal power is kept
+    own = _controller_args(RunOptions(scenario="part", config=config), tmp_path)
+    assert "--nominal-power-w" not in own and _value(own, "--preset") == "part"
+    other = tmp_path / "m.json"
+    other.write_text("{}")
+    assert _value(_controller_args(RunOptions(scenario="part", model=other), tmp_path), "--model") == str(other)
+
+
+def test_preset_lies_under_the_runs_own_controller_table():
+    settings = build(ControllerSettings, with_preset({}, "part"), "[controller]")
+    assert settings.preview.observer_gain == 1.0 and settings.preview.turn_learning_gain == 0.0
+    assert settings.preview.learn_turn_profile is False
+    own = with_preset({"preview": {"observer_gain": 0.3}, "nominal_power_w": 90.0}, "part")
+    settings = build(ControllerSettings, own, "[controller]")
+    assert settings.preview.observer_gain == 0.3 and settings.preview.turn_learning_gain == 0.0
+    assert settings.nominal_power_w == 90.0
+    assert with_preset({"pid": {"kp_w": 1.0}}, None) == {"pid": {"kp_w": 1.0}}
+    assert PLANT_PRESETS["part"]["preview"]["observer_gain"] == 1.0   # with_preset did not change it
+
+
+def test_controller_node_applies_preset_and_nominal_power(tmp_path):
+    from controller_node.node import build_parser, settings_from_args
+
+    parse = build_parser().parse_args
+    settings = settings_from_args(parse(["--preset", "part", "--nominal-power-w", "100", "--setpoint-mm2", "0.06"]))
+    assert settings.nominal_power_w == 100.0 and settings.preview.observer_gain == 1.0
+    assert settings.set_point_m2 == pytest.approx(0.06e-6)
+    assert settings_from_args(parse([])) == ControllerSettings()
+
+
+def test_shipped_part_model_was_fitted_on_part_runs():
+    model = NarxGPModel.load(PART_MODEL_PATH)
+    assert model.sample_period_s == pytest.approx(50e-6)
+    runs = set(model.provenance["runs"])
+    assert runs and all(name.startswith(("ident-part-", "ident-pid-part-")) for name in runs)
+    assert runs.isdisjoint(IDENT_SETS["part"].held_out)
+
+
+def test_evaluate_part_without_recordings_says_which_command_to_run(tmp_path, capsys):
+    assert gp_main(["evaluate", "--plant", "part", "--recordings-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "identify --plant part" in err and "ident-part-p100-s12" in err
