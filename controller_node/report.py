@@ -10,6 +10,9 @@ One fixed window for every controller and every run: all plant states with
 ``t_k − t_0 ≥ WINDOW_START_S`` (1 ms, i.e. 20 steps of 50 µs), where ``t_0`` is the process time
 of the first state (laser on, step 0), to the end of the run. The window does not depend on the
 area trajectory, so a controller cannot shorten its own evaluation by building the pool slowly.
+A multi-layer build (states carrying ``layer``) switches the laser on again on every layer's
+fresh powder: there ``t_0`` is the first state of the state's own layer, so every layer's pool
+build-up is left out alike (a single layer: the same window as above).
 
 Metrics
 -------
@@ -20,8 +23,7 @@ With the relative error ``e_k = A_k / A_set − 1`` of the melt-pool area ``A_k`
 - max undershoot           = −100 · min_W e_k
 - steady-state RMSE        = 100 · sqrt(mean_W e_k²)
 - turnaround RMSE          = 100 · sqrt(mean_T e_k²), ``T = W ∩ {turnaround states}``: the first
-  ``TURNAROUND_STEPS`` (50) states of every track except the first one (track index greater
-  than the first state's, fewer than 50 states after that track's first state)
+  ``TURNAROUND_STEPS`` (50) states of every track except the first one of each layer
 - along-track RMSE         = 100 · sqrt(mean_(W∖T) e_k²)
 - turnaround share         = 100 · Σ_T e_k² / Σ_W e_k² (share of the squared error in ``T``)
 
@@ -72,6 +74,12 @@ class Trace:
     power_w: np.ndarray
     t_ahead_k: np.ndarray
     track: np.ndarray
+    layer: np.ndarray | None = None
+    """Layer of every state (``None``: one layer)."""
+
+    def layers(self) -> np.ndarray:
+        """Layer index of every state, shape (n,) (zeros for a single layer)."""
+        return np.zeros(self.track.shape, dtype=int) if self.layer is None else np.asarray(self.layer)
 
 
 @dataclass(frozen=True)
@@ -129,6 +137,7 @@ def read_trace(path: Path) -> Trace:
         power_w=np.array([s.power_w for s in states]),
         t_ahead_k=np.array([s.t_ahead_k for s in states]),
         track=np.array([s.track for s in states]),
+        layer=np.array([s.layer or 0 for s in states]),
     )
 
 
@@ -140,32 +149,46 @@ def recorded_setpoint(path: Path) -> float | None:
     return None
 
 
+def _segment_starts(*keys: np.ndarray) -> np.ndarray:
+    """Index of the first state of the run of equal ``keys`` each state belongs to, shape (n,)."""
+    n = keys[0].size
+    change = np.zeros(n, dtype=bool)
+    change[:1] = True
+    for key in keys:
+        change[1:] |= key[1:] != key[:-1]
+    return np.maximum.accumulate(np.where(change, np.arange(n), 0))
+
+
 def window_mask(trace: Trace) -> np.ndarray:
-    """States inside the evaluation window: ``t − t_0 ≥ WINDOW_START_S`` (boolean, shape (n,))."""
-    return trace.time_s - trace.time_s[0] >= WINDOW_START_S - _TIME_TOL_S
+    """States inside the evaluation window: ``t − t_0 ≥ WINDOW_START_S`` with ``t_0`` the first
+    state of the state's layer (boolean, shape (n,))."""
+    t0 = trace.time_s[_segment_starts(trace.layers())]
+    return trace.time_s - t0 >= WINDOW_START_S - _TIME_TOL_S
 
 
-def turnaround_mask(track: np.ndarray) -> np.ndarray:
-    """Turnaround states: the first ``TURNAROUND_STEPS`` states of every track after the first.
+def turnaround_mask(track: np.ndarray, layer: np.ndarray | None = None) -> np.ndarray:
+    """Turnaround states: the first ``TURNAROUND_STEPS`` states of every track but the first of each layer.
 
     Parameters
     ----------
     track : ndarray of int, shape (n,)
         Track index of every state, in step order.
+    layer : ndarray of int, shape (n,), optional
+        Layer of every state (default: one layer).
 
     Returns
     -------
     ndarray of bool, shape (n,)
-        True where the track index exceeds the first state's and the state lies fewer than
+        True where the state's track is not its layer's first and the state lies fewer than
         ``TURNAROUND_STEPS`` states after that track's first state.
     """
     track = np.asarray(track)
+    layer = np.zeros(track.shape, dtype=int) if layer is None else np.asarray(layer)
     if track.size == 0:
         return np.zeros(0, dtype=bool)
-    values, first = np.unique(track, return_index=True)
-    first_of = dict(zip(values.tolist(), first.tolist()))
-    since_start = np.arange(track.size) - np.array([first_of[k] for k in track.tolist()])
-    return (track > track[0]) & (since_start < TURNAROUND_STEPS)
+    index = np.arange(track.size)
+    track_start, layer_start = _segment_starts(layer, track), _segment_starts(layer)
+    return (track_start != layer_start) & (index - track_start < TURNAROUND_STEPS)
 
 
 def _rms_pct(err: np.ndarray) -> float | None:
@@ -198,7 +221,7 @@ def metrics(trace: Trace, setpoint_mm2: float) -> Metrics:
         raise ValueError("the run ended before the evaluation window opened "
                          f"({WINDOW_START_S * 1e3:g} ms after laser-on)")
     err = trace.area_mm2 / setpoint_mm2 - 1
-    turn = turnaround_mask(trace.track) & window
+    turn = turnaround_mask(trace.track, trace.layers()) & window
     along = window & ~turn
     sq_total = float(np.sum(err[window] ** 2))
     share = float(100 * np.sum(err[turn] ** 2) / sq_total) if turn.any() and sq_total > 0 else None

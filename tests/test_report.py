@@ -96,6 +96,26 @@ def test_turnaround_mask_first_50_states_of_every_track_but_the_first():
     assert (mask == expected).all()
 
 
+def test_every_layer_of_a_build_opens_its_window_and_its_turnarounds_anew():
+    # Two layers, tracks 0,1 each (track indices repeat): layer 0 states 0-99, layer 1 states 100-199.
+    track = np.tile(np.r_[np.zeros(40, int), np.ones(60, int)], 2)
+    layer = np.r_[np.zeros(100, int), np.ones(100, int)]
+    area = np.full(200, 0.1)
+    area[100:120] = 0.0                                 # layer 1's pool build-up: outside the window
+    area[150] = 0.13                                    # a turnaround excursion of layer 1
+    trace = Trace(time_s=DT_S * np.arange(200), area_mm2=area, power_w=np.full(200, 250.0),
+                  t_ahead_k=np.full(200, 500.0), track=track, layer=layer)
+    window = window_mask(trace)
+    assert (np.flatnonzero(~window) == np.r_[0:20, 100:120]).all()
+    expected = np.zeros(200, dtype=bool)
+    expected[40:90] = expected[140:190] = True          # track 1 of each layer, not track 0 of layer 1
+    assert (turnaround_mask(track, layer) == expected).all()
+    m = metrics(trace, SETPOINT_MM2)
+    assert m.undershoot_pct == pytest.approx(0.0) and m.overshoot_pct == pytest.approx(30.0)
+    assert m.n_turnaround == 100 and m.n_along == 60 and m.turnaround_share_pct == pytest.approx(100.0)
+    assert (window_mask(_trace(area, track)) == (np.arange(200) >= 20)).all()   # without layers: one window
+
+
 def test_turnaround_and_along_track_split_exact():
     # Tracks 0: states 0-29, 1: 30-109, 2: 110-189. Window: 20-189 (170 states).
     # Turnaround: 30-79 and 110-159 (100 states, error +10 %); along-track: 20-29 (first track,
