@@ -58,6 +58,7 @@ def measurement_from_state(state: MeltPoolState) -> Measurement:
         track_elapsed_s=state.track_elapsed_s,
         track_remaining_s=state.track_remaining_s,
         next_track=state.next_track,
+        layer=state.layer,
     )
 
 

@@ -13,8 +13,9 @@ Each update at state k (:meth:`PreviewMPC.update`):
 4. **Optimise**: the QP of :mod:`controller_node.preview_qp` (tracking of the set point,
    move penalty, hard power bounds, soft area bounds tightened by the GP's predictive std).
 
-During the pool build-up (the first ``observer_start_steps`` states, which the model is not
-fitted on) the answer is the nominal power; step 0 is, for every controller. A plant whose sample
+During the pool build-up (the first ``observer_start_steps`` states of the run and of every
+layer of a build, which the model is not fitted on) the answer is the nominal power; step 0 is,
+for every controller. A layer's first track is forecast as the run's first (no turnaround). A plant whose sample
 period differs from the model's is refused (:class:`~controller_node.types.ConfigurationError`).
 """
 
@@ -95,6 +96,7 @@ class PreviewMPC(Controller):
         self._first: Measurement | None = None
         self._first_track: int | None = None
         self._track_start_step = 0
+        self._layer_start_step = 0               # laser-on of the current layer (a new pool)
         self._turn_base_k: float | None = None   # T ahead in the state before the last turn
         self._observed: list[float] = []        # T rise after the last turn, as seen
         self._profile = np.array(self.model.turn_profile_k, dtype=float)
@@ -136,7 +138,12 @@ class PreviewMPC(Controller):
             self._t[-fill:] = m.t_ahead_k
         if self._first_track is None:
             self._first_track = m.track
-        new_track = prev is not None and m.track is not None and m.track != prev.track
+        new_layer = prev is not None and m.layer is not None and m.layer != prev.layer
+        if new_layer:  # a new pool on fresh powder: no turnaround to learn from or forecast
+            self._layer_start_step = self._track_start_step = m.step
+            self._first_track, self._turn_base_k, self._observed = m.track, None, []
+            self._turn_errors[:] = np.nan
+        new_track = not new_layer and prev is not None and m.track is not None and m.track != prev.track
         if new_track:
             self._learn_profile()
             self._learn_turn_correction()
@@ -204,7 +211,8 @@ class PreviewMPC(Controller):
         self._check_period(m)
         consecutive = self._prev is not None and m.step == self._prev.step + 1
         self._observe(m)
-        if consecutive and self._base0_m2 is not None and m.step >= ps.observer_start_steps:
+        built_up = m.step - self._layer_start_step >= ps.observer_start_steps
+        if consecutive and self._base0_m2 is not None and built_up:
             z = (self._base0_m2 + self._theta_p[0] * m.power_w + self._theta_p[self._nb] * m.power_w ** 2
                  + self._e0 * m.power_w * self._base_t0)
             predicted = float(self.model.to_area(z)) + self._base0_correction  # x̂[k|k−1], applied p[k]
@@ -215,7 +223,7 @@ class PreviewMPC(Controller):
             self.disturbance_m2 += ps.observer_gain * error
         self._prev = m
         self._base0_m2 = None
-        if m.step < ps.observer_start_steps:  # pool build-up: outside the fitted model, laser at nominal
+        if not built_up:  # pool build-up: outside the fitted model, laser at nominal
             return Proposal(s.nominal_power_w, status="ok")
 
         h, dt = self._h, self.model.sample_period_s

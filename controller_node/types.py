@@ -70,6 +70,8 @@ class Measurement:
         Scan-plan preview: time since the current track started and until it ends [s].
     next_track : bool or None
         Another track follows the current one (False on the layer's last track).
+    layer : int or None
+        Layer of a multi-layer build (each starts a new pool on fresh powder), if reported.
 
     Notes
     -----
@@ -89,9 +91,12 @@ class Measurement:
     track_elapsed_s: float | None = None
     track_remaining_s: float | None = None
     next_track: bool | None = None
+    layer: int | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "step", _step("step", self.step))
+        if self.layer is not None:
+            object.__setattr__(self, "layer", _step("layer", self.layer))
         for name in ("track_elapsed_s", "track_remaining_s"):
             if getattr(self, name) is not None:
                 object.__setattr__(self, name, _real(name, getattr(self, name)))

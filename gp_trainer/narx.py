@@ -80,6 +80,9 @@ class RunSeries:
         Track index of each state.
     sample_period_s : float
         Step duration Δt [s].
+    layer : numpy.ndarray of int, shape (n,), optional
+        Layer of each state (a multi-layer build; ``None``: one layer). Every layer starts a new
+        pool on fresh powder, so its first track follows no turnaround.
     """
 
     name: str
@@ -88,21 +91,58 @@ class RunSeries:
     power_w: np.ndarray
     track: np.ndarray
     sample_period_s: float
+    layer: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.area_m2.shape[0])
 
+    def layers(self) -> np.ndarray:
+        """Layer of every state, shape (n,) (zeros for one layer)."""
+        return np.zeros(len(self), dtype=int) if self.layer is None else np.asarray(self.layer)
+
+    def _starts(self, *keys: np.ndarray) -> np.ndarray:
+        """Index of the first state of the run of equal ``keys`` each state is in, shape (n,)."""
+        change = np.zeros(len(self), dtype=bool)
+        change[:1] = True
+        for key in keys:
+            change[1:] |= key[1:] != key[:-1]
+        return np.maximum.accumulate(np.where(change, np.arange(len(self)), 0))
+
+    def _ends(self, *keys: np.ndarray) -> np.ndarray:
+        """Index of the last state of the run of equal ``keys`` each state is in, shape (n,)."""
+        n = len(self)
+        change = np.zeros(n, dtype=bool)
+        change[-1:] = True
+        for key in keys:
+            change[:-1] |= key[1:] != key[:-1]
+        return np.minimum.accumulate(np.where(change, np.arange(n), n - 1)[::-1])[::-1]
+
     def steps_since_track_start(self) -> np.ndarray:
         """``s_j``: states since the first state of the current track, shape (n,)."""
-        start = np.r_[0, np.flatnonzero(np.diff(self.track) != 0) + 1]
-        index = np.arange(len(self))
-        return index - start[np.searchsorted(start, index, side="right") - 1]
+        return np.arange(len(self)) - self._starts(self.layers(), self.track)
 
     def steps_to_track_end(self) -> np.ndarray:
         """``e_j``: states until the last state of the current track (0 on it), shape (n,)."""
-        end = np.r_[np.flatnonzero(np.diff(self.track) != 0), len(self) - 1]
-        index = np.arange(len(self))
-        return end[np.searchsorted(end, index, side="left")] - index
+        return self._ends(self.layers(), self.track) - np.arange(len(self))
+
+    def steps_since_layer_start(self) -> np.ndarray:
+        """States since the first state of the current layer (laser-on on its powder), shape (n,)."""
+        return np.arange(len(self)) - self._starts(self.layers())
+
+    def turn_starts(self) -> np.ndarray:
+        """First states of the tracks that follow a turnaround (not a layer's first track), shape (m,)."""
+        lay = self.layers()
+        return np.flatnonzero((np.diff(self.track) != 0) & (np.diff(lay) == 0)) + 1
+
+    def first_track_of_layer(self) -> np.ndarray:
+        """True on the states of each layer's first track, shape (n,)."""
+        lay = self.layers()
+        return self._starts(lay, self.track) == self._starts(lay)
+
+    def last_track_of_layer(self) -> np.ndarray:
+        """True on the states of each layer's last track (no turnaround after it), shape (n,)."""
+        lay = self.layers()
+        return self._ends(lay, self.track) == self._ends(lay)
 
 
 def series_from_states(states: Sequence[Any], name: str) -> RunSeries:
@@ -129,18 +169,20 @@ def series_from_states(states: Sequence[Any], name: str) -> RunSeries:
         power[0] = 0.0
     return RunSeries(name=name, area_m2=np.array([s.area_mm2 for s in states]) * 1e-6,
                      t_ahead_k=np.array([s.t_ahead_k for s in states], dtype=float), power_w=power,
-                     track=np.array([s.track for s in states], dtype=int), sample_period_s=period)
+                     track=np.array([s.track for s in states], dtype=int), sample_period_s=period,
+                     layer=np.array([s.layer or 0 for s in states], dtype=int))
 
 
 def turn_profile(runs: Iterable[RunSeries], length: int) -> np.ndarray:
     """Mean rise of T ahead after a turnaround, ``T[start+s] − T[start−1]`` for s = 0..length−1 [K].
 
-    Averaged over every track start after the first track of every run; where fewer states
-    exist the mean is over the tracks that have them (the last value is held if none do).
+    Averaged over every track start after a turnaround (not a layer's first track) of every run;
+    where fewer states exist the mean is over the tracks that have them (the last value is held
+    if none do).
     """
     sums, counts = np.zeros(length), np.zeros(length)
     for run in runs:
-        for start in np.flatnonzero(np.diff(run.track) != 0) + 1:
+        for start in run.turn_starts():
             seg = run.t_ahead_k[start:start + length] - run.t_ahead_k[start - 1]
             sums[:seg.size] += seg
             counts[:seg.size] += 1
@@ -204,11 +246,11 @@ def forecast_t_ahead(t_now_k: float, steps_since_start: int, on_first_track: boo
 
 
 def turn_bases(run: RunSeries) -> np.ndarray:
-    """``T_b`` of every state: T ahead in the state before its track's first state (NaN on the first track)."""
+    """``T_b`` of every state: T ahead in the state before its track's first state (NaN on a layer's first track)."""
     base = np.full(len(run), np.nan)
-    starts = np.r_[np.flatnonzero(np.diff(run.track) != 0) + 1, len(run)]
-    for a, b in itertools.pairwise(starts):
+    for a, b in itertools.pairwise(np.r_[run.turn_starts(), len(run)]):
         base[a:b] = run.t_ahead_k[a - 1]
+    base[run.first_track_of_layer()] = np.nan
     return base
 
 
@@ -216,9 +258,8 @@ def run_forecast(run: RunSeries, k: int, horizon: int, profile_k: np.ndarray, pe
     """:func:`forecast_t_ahead` at state k of a recorded run (scan plan from its track indices)."""
     s, e = run.steps_since_track_start(), run.steps_to_track_end()
     base = turn_bases(run)[k]
-    last_track = run.track[k] == run.track[-1]
-    return forecast_t_ahead(run.t_ahead_k[k], int(s[k]), bool(run.track[k] == run.track[0]),
-                            None if last_track else int(e[k]), profile_k, horizon,
+    return forecast_t_ahead(run.t_ahead_k[k], int(s[k]), bool(run.first_track_of_layer()[k]),
+                            None if run.last_track_of_layer()[k] else int(e[k]), profile_k, horizon,
                             None if np.isnan(base) else float(base), persistence)
 
 
@@ -228,7 +269,8 @@ def fit_persistence(runs: Sequence[RunSeries], profile_k: np.ndarray, horizon: i
     errors = []
     for rho in grid:
         err = [np.mean(np.abs(run_forecast(run, k, horizon, profile_k, rho) - run.t_ahead_k[k + 1:k + horizon + 1]))
-               for run in runs for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride)]
+               for run in runs for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride)
+               if run.steps_since_layer_start()[k] >= BUILD_UP_STEPS]
         errors.append(np.mean(err) if err else 0.0)
     return float(grid[int(np.argmin(errors))])
 
@@ -476,7 +518,7 @@ class NarxGPModel:
         forecast = run_forecast(run, k, horizon, self.turn_profile_k, self.forecast_persistence)
         n = k + horizon + 1
         future = RunSeries(run.name, run.area_m2[:n], np.r_[run.t_ahead_k[:k + 1], forecast][:n],
-                           run.power_w[:n], run.track[:n], run.sample_period_s)
+                           run.power_w[:n], run.track[:n], run.sample_period_s, run.layers()[:n])
         return self.predict_run(future)[0][k:k + horizon]
 
     # ------------------------------------------------------------------ fitting
@@ -488,7 +530,7 @@ class NarxGPModel:
             profile_length: int = 200, provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
         """Least squares in z for the lag part, then the residual GP on ``n_train`` seeded random samples.
 
-        Samples whose target is in the first :data:`BUILD_UP_STEPS` states of a run, or has no
+        Samples whose target is in the first :data:`BUILD_UP_STEPS` states of a run or of a layer, or has no
         pool (area 0), are not fitted (the lags still see their powers). ``quadratic=False``
         leaves out the squared lags (a plain FIR part).
 
@@ -515,7 +557,7 @@ class NarxGPModel:
         X, Y, PSI = [], [], []
         for run in runs:
             p, t = probe._lagged(run)
-            keep = (np.arange(1, len(run)) >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
+            keep = (run.steps_since_layer_start()[1:] >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
             X.append(probe.design(p[keep], t[keep])), Y.append(run.area_m2[1:][keep])
             PSI.append(probe.residual_inputs(run)[keep])
         X, Y, PSI = np.vstack(X), np.concatenate(Y), np.vstack(PSI)
@@ -644,12 +686,13 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int =
     ys, means, sds, rollouts = [], [], [], []
     for run in runs:
         mean, var = model.predict_run(run)
-        keep = (np.arange(1, len(run)) >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
+        since_laser_on = run.steps_since_layer_start()
+        keep = (since_laser_on[1:] >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
         ys.append(run.area_m2[1:][keep]), means.append(mean[keep])
         sds.append(np.sqrt(var[keep] + model.residual.noise_variance))
         for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride):
             truth = run.area_m2[k + 1:k + horizon + 1]
-            if np.all(truth > 0):
+            if since_laser_on[k] >= BUILD_UP_STEPS and np.all(truth > 0):
                 rollouts.append(float(np.mean(np.abs(model.rollout(run, k, horizon) - truth) / truth)))
     y, mean, sd = np.concatenate(ys), np.concatenate(means), np.concatenate(sds)
     return {

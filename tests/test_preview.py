@@ -264,7 +264,7 @@ def test_evaluate_of_the_delay_aware_model_names_the_command_when_data_are_missi
     assert is_model_file(DEFAULT_MODEL_PATH) and not is_model_file(tmp_path / "none.json")
     assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "run `python -m gp_trainer identify`" in err[0]
+    assert len(err) == 1 and "run `python -m gp_trainer identify --plant plate`" in err[0]
 
 
 def test_learning_state_round_trip_and_refusal(model):
@@ -291,3 +291,45 @@ def test_node_learning_state_option_errors(tmp_path):
     path.write_text("{not json")
     assert main(["--controller", "pid", "--learning-state", str(path)]) == 2
     assert main(["--controller", "preview-mpc", "--learning-state", str(path)]) == 2
+
+
+def _two_layer_run() -> RunSeries:
+    """Layer 0: tracks 0 (states 0-39), 1 (40-79); layer 1: tracks 0 (80-119), 1 (120-159)."""
+    run = synthetic_run(3, n=160, tracks=4)
+    layer = np.r_[np.zeros(80, int), np.ones(80, int)]
+    return RunSeries(run.name, run.area_m2, run.t_ahead_k, run.power_w, run.track % 2, DT, layer)
+
+
+def test_a_layer_start_is_neither_a_turnaround_nor_fitted_build_up():
+    from gp_trainer.narx import BUILD_UP_STEPS, turn_bases
+
+    run = _two_layer_run()
+    assert run.turn_starts().tolist() == [40, 120]                  # not 80: layer 1 starts a new pool
+    assert run.steps_since_track_start()[[39, 40, 80, 81, 125]].tolist() == [39, 0, 0, 1, 5]
+    assert run.steps_to_track_end()[[0, 79, 80, 119]].tolist() == [39, 0, 39, 0]
+    assert run.steps_since_layer_start()[[79, 80, 99]].tolist() == [79, 0, 19]
+    assert run.first_track_of_layer()[[0, 40, 80, 120]].tolist() == [True, False, True, False]
+    assert run.last_track_of_layer()[[39, 40, 119, 120]].tolist() == [False, True, False, True]
+    base = turn_bases(run)
+    assert np.isnan(base[:40]).all() and np.isnan(base[80:120]).all()
+    assert (base[40:80] == run.t_ahead_k[39]).all() and (base[120:] == run.t_ahead_k[119]).all()
+    one = RunSeries(run.name, run.area_m2, run.t_ahead_k, run.power_w, run.track, DT)
+    fit = dict(n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity", n_train=40, n_restarts=1,
+               profile_length=20)
+    assert NarxGPModel.fit([run], **fit).provenance["n_samples"] == 159 - 2 * BUILD_UP_STEPS + 1
+    assert NarxGPModel.fit([one], **fit).provenance["n_samples"] == 159 - BUILD_UP_STEPS + 1
+
+
+def test_every_layer_starts_at_the_nominal_power_with_a_new_first_track(model):
+    settings = ControllerSettings(set_point_m2=1.5e-8, preview=PreviewSettings(horizon=20))
+    ctrl = PreviewMPC(settings, model)
+    powers = []
+    for k in range(70):
+        layer, track = (0, 0) if k < 40 else (1, 0)
+        m = Measurement(step=k, time_s=k * DT, area_m2=1.4e-8 if k % 40 > 3 else 0.0, t_ahead_k=300.0,
+                        power_w=0.0 if k == 0 else powers[-1], speed_m_s=0.8, track=track, layer=layer)
+        powers.append(ctrl.update(m)[0].power_w)
+    nominal = settings.nominal_power_w
+    assert powers[:20] == [nominal] * 20 and powers[40:60] == [nominal] * 20   # each layer's build-up
+    assert powers[20] != nominal and powers[60] != nominal                    # then the model's answer
+    assert ctrl._first_track == 0 and ctrl._turn_base_k is None and ctrl._layer_start_step == 40
