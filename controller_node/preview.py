@@ -75,6 +75,7 @@ class PreviewMPC(Controller):
         e[:self._n_x] = model.power_temperature_coefficients
         self._e0 = float(e[0])
         self._toeplitz_e = np.where(inside, e[np.clip(lag, 0, n_p - 1)], 0.0)
+        self._t_of_lag = np.clip(lag, 0, n_t - 1)   # row m's T lag of plan entry j (lag-matched p×T)
         self._mean_window = inside / n_p        # ∂ψ₂/∂u: the mean power of x̂[k+m]'s lag window
         self._theta_p = np.r_[b, model.power_square_coefficients]
         self._mean_weights = np.full(n_p, 1.0 / n_p)
@@ -254,10 +255,12 @@ class PreviewMPC(Controller):
         tw = temps[self._t_index]                                      # (H, n_T)
         z = (model.intercept + window @ model.power_coefficients + (window * window) @ model.power_square_coefficients
              + tw @ model.temperature_coefficients + (tw[:, :self._n_tq] ** 2) @ model.temperature_square_coefficients
-             + (window[:, :self._n_x] * tw[:, :1]) @ model.power_temperature_coefficients + r_mean)
+             + (window[:, :self._n_x] * tw[:, :self._n_x]) @ model.power_temperature_coefficients + r_mean)
         slope = model.area_slope(z)
-        dz = (self._toeplitz_b + 2.0 * self._toeplitz_q * plan[None, :] + self._toeplitz_e * tw[:, :1]
+        dz = (self._toeplitz_b + 2.0 * self._toeplitz_q * plan[None, :]
               + r_slope[:, None] * self._mean_window)        # the GP residual's power sensitivity too
+        if self._n_x:                                        # p[k+j] × T[k+j−1]: row m's T at that lag
+            dz += self._toeplitz_e * np.take_along_axis(tw, self._t_of_lag, axis=1)
         jac = slope[:, None] * dz                                                              # ∂x̂/∂u, (H, H)
         # the target of row m is state k+m: its states since its track's start, and whether it is past a turn
         s_target = since + j + 1 if to_end is None else np.where(j + 1 <= to_end, since + j + 1, j - to_end)

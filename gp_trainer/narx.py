@@ -43,7 +43,7 @@ from gp_trainer.kernel import (
 )
 
 FORMAT_NAME = "meltloop-narx-gp-model"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 OUTPUTS = ("log", "identity")
 _LOG_AREA_MAX = 700.0  # exp overflows beyond ~709
 RESIDUAL_INPUTS = ("t_ahead_k", "steps_since_track_start", "mean_power_w")
@@ -375,7 +375,7 @@ class ResidualGP:
 class NarxGPModel:
     """The delay-aware model of the module docstring (construct with :meth:`fit` or :meth:`load`).
 
-    ``z[k+1] = c₀ + Σ b_i p_i + Σ q_i p_i² + Σ c_j T_j + Σ d_j T_j² + Σ e_i p_i T_0 + r(ψ_k)`` with the lagged
+    ``z[k+1] = c₀ + Σ b_i p_i + Σ q_i p_i² + Σ c_j T_j + Σ d_j T_j² + Σ e_i p_i T_i + r(ψ_k)`` with the lagged
     powers ``p_i = p[k+1−i]`` and temperatures ``T_j = T[k−j]``, and ``x[k+1] = exp(z)`` for the
     ``"log"`` output (``z`` the log of the area in m²) or ``x = z`` for ``"identity"``.
 
@@ -393,8 +393,10 @@ class NarxGPModel:
         ``d_j`` [z/K²].
     output : {"log", "identity"}
         Output map.
-    power_temperature_coefficients : numpy.ndarray, shape (n_x,), n_x <= n_p, optional
-        ``e_i`` [z/(W K)] of the interactions ``p[k+1−i] T[k]`` (hot substrate, other power gain).
+    power_temperature_coefficients : numpy.ndarray, shape (n_x,), n_x <= min(n_p, n_T), optional
+        ``e_i`` [z/(W K)] of the lag-matched interactions ``p[k+1−i] T[k−i]``: the power of step
+        k−i → k+1−i acts on material whose temperature ahead was ``T[k−i]`` when it was applied
+        (a hotter substrate gives another power gain).
     residual : ResidualGP
         GP on ψ (:data:`RESIDUAL_INPUTS`), in units of z.
     turn_profile_k : numpy.ndarray, shape (S,)
@@ -433,7 +435,8 @@ class NarxGPModel:
         if not (self.sample_period_s > 0 and self.speed_m_s > 0 and all(a.ndim == 1 for a in arrays)
                 and self.power_square_coefficients.size == self.power_coefficients.size > 0
                 and 0 <= self.temperature_square_coefficients.size <= self.temperature_coefficients.size > 0
-                and self.power_temperature_coefficients.size <= self.power_coefficients.size
+                and self.power_temperature_coefficients.size <= min(self.power_coefficients.size,
+                                                                    self.temperature_coefficients.size)
                 and self.turn_profile_k.size > 0 and 0.0 <= self.forecast_persistence <= 1.0
                 and all(np.all(np.isfinite(a)) for a in arrays) and math.isfinite(self.intercept)):
             raise ModelFormatError("NARX model: non-finite or inconsistent coefficients, or a period/speed <= 0")
@@ -465,7 +468,8 @@ class NarxGPModel:
                                     "(state[k+1-i].power_w; 0 before laser-on); linear and squared",
             "T[k-j], j=0..n_T-1": "temperature ahead of the laser in state k-j [K] "
                                   "(state.t_ahead_k; T[0] before the first state); linear, squared for j < n_Tq",
-            "p[k+1-i] T[k], i=0..n_x-1": "interaction of the lagged powers with the current temperature ahead [W K]",
+            "p[k+1-i] T[k-i], i=0..n_x-1": "interaction of each lagged power with the temperature ahead in the "
+                                           "state it was applied from [W K]",
             "t_ahead_k": "GP input: T[k] [K]",
             "steps_since_track_start": "GP input: states since the current track's first state, "
                                        f"capped at {STEPS_SINCE_START_CAP}",
@@ -489,7 +493,7 @@ class NarxGPModel:
     def design(self, P: np.ndarray, T: np.ndarray) -> np.ndarray:
         """Regressor rows ``[1, p, p², T, T²]`` for lag matrices ``P`` (m, n_p) and ``T`` (m, n_T)."""
         n_tq, n_x = self.temperature_square_coefficients.size, self.power_temperature_coefficients.size
-        return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2, P[:, :n_x] * T[:, :1]])
+        return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2, P[:, :n_x] * T[:, :n_x]])
 
     def coefficients(self) -> np.ndarray:
         """All coefficients in the order of :meth:`design`."""
@@ -552,7 +556,7 @@ class NarxGPModel:
             n_tq = n_temperature_lags // 2
         else:
             n_tq = n_temperature_square_lags
-        n_x = n_power_lags if interaction else 0
+        n_x = min(n_power_lags, n_temperature_lags) if interaction else 0
         probe = cls._probe(n_power_lags, n_temperature_lags, n_tq, runs[0].sample_period_s, n_x)
         X, Y, PSI = [], [], []
         for run in runs:
@@ -608,7 +612,7 @@ class NarxGPModel:
             "inputs": self.input_definitions(),
             "structure": (
                 "z[k+1] = c0 + sum_i (b_i p[k+1-i] + q_i p[k+1-i]^2) + sum_j c_j T[k-j] + sum_{j<n_Tq} d_j T[k-j]^2"
-                " + sum_{i<n_x} e_i p[k+1-i] T[k] + r(psi_k), r ~ GP(0, SE-ARD); x[k+1] = exp(z) (output 'log') or z"
+                " + sum_{i<n_x} e_i p[k+1-i] T[k-i] + r(psi_k), r ~ GP(0, SE-ARD); x[k+1] = exp(z) (output 'log') or z"
             ),
             "output": self.output,
             "intercept": self.intercept,
