@@ -188,7 +188,7 @@ def test_prediction_matches_the_model_along_the_previous_plan():
     model = NarxGPModel(  # every term made visible: squares and interactions of a size that matters
         sample_period_s=DT, intercept=fitted.intercept, power_coefficients=fitted.power_coefficients,
         power_square_coefficients=np.full(8, 2e-6), temperature_coefficients=fitted.temperature_coefficients + 1e-3,
-        temperature_square_coefficients=np.full(2, 1e-6), power_temperature_coefficients=np.full(8, -2e-6),
+        temperature_square_coefficients=np.full(2, 1e-6), power_temperature_coefficients=np.full(5, -2e-6),
         output="log", residual=fitted.residual, turn_profile_k=fitted.turn_profile_k, forecast_persistence=1.0,
         speed_m_s=0.8)
     settings = ControllerSettings(set_point_m2=2e-8, preview=PreviewSettings(horizon=12, r=1e6, turn_learning_gain=0.0))
@@ -236,6 +236,39 @@ def test_jacobian_is_the_models_own_including_the_gp_residual():
     gp_part = jac - ctrl._toeplitz_b                          # what the lag part alone would give
     assert np.abs(gp_part).max() > 0.05 * np.abs(ctrl._toeplitz_b).max()
     assert np.allclose(jac, fd, rtol=0.0, atol=1e-4 * np.abs(fd).max())    # float32 kernel on the hot path
+
+
+def test_jacobian_of_lag_matched_interactions_uses_each_powers_own_temperature():
+    """p[k+1−i] T[k−i]: the derivative by a planned power carries the temperature of its own lag in
+    every predicted row (T varies strongly over the last states, so the lag matters)."""
+    fitted = NarxGPModel.fit([synthetic_run(s) for s in range(3)], n_power_lags=8, n_temperature_lags=5,
+                             interaction=True, output="identity", n_train=40, n_restarts=1, profile_length=50)
+    assert fitted.power_temperature_coefficients.size == 5
+    model = NarxGPModel(
+        sample_period_s=DT, intercept=fitted.intercept, power_coefficients=fitted.power_coefficients,
+        power_square_coefficients=np.zeros(8), temperature_coefficients=fitted.temperature_coefficients,
+        temperature_square_coefficients=np.zeros(0), power_temperature_coefficients=np.array([4, 3, 2, 1, 0.5]) * 1e-14,
+        output="identity", residual=fitted.residual, turn_profile_k=fitted.turn_profile_k, forecast_persistence=1.0,
+        speed_m_s=0.8)
+    settings = ControllerSettings(set_point_m2=C0, preview=PreviewSettings(horizon=12, r=1.0, turn_learning_gain=0.0))
+    ctrl = PreviewMPC(settings, model)
+    run = synthetic_run(0)
+    t = run.t_ahead_k + 300.0 * (np.arange(len(run)) % 4)          # 0, 300, 600, 900 K on top, repeating
+    for k in range(41):
+        _, diag = ctrl.update(_measurement(k, run.area_m2[k], t[k], run.power_w[k]))
+        plan = np.r_[diag.predicted_power_w[1:], diag.predicted_power_w[-1:]]
+    forecast = t[41] + 250.0 * (np.arange(1, 13) % 3)                   # T ahead over the horizon, varying too
+    ctrl._forecast = lambda *args: forecast
+    _, diag = ctrl.update(_measurement(41, run.area_m2[41], t[41], run.power_w[41]))
+    jac = ctrl.last_qp[0] * settings.set_point_m2 / ctrl.qp.scale
+    t_future = np.r_[t[:42], forecast]
+
+    def predicted(u):
+        p = np.r_[run.power_w[:42], u]
+        return model.predict_run(RunSeries("f", np.ones(54), t_future, p, np.zeros(54, dtype=int), DT))[0][41:53]
+
+    fd = np.column_stack([(predicted(plan + 1e-3 * e) - predicted(plan - 1e-3 * e)) / 2e-3 for e in np.eye(12)])
+    assert np.allclose(jac, fd, rtol=0.0, atol=1e-4 * np.abs(fd).max())
 
 
 def test_launch_refuses_a_plant_of_another_sample_period(tmp_path):
