@@ -13,9 +13,11 @@ Each update at state k (:meth:`PreviewMPC.update`):
 4. **Optimise**: the QP of :mod:`controller_node.preview_qp` (tracking of the set point,
    move penalty, hard power bounds, soft area bounds tightened by the GP's predictive std).
 
-During the pool build-up (the first ``observer_start_steps`` states of the run and of every
-layer of a build, which the model is not fitted on) the answer is the nominal power; step 0 is,
-for every controller. A layer's first track is forecast as the run's first (no turnaround). A plant whose sample
+The pool build-up (the first ``observer_start_steps`` states of the run and of every layer of a
+build) is outside the fitted model: there the observer stands still and the QP does not track the
+states inside the build-up, only those after it (the powers of the build-up are lags of theirs).
+Step 0 gets the nominal power, for every controller. A layer's first track is forecast as the
+run's first (no turnaround). A plant whose sample
 period differs from the model's is refused (:class:`~controller_node.types.ConfigurationError`).
 """
 
@@ -224,8 +226,6 @@ class PreviewMPC(Controller):
             self.disturbance_m2 += ps.observer_gain * error
         self._prev = m
         self._base0_m2 = None
-        if not built_up:  # pool build-up: outside the fitted model, laser at nominal
-            return Proposal(s.nominal_power_w, status="ok")
 
         h, dt = self._h, self.model.sample_period_s
         since = m.step - self._track_start_step
@@ -269,6 +269,9 @@ class PreviewMPC(Controller):
         predicted = model.to_area(z) + self.disturbance_m2 + correction                        # x̂ at u = ū
         gamma = jac * (self.qp.scale / sp)
         c = (predicted - jac @ plan - sp) / sp
+        if not built_up:  # targets inside the pool build-up are outside the fitted model: not tracked
+            blind = m.step - self._layer_start_step + j + 1 < ps.observer_start_steps
+            gamma[blind], c[blind] = 0.0, 0.0
         std = slope[:r_var.size] * np.sqrt(r_var + model.residual.noise_variance)  # all H rows only if used
         margin = ps.uncertainty_z * std / sp if ps.uncertainty_z > 0 else None
         self.last_qp = (gamma, c, float(self._p[0]), margin)  # the problem just solved (benchmarks, tests)

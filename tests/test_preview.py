@@ -235,7 +235,8 @@ def test_jacobian_is_the_models_own_including_the_gp_residual():
     fd = np.column_stack([(predicted(plan + 1e-3 * e) - predicted(plan - 1e-3 * e)) / 2e-3 for e in np.eye(12)])
     gp_part = jac - ctrl._toeplitz_b                          # what the lag part alone would give
     assert np.abs(gp_part).max() > 0.05 * np.abs(ctrl._toeplitz_b).max()
-    assert np.allclose(jac, fd, rtol=0.0, atol=1e-4 * np.abs(fd).max())    # float32 kernel on the hot path
+    # the hot path's float32 kernel: ~1e-4 of the largest entry (5e-8 in float64); the GP part is > 5 %
+    assert np.allclose(jac, fd, rtol=0.0, atol=5e-4 * np.abs(fd).max())
 
 
 def test_jacobian_of_lag_matched_interactions_uses_each_powers_own_temperature():
@@ -353,16 +354,22 @@ def test_a_layer_start_is_neither_a_turnaround_nor_fitted_build_up():
     assert NarxGPModel.fit([one], **fit).provenance["n_samples"] == 159 - BUILD_UP_STEPS + 1
 
 
-def test_every_layer_starts_at_the_nominal_power_with_a_new_first_track(model):
+def test_every_layers_pool_build_up_is_planned_for_but_not_tracked(model):
+    """Inside a pool build-up (the first ``observer_start_steps`` states of the run and of every
+    layer) the QP does not track the states the model is not fitted on and the observer stands
+    still; the plan aims at the states after it. Step 0 gets the nominal power."""
     settings = ControllerSettings(set_point_m2=1.5e-8, preview=PreviewSettings(horizon=20))
     ctrl = PreviewMPC(settings, model)
-    powers = []
+    powers, blind, disturbance = [], {}, {}
     for k in range(70):
-        layer, track = (0, 0) if k < 40 else (1, 0)
+        layer = 0 if k < 40 else 1
         m = Measurement(step=k, time_s=k * DT, area_m2=1.4e-8 if k % 40 > 3 else 0.0, t_ahead_k=300.0,
-                        power_w=0.0 if k == 0 else powers[-1], speed_m_s=0.8, track=track, layer=layer)
+                        power_w=0.0 if k == 0 else powers[-1], speed_m_s=0.8, track=0, layer=layer)
         powers.append(ctrl.update(m)[0].power_w)
-    nominal = settings.nominal_power_w
-    assert powers[:20] == [nominal] * 20 and powers[40:60] == [nominal] * 20   # each layer's build-up
-    assert powers[20] != nominal and powers[60] != nominal                    # then the model's answer
+        gamma, c = ctrl.last_qp[:2]
+        blind[k] = int(np.sum(~gamma.any(axis=1) & (c == 0)))
+        disturbance[k] = ctrl.disturbance_m2
+    assert powers[0] == settings.nominal_power_w and len(set(powers[1:20])) > 1
+    assert [blind[k] for k in (1, 5, 19, 20, 41, 45, 59, 60)] == [18, 14, 0, 0, 18, 14, 0, 0]
+    assert disturbance[40] == disturbance[59] and disturbance[20] != disturbance[39]   # observer off in build-up
     assert ctrl._first_track == 0 and ctrl._turn_base_k is None and ctrl._layer_start_step == 40
