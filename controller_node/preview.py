@@ -55,9 +55,9 @@ class PreviewMPC(Controller):
     name = "preview-mpc"
 
     def __init__(self, settings: ControllerSettings, model) -> None:
-        from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_t_ahead
+        from gp_trainer.narx import forecast_t_ahead, steps_since_start_feature
 
-        self._forecast, self._s_cap = forecast_t_ahead, STEPS_SINCE_START_CAP
+        self._forecast, self._s_feature = forecast_t_ahead, steps_since_start_feature
         self.model = model
         ps = settings.preview
         h, b = ps.horizon, model.power_coefficients
@@ -248,11 +248,14 @@ class PreviewMPC(Controller):
         psi = self._psi
         psi[0, 0] = m.t_ahead_k
         psi[1:, 0] = forecast[:-1]
-        psi[:, 1] = np.minimum(s_psi, self._s_cap)
+        psi[:, 1] = self._s_feature(s_psi)
         psi[:, 2] = window @ self._mean_weights
         r_mean, r_var, r_slope = model.residual.predict_with_slope(psi, MEAN_POWER, None if ps.uncertainty_z > 0 else 1,
                                                                    single_precision_kernel=True)
         tw = temps[self._t_index]                                      # (H, n_T)
+        # the target of row m is state k+m: its states since its track's start, and whether it is past a turn
+        s_target = since + j + 1 if to_end is None else np.where(j + 1 <= to_end, since + j + 1, j - to_end)
+        post_turn = np.full(h, not on_first) if to_end is None else np.where(j + 1 <= to_end, not on_first, True)
         z = (model.intercept + window @ model.power_coefficients + (window * window) @ model.power_square_coefficients
              + tw @ model.temperature_coefficients + (tw[:, :self._n_tq] ** 2) @ model.temperature_square_coefficients
              + (window[:, :self._n_x] * tw[:, :self._n_x]) @ model.power_temperature_coefficients + r_mean)
@@ -262,9 +265,6 @@ class PreviewMPC(Controller):
         if self._n_x:                                        # p[k+j] × T[k+j−1]: row m's T at that lag
             dz += self._toeplitz_e * np.take_along_axis(tw, self._t_of_lag, axis=1)
         jac = slope[:, None] * dz                                                              # ∂x̂/∂u, (H, H)
-        # the target of row m is state k+m: its states since its track's start, and whether it is past a turn
-        s_target = since + j + 1 if to_end is None else np.where(j + 1 <= to_end, since + j + 1, j - to_end)
-        post_turn = np.full(h, not on_first) if to_end is None else np.where(j + 1 <= to_end, not on_first, True)
         correction = self._correction(s_target, post_turn) if self._learned else self._no_correction
         predicted = model.to_area(z) + self.disturbance_m2 + correction                        # x̂ at u = ū
         gamma = jac * (self.qp.scale / sp)

@@ -106,11 +106,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None,
                    help="model file (default: the --plant's model in gp_trainer/models/)")
     p.add_argument("--seed", type=int, default=0, help="seed of the GP point choice and optimiser restarts")
-    p.add_argument(
-        "--interaction",
-        action="store_true",
-        help="also try power x temperature interaction terms (better rollouts, worse closed loop: docs/gp.md)",
-    )
     p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
 
     p = sub.add_parser("campaign", formatter_class=fmt, help="record the Table 2 cases open loop (on Dask)",
@@ -378,7 +373,7 @@ def _narx(args: argparse.Namespace) -> int:
     if not held or not train:
         raise DatasetError("need both training and held-out runs; "
                            f"held out {[r.name for r in held]} of {[r.name for r in runs]}")
-    model, best, table = select_and_fit(train, held, seed=args.seed, interaction=args.interaction)
+    model, best, table = select_and_fit(train, held, seed=args.seed)
     out = model.save(args.out or ident.model_path)
     for row in table:
         print(f"lags p {row['n_power_lags']:2d}, T {row['n_temperature_lags']:2d}, output {row['output']:8s}, "

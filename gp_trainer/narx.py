@@ -46,8 +46,14 @@ FORMAT_NAME = "meltloop-narx-gp-model"
 FORMAT_VERSION = 3
 OUTPUTS = ("log", "identity")
 _LOG_AREA_MAX = 700.0  # exp overflows beyond ~709
-RESIDUAL_INPUTS = ("t_ahead_k", "steps_since_track_start", "mean_power_w")
+RESIDUAL_INPUTS = ("t_ahead_k", "log1p_steps_since_track_start", "mean_power_w")
 STEPS_SINCE_START_CAP = 100
+
+
+def steps_since_start_feature(steps: np.ndarray) -> np.ndarray:
+    """The GP's track-position input ``log(1 + min(s, 100))``: resolves the first states after a
+    turnaround, where the area changes fastest, as finely as the GP's length-scales allow."""
+    return np.log1p(np.minimum(steps, STEPS_SINCE_START_CAP))
 BUILD_UP_STEPS = 20
 """Samples whose target lies in the first 20 steps after laser-on (pool build-up) are not fitted."""
 DEFAULT_BOUNDS = HyperBounds()
@@ -471,8 +477,8 @@ class NarxGPModel:
             "p[k+1-i] T[k-i], i=0..n_x-1": "interaction of each lagged power with the temperature ahead in the "
                                            "state it was applied from [W K]",
             "t_ahead_k": "GP input: T[k] [K]",
-            "steps_since_track_start": "GP input: states since the current track's first state, "
-                                       f"capped at {STEPS_SINCE_START_CAP}",
+            "log1p_steps_since_track_start": "GP input: log(1 + s), s the states since the current track's "
+                                             f"first state, capped at {STEPS_SINCE_START_CAP}",
             "mean_power_w": "GP input: mean of p[k+1-i], i=0..n_p-1 [W]",
             "output": "melt-pool area x[k+1] [m2] (state[k+1].area_mm2 * 1e-6) "
                       "= exp(z) for output 'log', z for 'identity'",
@@ -491,7 +497,7 @@ class NarxGPModel:
         return P, T
 
     def design(self, P: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """Regressor rows ``[1, p, p², T, T²]`` for lag matrices ``P`` (m, n_p) and ``T`` (m, n_T)."""
+        """Regressor rows ``[1, p, p², T, T², p×T]`` for lag matrices ``P`` (m, n_p) and ``T`` (m, n_T)."""
         n_tq, n_x = self.temperature_square_coefficients.size, self.power_temperature_coefficients.size
         return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2, P[:, :n_x] * T[:, :n_x]])
 
@@ -504,7 +510,7 @@ class NarxGPModel:
     def residual_inputs(self, run: RunSeries) -> np.ndarray:
         """ψ for every target index j = 1..n−1, shape (n−1, 3)."""
         P, _ = self._lagged(run)
-        s = np.minimum(run.steps_since_track_start()[:-1], STEPS_SINCE_START_CAP)
+        s = steps_since_start_feature(run.steps_since_track_start()[:-1])
         return np.column_stack([run.t_ahead_k[:-1], s, P.mean(axis=1)])
 
     def predict_run(self, run: RunSeries) -> tuple[np.ndarray, np.ndarray]:
@@ -536,7 +542,8 @@ class NarxGPModel:
 
         Samples whose target is in the first :data:`BUILD_UP_STEPS` states of a run or of a layer, or has no
         pool (area 0), are not fitted (the lags still see their powers). ``quadratic=False``
-        leaves out the squared lags (a plain FIR part).
+        leaves out the squared lags (a plain FIR part); ``interaction`` adds the lag-matched
+        p × T terms.
 
         Raises
         ------
@@ -669,11 +676,9 @@ class NarxGPModel:
 ROLLOUT_HORIZON = 40
 STRUCTURES = ((24, 30), (32, 40))
 """Candidate (power lags, temperature lags) of the model selection."""
-FORMS = (("log", True, False), ("log", False, False), ("identity", True, False), ("identity", False, False))
-"""Candidate (output map, squared lags, power × temperature interactions) of the model selection."""
-INTERACTION_FORMS = (("log", True, True), ("identity", True, True))
-"""Added by ``select_and_fit(..., interaction=True)`` (``narx --interaction``): better held-out rollouts,
-worse closed loop (docs/gp.md)."""
+FORMS = (("log", True, True), ("log", True, False), ("log", False, False), ("identity", True, True),
+         ("identity", True, False), ("identity", False, False))
+"""Candidate (output map, squared lags, lag-matched power × temperature interactions) of the model selection."""
 LENGTH_SCALE_FLOORS = (0.5, 2.0)
 """Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
 
@@ -715,14 +720,12 @@ def select_and_fit(
     *,
     seed: int = 0,
     n_train: int = 150,
-    interaction: bool = False,
 ) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
-    """Fit every candidate (lags, output map, squared lags, length-scale floor) on ``train``; keep the
+    """Fit every candidate (lags, output map, squared lags, interactions, length-scale floor) on ``train``; keep the
     one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
     Returns it, its row and the whole table."""
     table, best = [], None
-    forms = FORMS + (INTERACTION_FORMS if interaction else ())
-    for (n_p, n_t), (output, quadratic, with_x), floor in itertools.product(STRUCTURES, forms, LENGTH_SCALE_FLOORS):
+    for (n_p, n_t), (output, quadratic, with_x), floor in itertools.product(STRUCTURES, FORMS, LENGTH_SCALE_FLOORS):
             model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
                                     output=output, quadratic=quadratic, interaction=with_x,
                                     bounds=HyperBounds(length_scale=(floor, 100.0)))

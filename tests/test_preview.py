@@ -175,7 +175,8 @@ def test_trainer_builds_a_model_at_the_period_of_its_runs():
         NarxGPModel.fit(runs + slow, n_power_lags=8, n_temperature_lags=5, n_train=40, n_restarts=1)
 
 
-def test_prediction_matches_the_model_along_the_previous_plan():
+@pytest.mark.parametrize("turn_at", [None, 33])
+def test_prediction_matches_the_model_along_the_previous_plan(turn_at):
     """With the plan unchanged, the controller's prediction is the model's own (log output, squared
     lags, interactions): the condensed prediction indexes lags and temperatures as the model does."""
     runs = []
@@ -194,16 +195,22 @@ def test_prediction_matches_the_model_along_the_previous_plan():
     settings = ControllerSettings(set_point_m2=2e-8, preview=PreviewSettings(horizon=12, r=1e6, turn_learning_gain=0.0))
     ctrl = PreviewMPC(settings, model)
     run = runs[0]
+    track = np.zeros(52, dtype=int) if turn_at is None else (np.arange(52) >= turn_at).astype(int)
+    ctrl._forecast = lambda t_now, *args: np.full(12, t_now)         # T held, after a turn too
     for k in range(40):
-        _, diag = ctrl.update(_measurement(k, run.area_m2[k], run.t_ahead_k[k], run.power_w[k]))
-    plan = np.array(diag.predicted_power_w)
-    # the model on the same history, the plan as future powers and T held (the first track, no turn)
+        plan = np.r_[ctrl._plan[1:], ctrl._plan[-1:]]             # ū: the previous plan, shifted
+        _, diag = ctrl.update(_measurement(k, run.area_m2[k], run.t_ahead_k[k], run.power_w[k], int(track[k])))
+    gamma, c = ctrl.last_qp[:2]
+    jac = gamma * settings.set_point_m2 / ctrl.qp.scale
+    at_plan = c * settings.set_point_m2 + jac @ plan + settings.set_point_m2     # the QP's x̂ at u = ū
+    # the model on the same history, ū as future powers and T held (7 states after a turn, or none)
     n = 40 + 12
     p = np.r_[run.power_w[:40], plan]
     t = np.r_[run.t_ahead_k[:40], np.full(12, run.t_ahead_k[39])]
-    future = RunSeries("f", np.ones(n), t, p, np.zeros(n, dtype=int), DT)
+    future = RunSeries("f", np.ones(n), t, p, track, DT)
     expected = model.predict_run(future)[0][39:39 + 12] + ctrl.disturbance_m2
-    assert np.allclose(diag.predicted_area_m2, expected, rtol=1e-4, atol=0.0)
+    assert np.allclose(at_plan, expected, rtol=1e-5, atol=0.0)        # float32 kernel on the hot path
+    assert np.allclose(ctrl._psi, model.residual_inputs(future)[39:39 + 12], rtol=1e-12, atol=0.0)  # the GP's ψ
 
 
 def test_jacobian_is_the_models_own_including_the_gp_residual():
