@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from fe_node.eagar_tsai import EagarTsai, EagarTsaiCase
-from fe_node.scenarios import NAMES, scenario
+from fe_node.scenarios import NAMES, PART_NAMES, scenario
 from fe_node.settings import Settings
 from fe_node.validate import fe_eagar_tsai_area
 
@@ -69,7 +69,7 @@ def test_table2_geometry():
 
 
 def test_profiles_stay_in_process_window():
-    for name in (n for n in NAMES if n != "part"):          # part: tests/test_fe_part.py (needs PySLM)
+    for name in (n for n in NAMES if n not in PART_NAMES):  # parts: tests/test_fe_part.py (needs PySLM)
         sc = scenario(name)
         p = [sc.profile.command(i) for i in range(400)]
         # ident-* staircases leave the 150-300 W window by design (250 +- 60 W; tests/test_identify.py)
