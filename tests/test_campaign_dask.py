@@ -104,7 +104,8 @@ def test_failed_case_is_retried_once_then_reported_and_the_others_kept(tmp_path,
     captured = capsys.readouterr()
     summary = json.loads(captured.out.strip().splitlines()[-1])
     cases = {c["case"]: c for c in summary["cases"]}
-    assert (summary["ok"], summary["failed"]) == (2, 1) and list(cases) == [1, 2, 3]
+    detail = {c: (v["status"], v["attempts"], v["exit_status"], v["output_tail"][-400:]) for c, v in cases.items()}
+    assert (summary["ok"], summary["failed"]) == (2, 1) and list(cases) == [1, 2, 3], detail
     assert (cases[1]["status"], cases[1]["attempts"], cases[1]["exit_status"]) == ("failed", 2, 7)
     assert cases[1]["output_tail"].splitlines()[-2:] == ["solver diverged at step 3", "last words of case 1"]
     assert (cases[2]["status"], cases[2]["attempts"], cases[3]["status"], cases[3]["attempts"]) == ("ok", 2, "ok", 1)
