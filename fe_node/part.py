@@ -10,6 +10,7 @@ of 50 µm).  PySLM is an optional dependency: ``pip install pythonslm``.
 """
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,15 @@ from fe_node.scan import ScanPlan
 
 EXAMPLE_STL = Path(__file__).parent / "parts" / "cylinder_d1.5_h0.5_mm.stl"
 """The shipped example part (``--scenario part``)."""
+
+
+PYSLM_MISSING = "scenario part: needs PySLM (pip install pythonslm, or the project's [part] extra)"
+
+
+def require_pyslm() -> None:
+    """Raise ``ValueError`` (:data:`PYSLM_MISSING`, one line) when PySLM is not installed."""
+    if importlib.util.find_spec("pyslm") is None:
+        raise ValueError(PYSLM_MISSING)
 
 
 def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float) -> tuple[ScanPlan, ...]:
@@ -45,7 +55,7 @@ def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float) -> tuple[Sc
         from pyslm import hatching
         from pyslm.geometry import HatchGeometry
     except ImportError:
-        raise ValueError("scenario part: needs PySLM (pip install pythonslm)") from None
+        raise ValueError(PYSLM_MISSING) from None
     path = Path(stl_path)
     if not path.is_file():
         raise ValueError(f"scenario part: no STL file {str(path)!r}")

@@ -27,7 +27,7 @@ from typing import Any, NoReturn
 import numpy as np
 
 from gp_trainer.campaign import IDENT_SETS
-from gp_trainer.errors import DatasetError, GPTrainerError
+from gp_trainer.errors import CampaignError, DatasetError, GPTrainerError
 from gp_trainer.model import DEFAULT_MODEL_PATH, DEFAULT_RESTARTS
 
 PROG = "python -m gp_trainer"
@@ -341,6 +341,13 @@ def _identify(args: argparse.Namespace) -> int:
     )
 
     ident = IDENT_SETS[args.plant]
+    if ident.name == "part":  # every run would fail on it: say so once, before starting any
+        from fe_node.part import require_pyslm
+
+        try:
+            require_pyslm()
+        except ValueError as err:
+            raise CampaignError(f"--plant part: {err}") from None
     args.out_dir = args.out_dir or ident.out_dir
     settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None), ident.runs),
                                 **_runner_settings(args))

@@ -115,3 +115,14 @@ def test_evaluate_part_without_recordings_says_which_command_to_run(tmp_path, ca
     assert gp_main(["evaluate", "--plant", "part", "--recordings-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "identify --plant part" in err and "ident-part-p100-s12" in err
+
+
+def test_identify_part_without_pyslm_is_one_line_before_any_run(tmp_path, monkeypatch, capsys):
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "pyslm" else find_spec(name, *a))
+    assert gp_main(["identify", "--plant", "part", "--out-dir", str(tmp_path), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "needs PySLM" in err and "--plant part" in err
+    assert not any(tmp_path.iterdir())                               # no run was started
