@@ -80,7 +80,9 @@ class MeltPoolState(Message, frozen=True, kw_only=True):
     next_track: Annotated[bool, msgspec.Meta(description=(
         "Scan-plan preview: another track starts where this one ends (false on the last track)."))] | None = None
     layer: Annotated[int, msgspec.Meta(ge=0, le=1_000_000, description=(
-        "Layer of a multi-layer build, 0 first (track indices restart in each layer)."))] | None = None
+        "Layer of a multi-layer build, 0 first (track indices restart in each layer). A new layer is a new "
+        "laser-on on fresh powder: the report and the preview MPC treat its first 1 ms as pool build-up."
+    ))] | None = None
     source: Literal["fe", "sensor", "replay", "surrogate"] = "fe"
 
 
