@@ -288,7 +288,7 @@ class PreviewSettings:
     slack_linear: float = 100.0
     slack_quadratic: float = 1000.0
     uncertainty_z: float = 0.0
-    observer_gain: float = 0.05
+    observer_gain: float = 0.02
     observer_start_steps: int = 20
     learn_turn_profile: bool = True
     turn_learning_gain: float = 0.5

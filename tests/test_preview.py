@@ -141,7 +141,7 @@ def _closed_loop(model, offset_m2, settings, steps=200, plan_turn_at=None):
 def test_observer_removes_a_constant_model_error(model):
     sp = C0 + B_TRUE.sum() * 200.0 + C_TRUE.sum() * 300.0
     settings = ControllerSettings(set_point_m2=sp, preview=PreviewSettings(horizon=20, r=1.0))
-    x, _, ctrl = _closed_loop(model, 0.05 * sp, settings)
+    x, _, ctrl = _closed_loop(model, 0.05 * sp, settings, steps=400)   # the default L: a 50-step time constant
     assert abs(x[-20:].mean() / sp - 1.0) < 2e-3
     assert ctrl.disturbance_m2 == pytest.approx(0.05 * sp, rel=0.02)
 
