@@ -23,7 +23,10 @@ Prints the node output, then, as the last line, JSON: the loop's round trip stat
 (``rtt_median_us``, ``rtt_p99_us``), the achieved rate, the share of steps whose command arrived
 after the next state was published (``deadline_miss_pct``), the bare round trip
 (``zenoh_rtt_median_us``, ``zenoh_rtt_p99_us``), ``controller_update_median_us``,
-``overhead_ratio`` = loop round-trip median ÷ (bare median + update median), the topology, the
+``overhead_ratio`` = loop round-trip median ÷ (bare median + update median),
+``controller_update_p99_us``, ``transport_miss_pct`` (the misses a loop with no overhead of its
+own would have: random pairs of a bare round trip and an update whose sum exceeds the period),
+the topology, the
 load (1-minute load average at the start and end, the machine's CPU use during the loop, the
 busy loop if any) and context. The numbers depend on what else runs on the machine; the ratio,
 measured in the same run, much less.
@@ -79,6 +82,17 @@ def cpu_times() -> tuple[int, int]:
         fields = [int(v) for v in f.readline().split()[1:]]
     idle = fields[3] + fields[4]
     return sum(fields) - idle, sum(fields)
+
+
+def transport_miss_pct(bare_us: np.ndarray, updates_us: list[float], period_us: float,
+                       n: int = 200_000) -> float | None:
+    """Share [%] of steps a loop with no overhead of its own would miss: random pairs of a bare
+    round trip and a controller update (both measured in this run) whose sum exceeds the period."""
+    if bare_us.size == 0 or not updates_us:
+        return None
+    rng = np.random.default_rng(0)
+    total = rng.choice(bare_us, n) + rng.choice(np.asarray(updates_us, dtype=float), n)
+    return round(float(100.0 * np.mean(total > period_us)), 3)
 
 
 def ratio(loop_us: float | None, bare_us: float | None, update_us: float | None) -> float | None:
@@ -226,6 +240,8 @@ def main() -> int:
         "zenoh_rtt_p99_us": round(float(np.percentile(bare_us, 99)), 1) if bare_us.size else None,
         "controller_update_median_us": update_median,
         "overhead_ratio": ratio(stats["rtt_median_us"], zenoh_median, update_median),
+        "controller_update_p99_us": round(float(np.percentile(updates, 99)), 1) if updates else None,
+        "transport_miss_pct": transport_miss_pct(bare_us, updates, 1e6 / args.rate_hz),
         "topology": args.topology,
         "steps": stats["steps"], "commands": stats["commands"], "late_commands": stats["late_commands"],
         "zenoh_pings": int(bare_us.size), "controller_updates": len(updates),
