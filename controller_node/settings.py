@@ -291,7 +291,7 @@ class PreviewSettings:
     observer_gain: float = 0.02
     observer_start_steps: int = 20
     learn_turn_profile: bool = True
-    turn_learning_gain: float = 0.5
+    turn_learning_gain: float = 0.75
     turn_learning_steps: int = 60
 
     def __post_init__(self) -> None:
