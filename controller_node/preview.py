@@ -17,7 +17,13 @@ The pool build-up (the first ``observer_start_steps`` states of the run and of e
 build) is outside the fitted model: there the observer stands still and the QP does not track the
 states inside the build-up, only those after it (the powers of the build-up are lags of theirs).
 Step 0 gets the nominal power, for every controller. A layer's first track is forecast as the
-run's first (no turnaround). A plant whose sample
+run's first (no turnaround).
+
+Learning over turnarounds (iterative learning control on the model's one-step error after a
+turn, :meth:`PreviewMPC._learn_turn_correction`): within a layer each turn starts from the latest
+learned correction; in the next layer (of the same build, or through :meth:`learning_state`)
+turn j starts from what turn j learned, since a later turn of a layer is on a hotter plate.
+A plant whose sample
 period differs from the model's is refused (:class:`~controller_node.types.ConfigurationError`).
 """
 
@@ -34,7 +40,7 @@ from .types import ConfigurationError, Measurement
 
 __all__ = ["PreviewMPC"]
 
-LEARNING_FORMAT = "meltloop-preview-learning-1"
+LEARNING_FORMAT = "meltloop-preview-learning-2"
 MEAN_POWER = 2
 """Column of ψ = (T ahead, steps since the track started, mean lagged power) that depends on the plan."""
 PERIOD_TOLERANCE = 0.01
@@ -110,6 +116,9 @@ class PreviewMPC(Controller):
         n = self.settings.preview.turn_learning_steps
         self.turn_correction_m2 = np.zeros(n)    # learned model error after a turnaround, by state since the turn
         self._turn_errors = np.full(n, np.nan)   # one-step errors seen after the current turn
+        self._turn = -1                          # index of the current turn in the layer (-1: first track)
+        self.turn_corrections_by_turn_m2: list[np.ndarray] = []   # learned for turn j of this layer
+        self._prior_by_turn: list[np.ndarray] = []                # learned for turn j of the previous layer
         self._learned = False
 
     # ------------------------------------------------------------------ bookkeeping
@@ -145,11 +154,14 @@ class PreviewMPC(Controller):
         if new_layer:  # a new pool on fresh powder: no turnaround to learn from or forecast
             self._layer_start_step = self._track_start_step = m.step
             self._first_track, self._turn_base_k, self._observed = m.track, None, []
-            self._turn_errors[:] = np.nan
+            self._learn_turn_correction()
+            self._prior_by_turn, self.turn_corrections_by_turn_m2 = self.turn_corrections_by_turn_m2, []
+            self._turn = -1
         new_track = not new_layer and prev is not None and m.track is not None and m.track != prev.track
         if new_track:
             self._learn_profile()
             self._learn_turn_correction()
+            self._turn += 1
             self._turn_base_k = prev.t_ahead_k
             self._observed = []
             self._track_start_step = m.step
@@ -158,12 +170,25 @@ class PreviewMPC(Controller):
         if self._turn_base_k is not None:
             self._observed.append(m.t_ahead_k - self._turn_base_k)
 
+    def _correction_for(self, turn: int) -> np.ndarray:
+        """The correction applied after turn ``turn`` of the layer: what the previous layer learned at
+        the same turn, else the latest learned in this run."""
+        return self._prior_by_turn[turn] if 0 <= turn < len(self._prior_by_turn) else self.turn_correction_m2
+
     def _learn_turn_correction(self) -> None:
-        """Iterative learning over turnarounds: ``c(s) += κ ε(s)`` with the one-step errors ε seen
-        after the last turn (where seen); ``c`` is added to the prediction of every post-turn state."""
+        """Iterative learning over turnarounds: ``c ← c_j + κ ε_j`` with ``c_j`` the correction applied
+        after turn j and ``ε_j`` the one-step errors seen after it (where seen). ``c`` is applied after
+        the next turns of this layer; ``c_j`` after turn j of the next layer (its own turn: a later
+        turn of a layer is on a hotter plate)."""
+        if self._turn < 0:
+            self._turn_errors[:] = np.nan
+            return
         seen = ~np.isnan(self._turn_errors)
-        self.turn_correction_m2[seen] += self.settings.preview.turn_learning_gain * self._turn_errors[seen]
-        self._learned = bool(np.any(self.turn_correction_m2))
+        learned = self._correction_for(self._turn).copy()
+        learned[seen] += self.settings.preview.turn_learning_gain * self._turn_errors[seen]
+        self.turn_correction_m2 = learned
+        self.turn_corrections_by_turn_m2.append(learned)
+        self._learned = self._learned or bool(np.any(learned))
         self._turn_errors[:] = np.nan
 
     def finish_run(self) -> None:
@@ -174,13 +199,18 @@ class PreviewMPC(Controller):
         """What the controller learned in this run (turnaround correction and T-rise profile),
         JSON-able, to start the next layer with (:meth:`load_learning_state`)."""
         return {"format": LEARNING_FORMAT, "sample_period_s": self.model.sample_period_s,
-                "turn_correction_m2": self.turn_correction_m2.tolist(), "turn_profile_k": self._profile.tolist()}
+                "turn_correction_m2": self.turn_correction_m2.tolist(),
+                "turn_corrections_by_turn_m2": [c.tolist() for c in self.turn_corrections_by_turn_m2],
+                "turn_profile_k": self._profile.tolist()}
 
     def load_learning_state(self, doc: object) -> None:
         """Start from a previous run's :meth:`learning_state` (``ValueError`` with one line if it does not fit)."""
         if not isinstance(doc, dict) or doc.get("format") != LEARNING_FORMAT:
             raise ValueError(f"not a {LEARNING_FORMAT} document")
         correction = np.asarray(doc.get("turn_correction_m2"), dtype=float)
+        by_turn = [np.asarray(c, dtype=float) for c in doc.get("turn_corrections_by_turn_m2") or []]
+        if any(c.shape != correction.shape or not np.all(np.isfinite(c)) for c in by_turn):
+            raise ValueError("turn_corrections_by_turn_m2 does not fit turn_correction_m2")
         profile = np.asarray(doc.get("turn_profile_k"), dtype=float)
         if doc.get("sample_period_s") != self.model.sample_period_s:
             raise ValueError(f"learned at a sample period of {doc.get('sample_period_s')} s, the model's is "
@@ -190,14 +220,19 @@ class PreviewMPC(Controller):
         if not (np.all(np.isfinite(correction)) and np.all(np.isfinite(profile))):
             raise ValueError("non-finite values")
         self.turn_correction_m2[:] = correction
+        self._prior_by_turn = [c.copy() for c in by_turn]
         self._profile[:] = profile
-        self._learned = bool(np.any(correction))
+        self._learned = bool(np.any(correction)) or any(np.any(c) for c in by_turn)
 
-    def _correction(self, s: np.ndarray, post_turn: np.ndarray) -> np.ndarray:
-        """``c(s)`` for states ``s`` since their track's start, 0 on the first track and beyond ``c``."""
+    def _correction(self, s: np.ndarray, post_turn: np.ndarray, next_turn: np.ndarray) -> np.ndarray:
+        """The learned correction for states ``s`` since their track's start (0 on the first track and
+        beyond its length); ``next_turn``: the state is after the next turn, not the current one."""
         n = self.turn_correction_m2.size
-        inside = post_turn & (s < n)
-        return np.where(inside, self.turn_correction_m2[np.clip(s, 0, max(n - 1, 0))], 0.0) if n else np.zeros(s.size)
+        if not n:
+            return np.zeros(s.size)
+        idx = np.clip(s, 0, n - 1)
+        c = np.where(next_turn, self._correction_for(self._turn + 1)[idx], self._correction_for(self._turn)[idx])
+        return np.where(post_turn & (s < n), c, 0.0)
 
     def _learn_profile(self) -> None:
         """Replace the trained turnaround profile by the one just observed, where observed."""
@@ -265,7 +300,8 @@ class PreviewMPC(Controller):
         if self._n_x:                                        # p[k+j] × T[k+j−1]: row m's T at that lag
             dz += self._toeplitz_e * np.take_along_axis(tw, self._t_of_lag, axis=1)
         jac = slope[:, None] * dz                                                              # ∂x̂/∂u, (H, H)
-        correction = self._correction(s_target, post_turn) if self._learned else self._no_correction
+        next_turn = np.zeros(h, dtype=bool) if to_end is None else j + 1 > to_end
+        correction = self._correction(s_target, post_turn, next_turn) if self._learned else self._no_correction
         predicted = model.to_area(z) + self.disturbance_m2 + correction                        # x̂ at u = ū
         gamma = jac * (self.qp.scale / sp)
         c = (predicted - jac @ plan - sp) / sp

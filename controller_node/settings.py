@@ -272,8 +272,8 @@ class PreviewSettings:
         Forecast the next turnaround with the rise of T ahead seen at the last one in this run.
     turn_learning_gain : float
         κ in [0, 1] of the iterative learning over turnarounds (:meth:`PreviewMPC._learn_turn_correction`):
-        the model error seen after one turn, times κ, is added to the prediction after the next ones.
-        0 disables it.
+        the model error seen after one turn, times κ, is added to the prediction after the next ones
+        of the layer and after the same turn of the next layer. 0 disables it.
     turn_learning_steps : int
         States after a turn that the learned correction covers.
     """

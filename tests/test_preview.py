@@ -325,6 +325,40 @@ def test_learning_state_round_trip_and_refusal(model):
         second.load_learning_state({**doc, "sample_period_s": 1e-4})
 
 
+def test_turnaround_learning_is_indexed_by_the_turn_across_layers(model):
+    """Within a layer each turn starts from the latest learned correction; in the next layer turn j
+    starts from what turn j learned (a later turn is on a hotter plate), through the learning state."""
+    def _same(a, b):  # corrections are ~1e-9 m²: compare relative to them, not to numpy's 1e-8 default
+        return np.allclose(a, b, rtol=1e-12, atol=1e-21)
+
+    settings = ControllerSettings(set_point_m2=1.5e-8, preview=PreviewSettings(
+        horizon=10, turn_learning_steps=3, turn_learning_gain=0.5))
+    first = PreviewMPC(settings, model)
+    errors = [np.array([2e-9, 0.0, -2e-9]), np.array([4e-9, 2e-9, 0.0]), np.array([np.nan, 6e-9, 2e-9])]
+    for turn, e in enumerate(errors):
+        first._turn, first._turn_errors[:] = turn, e
+        first._learn_turn_correction()
+    learned = first.turn_corrections_by_turn_m2
+    assert _same(learned[0], 0.5 * errors[0])
+    assert _same(learned[1], learned[0] + 0.5 * errors[1])            # the chain within the layer
+    assert _same(learned[2], learned[1] + 0.5 * np.nan_to_num(errors[2]))
+    second = PreviewMPC(settings, model)
+    second.load_learning_state(json.loads(json.dumps(first.learning_state())))
+    for turn in range(3):
+        assert _same(second._correction_for(turn), learned[turn])
+    assert _same(second._correction_for(3), first.turn_correction_m2)  # a turn the last layer lacked
+    second._turn, second._turn_errors[:] = 1, [1e-9, 1e-9, 1e-9]
+    second._learn_turn_correction()
+    assert _same(second.turn_corrections_by_turn_m2[0], learned[1] + 0.5e-9)   # from turn 1's own
+    s, post = np.array([0, 1, 2, 0]), np.array([True, True, True, True])
+    after_next = np.array([False, False, False, True])
+    second._turn = 0
+    assert _same(second._correction(s, post, after_next),
+                       [learned[0][0], learned[0][1], learned[0][2], learned[1][0]])
+    with pytest.raises(ValueError, match="by_turn"):
+        second.load_learning_state({**first.learning_state(), "turn_corrections_by_turn_m2": [[1.0]]})
+
+
 def test_node_learning_state_option_errors(tmp_path):
     from controller_node.node import main
 
