@@ -206,7 +206,10 @@ class PreviewMPC(Controller):
     def load_learning_state(self, doc: object) -> None:
         """Start from a previous run's :meth:`learning_state` (``ValueError`` with one line if it does not fit)."""
         if not isinstance(doc, dict) or doc.get("format") != LEARNING_FORMAT:
-            raise ValueError(f"not a {LEARNING_FORMAT} document")
+            found = doc.get("format") if isinstance(doc, dict) else None
+            hint = " (written by an older meltloop: delete it to start learning afresh)" if isinstance(found, str) \
+                and found.startswith("meltloop-preview-learning-") else ""
+            raise ValueError(f"not a {LEARNING_FORMAT} document{hint}")
         correction = np.asarray(doc.get("turn_correction_m2"), dtype=float)
         by_turn = [np.asarray(c, dtype=float) for c in doc.get("turn_corrections_by_turn_m2") or []]
         if any(c.shape != correction.shape or not np.all(np.isfinite(c)) for c in by_turn):

@@ -323,6 +323,8 @@ def test_learning_state_round_trip_and_refusal(model):
         other.load_learning_state(doc)
     with pytest.raises(ValueError, match="sample period"):
         second.load_learning_state({**doc, "sample_period_s": 1e-4})
+    with pytest.raises(ValueError, match="older meltloop"):
+        second.load_learning_state({**doc, "format": "meltloop-preview-learning-1"})
 
 
 def test_turnaround_learning_is_indexed_by_the_turn_across_layers(model):
