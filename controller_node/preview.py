@@ -33,7 +33,10 @@ import math
 
 import numpy as np
 
+from gp_trainer.narx import STEPS_SINCE_START_CAP
+
 from .base import Controller, Proposal
+from .preview_kernel import linearise
 from .preview_qp import PreviewQP
 from .settings import ControllerSettings
 from .types import ConfigurationError, Measurement
@@ -41,8 +44,6 @@ from .types import ConfigurationError, Measurement
 __all__ = ["PreviewMPC"]
 
 LEARNING_FORMAT = "meltloop-preview-learning-2"
-MEAN_POWER = 2
-"""Column of ψ = (T ahead, steps since the track started, mean lagged power) that depends on the plan."""
 PERIOD_TOLERANCE = 0.01
 """Relative difference between the plant's and the model's sample period that is refused."""
 
@@ -61,40 +62,31 @@ class PreviewMPC(Controller):
     name = "preview-mpc"
 
     def __init__(self, settings: ControllerSettings, model) -> None:
-        from gp_trainer.narx import forecast_t_ahead, steps_since_start_feature
+        from gp_trainer.narx import forecast_t_ahead
 
-        self._forecast, self._s_feature = forecast_t_ahead, steps_since_start_feature
+        self._forecast = forecast_t_ahead
         self.model = model
         ps = settings.preview
         h, b = ps.horizon, model.power_coefficients
         n_p, n_t = b.size, model.temperature_coefficients.size
         self._nb, self._nc, self._h = n_p, n_t, h
-        m = np.arange(1, h + 1)[:, None]
-        # x̂[k+m] sees p[k+m−i] (i < n_p) in S = [p[k−n_p+1..k], p[k+1..k+H]] and T[k+m−1−j] (j < n_T)
-        # in [T[k−n_T+1..k], T̂[k+1..k+H−1]]
-        self._p_index = (n_p - 1) + m - np.arange(n_p)[None, :]
-        self._t_index = (n_t - 1) + (m - 1) - np.arange(n_t)[None, :]
-        lag = m - np.arange(1, h + 1)[None, :]
-        inside = (lag >= 0) & (lag < n_p)
-        self._toeplitz_b = np.where(inside, b[np.clip(lag, 0, n_p - 1)], 0.0)
-        self._toeplitz_q = np.where(inside, model.power_square_coefficients[np.clip(lag, 0, n_p - 1)], 0.0)
-        e = np.zeros(n_p)
-        self._n_x = model.power_temperature_coefficients.size
-        e[:self._n_x] = model.power_temperature_coefficients
-        self._e0 = float(e[0])
-        self._toeplitz_e = np.where(inside, e[np.clip(lag, 0, n_p - 1)], 0.0)
-        self._t_of_lag = np.clip(lag, 0, n_t - 1)   # row m's T lag of plan entry j (lag-matched p×T)
-        self._mean_window = inside / n_p        # ∂ψ₂/∂u: the mean power of x̂[k+m]'s lag window
+        self._psi = np.empty((h, 3))            # the GP's inputs of the last update
+        self._rows = np.arange(h)
+        self._coef = (np.array([model.intercept]), b, model.power_square_coefficients,
+                      model.temperature_coefficients, model.temperature_square_coefficients,
+                      model.power_temperature_coefficients)
+        self._gp_scalars, self._gp_points, self._gp_var = model.residual.kernel_terms()
+        self._n_variance = h if ps.uncertainty_z > 0 else 1
         self._theta_p = np.r_[b, model.power_square_coefficients]
-        self._mean_weights = np.full(n_p, 1.0 / n_p)
-        self._psi = np.empty((h, 3))
+        self._e0 = float(model.power_temperature_coefficients[0]) if model.power_temperature_coefficients.size else 0.0
         self._no_correction = np.zeros(h)
-        self._n_tq = model.temperature_square_coefficients.size
         self.qp = PreviewQP(h, settings.set_point_m2, q=ps.q, q_f=ps.q_f, r=ps.r, power_scale_w=ps.power_scale_w,
                             power_min_w=settings.power_min_w, power_max_w=settings.power_max_w,
                             area_min_m2=ps.area_min_m2, area_max_m2=ps.area_max_m2,
                             slack_linear=ps.slack_linear, slack_quadratic=ps.slack_quadratic)
+        self._qp_terms = np.r_[settings.set_point_m2, self.qp.scale, self.qp.r, 0.0, self.qp.weights]
         super().__init__(settings)
+        self._linearise(np.zeros(h), since=0, to_end=None, correction=self._no_correction, blind=h)  # compile now
 
     def reset(self) -> None:
         """Forget the run: histories, disturbance estimate, plan, learned turnaround profile."""
@@ -227,6 +219,15 @@ class PreviewMPC(Controller):
         self._profile[:] = profile
         self._learned = bool(np.any(correction)) or any(np.any(c) for c in by_turn)
 
+    def _correction_over_horizon(self, since: int, on_first: bool, to_end: int | None) -> np.ndarray:
+        """The learned correction of the states k+1..k+H, shape (H,): ``since`` the states since the
+        current track's start, ``to_end`` until its last (None: no turn ahead)."""
+        m = self._rows + 1
+        if to_end is None:
+            return self._correction(since + m, np.full(self._h, not on_first), np.zeros(self._h, dtype=bool))
+        ahead = m <= to_end
+        return self._correction(np.where(ahead, since + m, m - to_end - 1), np.where(ahead, not on_first, True), ~ahead)
+
     def _correction(self, s: np.ndarray, post_turn: np.ndarray, next_turn: np.ndarray) -> np.ndarray:
         """The learned correction for states ``s`` since their track's start (0 on the first track and
         beyond its length); ``next_turn``: the state is after the next turn, not the current one."""
@@ -245,6 +246,17 @@ class PreviewMPC(Controller):
             self._profile[n:] = self._profile[n - 1] if n < self._profile.size and n > 0 else self._profile[n:]
 
     # ------------------------------------------------------------------ control law
+    def _linearise(self, forecast: np.ndarray, since: int, to_end: int | None, correction: np.ndarray,
+                   blind: int) -> tuple[np.ndarray, ...]:
+        """:func:`controller_node.preview_kernel.linearise` at the current histories and plan (before the
+        first state, at zero histories: that call compiles the kernel, or loads it from numba's cache)."""
+        self._qp_terms[3] = self._p[0]
+        t_hist = self._t if self._t is not None else np.zeros(self._nc)
+        return linearise(self._p, t_hist, forecast, self._plan, since, -1 if to_end is None else to_end,
+                         float(STEPS_SINCE_START_CAP), self.model.output == "log", self._coef, self._gp_scalars,
+                         self._gp_points, self._gp_var, self._n_variance, correction, self.disturbance_m2,
+                         self._qp_terms, self.qp.moves, blind, self._psi)
+
     def _propose(self, m: Measurement) -> Proposal:
         s, ps = self.settings, self.settings.preview
         if self._first is None:
@@ -275,54 +287,30 @@ class PreviewMPC(Controller):
         on_first = m.track is None or m.track == self._first_track
         forecast = self._forecast(m.t_ahead_k, since, on_first, to_end, self._profile, h,
                                   self._turn_base_k, self.model.forecast_persistence)
-        temps = np.concatenate((self._t, forecast[:-1]))
-        model, sp = self.model, s.set_point_m2
-        # GP residual at ψ_{k+m−1} = (T, steps since track start, mean power of the last plan)
-        j = np.arange(h)
-        s_psi = since + j if to_end is None else np.where(j <= to_end, since + j, j - to_end - 1)
+        sp = s.set_point_m2
         plan = np.concatenate((self._plan[1:], self._plan[-1:]))       # ū = p̄[k+1..k+H]
-        powers = np.concatenate((self._p[::-1], plan))                 # S = p[k−n_p+1 .. k+H]
-        window = powers[self._p_index]                                 # (H, n_p)
-        psi = self._psi
-        psi[0, 0] = m.t_ahead_k
-        psi[1:, 0] = forecast[:-1]
-        psi[:, 1] = self._s_feature(s_psi)
-        psi[:, 2] = window @ self._mean_weights
-        r_mean, r_var, r_slope = model.residual.predict_with_slope(psi, MEAN_POWER, None if ps.uncertainty_z > 0 else 1,
-                                                                   single_precision_kernel=True)
-        tw = temps[self._t_index]                                      # (H, n_T)
-        # the target of row m is state k+m: its states since its track's start, and whether it is past a turn
-        s_target = since + j + 1 if to_end is None else np.where(j + 1 <= to_end, since + j + 1, j - to_end)
-        post_turn = np.full(h, not on_first) if to_end is None else np.where(j + 1 <= to_end, not on_first, True)
-        z = (model.intercept + window @ model.power_coefficients + (window * window) @ model.power_square_coefficients
-             + tw @ model.temperature_coefficients + (tw[:, :self._n_tq] ** 2) @ model.temperature_square_coefficients
-             + (window[:, :self._n_x] * tw[:, :self._n_x]) @ model.power_temperature_coefficients + r_mean)
-        slope = model.area_slope(z)
-        dz = (self._toeplitz_b + 2.0 * self._toeplitz_q * plan[None, :]
-              + r_slope[:, None] * self._mean_window)        # the GP residual's power sensitivity too
-        if self._n_x:                                        # p[k+j] × T[k+j−1]: row m's T at that lag
-            dz += self._toeplitz_e * np.take_along_axis(tw, self._t_of_lag, axis=1)
-        jac = slope[:, None] * dz                                                              # ∂x̂/∂u, (H, H)
-        next_turn = np.zeros(h, dtype=bool) if to_end is None else j + 1 > to_end
-        correction = self._correction(s_target, post_turn, next_turn) if self._learned else self._no_correction
-        predicted = model.to_area(z) + self.disturbance_m2 + correction                        # x̂ at u = ū
-        gamma = jac * (self.qp.scale / sp)
-        c = (predicted - jac @ plan - sp) / sp
-        if not built_up:  # targets inside the pool build-up are outside the fitted model: not tracked
-            blind = m.step - self._layer_start_step + j + 1 < ps.observer_start_steps
-            gamma[blind], c[blind] = 0.0, 0.0
-        std = slope[:r_var.size] * np.sqrt(r_var + model.residual.noise_variance)  # all H rows only if used
+        correction = self._correction_over_horizon(since, on_first, to_end) if self._learned \
+            else self._no_correction
+        blind = 0 if built_up else ps.observer_start_steps - (m.step - self._layer_start_step) - 1
+        gamma, c, predicted, z, std, hess, f, v = self._linearise(forecast, since, to_end, correction, blind)
+        if not math.isfinite(predicted.sum()):  # an absurd input: no plan from it
+            return Proposal(math.nan, status="model_error")
+        jac = gamma * (sp / self.qp.scale)                                                    # ∂x̂/∂u, (H, H)
+        if blind:  # targets inside the pool build-up are outside the fitted model: not tracked
+            gamma, c = gamma.copy(), c.copy()
+            gamma[:blind], c[:blind] = 0.0, 0.0
         margin = ps.uncertainty_z * std / sp if ps.uncertainty_z > 0 else None
         self.last_qp = (gamma, c, float(self._p[0]), margin)  # the problem just solved (benchmarks, tests)
-        result = self.qp.solve(gamma, c, float(self._p[0]), margin)
+        result = self.qp.finish(gamma, c, hess, f, v, margin)
         if result.path.startswith("failed"):
             return Proposal(math.nan, status=f"solver_{result.path}")
         new_plan = result.power_w
         self._plan = new_plan
         # z of x̂[k+1] without the p[k+1] terms, for the next observer update
+        t_now = float(self._t[-1])
         self._base0_m2 = float(z[0] - self._theta_p[0] * plan[0] - self._theta_p[self._nb] * plan[0] ** 2
-                               - self._e0 * plan[0] * tw[0, 0])
-        self._base_t0 = float(tw[0, 0])
+                               - self._e0 * plan[0] * t_now)
+        self._base_t0 = t_now
         self._base0_correction = float(correction[0])
         areas = predicted + jac @ (new_plan - plan)
         return Proposal(

@@ -69,7 +69,7 @@ class PreviewQP:
         self.weights[-1] = q_f
         diff = np.eye(h) - np.eye(h, k=-1)
         self.r = r
-        self._moves = 2.0 * r * diff.T @ diff
+        self.moves = 2.0 * r * diff.T @ diff
         self.v_lo, self.v_hi = power_min_w / power_scale_w, power_max_w / power_scale_w
         self.e_lo, self.e_hi = area_min_m2 / set_point_m2 - 1.0, area_max_m2 / set_point_m2 - 1.0
         self.rho1, self.rho2 = slack_linear, slack_quadratic
@@ -79,7 +79,7 @@ class PreviewQP:
 
     def hessian(self, gamma: np.ndarray) -> np.ndarray:
         """``2 (Γᵀ W Γ + r DᵀD)``, shape (H, H)."""
-        return 2.0 * (gamma.T * self.weights) @ gamma + self._moves
+        return 2.0 * (gamma.T * self.weights) @ gamma + self.moves
 
     def gradient(self, gamma: np.ndarray, c: np.ndarray, previous_power_w: float) -> np.ndarray:
         """Linear term ``2 Γᵀ W c − 2 r v_prev e₁``, shape (H,)."""
@@ -102,14 +102,21 @@ class PreviewQP:
         margin : numpy.ndarray, shape (H,), optional
             ``z σ_m`` in normalised units (bound tightening); zeros by default.
         """
-        h = self.horizon
         gw = 2.0 * gamma.T * self.weights
-        hess = gw @ gamma + self._moves
         f = gw @ c
         f[0] -= 2.0 * self.r * previous_power_w / self.scale
+        hess = gw @ gamma + self.moves
         _, v, info = dposv(hess, -f)  # LAPACK Cholesky solve: the Hessian is positive definite (r > 0)
+        return self.finish(gamma, c, hess, f, v if info == 0 else None, margin)
+
+    def finish(self, gamma: np.ndarray, c: np.ndarray, hess: np.ndarray, f: np.ndarray, v: np.ndarray | None,
+               margin: np.ndarray | None = None) -> QPResult:
+        """:meth:`solve` from its :meth:`hessian`, :meth:`gradient` and unconstrained optimum ``v``
+        (None or NaN: the Hessian was not positive definite): ``v`` itself when no bound is active
+        (the fast path), else DAQP."""
+        h = self.horizon
         path = "fast"
-        if info != 0 or v.min() < self.v_lo or v.max() > self.v_hi:
+        if v is None or not (v.min() >= self.v_lo and v.max() <= self.v_hi):
             v, _, flag, _ = daqp.solve(hess, f, self._A_empty, self._hi, self._lo)
             if flag < 1:
                 return QPResult(np.full(h, np.nan), f"failed:{flag}")

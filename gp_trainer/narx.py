@@ -371,6 +371,14 @@ class ResidualGP:
             slope = self._g[column] * (k @ (self._W[:, column] * self._mean_w) - w[:, column] * mean)
         return mean, np.maximum(self.prior_variance - np.einsum("ij,ij->i", v, v), 0.0), slope
 
+    def kernel_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What a compiled predictor needs (:mod:`controller_node.preview_kernel`): ``(μ, g, σ², σ_n²)``
+        shape (2d + 2,), per training point ``(W_a, −‖W_a‖²/2, β_a)`` shape (N, d + 2), and ``σ_f L⁻¹``
+        shape (N, N), lower triangular (``var = σ² − ‖σ_f L⁻¹ k‖²``)."""
+        scalars = np.r_[self.input_mean, self._g, self.prior_variance, self.noise_variance]
+        points = np.column_stack([self._W, self._half, self._mean_w])
+        return scalars, np.ascontiguousarray(points), np.ascontiguousarray(self._var_f)
+
     def to_dict(self) -> dict[str, Any]:
         return {"inputs": self.inputs.tolist(), "targets": self.targets.tolist(), "signal_std": self.signal_std,
                 "noise_std": self.noise_std, "length_scales": self.length_scales.tolist(),
@@ -457,15 +465,16 @@ class NarxGPModel:
 
     def to_area(self, z: np.ndarray) -> np.ndarray:
         """``x = exp(z)`` or ``z`` [m²]."""
-        if self.output != "log":
-            return z
-        if np.max(z) > _LOG_AREA_MAX:  # an absurd input: inf, which the controller's safety layer rejects
-            return np.full_like(np.asarray(z, dtype=float), np.inf)
-        return np.exp(z)
+        return self.area_and_slope(z)[0]
 
-    def area_slope(self, z: np.ndarray) -> np.ndarray:
-        """``∂x/∂z`` at ``z`` [m² per unit of z]."""
-        return np.exp(z) if self.output == "log" else np.ones_like(z)
+    def area_and_slope(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``x`` [m²] (:meth:`to_area`) and ``∂x/∂z`` [m² per unit of z] at ``z``, one exponential."""
+        if self.output != "log":
+            return z, np.ones_like(z)
+        x = np.exp(z)
+        if np.max(z) > _LOG_AREA_MAX:  # an absurd input: inf, which the controller's safety layer rejects
+            return np.full_like(np.asarray(z, dtype=float), np.inf), x
+        return x, x
 
     def input_definitions(self) -> dict[str, str]:
         """Definition of every input (recorded in the model file)."""
@@ -519,8 +528,8 @@ class NarxGPModel:
         P, T = self._lagged(run)
         mean, var = self.residual.predict(self.residual_inputs(run))
         z = self.design(P, T) @ self.coefficients() + mean
-        slope = self.area_slope(z)
-        return self.to_area(z), slope * slope * var
+        area, slope = self.area_and_slope(z)
+        return area, slope * slope * var
 
     def rollout(self, run: RunSeries, k: int, horizon: int) -> np.ndarray:
         """Predict ``x[k+1..k+H]`` [m²] from what is known at state k: the applied powers (as a

@@ -1,0 +1,217 @@
+"""The preview MPC's hot path, compiled: prediction, Jacobian and unconstrained QP step in one pass.
+
+:class:`controller_node.preview.PreviewMPC` calls :func:`linearise` once per update. For the
+planned powers ū (the previous plan, shifted) it evaluates, for m = 1..H (model of
+:mod:`gp_trainer.narx`, rows indexed ``i = m − 1``)::
+
+    z_m = c₀ + Σ_i (b_i p_i + q_i p_i²) + Σ_j c_j T_j + Σ_{j<n_Tq} d_j T_j² + Σ_{i<n_x} e_i p_i T_i + r(ψ_{k+m−1})
+    x̂_m = exp(z_m) (log output) + d̂ + κ-learned correction_m
+    ∂x̂_m/∂ū_n = x'(z_m) (b_l + 2 q_l ū_n + e_l T[k+m−1−l] + ∂r/∂ψ₂ / n_p),  l = m − 1 − n ∈ [0, n_p)
+
+with ``p_i = p[k+m−i]``, ``T_j = T[k+m−1−j]`` (the forecast beyond k), the SE-ARD residual GP
+``r(ψ) = Σ_a k(ψ, ψ_a) β_a`` at ψ = (T ahead, log1p(min(s, 100)), mean of the p_i), its slope in
+the mean power and its latent variance ``σ² − ‖L⁻¹ k‖²`` for the first ``n_variance`` rows. Then
+the condensed QP of :mod:`controller_node.preview_qp` in ``v = u / P``, ``e = Γ v + c``::
+
+    Γ = ∂x̂/∂ū · P / x_sp,   c = (x̂ − ∂x̂/∂ū ū − x_sp) / x_sp
+    Hessian = 2 Γᵀ W Γ + 2 r DᵀD,   gradient f = 2 Γᵀ W c − 2 r (p[k] / P) e₁
+
+and its unconstrained optimum ``v* = −Hessian⁻¹ f`` by Cholesky. The caller checks the bounds
+and hands Γ, c to :meth:`controller_node.preview_qp.PreviewQP.solve` when they are active.
+
+Why compiled: the same computation in numpy is ~60 array operations on (40, 150)-sized data.
+Between FE steps or plant frames the controller's caches are cold, and each operation then costs
+several µs of dispatch (``docs/controller.md``, "Speed"). The numpy formulation stays the
+reference: ``tests/test_preview_kernel.py`` checks this kernel against the model's own
+prediction (:meth:`gp_trainer.narx.NarxGPModel.predict_run`), its Jacobian against finite
+differences, and the QP terms against :meth:`PreviewQP.hessian` / :meth:`PreviewQP.gradient`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+__all__ = ["linearise"]
+
+
+@njit(cache=True, nogil=True)
+def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, coef, gp, gp_inputs, var_f,
+              n_variance, correction, disturbance, qp_terms, moves, blind, psi):  # pragma: no cover (compiled)
+    """Prediction, Jacobian and unconstrained QP step at the shifted plan (module docstring).
+
+    Parameters
+    ----------
+    p_hist : numpy.ndarray, shape (n_p,)
+        ``p[k], p[k−1], …`` [W].
+    t_hist : numpy.ndarray, shape (n_T,)
+        ``T[k−n_T+1 .. k]`` [K].
+    forecast : numpy.ndarray, shape (H,)
+        ``T̂[k+1 .. k+H]`` [K].
+    plan : numpy.ndarray, shape (H,)
+        The previous plan ``p̄[k .. k+H−1]`` [W]; shifted here to ū = p̄[k+1 .. k+H] (last held).
+    since : int
+        States since the current track's first state.
+    to_end : int
+        States until the current track's last state, −1 if no turn is ahead in the plan.
+    s_cap : float
+        Cap of the steps-since-start input.
+    log_output : bool
+        ``x = exp(z)`` (else ``x = z``).
+    coef : tuple of numpy.ndarray
+        ``(c₀ as shape (1,), b, q, c, d, e)`` of the model.
+    gp : numpy.ndarray, shape (8,)
+        ``(μ₀, μ₁, μ₂, g₀, g₁, g₂, σ², σ_n²)`` of the residual GP (input mean, inverse scaled
+        length-scales, prior and noise variance).
+    gp_inputs : numpy.ndarray, shape (N, 5)
+        Per training point: scaled input ``W_a`` (3), ``−‖W_a‖²/2`` and weight ``β_a``.
+    var_f : numpy.ndarray, shape (N, N)
+        ``σ_f L⁻¹`` (lower triangular) in target units.
+    n_variance : int
+        Rows whose latent variance is computed (the others are 0).
+    correction : numpy.ndarray, shape (H,)
+        Learned turnaround correction of x̂_m [m²].
+    disturbance : float
+        ``d̂`` [m²].
+    qp_terms : numpy.ndarray, shape (H + 4,)
+        ``(x_sp [m²], P [W], r, p[k] [W], W_1 .. W_H)``.
+    moves : numpy.ndarray, shape (H, H)
+        ``2 r DᵀD``.
+    psi : numpy.ndarray, shape (H, 3)
+        Filled with the GP inputs ψ_{k+m−1} (T ahead [K], log1p(min(s, cap)), mean power [W]).
+    blind : int
+        Leading rows not tracked (pool build-up): weight 0 in the Hessian and gradient (Γ and c
+        are returned for all rows).
+
+    Returns
+    -------
+    gamma : numpy.ndarray, shape (H, H)
+    c : numpy.ndarray, shape (H,)
+    predicted : numpy.ndarray, shape (H,)
+        x̂ at ū [m²].
+    z : numpy.ndarray, shape (H,)
+    std : numpy.ndarray, shape (H,)
+        ``x'(z) sqrt(σ²_latent + σ_n²)`` for the first ``n_variance`` rows [m²].
+    hess : numpy.ndarray, shape (H, H)
+    f : numpy.ndarray, shape (H,)
+    v : numpy.ndarray, shape (H,)
+        Unconstrained optimum (NaN if the Hessian is not positive definite).
+    """
+    intercept, b, q, cc, d, e = coef
+    h, n_p, n_t, n_tq, n_x = plan.size, b.size, cc.size, d.size, e.size
+    n_gp = gp_inputs.shape[0]
+    sp, scale, r, p_now = qp_terms[0], qp_terms[1], qp_terms[2], qp_terms[3]
+    powers = np.empty(n_p + h)                      # p[k−n_p+1 .. k], ū
+    for i in range(n_p):
+        powers[i] = p_hist[n_p - 1 - i]
+    for i in range(h - 1):
+        powers[n_p + i] = plan[i + 1]
+    powers[n_p + h - 1] = plan[h - 1]
+    temps = np.empty(n_t + h - 1)                   # T[k−n_T+1 .. k], T̂[k+1 .. k+H−1]
+    temps[:n_t] = t_hist
+    temps[n_t:] = forecast[:h - 1]
+    z = np.empty(h)
+    gp_slope = np.empty(h)
+    std = np.zeros(h)
+    kern = np.empty(n_gp)
+    for row in range(h):
+        last_p, last_t = n_p + row, n_t - 1 + row   # index of p[k+m] and of T[k+m−1]
+        s = since + row if to_end < 0 or row <= to_end else row - to_end - 1
+        mean_power = 0.0
+        for i in range(n_p):
+            mean_power += powers[last_p - i]
+        psi[row, 0], psi[row, 1], psi[row, 2] = temps[last_t], math.log1p(min(s, s_cap)), mean_power / n_p
+        w0 = (psi[row, 0] - gp[0]) * gp[3]
+        w1 = (psi[row, 1] - gp[1]) * gp[4]
+        w2 = (psi[row, 2] - gp[2]) * gp[5]
+        half_w = 0.5 * (w0 * w0 + w1 * w1 + w2 * w2)
+        mean, moment = 0.0, 0.0
+        for a in range(n_gp):
+            k = math.exp(w0 * gp_inputs[a, 0] + w1 * gp_inputs[a, 1] + w2 * gp_inputs[a, 2] + gp_inputs[a, 3] - half_w)
+            kern[a] = k
+            mean += k * gp_inputs[a, 4]
+            moment += k * gp_inputs[a, 2] * gp_inputs[a, 4]
+        gp_slope[row] = gp[5] * (moment - w2 * mean) / n_p    # ∂r/∂ū_n through the mean power
+        zz = intercept[0] + mean
+        for i in range(n_p):
+            p = powers[last_p - i]
+            zz += (b[i] + q[i] * p) * p
+        for j in range(n_t):
+            t = temps[last_t - j]
+            zz += cc[j] * t
+            if j < n_tq:
+                zz += d[j] * t * t
+        for i in range(n_x):
+            zz += e[i] * powers[last_p - i] * temps[last_t - i]
+        z[row] = zz
+        if row < n_variance:
+            quad = 0.0
+            for a in range(n_gp):
+                acc = 0.0
+                for c2 in range(a + 1):
+                    acc += var_f[a, c2] * kern[c2]
+                quad += acc * acc
+            std[row] = max(gp[6] - quad, 0.0) + gp[7]
+    gamma = np.zeros((h, h))
+    c = np.zeros(h)
+    predicted = np.empty(h)
+    u = powers[n_p:]
+    for row in range(h):
+        x = math.exp(z[row]) if log_output else z[row]
+        slope = x if log_output else 1.0
+        std[row] = slope * math.sqrt(std[row]) if row < n_variance else 0.0
+        predicted[row] = x + disturbance + correction[row]
+        du = 0.0
+        for col in range(max(0, row + 1 - n_p), row + 1):
+            lag = row - col
+            dz = b[lag] + 2.0 * q[lag] * u[col] + gp_slope[row]
+            if lag < n_x:
+                dz += e[lag] * temps[n_t - 1 + row - min(lag, n_t - 1)]
+            jac = slope * dz
+            du += jac * u[col]
+            gamma[row, col] = jac * (scale / sp)
+        c[row] = (predicted[row] - du - sp) / sp
+    weights = qp_terms[4:].copy()
+    weights[:blind] = 0.0                           # rows not tracked
+    hess = moves.copy()
+    f = np.zeros(h)
+    for a in range(h):                              # Γ is lower triangular: Γ[m, a] = 0 for m < a
+        for bb in range(a, h):
+            acc = 0.0
+            for m in range(bb, h):
+                acc += gamma[m, a] * weights[m] * gamma[m, bb]
+            hess[a, bb] += 2.0 * acc
+            if bb != a:
+                hess[bb, a] += 2.0 * acc
+        acc = 0.0
+        for m in range(a, h):
+            acc += gamma[m, a] * weights[m] * c[m]
+        f[a] = 2.0 * acc
+    f[0] -= 2.0 * r * p_now / scale
+    chol = np.zeros((h, h))
+    v = np.empty(h)
+    for i in range(h):                              # Cholesky, Hessian = L Lᵀ
+        for j in range(i + 1):
+            acc = hess[i, j]
+            for k in range(j):
+                acc -= chol[i, k] * chol[j, k]
+            if i == j:
+                if not acc > 0.0:
+                    v[:] = np.nan
+                    return gamma, c, predicted, z, std, hess, f, v
+                chol[i, i] = math.sqrt(acc)
+            else:
+                chol[i, j] = acc / chol[j, j]
+    for i in range(h):                              # L y = −f
+        acc = -f[i]
+        for k in range(i):
+            acc -= chol[i, k] * v[k]
+        v[i] = acc / chol[i, i]
+    for i in range(h - 1, -1, -1):                  # Lᵀ v = y
+        acc = v[i]
+        for k in range(i + 1, h):
+            acc -= chol[k, i] * v[k]
+        v[i] = acc / chol[i, i]
+    return gamma, c, predicted, z, std, hess, f, v

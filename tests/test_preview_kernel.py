@@ -1,0 +1,87 @@
+"""The compiled hot path of the preview MPC (controller_node.preview_kernel) against the numpy/LAPACK
+formulation: the GP's variance, the QP's Hessian and gradient, the Cholesky solve."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controller_node.preview_kernel import linearise
+from controller_node.preview_qp import PreviewQP
+from gp_trainer.narx import DEFAULT_MODEL_PATH, STEPS_SINCE_START_CAP, NarxGPModel
+
+H = 40
+SP = 0.063e-6
+
+
+@pytest.fixture(scope="module")
+def model() -> NarxGPModel:
+    return NarxGPModel.load(DEFAULT_MODEL_PATH)
+
+
+def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_variance: int = H):
+    rng = np.random.default_rng(seed)
+    n_p, n_t = model.power_coefficients.size, model.temperature_coefficients.size
+    qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=r, power_scale_w=350.0, power_min_w=0.0, power_max_w=350.0,
+                   area_min_m2=0.0, area_max_m2=5e-7, slack_linear=100.0, slack_quadratic=1000.0)
+    p_hist = rng.uniform(150.0, 300.0, n_p)
+    t_hist = 900.0 + rng.normal(0.0, 50.0, n_t).cumsum()
+    forecast = t_hist[-1] + rng.normal(0.0, 20.0, H).cumsum()
+    plan = rng.uniform(150.0, 300.0, H)
+    scalars, points, var_f = model.residual.kernel_terms()
+    coef = (np.array([model.intercept]), model.power_coefficients, model.power_square_coefficients,
+            model.temperature_coefficients, model.temperature_square_coefficients,
+            model.power_temperature_coefficients)
+    terms = np.r_[SP, qp.scale, qp.r, p_hist[0], qp.weights]
+    psi = np.empty((H, 3))
+    out = linearise(p_hist, t_hist, forecast, plan, int(rng.integers(0, 300)), int(rng.integers(-1, H)),
+                    float(STEPS_SINCE_START_CAP), True, coef, scalars, points, var_f, n_variance, np.zeros(H),
+                    0.0, terms, qp.moves, blind, psi)
+    return qp, p_hist, psi, out
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_variance_is_the_gps_own(model, seed):
+    _, _, psi, (_, _, _, z, std, _, _, _) = _case(model, seed)
+    _, var = model.residual.predict(psi)
+    assert np.allclose(std, np.exp(z) * np.sqrt(var + model.residual.noise_variance), rtol=1e-9, atol=0.0)
+
+
+def test_variance_only_for_the_rows_asked(model):
+    _, _, _, (_, _, _, _, std, _, _, _) = _case(model, 0, n_variance=1)
+    assert std[0] > 0.0 and not np.any(std[1:])
+
+
+@pytest.mark.parametrize(("seed", "blind"), [(0, 0), (1, 7)])
+def test_qp_terms_and_solution_are_lapacks(model, seed, blind):
+    qp, p_hist, _, (gamma, c, _, _, _, hess, f, v) = _case(model, seed, blind=blind)
+    tracked_gamma, tracked_c = gamma.copy(), c.copy()
+    tracked_gamma[:blind], tracked_c[:blind] = 0.0, 0.0
+    assert np.allclose(hess, qp.hessian(tracked_gamma), rtol=1e-12, atol=1e-12 * np.abs(hess).max())
+    assert np.allclose(f, qp.gradient(tracked_gamma, tracked_c, p_hist[0]), rtol=1e-12, atol=1e-12 * np.abs(f).max())
+    assert np.allclose(v, np.linalg.solve(hess, -f), rtol=1e-9, atol=1e-12)
+    assert np.allclose(qp.finish(tracked_gamma, tracked_c, hess, f, v).power_w,
+                       qp.solve(tracked_gamma, tracked_c, p_hist[0]).power_w, rtol=0.0, atol=1e-6)
+
+
+def test_a_hessian_that_is_not_positive_definite_gives_no_step(model):
+    *_, (_, _, _, _, _, _, _, v) = _case(model, 0, r=0.0, blind=H)  # nothing tracked, no move penalty: 0
+    assert np.all(np.isnan(v))
+
+
+def test_a_closed_loop_compiles_the_kernel_once(model):
+    """Every update calls the kernel with the argument types of its first (warm-up) call: no
+    recompilation, of seconds, in the middle of a run."""
+    from controller_node.registry import make_controller
+    from controller_node.settings import ControllerSettings
+    from controller_node.types import Measurement
+
+    ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=SP), model)
+    for k in range(90):  # three tracks of 30 states: learning at the second turn
+        track = k // 30
+        ctrl.update(Measurement(step=k, time_s=k * 50e-6, area_m2=SP * min(1.0, k / 20), t_ahead_k=900.0 + 5 * k,
+                                power_w=0.0 if k == 0 else 250.0, speed_m_s=0.8, track=track,
+                                track_elapsed_s=(k % 30) * 50e-6, track_remaining_s=(29 - k % 30) * 50e-6,
+                                next_track=track < 2))
+    assert ctrl._learned
+    assert len(linearise.signatures) == 1
