@@ -341,35 +341,16 @@ class ResidualGP:
         return cls(inputs=inputs, targets=targets, signal_std=p[0], noise_std=p[1], length_scales=p[2:],
                    input_mean=mu, input_scale=scale, target_scale=t_scale)
 
-    def predict(self, psi: np.ndarray, n_variance: int | None = None,
-                single_precision_kernel: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, psi: np.ndarray, n_variance: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Mean and latent variance at the rows of ``psi``, shape (m, d) → (m,), (r,), in target units.
 
         ``n_variance`` limits the variance (the O(m n²) part) to the first r rows (default: all).
-        ``single_precision_kernel`` evaluates the kernel's exponential in float32 (relative error
-        ~1e-7 of each kernel value; the controller's hot path, where it is 3× faster).
-        """
-        mean, var, _ = self.predict_with_slope(psi, None, n_variance, single_precision_kernel)
-        return mean, var
-
-    def predict_with_slope(self, psi: np.ndarray, column: int | None, n_variance: int | None = None,
-                           single_precision_kernel: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """:meth:`predict` and the mean's derivative with respect to input ``column`` of ψ, shape (m,)
-        [target units per unit of that input] (``None`` for ``column=None``).
-
-        For the SE-ARD kernel ``∂k(ψ, ψ_i)/∂ψ_c = k (W_ic − w_c) g_c`` with ``w = (ψ − μ) g``,
-        ``g = 1 / (scale ℓ)`` and ``W_i`` the training inputs in the same units.
         """
         w = (np.atleast_2d(psi) - self.input_mean) * self._g
-        exponent = w @ self._W.T + self._half - 0.5 * np.einsum("ij,ij->i", w, w)[:, None]
-        k = np.exp(exponent.astype(np.float32)).astype(float) if single_precision_kernel else np.exp(exponent)
+        k = np.exp(w @ self._W.T + self._half - 0.5 * np.einsum("ij,ij->i", w, w)[:, None])
         rows = k.shape[0] if n_variance is None else min(n_variance, k.shape[0])
         v = k[:rows] @ self._var_f.T
-        mean = k @ self._mean_w
-        slope = None
-        if column is not None:
-            slope = self._g[column] * (k @ (self._W[:, column] * self._mean_w) - w[:, column] * mean)
-        return mean, np.maximum(self.prior_variance - np.einsum("ij,ij->i", v, v), 0.0), slope
+        return k @ self._mean_w, np.maximum(self.prior_variance - np.einsum("ij,ij->i", v, v), 0.0)
 
     def kernel_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What a compiled predictor needs (:mod:`controller_node.preview_kernel`): ``(μ, g, σ², σ_n²)``
