@@ -22,7 +22,7 @@ from fe_node.scenarios import PART_NAMES
 from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
 from messages.launch.node import NodeSpec, load_node_list
-from messages.launch.service import LaunchService, RunFailed, free_loopback_endpoint, writable_recording
+from messages.launch.service import LaunchService, RunFailed, free_loopback_endpoint, new_recording, writable_recording
 from messages.live import DEFAULT_PORT, check_port
 
 DEFAULT_CONTROLLER = "preview-mpc"
@@ -261,11 +261,15 @@ def main(argv: list[str] | None = None) -> int:
                                  zenoh_config=args.zenoh_config))  # validates, and loads a --zenoh-config file
         stamp = f"{datetime.now(UTC):%Y%m%d-%H%M%S}"
         if args.compare:
-            folder = args.out or Path("recordings") / f"{stamp}-compare-{opts.scenario}"
-            writable_recording(folder / "comparison.md")
+            if args.out:
+                folder = args.out
+                writable_recording(folder / "comparison.md")
+            else:
+                folder = new_recording(Path("recordings") / f"{stamp}-compare-{opts.scenario}")
         else:
             name = "nodes" if specs else f"{opts.scenario}-{opts.controller}"
-            out = writable_recording(args.out or Path("recordings") / f"{stamp}-{name}.mcap")
+            default = Path("recordings") / f"{stamp}-{name}.mcap"
+            out = writable_recording(args.out) if args.out else new_recording(default)
     except UsageError as err:
         return exit_usage(parser.prog, err)
     progress = not args.no_progress and sys.stderr.isatty()  # a bar only on a terminal, not in logs

@@ -526,9 +526,11 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
 
 
 def default_path(run_id: str) -> Path:
-    """``recordings/<UTC date-time>-<run id>.mcap``."""
+    """``recordings/<UTC date-time>-<run id>.mcap``, made unique (:func:`messages.launch.service.new_recording`)."""
+    from messages.launch.service import new_recording
+
     stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
-    return Path("recordings") / f"{stamp}-{run_id}.mcap"
+    return new_recording(Path("recordings") / f"{stamp}-{run_id}.mcap")
 
 
 def open_output(path: Path) -> BinaryIO:
@@ -554,11 +556,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         settings = bus_settings_from_args(args)
-        path = args.out or default_path(settings.run_id)
-        if path.suffix != ".mcap":
-            raise UsageError(f"--out must name a .mcap file, got {path}")
         if args.drain_s < 0:
             raise UsageError("--drain-s must be >= 0")
+        if args.out is not None and args.out.suffix != ".mcap":
+            raise UsageError(f"--out must name a .mcap file, got {args.out}")
+        path = args.out or default_path(settings.run_id)
         stream = open_output(path)
     except UsageError as err:
         return exit_usage(parser.prog, err)

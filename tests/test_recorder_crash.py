@@ -226,3 +226,16 @@ def test_recorder_killed_loses_at_most_a_second(tmp_path, hub, run_id):
     assert killed_ns - last < 1e9, f"last recovered state {(killed_ns - last) / 1e9:.2f} s before the kill"
     steps = [s.step for s in read_messages(fixed, PLANT_STATE)]
     assert len(steps) >= 10 and steps == list(range(len(steps)))
+
+
+def test_runs_started_in_the_same_second_get_their_own_recording(tmp_path, monkeypatch):
+    """Default names are stamped to the second: a second run then gets ``-2``, a folder too, never
+    the first run's file (two launches in one second wrote one MCAP, unreadable, before)."""
+    from messages.launch.service import new_recording
+
+    first, second = new_recording(tmp_path / "run.mcap"), new_recording(tmp_path / "run.mcap")
+    assert (first.name, second.name) == ("run.mcap", "run-2.mcap") and first.exists() and second.exists()
+    assert new_recording(tmp_path / "cmp").name == "cmp" and new_recording(tmp_path / "cmp").name == "cmp-2"
+    monkeypatch.chdir(tmp_path)
+    names = {recorder_module.default_path("r").name for _ in range(3)}
+    assert len(names) == 3

@@ -12,6 +12,7 @@ stop request; then every node is stopped, last started first.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import socket
 import sys
@@ -34,6 +35,27 @@ def free_loopback_endpoint() -> str:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def new_recording(path: Path) -> Path:
+    """A recording path (or, with no suffix, a folder) that no other run has: ``path``, else
+    ``<stem>-2<suffix>``, ``-3``, … — created empty, atomically (``O_EXCL``, ``mkdir``), so that runs
+    started in the same second never write one file. Usage error naming ``--out`` as
+    :func:`writable_recording`."""
+    writable_recording(path)
+    for n in itertools.count(1):
+        candidate = path if n == 1 else path.with_name(f"{path.stem}-{n}{path.suffix}")
+        try:
+            if path.suffix:
+                os.close(os.open(candidate, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+            else:
+                candidate.mkdir()
+            return candidate
+        except FileExistsError:
+            continue
+        except OSError as err:
+            raise UsageError(f"--out {candidate}: cannot create it: {err.strerror or err}") from None
+    raise AssertionError("unreachable")
 
 
 def writable_recording(path: Path) -> Path:
