@@ -213,6 +213,8 @@ def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None
         status = service.run(specs, StopFlag())
     except RunFailed as err:
         status = exit_error("python launch.py", err)
+    if out.exists() and out.stat().st_size == 0:  # reserved (new_recording), but no recorder ever wrote it
+        out.unlink()
     return status, time.monotonic() - started
 
 

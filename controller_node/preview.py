@@ -84,7 +84,9 @@ class PreviewMPC(Controller):
                             power_min_w=settings.power_min_w, power_max_w=settings.power_max_w,
                             area_min_m2=ps.area_min_m2, area_max_m2=ps.area_max_m2,
                             slack_linear=ps.slack_linear, slack_quadratic=ps.slack_quadratic)
-        self._qp_terms = np.r_[settings.set_point_m2, self.qp.scale, self.qp.r, 0.0, self.qp.weights]
+        qp = self.qp
+        self._qp_terms = np.r_[settings.set_point_m2, qp.scale, qp.r, 0.0, qp.v_lo, qp.v_hi, qp.e_lo, qp.e_hi,
+                               ps.uncertainty_z, qp.weights]
         super().__init__(settings)
         self._linearise(np.zeros(h), since=0, to_end=None, correction=self._no_correction, blind=h)  # compile now
 
@@ -288,31 +290,37 @@ class PreviewMPC(Controller):
         forecast = self._forecast(m.t_ahead_k, since, on_first, to_end, self._profile, h,
                                   self._turn_base_k, self.model.forecast_persistence)
         sp = s.set_point_m2
-        plan = np.concatenate((self._plan[1:], self._plan[-1:]))       # ū = p̄[k+1..k+H]
         correction = self._correction_over_horizon(since, on_first, to_end) if self._learned \
             else self._no_correction
         blind = 0 if built_up else ps.observer_start_steps - (m.step - self._layer_start_step) - 1
-        gamma, c, predicted, z, std, hess, f, v = self._linearise(forecast, since, to_end, correction, blind)
-        if not math.isfinite(predicted.sum()):  # an absurd input: no plan from it
+        gamma, c, predicted, z, std, hess, f, v, areas, status = self._linearise(forecast, since, to_end, correction,
+                                                                                blind)
+        if status == 2:  # an absurd input: no plan from it
             return Proposal(math.nan, status="model_error")
-        jac = gamma * (sp / self.qp.scale)                                                    # ∂x̂/∂u, (H, H)
+        u1 = float(self._plan[1])                                      # ū[0] = p̄[k+1], the previous plan's
+        jac_blind = gamma[:blind] * (sp / self.qp.scale) if blind else None
         if blind:  # targets inside the pool build-up are outside the fitted model: not tracked
-            gamma, c = gamma.copy(), c.copy()
             gamma[:blind], c[:blind] = 0.0, 0.0
         margin = ps.uncertainty_z * std / sp if ps.uncertainty_z > 0 else None
         self.last_qp = (gamma, c, float(self._p[0]), margin)  # the problem just solved (benchmarks, tests)
-        result = self.qp.finish(gamma, c, hess, f, v, margin)
-        if result.path.startswith("failed"):
-            return Proposal(math.nan, status=f"solver_{result.path}")
-        new_plan = result.power_w
+        if status == 0:
+            new_plan, fast = v * self.qp.scale, True
+        else:
+            result = self.qp.finish(gamma, c, hess, f, v, margin)
+            if result.path.startswith("failed"):
+                return Proposal(math.nan, status=f"solver_{result.path}")
+            plan = np.concatenate((self._plan[1:], self._plan[-1:]))   # ū = p̄[k+1..k+H]
+            jac = gamma * (sp / self.qp.scale)                                               # ∂x̂/∂u, (H, H)
+            if blind:
+                jac[:blind] = jac_blind
+            new_plan, fast = result.power_w, result.path == "fast"
+            areas = predicted + jac @ (new_plan - plan)
         self._plan = new_plan
         # z of x̂[k+1] without the p[k+1] terms, for the next observer update
         t_now = float(self._t[-1])
-        self._base0_m2 = float(z[0] - self._theta_p[0] * plan[0] - self._theta_p[self._nb] * plan[0] ** 2
-                               - self._e0 * plan[0] * t_now)
+        self._base0_m2 = float(z[0] - self._theta_p[0] * u1 - self._theta_p[self._nb] * u1 ** 2 - self._e0 * u1 * t_now)
         self._base_t0 = t_now
         self._base0_correction = float(correction[0])
-        areas = predicted + jac @ (new_plan - plan)
         return Proposal(
             power_w=float(new_plan[0]),
             plan_w=tuple(new_plan.tolist()),
@@ -320,5 +328,5 @@ class PreviewMPC(Controller):
             model_std_m2=float(std[0]),
             feedforward_w=0.0,
             reference_power_w=None,
-            iterations=0 if result.path == "fast" else 1,
+            iterations=0 if fast else 1,
         )

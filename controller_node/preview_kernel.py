@@ -16,8 +16,10 @@ the condensed QP of :mod:`controller_node.preview_qp` in ``v = u / P``, ``e = Γ
     Γ = ∂x̂/∂ū · P / x_sp,   c = (x̂ − ∂x̂/∂ū ū − x_sp) / x_sp
     Hessian = 2 Γᵀ W Γ + 2 r DᵀD,   gradient f = 2 Γᵀ W c − 2 r (p[k] / P) e₁
 
-and its unconstrained optimum ``v* = −Hessian⁻¹ f`` by Cholesky. The caller checks the bounds
-and hands Γ, c to :meth:`controller_node.preview_qp.PreviewQP.solve` when they are active.
+and its unconstrained optimum ``v* = −Hessian⁻¹ f`` by Cholesky. When ``v*`` is inside the power
+bounds and ``e = Γ v* + c`` (± the bound tightening) inside the area bounds, it is the QP's
+solution (the fast path, as :meth:`controller_node.preview_qp.PreviewQP.finish` decides); else
+the caller hands Γ, c to :meth:`~controller_node.preview_qp.PreviewQP.finish`.
 
 Why compiled: the same computation in numpy is ~60 array operations on (40, 150)-sized data.
 Between FE steps or plant frames the controller's caches are cold, and each operation then costs
@@ -75,8 +77,10 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
         Learned turnaround correction of x̂_m [m²].
     disturbance : float
         ``d̂`` [m²].
-    qp_terms : numpy.ndarray, shape (H + 4,)
-        ``(x_sp [m²], P [W], r, p[k] [W], W_1 .. W_H)``.
+    qp_terms : numpy.ndarray, shape (H + 9,)
+        ``(x_sp [m²], P [W], r, p[k] [W], v_l, v_u, e_l, e_u, z, W_1 .. W_H)``: set point, power
+        scale, move weight, applied power, normalised power and area bounds, bound tightening in
+        standard deviations, stage weights.
     moves : numpy.ndarray, shape (H, H)
         ``2 r DᵀD``.
     psi : numpy.ndarray, shape (H, 3)
@@ -98,11 +102,17 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
     f : numpy.ndarray, shape (H,)
     v : numpy.ndarray, shape (H,)
         Unconstrained optimum (NaN if the Hessian is not positive definite).
+    areas : numpy.ndarray, shape (H,)
+        x̂ at the plan ``P v`` [m²] (linearised).
+    status : int
+        0: ``v`` solves the QP (no bound active); 1: a bound is active or the Hessian is not
+        positive definite; 2: a prediction is not finite.
     """
     intercept, b, q, cc, d, e = coef
     h, n_p, n_t, n_tq, n_x = plan.size, b.size, cc.size, d.size, e.size
     n_gp = gp_inputs.shape[0]
     sp, scale, r, p_now = qp_terms[0], qp_terms[1], qp_terms[2], qp_terms[3]
+    v_lo, v_hi, e_lo, e_hi, z_sigma = qp_terms[4], qp_terms[5], qp_terms[6], qp_terms[7], qp_terms[8]
     powers = np.empty(n_p + h)                      # p[k−n_p+1 .. k], ū
     for i in range(n_p):
         powers[i] = p_hist[n_p - 1 - i]
@@ -173,7 +183,10 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
             du += jac * u[col]
             gamma[row, col] = jac * (scale / sp)
         c[row] = (predicted[row] - du - sp) / sp
-    weights = qp_terms[4:].copy()
+    finite = True
+    for row in range(h):
+        finite = finite and math.isfinite(predicted[row])
+    weights = qp_terms[9:].copy()
     weights[:blind] = 0.0                           # rows not tracked
     hess = moves.copy()
     f = np.zeros(h)
@@ -192,6 +205,8 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
     f[0] -= 2.0 * r * p_now / scale
     chol = np.zeros((h, h))
     v = np.empty(h)
+    areas = np.empty(h)
+    status = 0 if finite else 2
     for i in range(h):                              # Cholesky, Hessian = L Lᵀ
         for j in range(i + 1):
             acc = hess[i, j]
@@ -200,7 +215,8 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
             if i == j:
                 if not acc > 0.0:
                     v[:] = np.nan
-                    return gamma, c, predicted, z, std, hess, f, v
+                    areas[:] = np.nan
+                    return gamma, c, predicted, z, std, hess, f, v, areas, max(status, 1)
                 chol[i, i] = math.sqrt(acc)
             else:
                 chol[i, j] = acc / chol[j, j]
@@ -214,4 +230,16 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
         for k in range(i + 1, h):
             acc -= chol[k, i] * v[k]
         v[i] = acc / chol[i, i]
-    return gamma, c, predicted, z, std, hess, f, v
+        if not (v_lo <= v[i] <= v_hi):
+            status = max(status, 1)
+    for row in range(h):                            # e = Γ v + c of the tracked rows, x̂ at P v
+        e, dx = 0.0, 0.0
+        for col in range(row + 1):
+            e += gamma[row, col] * v[col]
+            dx += gamma[row, col] * (v[col] - u[col] / scale)
+        areas[row] = predicted[row] + dx * sp
+        e = e + c[row] if row >= blind else 0.0     # untracked rows: Γ and c are 0 in the QP
+        tighten = z_sigma * std[row] / sp
+        if e - tighten < e_lo or e + tighten > e_hi:
+            status = max(status, 1)
+    return gamma, c, predicted, z, std, hess, f, v, areas, status

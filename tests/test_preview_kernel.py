@@ -19,20 +19,21 @@ def model() -> NarxGPModel:
     return NarxGPModel.load(DEFAULT_MODEL_PATH)
 
 
-def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_variance: int = H):
+def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_variance: int = H,
+          area_max_m2: float = 5e-7, z_sigma: float = 0.0, power_max_w: float = 350.0):
     rng = np.random.default_rng(seed)
     n_p, n_t = model.power_coefficients.size, model.temperature_coefficients.size
-    qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=r, power_scale_w=350.0, power_min_w=0.0, power_max_w=350.0,
-                   area_min_m2=0.0, area_max_m2=5e-7, slack_linear=100.0, slack_quadratic=1000.0)
+    qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=r, power_scale_w=350.0, power_min_w=-1e6, power_max_w=power_max_w,
+                   area_min_m2=0.0, area_max_m2=area_max_m2, slack_linear=100.0, slack_quadratic=1000.0)
     p_hist = rng.uniform(150.0, 300.0, n_p)
     t_hist = 900.0 + rng.normal(0.0, 50.0, n_t).cumsum()
     forecast = t_hist[-1] + rng.normal(0.0, 20.0, H).cumsum()
-    plan = rng.uniform(150.0, 300.0, H)
+    plan = _case.plan = rng.uniform(150.0, 300.0, H)
     scalars, points, var_f = model.residual.kernel_terms()
     coef = (np.array([model.intercept]), model.power_coefficients, model.power_square_coefficients,
             model.temperature_coefficients, model.temperature_square_coefficients,
             model.power_temperature_coefficients)
-    terms = np.r_[SP, qp.scale, qp.r, p_hist[0], qp.weights]
+    terms = np.r_[SP, qp.scale, qp.r, p_hist[0], qp.v_lo, qp.v_hi, qp.e_lo, qp.e_hi, z_sigma, qp.weights]
     psi = np.empty((H, 3))
     out = linearise(p_hist, t_hist, forecast, plan, int(rng.integers(0, 300)), int(rng.integers(-1, H)),
                     float(STEPS_SINCE_START_CAP), True, coef, scalars, points, var_f, n_variance, np.zeros(H),
@@ -42,31 +43,48 @@ def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_va
 
 @pytest.mark.parametrize("seed", range(3))
 def test_variance_is_the_gps_own(model, seed):
-    _, _, psi, (_, _, _, z, std, _, _, _) = _case(model, seed)
+    _, _, psi, (_, _, _, z, std, *_) = _case(model, seed)
     _, var = model.residual.predict(psi)
     assert np.allclose(std, np.exp(z) * np.sqrt(var + model.residual.noise_variance), rtol=1e-9, atol=0.0)
 
 
 def test_variance_only_for_the_rows_asked(model):
-    _, _, _, (_, _, _, _, std, _, _, _) = _case(model, 0, n_variance=1)
+    _, _, _, (_, _, _, _, std, *_) = _case(model, 0, n_variance=1)
     assert std[0] > 0.0 and not np.any(std[1:])
 
 
 @pytest.mark.parametrize(("seed", "blind"), [(0, 0), (1, 7)])
 def test_qp_terms_and_solution_are_lapacks(model, seed, blind):
-    qp, p_hist, _, (gamma, c, _, _, _, hess, f, v) = _case(model, seed, blind=blind)
+    qp, p_hist, _, (gamma, c, predicted, _, _, hess, f, v, areas, status) = _case(model, seed, blind=blind)
     tracked_gamma, tracked_c = gamma.copy(), c.copy()
     tracked_gamma[:blind], tracked_c[:blind] = 0.0, 0.0
     assert np.allclose(hess, qp.hessian(tracked_gamma), rtol=1e-12, atol=1e-12 * np.abs(hess).max())
     assert np.allclose(f, qp.gradient(tracked_gamma, tracked_c, p_hist[0]), rtol=1e-12, atol=1e-12 * np.abs(f).max())
     assert np.allclose(v, np.linalg.solve(hess, -f), rtol=1e-9, atol=1e-12)
-    assert np.allclose(qp.finish(tracked_gamma, tracked_c, hess, f, v).power_w,
-                       qp.solve(tracked_gamma, tracked_c, p_hist[0]).power_w, rtol=0.0, atol=1e-6)
+    result = qp.solve(tracked_gamma, tracked_c, p_hist[0])
+    assert (status == 0) == (result.path == "fast")
+    assert np.allclose(qp.finish(tracked_gamma, tracked_c, hess, f, v).power_w, result.power_w, rtol=0.0, atol=1e-6)
+    plan = _case.plan
+    assert np.allclose(areas, predicted + gamma * SP / qp.scale @ (v * qp.scale - np.r_[plan[1:], plan[-1]]),
+                       rtol=1e-9, atol=0.0)
+
+
+@pytest.mark.parametrize(("area_max_m2", "z_sigma", "power_max_w", "fast"),
+                         [(5e-7, 0.0, 1e6, True), (SP * 1.0001, 0.0, 1e6, False), (5e-7, 1e9, 1e6, False),
+                          (5e-7, 0.0, 100.0, False)])
+def test_the_fast_path_is_taken_exactly_when_no_bound_is_active(model, area_max_m2, z_sigma, power_max_w, fast):
+    """The kernel's verdict is PreviewQP.finish's: a power bound, an area bound or its tightening
+    by zσ active sends the problem to DAQP."""
+    qp, p_hist, _, (gamma, c, _, _, std, hess, f, v, _, status) = _case(model, 0, area_max_m2=area_max_m2,
+                                                                           z_sigma=z_sigma, power_max_w=power_max_w)
+    margin = z_sigma * std / SP if z_sigma else None
+    assert (status == 0) is fast
+    assert (qp.finish(gamma, c, hess, f, v, margin).path == "fast") is fast
 
 
 def test_a_hessian_that_is_not_positive_definite_gives_no_step(model):
-    *_, (_, _, _, _, _, _, _, v) = _case(model, 0, r=0.0, blind=H)  # nothing tracked, no move penalty: 0
-    assert np.all(np.isnan(v))
+    *_, (_, _, _, _, _, _, _, v, _, status) = _case(model, 0, r=0.0, blind=H)  # nothing tracked, no move penalty
+    assert np.all(np.isnan(v)) and status == 1
 
 
 def test_a_closed_loop_compiles_the_kernel_once(model):
