@@ -270,7 +270,7 @@ class PreviewMPC(Controller):
         if consecutive and self._base0_m2 is not None and built_up:
             z = (self._base0_m2 + self._theta_p[0] * m.power_w + self._theta_p[self._nb] * m.power_w ** 2
                  + self._e0 * m.power_w * self._base_t0)
-            predicted = float(self.model.to_area(z)) + self._base0_correction  # x̂[k|k−1], applied p[k]
+            predicted = self.model.area_at(z) + self._base0_correction  # x̂[k|k−1], applied p[k]
             error = m.area_m2 - predicted - self.disturbance_m2
             since_now = m.step - self._track_start_step
             if self._turn_base_k is not None and 0 <= since_now < self._turn_errors.size:

@@ -26,6 +26,8 @@ __all__ = ["ConfigurationError", "Measurement", "Command", "Diagnostics"]
 
 def _real(name: str, value: object) -> float:
     """Convert a real number (Python or numpy, not bool) to float, else ``ValueError``."""
+    if type(value) is float:  # the common case, without the abstract-class checks below
+        return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise ValueError(f"{name} must be a real number, got {type(value).__name__}")
     return float(value)
@@ -33,6 +35,8 @@ def _real(name: str, value: object) -> float:
 
 def _step(name: str, value: object) -> int:
     """Validate a step index: a non-negative int (numpy integers accepted), else ``ValueError``."""
+    if type(value) is int and value >= 0:  # the common case, without the abstract-class checks below
+        return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
         raise ValueError(f"{name} must be a non-negative int, got {type(value).__name__}")
     if value < 0:

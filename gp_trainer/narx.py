@@ -448,6 +448,13 @@ class NarxGPModel:
         """``x = exp(z)`` or ``z`` [m²]."""
         return self.area_and_slope(z)[0]
 
+    def area_at(self, z: float) -> float:
+        """:meth:`to_area` of one ``z``, in the C library's ``exp`` as the controller's compiled kernel
+        (:mod:`controller_node.preview_kernel`) evaluates it."""
+        if self.output != "log":
+            return float(z)
+        return math.exp(z) if z <= _LOG_AREA_MAX else math.inf
+
     def area_and_slope(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``x`` [m²] (:meth:`to_area`) and ``∂x/∂z`` [m² per unit of z] at ``z``, one exponential."""
         if self.output != "log":
