@@ -117,3 +117,21 @@ def test_the_plan_equals_cvxpy_at_random_states_of_the_shipped_model(model, seed
                                                                          power_min_w=0.0)
     plan = v * qp.scale if status == 0 else qp.finish(gamma, c, hess, f, v).power_w
     assert np.max(np.abs(plan - solve_reference(qp, gamma, c, p_hist[0]))) < 1e-3
+
+
+def test_an_absurd_state_gives_the_fallback_never_a_plan_from_it(model):
+    """A plausible-looking but absurd temperature ahead (1e7 K) drives the log-area model past
+    exp's range: the kernel flags the prediction, the update falls back, the power stays in bounds."""
+    from controller_node.registry import make_controller
+    from controller_node.settings import ControllerSettings
+    from controller_node.types import Measurement
+
+    settings = ControllerSettings(set_point_m2=SP)
+    ctrl = make_controller("preview-mpc", settings, model)
+    for k in range(30):
+        ctrl.update(Measurement(step=k, time_s=k * 50e-6, area_m2=SP, t_ahead_k=900.0, power_w=250.0 if k else 0.0,
+                                speed_m_s=0.8, track=0))
+    cmd, diag = ctrl.update(Measurement(step=30, time_s=30 * 50e-6, area_m2=SP, t_ahead_k=1e7, power_w=250.0,
+                                        speed_m_s=0.8, track=0))
+    assert diag.status == "model_error" and diag.fallback
+    assert settings.power_min_w <= cmd.power_w <= settings.power_max_w
