@@ -286,6 +286,10 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
             f"40-step rollout MAPE = {result['rollout_h40_mape_pct']:.3f} %; "
             f"95 % coverage {result['coverage_95_pct']:.1f} %"
         )
+        if result["n_turnaround"]:
+            print(f"turnaround windows ({result['n_turnaround']} samples): MAPE {result['mape_turnaround_pct']:.2f} %, "
+                  f"coverage {result['coverage_95_turnaround_pct']:.1f} %; along the tracks: MAPE "
+                  f"{result['mape_along_pct']:.2f} %, coverage {result['coverage_95_along_pct']:.1f} %")
     return 0
 
 

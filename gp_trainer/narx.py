@@ -687,26 +687,43 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int =
     The rollout starts every ``stride`` states after the build-up and predicts ``x[k+1..k+H]`` from
     what is known at k (:meth:`NarxGPModel.rollout`: applied powers as the plan, T forecast from the
     scan plan); its error is the mean relative error over the horizon, averaged over the starts.
-    Coverage counts held-out one-step targets inside ``mean ± 1.96 sqrt(var + σ_n²)``.
+    Coverage counts held-out one-step targets inside ``mean ± 1.96 sqrt(var + σ_n²)``, over all of
+    them and separately in the turnaround windows (the first
+    :data:`controller_node.report.TURNAROUND_STEPS` states of every track but a layer's first) and
+    along the tracks, with the one-step MAPE of each: where the model is overconfident.
     """
-    ys, means, sds, rollouts = [], [], [], []
+    from controller_node.report import TURNAROUND_STEPS
+
+    ys, means, sds, rollouts, turns = [], [], [], [], []
     for run in runs:
         mean, var = model.predict_run(run)
         since_laser_on = run.steps_since_layer_start()
         keep = (since_laser_on[1:] >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
+        turn = ~run.first_track_of_layer()[1:] & (run.steps_since_track_start()[1:] < TURNAROUND_STEPS)
+        turns.append(turn[keep])
         ys.append(run.area_m2[1:][keep]), means.append(mean[keep])
         sds.append(np.sqrt(var[keep] + model.residual.noise_variance))
         for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride):
             truth = run.area_m2[k + 1:k + horizon + 1]
             if since_laser_on[k] >= BUILD_UP_STEPS and np.all(truth > 0):
                 rollouts.append(float(np.mean(np.abs(model.rollout(run, k, horizon) - truth) / truth)))
-    y, mean, sd = np.concatenate(ys), np.concatenate(means), np.concatenate(sds)
+    y, mean, sd, turn = np.concatenate(ys), np.concatenate(means), np.concatenate(sds), np.concatenate(turns)
+    inside, error = np.abs(mean - y) <= 1.96 * sd, np.abs(mean - y) / y
+
+    def share(values: np.ndarray, where: np.ndarray) -> float | None:
+        return float(100.0 * np.mean(values[where])) if np.any(where) else None
+
     return {
         "r2": float(1.0 - np.sum((y - mean) ** 2) / np.sum((y - y.mean()) ** 2)),
-        "mape_pct": float(100.0 * np.mean(np.abs(mean - y) / y)),
+        "mape_pct": float(100.0 * np.mean(error)),
         "n_valid": int(y.size),
         f"rollout_h{horizon}_mape_pct": float(100.0 * np.mean(rollouts)) if rollouts else None,
-        "coverage_95_pct": float(100.0 * np.mean(np.abs(mean - y) <= 1.96 * sd)),
+        "coverage_95_pct": float(100.0 * np.mean(inside)),
+        "coverage_95_turnaround_pct": share(inside, turn),
+        "coverage_95_along_pct": share(inside, ~turn),
+        "mape_turnaround_pct": share(error, turn),
+        "mape_along_pct": share(error, ~turn),
+        "n_turnaround": int(np.sum(turn)),
         "held_out": [r.name for r in runs],
     }
 

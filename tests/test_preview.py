@@ -416,3 +416,23 @@ def test_every_layers_pool_build_up_is_planned_for_but_not_tracked(model):
     assert [blind[k] for k in (1, 5, 19, 20, 41, 45, 59, 60)] == [18, 14, 0, 0, 18, 14, 0, 0]
     assert disturbance[40] == disturbance[59] and disturbance[20] != disturbance[39]   # observer off in build-up
     assert ctrl._first_track == 0 and ctrl._turn_base_k is None and ctrl._layer_start_step == 40
+
+
+def test_evaluate_splits_error_and_coverage_between_turnarounds_and_tracks():
+    """A plant that departs from the model only in the 50 states after a turn: the turnaround
+    window's coverage and error say so, the along-track ones do not."""
+    from gp_trainer.narx import evaluate_model
+
+    rng = np.random.default_rng(0)
+
+    def noisy(run: RunSeries, bump: float = 0.0) -> RunSeries:
+        after_turn = (run.track > 0) & (run.steps_since_track_start() < 50)
+        area = run.area_m2 + 0.01 * C0 * rng.standard_normal(len(run)) + np.where(after_turn, bump, 0.0)
+        return RunSeries(run.name, area, run.t_ahead_k, run.power_w, run.track, DT)
+
+    model = NarxGPModel.fit([noisy(synthetic_run(s)) for s in range(3)], n_power_lags=8, n_temperature_lags=5,
+                            quadratic=False, output="identity", n_train=60, n_restarts=1, profile_length=50)
+    result = evaluate_model(model, [noisy(synthetic_run(11), bump=0.2 * C0)])
+    assert result["n_turnaround"] == 50
+    assert result["coverage_95_along_pct"] > 85.0 and result["coverage_95_turnaround_pct"] < 10.0
+    assert result["mape_turnaround_pct"] > 5 * result["mape_along_pct"]
