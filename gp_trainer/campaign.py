@@ -605,17 +605,45 @@ class FeedbackRun:
     setpoint_mm2: float
     n_layers: int | None = None
     """Layers to build (``part``; None: the scenario's default)."""
+    hatch_m: float | None = None
+    """Hatch spacing [m] (None: the scenario's)."""
+    t0_k: float | None = None
+    """Preheat [K] (None: the scenario's)."""
+    model: str | None = None
+    """The controller's model file, relative to the repository (None: its shipped model)."""
 
     @property
     def name(self) -> str:
-        """Run id and recording stem, e.g. ``ident-mpc-layer-a0.058``."""
-        return f"ident-{self.controller}-{self.scenario}-a{self.setpoint_mm2:g}"
+        """Run id and recording stem, e.g. ``ident-mpc-layer-a0.058``, ``ident-preview-mpc-layer-a0.065-h90um-350K``."""
+        plant = "" if self.hatch_m is None else f"-h{self.hatch_m * 1e6:g}um"
+        plant += "" if self.t0_k is None else f"-{self.t0_k:g}K"
+        return f"ident-{self.controller}-{self.scenario}-a{self.setpoint_mm2:g}{plant}"
 
     def job(self) -> Job:
-        """The launcher job: the scenario under the controller."""
+        """The launcher job: the scenario under the controller (with its ``[plant]`` overrides)."""
         layers = () if self.n_layers is None else ("--layers", str(int(self.n_layers)))
-        return Job(self.name, self.scenario, args=("--setpoint-mm2", repr(self.setpoint_mm2), *layers),
-                   controller=self.controller)
+        model = () if self.model is None else ("--model", str(REPO_ROOT / self.model))
+        plant = tuple((k, float(v)) for k, v in (("hatch_m", self.hatch_m), ("t0_k", self.t0_k)) if v is not None)
+        return Job(self.name, self.scenario, plant=plant,
+                   args=("--setpoint-mm2", repr(self.setpoint_mm2), *layers, *model), controller=self.controller)
+
+
+STAGE1_MODEL = "gp_trainer/models/in625_narx_gp_stage1.json"
+"""The delay-aware model fitted without the preview MPC's own runs (``narx`` on every plate run
+but the ``ident-preview-mpc-*`` ones): the controller of those runs, so that the data do not
+depend on the model they train (one iteration of training on the controller's own closed loop)."""
+PREVIEW_RUNS = tuple(
+    FeedbackRun(scenario, "preview-mpc", a, hatch_m=hatch, t0_k=t0, model=STAGE1_MODEL)
+    for scenario, a, hatch, t0 in (
+        ("double-track", 0.058, None, None), ("double-track", 0.068, None, None),
+        ("layer", 0.06, None, None), ("layer", 0.066, None, None),
+        ("double-track", 0.06, 0.9e-4, 350.0), ("layer", 0.065, 0.9e-4, 350.0),
+        ("double-track", 0.066, 1.1e-4, 450.0), ("layer", 0.061, 1.1e-4, 450.0))
+)
+"""The preview MPC (stage-1 model) on the double track and the layer at set points between the
+acceptance cases', at the default hatch and preheat and at two others (0.09 mm / 350 K,
+0.11 mm / 450 K): the pre-turn power profile of the controller itself, which random power steps
+never show (the model's error after a turn came from it, ``docs/gp.md``)."""
 
 
 IDENT_RUNS = tuple(
@@ -624,7 +652,7 @@ IDENT_RUNS = tuple(
     for mean, seed in zip((200.0, 250.0, 300.0), seeds)
 ) + tuple(FeedbackRun("double-track", "mpc", a) for a in (0.055, 0.063, 0.07)) + tuple(
     FeedbackRun("layer", "mpc", a) for a in (0.058, 0.068)) + tuple(
-    FeedbackRun(scenario, "feedforward", 0.063) for scenario in ("double-track", "layer"))
+    FeedbackRun(scenario, "feedforward", 0.063) for scenario in ("double-track", "layer")) + PREVIEW_RUNS
 
 PART_IDENT_LAYERS = 4
 DEFAULT_PART_IDENT_DIR = Path("recordings/identification-part")
@@ -679,9 +707,10 @@ class IdentifySettings:
     ----------
     runs : tuple[IdentRun, ...]
         Default :data:`IDENT_RUNS`: 6 open-loop runs (ident-layer and ident-double-track at 200,
-        250 and 300 W mean, 60 W amplitude, seeds 1-6) and 7 closed-loop runs: the one-step
+        250 and 300 W mean, 60 W amplitude, seeds 1-6) and 15 closed-loop runs: the one-step
         GP-MPC on the double track at 0.055, 0.063, 0.07 mm² and on the layer at 0.058, 0.068 mm²,
-        and the feed-forward baseline on both (its power does not depend on the set point).
+        the feed-forward baseline on both (its power does not depend on the set point), and the
+        8 runs of the preview MPC with the stage-1 model (:data:`PREVIEW_RUNS`).
     """
 
     runs: tuple[IdentRun | FeedbackRun, ...] = IDENT_RUNS

@@ -15,6 +15,7 @@ import pytest
 from fe_node.scenarios import IDENT_DEFAULTS, IDENT_HOLD_STEPS, scenario
 from gp_trainer.campaign import (
     IDENT_RUNS,
+    STAGE1_MODEL,
     FeedbackRun,
     IdentifySettings,
     IdentRun,
@@ -27,6 +28,7 @@ from gp_trainer.campaign import (
 )
 from gp_trainer.cli import main
 from gp_trainer.errors import CampaignError
+from gp_trainer.provenance import REPO_ROOT
 
 REPO = Path(__file__).resolve().parent.parent
 IDENT = ("ident-layer", "ident-double-track")
@@ -118,11 +120,15 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
     assert [r.name for r in feedback] == [
         "ident-mpc-double-track-a0.055", "ident-mpc-double-track-a0.063", "ident-mpc-double-track-a0.07",
         "ident-mpc-layer-a0.058", "ident-mpc-layer-a0.068",
-        "ident-feedforward-double-track-a0.063", "ident-feedforward-layer-a0.063"]
+        "ident-feedforward-double-track-a0.063", "ident-feedforward-layer-a0.063",
+        "ident-preview-mpc-double-track-a0.058", "ident-preview-mpc-double-track-a0.068",
+        "ident-preview-mpc-layer-a0.06", "ident-preview-mpc-layer-a0.066",
+        "ident-preview-mpc-double-track-a0.06-h90um-350K", "ident-preview-mpc-layer-a0.065-h90um-350K",
+        "ident-preview-mpc-double-track-a0.066-h110um-450K", "ident-preview-mpc-layer-a0.061-h110um-450K"]
     assert IdentifySettings().out_dir == Path("recordings/identification") and IdentifySettings().workers == 2
     settings = IdentifySettings(out_dir=tmp_path, python="PY", launcher=Path("/repo/launch.py"))
     jobs = identify_jobs(settings)
-    assert len(jobs) == 13
+    assert len(jobs) == 21
     for run, job in zip(open_loop, jobs):
         out, config = tmp_path / f"{job.name}.partial.mcap", tmp_path / "cfg.toml"
         assert job_recording(settings, job) == tmp_path / f"{run.name}.mcap"
@@ -131,7 +137,7 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
             "--no-progress", "--json", "--out", str(out), "--run-id", run.name]
         assert dict(job.plant) == {"ident_seed": run.seed, "ident_mean_w": run.mean_w, "ident_amplitude_w": 60.0}
         assert tomllib.loads(plant_toml(job.plant)) == {"plant": dict(job.plant)}
-    for run, job in zip(feedback, jobs[6:]):
+    for run, job in zip(feedback[:7], jobs[6:]):
         out = tmp_path / f"{job.name}.partial.mcap"
         assert job_command(settings, job, out) == [
             "PY",
@@ -149,6 +155,12 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
             "--run-id",
             run.name,
         ]
+    for run, job in zip(feedback[7:], jobs[13:]):  # the preview MPC (stage-1 model), some at another hatch/preheat
+        out, config = tmp_path / f"{job.name}.partial.mcap", tmp_path / "cfg.toml"
+        command = job_command(settings, job, out, config if job.plant else None)
+        assert command[command.index("--model") + 1] == str(REPO_ROOT / STAGE1_MODEL)
+        assert dict(job.plant) == ({} if run.hatch_m is None else {"hatch_m": run.hatch_m, "t0_k": run.t0_k})
+    assert (REPO_ROOT / STAGE1_MODEL).is_file()
     assert [(r.scenario, r.mean_w, r.seed) for r in open_loop] == [
         ("ident-layer", 200.0, 1), ("ident-layer", 250.0, 2), ("ident-layer", 300.0, 3),
         ("ident-double-track", 200.0, 4), ("ident-double-track", 250.0, 5), ("ident-double-track", 300.0, 6)]
