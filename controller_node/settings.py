@@ -281,7 +281,7 @@ class PreviewSettings:
     horizon: int = 40
     q: float = 1.0
     q_f: float = 20.0
-    r: float = 1.0
+    r: float = 0.3
     power_scale_w: float = LASER_POWER_MAX_W
     area_min_m2: float = 0.0
     area_max_m2: float = 0.5e-6
@@ -397,13 +397,13 @@ class ControllerSettings:
 
 
 PLANT_PRESETS: dict[str, dict] = {
-    "part": {"preview": {"observer_gain": 1.0, "turn_learning_gain": 0.0, "learn_turn_profile": False}},
+    "part": {"preview": {"observer_gain": 1.0, "turn_learning_gain": 0.0, "learn_turn_profile": False, "r": 1.0}},
 }
 """``[controller]`` values for a plant other than the bare plate, under the run's own ``[controller]``
 table (which wins). ``part`` (``launch.py --scenario part`` passes ``--preset part``): short hatch
 vectors of different lengths, so what one turnaround teaches does not carry to the next (κ = 0, no
 learned turn profile), and a part model whose error moves fast along a hatch (observer gain 1).
-Chosen by the sweep in docs/controller.md ("Parts")."""
+Chosen by the sweep in docs/controller.md ("Parts"), at the move weight r = 1 it was made with."""
 
 
 def with_preset(table: dict, preset: str | None) -> dict:
