@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-from gp_trainer.narx import STEPS_SINCE_START_CAP
+from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_t_ahead
 
 from .base import Controller, Proposal
 from .preview_kernel import linearise
@@ -62,8 +62,6 @@ class PreviewMPC(Controller):
     name = "preview-mpc"
 
     def __init__(self, settings: ControllerSettings, model) -> None:
-        from gp_trainer.narx import forecast_t_ahead
-
         self._forecast = forecast_t_ahead
         self.model = model
         ps = settings.preview
@@ -298,23 +296,21 @@ class PreviewMPC(Controller):
         if status == 2:  # an absurd input: no plan from it
             return Proposal(math.nan, status="model_error")
         u1 = float(self._plan[1])                                      # ū[0] = p̄[k+1], the previous plan's
-        jac_blind = gamma[:blind] * (sp / self.qp.scale) if blind else None
+        qp_gamma, qp_c = gamma, c
         if blind:  # targets inside the pool build-up are outside the fitted model: not tracked
-            gamma[:blind], c[:blind] = 0.0, 0.0
+            qp_gamma, qp_c = gamma.copy(), c.copy()
+            qp_gamma[:blind], qp_c[:blind] = 0.0, 0.0
         margin = ps.uncertainty_z * std / sp if ps.uncertainty_z > 0 else None
-        self.last_qp = (gamma, c, float(self._p[0]), margin)  # the problem just solved (benchmarks, tests)
+        self.last_qp = (qp_gamma, qp_c, float(self._p[0]), margin)  # the problem just solved (benchmarks, tests)
         if status == 0:
             new_plan, fast = v * self.qp.scale, True
         else:
-            result = self.qp.finish(gamma, c, hess, f, v, margin)
+            result = self.qp.finish(qp_gamma, qp_c, hess, f, v, margin)
             if result.path.startswith("failed"):
                 return Proposal(math.nan, status=f"solver_{result.path}")
             plan = np.concatenate((self._plan[1:], self._plan[-1:]))   # ū = p̄[k+1..k+H]
-            jac = gamma * (sp / self.qp.scale)                                               # ∂x̂/∂u, (H, H)
-            if blind:
-                jac[:blind] = jac_blind
             new_plan, fast = result.power_w, result.path == "fast"
-            areas = predicted + jac @ (new_plan - plan)
+            areas = predicted + (gamma * (sp / self.qp.scale)) @ (new_plan - plan)  # ∂x̂/∂u (H, H) times the move
         self._plan = new_plan
         # z of x̂[k+1] without the p[k+1] terms, for the next observer update
         t_now = float(self._t[-1])

@@ -444,19 +444,15 @@ class NarxGPModel:
     def n_temperature_lags(self) -> int:
         return int(self.temperature_coefficients.size)
 
-    def to_area(self, z: np.ndarray) -> np.ndarray:
-        """``x = exp(z)`` or ``z`` [m²]."""
-        return self.area_and_slope(z)[0]
-
     def area_at(self, z: float) -> float:
-        """:meth:`to_area` of one ``z``, in the C library's ``exp`` as the controller's compiled kernel
-        (:mod:`controller_node.preview_kernel`) evaluates it."""
+        """``x = exp(z)`` or ``z`` [m²] of one ``z``, in the C library's ``exp`` as the controller's
+        compiled kernel (:mod:`controller_node.preview_kernel`) evaluates it."""
         if self.output != "log":
             return float(z)
         return math.exp(z) if z <= _LOG_AREA_MAX else math.inf
 
     def area_and_slope(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``x`` [m²] (:meth:`to_area`) and ``∂x/∂z`` [m² per unit of z] at ``z``, one exponential."""
+        """``x = exp(z)`` or ``z`` [m²] and ``∂x/∂z`` [m² per unit of z] at ``z``, one exponential."""
         if self.output != "log":
             return z, np.ones_like(z)
         x = np.exp(z)

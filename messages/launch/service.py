@@ -12,7 +12,6 @@ stop request; then every node is stopped, last started first.
 from __future__ import annotations
 
 import contextlib
-import itertools
 import os
 import socket
 import sys
@@ -43,8 +42,8 @@ def new_recording(path: Path) -> Path:
     started in the same second never write one file. Usage error naming ``--out`` as
     :func:`writable_recording`."""
     writable_recording(path)
-    for n in itertools.count(1):
-        candidate = path if n == 1 else path.with_name(f"{path.stem}-{n}{path.suffix}")
+    candidate, n = path, 1
+    while True:
         try:
             if path.suffix:
                 os.close(os.open(candidate, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
@@ -52,10 +51,10 @@ def new_recording(path: Path) -> Path:
                 candidate.mkdir()
             return candidate
         except FileExistsError:
-            continue
+            n += 1
+            candidate = path.with_name(f"{path.stem}-{n}{path.suffix}")
         except OSError as err:
             raise UsageError(f"--out {candidate}: cannot create it: {err.strerror or err}") from None
-    raise AssertionError("unreachable")
 
 
 def writable_recording(path: Path) -> Path:
