@@ -38,11 +38,50 @@ from numba import njit
 
 __all__ = ["linearise"]
 
+_REORDER = {"reassoc", "contract"}
+"""Floating-point licence of the compiled passes: sums may be reordered (vectorised) and multiply-adds
+fused; NaN and infinity keep their meaning (the prediction's finiteness check relies on it)."""
+
 
 @njit(cache=True, nogil=True)
-def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, coef, gp, gp_inputs, var_f,
-              n_variance, correction, disturbance, qp_terms, moves, blind, psi):  # pragma: no cover (compiled)
+def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_points, psi,
+                exponents):  # pragma: no cover (compiled)
+    """The lagged powers and temperatures of the rows, their GP inputs ψ (into ``psi``) and the SE
+    kernel's exponents ``w·W_a − ‖W_a‖²/2 − ‖w‖²/2`` (into ``exponents``, shape (H, N))."""
+    h, n_p, n_t, n_gp = plan.size, p_hist.size, t_hist.size, gp_points.shape[1]
+    powers = np.empty(n_p + h)                      # p[k−n_p+1 .. k], ū
+    for i in range(n_p):
+        powers[i] = p_hist[n_p - 1 - i]
+    for i in range(h - 1):
+        powers[n_p + i] = plan[i + 1]
+    powers[n_p + h - 1] = plan[h - 1]
+    temps = np.empty(n_t + h - 1)                   # T[k−n_T+1 .. k], T̂[k+1 .. k+H−1]
+    temps[:n_t] = t_hist
+    temps[n_t:] = forecast[:h - 1]
+    mean_power = 0.0
+    for i in range(n_p):
+        mean_power += powers[n_p - 1 - i]
+    for row in range(h):
+        last_p, last_t = n_p + row, n_t - 1 + row   # index of p[k+m] and of T[k+m−1]
+        mean_power += powers[last_p] - powers[last_p - n_p]
+        s = since + row if to_end < 0 or row <= to_end else row - to_end - 1
+        psi[row, 0], psi[row, 1], psi[row, 2] = temps[last_t], math.log1p(min(s, s_cap)), mean_power / n_p
+        w0 = (psi[row, 0] - gp[0]) * gp[3]
+        w1 = (psi[row, 1] - gp[1]) * gp[4]
+        w2 = (psi[row, 2] - gp[2]) * gp[5]
+        half_w = 0.5 * (w0 * w0 + w1 * w1 + w2 * w2)
+        for a in range(n_gp):
+            exponents[row, a] = w0 * gp_points[0, a] + w1 * gp_points[1, a] + w2 * gp_points[2, a] + gp_points[3, a] \
+                - half_w
+    return powers, temps
+
+
+def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, coef, gp, gp_points, var_f,
+              n_variance, correction, disturbance, qp_terms, moves, blind, psi):
     """Prediction, Jacobian and unconstrained QP step at the shifted plan (module docstring).
+
+    Two compiled passes around numpy's vectorised ``exp`` of the H × N kernel exponents (about
+    4 µs; a compiled loop of scalar exponentials took about 30 µs).
 
     Parameters
     ----------
@@ -67,8 +106,9 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
     gp : numpy.ndarray, shape (8,)
         ``(μ₀, μ₁, μ₂, g₀, g₁, g₂, σ², σ_n²)`` of the residual GP (input mean, inverse scaled
         length-scales, prior and noise variance).
-    gp_inputs : numpy.ndarray, shape (N, 5)
-        Per training point: scaled input ``W_a`` (3), ``−‖W_a‖²/2`` and weight ``β_a``.
+    gp_points : numpy.ndarray, shape (6, N)
+        Per training point (columns): scaled input ``W_a`` (3 rows), ``−‖W_a‖²/2``, weight ``β_a``
+        and ``W_a2 β_a``.
     var_f : numpy.ndarray, shape (N, N)
         ``σ_f L⁻¹`` (lower triangular) in target units.
     n_variance : int
@@ -83,11 +123,11 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
         standard deviations, stage weights.
     moves : numpy.ndarray, shape (H, H)
         ``2 r DᵀD``.
-    psi : numpy.ndarray, shape (H, 3)
-        Filled with the GP inputs ψ_{k+m−1} (T ahead [K], log1p(min(s, cap)), mean power [W]).
     blind : int
         Leading rows not tracked (pool build-up): weight 0 in the Hessian and gradient (Γ and c
         are returned for all rows).
+    psi : numpy.ndarray, shape (H, 3)
+        Filled with the GP inputs ψ_{k+m−1} (T ahead [K], log1p(min(s, cap)), mean power [W]).
 
     Returns
     -------
@@ -108,43 +148,44 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
         0: ``v`` solves the QP (no bound active); 1: a bound is active or the Hessian is not
         positive definite; 2: a prediction is not finite.
     """
+    kern = np.empty((plan.size, gp_points.shape[1]))
+    powers, temps = _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_points, psi, kern)
+    np.exp(kern, out=kern)
+    return _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, n_variance, correction,
+                          disturbance, qp_terms, moves, blind, psi)
+
+
+@njit(cache=True, nogil=True, fastmath=_REORDER)
+def _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, n_variance, correction,
+                   disturbance, qp_terms, moves, blind, psi):  # pragma: no cover (compiled)
+    """:func:`linearise` from the kernel values ``kern`` = k(ψ_m, ψ_a), shape (H, N)."""
     intercept, b, q, cc, d, e = coef
-    h, n_p, n_t, n_tq, n_x = plan.size, b.size, cc.size, d.size, e.size
-    n_gp = gp_inputs.shape[0]
+    n_p, n_t, n_tq, n_x = b.size, cc.size, d.size, e.size
+    h = powers.size - n_p
     sp, scale, r, p_now = qp_terms[0], qp_terms[1], qp_terms[2], qp_terms[3]
     v_lo, v_hi, e_lo, e_hi, z_sigma = qp_terms[4], qp_terms[5], qp_terms[6], qp_terms[7], qp_terms[8]
-    powers = np.empty(n_p + h)                      # p[k−n_p+1 .. k], ū
-    for i in range(n_p):
-        powers[i] = p_hist[n_p - 1 - i]
-    for i in range(h - 1):
-        powers[n_p + i] = plan[i + 1]
-    powers[n_p + h - 1] = plan[h - 1]
-    temps = np.empty(n_t + h - 1)                   # T[k−n_T+1 .. k], T̂[k+1 .. k+H−1]
-    temps[:n_t] = t_hist
-    temps[n_t:] = forecast[:h - 1]
+    n_gp = kern.shape[1]
+    beta, moment_weights = gp_points[4], gp_points[5]
+    std = np.zeros(h)
+    for row in range(n_variance):                   # σ² − ‖σ_f L⁻¹ k‖² of the first rows
+        quad = 0.0
+        for a in range(n_gp):
+            projected = 0.0
+            for b2 in range(a + 1):
+                projected += var_f[a, b2] * kern[row, b2]
+            quad += projected * projected
+        std[row] = max(gp[6] - quad, 0.0) + gp[7]
     z = np.empty(h)
     gp_slope = np.empty(h)
-    std = np.zeros(h)
-    kern = np.empty(n_gp)
     for row in range(h):
         last_p, last_t = n_p + row, n_t - 1 + row   # index of p[k+m] and of T[k+m−1]
-        s = since + row if to_end < 0 or row <= to_end else row - to_end - 1
-        mean_power = 0.0
-        for i in range(n_p):
-            mean_power += powers[last_p - i]
-        psi[row, 0], psi[row, 1], psi[row, 2] = temps[last_t], math.log1p(min(s, s_cap)), mean_power / n_p
-        w0 = (psi[row, 0] - gp[0]) * gp[3]
-        w1 = (psi[row, 1] - gp[1]) * gp[4]
-        w2 = (psi[row, 2] - gp[2]) * gp[5]
-        half_w = 0.5 * (w0 * w0 + w1 * w1 + w2 * w2)
-        mean, moment = 0.0, 0.0
+        gp_mean, gp_moment = 0.0, 0.0               # r(ψ_m) and Σ_a k_a W_a2 β_a (its mean-power slope)
         for a in range(n_gp):
-            k = math.exp(w0 * gp_inputs[a, 0] + w1 * gp_inputs[a, 1] + w2 * gp_inputs[a, 2] + gp_inputs[a, 3] - half_w)
-            kern[a] = k
-            mean += k * gp_inputs[a, 4]
-            moment += k * gp_inputs[a, 2] * gp_inputs[a, 4]
-        gp_slope[row] = gp[5] * (moment - w2 * mean) / n_p    # ∂r/∂ū_n through the mean power
-        zz = intercept[0] + mean
+            gp_mean += kern[row, a] * beta[a]
+            gp_moment += kern[row, a] * moment_weights[a]
+        w2 = (psi[row, 2] - gp[2]) * gp[5]
+        gp_slope[row] = gp[5] * (gp_moment - w2 * gp_mean) / n_p    # ∂r/∂ū_n through the mean power
+        zz = intercept[0] + gp_mean
         for i in range(n_p):
             p = powers[last_p - i]
             zz += (b[i] + q[i] * p) * p
@@ -156,14 +197,6 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
         for i in range(n_x):
             zz += e[i] * powers[last_p - i] * temps[last_t - i]
         z[row] = zz
-        if row < n_variance:
-            quad = 0.0
-            for a in range(n_gp):
-                acc = 0.0
-                for c2 in range(a + 1):
-                    acc += var_f[a, c2] * kern[c2]
-                quad += acc * acc
-            std[row] = max(gp[6] - quad, 0.0) + gp[7]
     gamma = np.zeros((h, h))
     c = np.zeros(h)
     predicted = np.empty(h)
@@ -186,27 +219,20 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
     finite = True
     for row in range(h):
         finite = finite and math.isfinite(predicted[row])
-    weights = qp_terms[9:].copy()
-    weights[:blind] = 0.0                           # rows not tracked
-    hess = moves.copy()
+    hess = moves.copy()                             # + 2 Γᵀ W Γ over the tracked rows (Γ lower triangular)
     f = np.zeros(h)
-    for a in range(h):                              # Γ is lower triangular: Γ[m, a] = 0 for m < a
-        for bb in range(a, h):
-            acc = 0.0
-            for m in range(bb, h):
-                acc += gamma[m, a] * weights[m] * gamma[m, bb]
-            hess[a, bb] += 2.0 * acc
-            if bb != a:
-                hess[bb, a] += 2.0 * acc
-        acc = 0.0
-        for m in range(a, h):
-            acc += gamma[m, a] * weights[m] * c[m]
-        f[a] = 2.0 * acc
+    for m in range(blind, h):
+        w = 2.0 * qp_terms[9 + m]
+        for a in range(m + 1):
+            wg = w * gamma[m, a]
+            f[a] += wg * c[m]
+            for b2 in range(m + 1):
+                hess[a, b2] += wg * gamma[m, b2]
     f[0] -= 2.0 * r * p_now / scale
-    chol = np.zeros((h, h))
     v = np.empty(h)
     areas = np.empty(h)
     status = 0 if finite else 2
+    chol = np.zeros((h, h))
     for i in range(h):                              # Cholesky, Hessian = L Lᵀ
         for j in range(i + 1):
             acc = hess[i, j]
@@ -225,11 +251,10 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
         for k in range(i):
             acc -= chol[i, k] * v[k]
         v[i] = acc / chol[i, i]
-    for i in range(h - 1, -1, -1):                  # Lᵀ v = y
-        acc = v[i]
-        for k in range(i + 1, h):
-            acc -= chol[k, i] * v[k]
-        v[i] = acc / chol[i, i]
+    for i in range(h - 1, -1, -1):                  # Lᵀ v = y, by columns of Lᵀ
+        v[i] /= chol[i, i]
+        for k in range(i):
+            v[k] -= chol[i, k] * v[i]
         if not (v_lo <= v[i] <= v_hi):
             status = max(status, 1)
     for row in range(h):                            # e = Γ v + c of the tracked rows, x̂ at P v

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
+from numba import njit
 
 from gp_trainer.atomic import atomic_write_bytes
 from gp_trainer.errors import DatasetError, ModelFormatError, ModelVersionError
@@ -235,20 +236,32 @@ def forecast_t_ahead(t_now_k: float, steps_since_start: int, on_first_track: boo
     -------
     numpy.ndarray, shape (H,)
     """
-    j = np.arange(1, horizon + 1)
-    last = profile_k.size - 1
-    if on_first_track:
-        current = np.full(horizon, float(t_now_k))
-    else:
-        here = profile_k[min(steps_since_start, last)]
-        base = t_now_k - here if t_base_k is None else t_base_k
-        deviation = t_now_k - base - here
-        current = base + profile_k[np.minimum(steps_since_start + j, last)] + deviation * persistence ** j
-    if steps_to_end is None or steps_to_end >= horizon:
-        return current
-    t_end = current[steps_to_end - 1] if steps_to_end > 0 else float(t_now_k)
-    after = np.minimum(j - steps_to_end - 1, last)
-    return np.where(j > steps_to_end, t_end + profile_k[np.maximum(after, 0)], current)
+    out = np.empty(horizon)
+    _forecast_into(float(t_now_k), int(steps_since_start), bool(on_first_track),
+                   -1 if steps_to_end is None else int(steps_to_end), np.asarray(profile_k, dtype=float),
+                   math.nan if t_base_k is None else float(t_base_k), persistence ** np.arange(1.0, horizon + 1), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _forecast_into(t_now, since, on_first, to_end, profile, t_base, decay, out):  # pragma: no cover (compiled)
+    """:func:`forecast_t_ahead` into ``out`` (compiled: it runs in every controller update), with
+    ``to_end = −1`` for no turn foreseen, ``t_base = NaN`` for no ``T_b`` and ``decay = ρ^j``."""
+    horizon, last = out.size, profile.size - 1
+    here = profile[min(since, last)]
+    base = t_now - here if math.isnan(t_base) else t_base
+    deviation = t_now - base - here
+    for i in range(horizon):
+        j = i + 1
+        if on_first:
+            out[i] = t_now
+        else:
+            out[i] = base + profile[min(since + j, last)] + deviation * decay[i]
+    if to_end < 0 or to_end >= horizon:
+        return
+    t_end = out[to_end - 1] if to_end > 0 else t_now
+    for i in range(to_end, horizon):
+        out[i] = t_end + profile[max(min(i - to_end, last), 0)]
 
 
 def turn_bases(run: RunSeries) -> np.ndarray:
@@ -354,10 +367,11 @@ class ResidualGP:
 
     def kernel_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What a compiled predictor needs (:mod:`controller_node.preview_kernel`): ``(μ, g, σ², σ_n²)``
-        shape (2d + 2,), per training point ``(W_a, −‖W_a‖²/2, β_a)`` shape (N, d + 2), and ``σ_f L⁻¹``
-        shape (N, N), lower triangular (``var = σ² − ‖σ_f L⁻¹ k‖²``)."""
+        shape (2d + 2,); per training point (columns) ``W_a`` (d rows), ``−‖W_a‖²/2``, ``β_a`` and
+        ``W_a,d−1 β_a``, shape (d + 3, N); and ``σ_f L⁻¹`` shape (N, N), lower triangular
+        (``var = σ² − ‖σ_f L⁻¹ k‖²``)."""
         scalars = np.r_[self.input_mean, self._g, self.prior_variance, self.noise_variance]
-        points = np.column_stack([self._W, self._half, self._mean_w])
+        points = np.vstack([self._W.T, self._half, self._mean_w, self._W[:, -1] * self._mean_w])
         return scalars, np.ascontiguousarray(points), np.ascontiguousarray(self._var_f)
 
     def to_dict(self) -> dict[str, Any]:
