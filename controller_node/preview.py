@@ -6,7 +6,7 @@ Each update at state k (:meth:`PreviewMPC.update`):
    observer on the model's one-step error, ``d̂ ← d̂ + L (x[k] − x̂[k|k−1] − d̂)``.
 2. **Forecast**: T ahead over the horizon from the scan-plan preview carried by the state
    (``track_elapsed_s``, ``track_remaining_s``, ``next_track``) and the turnaround profile
-   (:func:`gp_trainer.narx.forecast_t_ahead`); the profile of the last turnaround seen in this
+   (:func:`gp_trainer.narx.forecast_t_ahead`, compiled); the profile of the last turnaround seen in this
    run replaces the trained one where it has been observed (learning from the run).
 3. **Predict**: ``x̂[k+m] = c₀ + Σ b_i p[k+m−i] + Σ c_j T[k+m−1−j] + r(ψ_{k+m−1}) + d̂``,
    m = 1..H (model of :mod:`gp_trainer.narx`), affine in the planned powers.
@@ -33,10 +33,10 @@ import math
 
 import numpy as np
 
-from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_t_ahead
+from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_into
 
 from .base import Controller, Proposal
-from .preview_kernel import linearise
+from .preview_kernel import linearise, push_history
 from .preview_qp import PreviewQP
 from .settings import ControllerSettings
 from .types import ConfigurationError, Measurement
@@ -62,10 +62,11 @@ class PreviewMPC(Controller):
     name = "preview-mpc"
 
     def __init__(self, settings: ControllerSettings, model) -> None:
-        self._forecast = forecast_t_ahead
         self.model = model
         ps = settings.preview
         h, b = ps.horizon, model.power_coefficients
+        self._decay = model.forecast_persistence ** np.arange(1.0, h + 1)   # ρ^j of the T forecast
+        self._forecast_out = np.empty(h)
         n_p, n_t = b.size, model.temperature_coefficients.size
         self._nb, self._nc, self._h = n_p, n_t, h
         self._psi = np.empty((h, 3))            # the GP's inputs of the last update
@@ -129,17 +130,14 @@ class PreviewMPC(Controller):
         prev = self._prev
         gap = 1 if prev is None else max(1, m.step - prev.step)
         fill = min(gap, self._nb)
-        if m.step > 0:
-            self._p[fill:] = self._p[:-fill].copy()
-            self._p[:fill] = m.power_w
-        else:
+        if m.step == 0:
             self._p[:] = 0.0
+            fill = 0
+        t_fill = min(gap, self._nc)
         if self._t is None:
             self._t = np.full(self._nc, m.t_ahead_k)
-        else:
-            fill = min(gap, self._nc)
-            self._t[:-fill] = self._t[fill:].copy()
-            self._t[-fill:] = m.t_ahead_k
+            t_fill = 0
+        push_history(self._p, fill, m.power_w, self._t, t_fill, m.t_ahead_k)
         if self._first_track is None:
             self._first_track = m.track
         new_layer = prev is not None and m.layer is not None and m.layer != prev.layer
@@ -246,6 +244,14 @@ class PreviewMPC(Controller):
             self._profile[n:] = self._profile[n - 1] if n < self._profile.size and n > 0 else self._profile[n:]
 
     # ------------------------------------------------------------------ control law
+    def _forecast(self, t_now_k: float, since: int, on_first: bool, to_end: int | None,
+                  t_base_k: float | None) -> np.ndarray:
+        """T ahead over the horizon, shape (H,) [K] (:func:`gp_trainer.narx.forecast_t_ahead` with
+        this run's turnaround profile; the array is reused by the next update)."""
+        forecast_into(t_now_k, since, on_first, -1 if to_end is None else to_end, self._profile,
+                      math.nan if t_base_k is None else t_base_k, self._decay, self._forecast_out)
+        return self._forecast_out
+
     def _linearise(self, forecast: np.ndarray, since: int, to_end: int | None, correction: np.ndarray,
                    blind: int) -> tuple[np.ndarray, ...]:
         """:func:`controller_node.preview_kernel.linearise` at the current histories and plan (before the
@@ -277,7 +283,7 @@ class PreviewMPC(Controller):
         self._prev = m
         self._base0_m2 = None
 
-        h, dt = self._h, self.model.sample_period_s
+        dt = self.model.sample_period_s
         since = m.step - self._track_start_step
         to_end = None
         if m.track_remaining_s is not None:
@@ -285,8 +291,7 @@ class PreviewMPC(Controller):
             if m.next_track is False:
                 to_end = None  # the layer ends: nothing after this track to forecast
         on_first = m.track is None or m.track == self._first_track
-        forecast = self._forecast(m.t_ahead_k, since, on_first, to_end, self._profile, h,
-                                  self._turn_base_k, self.model.forecast_persistence)
+        forecast = self._forecast(m.t_ahead_k, since, on_first, to_end, self._turn_base_k)
         sp = s.set_point_m2
         correction = self._correction_over_horizon(since, on_first, to_end) if self._learned \
             else self._no_correction

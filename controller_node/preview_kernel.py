@@ -36,11 +36,26 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["linearise"]
+__all__ = ["linearise", "push_history"]
 
 _REORDER = {"reassoc", "contract"}
 """Floating-point licence of the compiled passes: sums may be reordered (vectorised) and multiply-adds
 fused; NaN and infinity keep their meaning (the prediction's finiteness check relies on it)."""
+
+
+@njit(cache=True, nogil=True)
+def push_history(p_hist, p_fill, power_w, t_hist, t_fill, t_ahead_k):  # pragma: no cover (compiled)
+    """Shift ``p_fill`` copies of ``power_w`` [W] into the front of ``p_hist`` (newest first) and
+    ``t_fill`` copies of ``t_ahead_k`` [K] into the end of ``t_hist`` (oldest first), in place."""
+    for i in range(p_hist.size - 1, p_fill - 1, -1):
+        p_hist[i] = p_hist[i - p_fill]
+    for i in range(min(p_fill, p_hist.size)):
+        p_hist[i] = power_w
+    n = t_hist.size
+    for i in range(n - t_fill):
+        t_hist[i] = t_hist[i + t_fill]
+    for i in range(max(n - t_fill, 0), n):
+        t_hist[i] = t_ahead_k
 
 
 @njit(cache=True, nogil=True)
