@@ -36,7 +36,7 @@ import numpy as np
 from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_into
 
 from .base import Controller, Proposal
-from .preview_kernel import linearise, push_history
+from .preview_kernel import correction_into, linearise, push_history
 from .preview_qp import PreviewQP
 from .settings import ControllerSettings
 from .types import ConfigurationError, Measurement
@@ -79,6 +79,7 @@ class PreviewMPC(Controller):
         self._theta_p = np.r_[b, model.power_square_coefficients]
         self._e0 = float(model.power_temperature_coefficients[0]) if model.power_temperature_coefficients.size else 0.0
         self._no_correction = np.zeros(h)
+        self._correction_out = np.zeros(h)
         self.qp = PreviewQP(h, settings.set_point_m2, q=ps.q, q_f=ps.q_f, r=ps.r, power_scale_w=ps.power_scale_w,
                             power_min_w=settings.power_min_w, power_max_w=settings.power_max_w,
                             area_min_m2=ps.area_min_m2, area_max_m2=ps.area_max_m2,
@@ -218,23 +219,14 @@ class PreviewMPC(Controller):
         self._learned = bool(np.any(correction)) or any(np.any(c) for c in by_turn)
 
     def _correction_over_horizon(self, since: int, on_first: bool, to_end: int | None) -> np.ndarray:
-        """The learned correction of the states k+1..k+H, shape (H,): ``since`` the states since the
-        current track's start, ``to_end`` until its last (None: no turn ahead)."""
-        m = self._rows + 1
-        if to_end is None:
-            return self._correction(since + m, np.full(self._h, not on_first), np.zeros(self._h, dtype=bool))
-        ahead = m <= to_end
-        return self._correction(np.where(ahead, since + m, m - to_end - 1), np.where(ahead, not on_first, True), ~ahead)
-
-    def _correction(self, s: np.ndarray, post_turn: np.ndarray, next_turn: np.ndarray) -> np.ndarray:
-        """The learned correction for states ``s`` since their track's start (0 on the first track and
-        beyond its length); ``next_turn``: the state is after the next turn, not the current one."""
-        n = self.turn_correction_m2.size
-        if not n:
-            return np.zeros(s.size)
-        idx = np.clip(s, 0, n - 1)
-        c = np.where(next_turn, self._correction_for(self._turn + 1)[idx], self._correction_for(self._turn)[idx])
-        return np.where(post_turn & (s < n), c, 0.0)
+        """The learned correction of the states k+1..k+H, shape (H,) [m²]
+        (:func:`~controller_node.preview_kernel.correction_into`; the array is reused by the next
+        update): ``since`` the states since the current track's start, ``to_end`` until its last
+        (None: no turn ahead)."""
+        if self.turn_correction_m2.size:
+            correction_into(since, on_first, -1 if to_end is None else to_end, self._correction_for(self._turn),
+                            self._correction_for(self._turn + 1), self._correction_out)
+        return self._correction_out
 
     def _learn_profile(self) -> None:
         """Replace the trained turnaround profile by the one just observed, where observed."""

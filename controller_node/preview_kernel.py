@@ -36,7 +36,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["linearise", "push_history"]
+__all__ = ["correction_into", "linearise", "push_history"]
 
 _REORDER = {"reassoc", "contract"}
 """Floating-point licence of the compiled passes: sums may be reordered (vectorised) and multiply-adds
@@ -56,6 +56,24 @@ def push_history(p_hist, p_fill, power_w, t_hist, t_fill, t_ahead_k):  # pragma:
         t_hist[i] = t_hist[i + t_fill]
     for i in range(max(n - t_fill, 0), n):
         t_hist[i] = t_ahead_k
+
+
+@njit(cache=True, nogil=True)
+def correction_into(since, on_first, to_end, current, following, out):  # pragma: no cover (compiled)
+    """The learned turnaround correction of the states k+1..k+H into ``out``, shape (H,) [m²].
+
+    ``since``: states since the current track's first state; ``to_end``: states until its last
+    (−1: no turn ahead). A state of the current track gets ``current[s]`` with s its states since
+    the track's start (none on the layer's first track), a state after the next turn
+    ``following[s]``; 0 beyond the correction's length."""
+    n = current.size
+    for i in range(out.size):
+        m = i + 1
+        if to_end < 0 or m <= to_end:
+            s, post, source = since + m, not on_first, current
+        else:
+            s, post, source = m - to_end - 1, True, following
+        out[i] = source[min(max(s, 0), n - 1)] if post and s < n else 0.0
 
 
 @njit(cache=True, nogil=True)

@@ -117,16 +117,15 @@ class Measurement:
         bool
             ``area >= 0``, ``T > 0`` K, ``power >= 0``, ``speed > 0`` and all finite.
         """
-        values = (self.time_s, self.area_m2, self.t_ahead_k, self.power_w, self.speed_m_s)
+        isfinite, elapsed, remaining = math.isfinite, self.track_elapsed_s, self.track_remaining_s
         return (
-            all(math.isfinite(v) for v in values)
-            and self.area_m2 >= 0.0
-            and self.t_ahead_k > 0.0
-            and self.power_w >= 0.0
-            and self.speed_m_s > 0.0
-            and all(
-                v is None or (math.isfinite(v) and v >= 0.0) for v in (self.track_elapsed_s, self.track_remaining_s)
-            )
+            isfinite(self.time_s)
+            and 0.0 <= self.area_m2 < math.inf
+            and 0.0 < self.t_ahead_k < math.inf
+            and 0.0 <= self.power_w < math.inf
+            and 0.0 < self.speed_m_s < math.inf
+            and (elapsed is None or 0.0 <= elapsed < math.inf)
+            and (remaining is None or 0.0 <= remaining < math.inf)
         )
 
 

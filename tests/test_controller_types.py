@@ -25,6 +25,11 @@ def test_measurement_accepts_numpy_and_flags_implausible_values() -> None:
     assert not Measurement(0, 0.0, 0.07e-6, math.inf, 250.0, 0.8).is_plausible()
     assert not Measurement(0, 0.0, -1e-9, 500.0, 250.0, 0.8).is_plausible()
     assert not Measurement(0, 0.0, 0.07e-6, 500.0, 250.0, 0.0).is_plausible()
+    for bad in (math.nan, math.inf, -1e-6):  # scan-plan preview fields: finite and >= 0 when given
+        assert not Measurement(0, 0.0, 0.07e-6, 500.0, 250.0, 0.8, track_elapsed_s=bad).is_plausible()
+        assert not Measurement(0, 0.0, 0.07e-6, 500.0, 250.0, 0.8, track_remaining_s=bad).is_plausible()
+    assert Measurement(0, 0.0, 0.07e-6, 500.0, 250.0, 0.8, track_elapsed_s=0.0, track_remaining_s=0.0).is_plausible()
+    assert not Measurement(0, math.inf, 0.07e-6, 500.0, 250.0, 0.8).is_plausible()
 
 
 @pytest.mark.parametrize(

@@ -352,11 +352,11 @@ def test_turnaround_learning_is_indexed_by_the_turn_across_layers(model):
     second._turn, second._turn_errors[:] = 1, [1e-9, 1e-9, 1e-9]
     second._learn_turn_correction()
     assert _same(second.turn_corrections_by_turn_m2[0], learned[1] + 0.5e-9)   # from turn 1's own
-    s, post = np.array([0, 1, 2, 0]), np.array([True, True, True, True])
-    after_next = np.array([False, False, False, True])
-    second._turn = 0
-    assert _same(second._correction(s, post, after_next),
-                       [learned[0][0], learned[0][1], learned[0][2], learned[1][0]])
+    second._turn = 0  # state k is the 1st of track 1 (after turn 0); turn 1 comes after k+2
+    assert _same(second._correction_over_horizon(0, False, 2),
+                 [learned[0][1], learned[0][2], learned[1][0], learned[1][1], learned[1][2]] + [0.0] * 5)
+    assert _same(second._correction_over_horizon(0, True, 2),   # the layer's first track: none before the turn
+                 [0.0, 0.0, learned[1][0], learned[1][1], learned[1][2]] + [0.0] * 5)
     with pytest.raises(ValueError, match="by_turn"):
         second.load_learning_state({**first.learning_state(), "turn_corrections_by_turn_m2": [[1.0]]})
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controller_node.preview_kernel import _linearised_qp, _regressors, linearise, push_history
+from controller_node.preview_kernel import _linearised_qp, _regressors, correction_into, linearise, push_history
 from controller_node.preview_qp import PreviewQP
 from gp_trainer.narx import DEFAULT_MODEL_PATH, STEPS_SINCE_START_CAP, NarxGPModel, forecast_into
 
@@ -102,7 +102,8 @@ def test_a_closed_loop_compiles_the_kernel_once(model):
                                 track_elapsed_s=(k % 30) * 50e-6, track_remaining_s=(29 - k % 30) * 50e-6,
                                 next_track=track < 2))
     assert ctrl._learned
-    assert all(len(f.signatures) == 1 for f in (_regressors, _linearised_qp, push_history, forecast_into))
+    assert all(len(f.signatures) == 1 for f in (_regressors, _linearised_qp, push_history, forecast_into,
+                                                   correction_into))
 
 
 @pytest.mark.parametrize("seed", range(6))
