@@ -36,7 +36,7 @@ import numpy as np
 from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_into
 
 from .base import Controller, Proposal
-from .preview_kernel import correction_into, linearise, push_history
+from .preview_kernel import Workspace, correction_into, linearise, push_history
 from .preview_qp import PreviewQP
 from .settings import ControllerSettings
 from .types import ConfigurationError, Measurement
@@ -69,12 +69,13 @@ class PreviewMPC(Controller):
         self._forecast_out = np.empty(h)
         n_p, n_t = b.size, model.temperature_coefficients.size
         self._nb, self._nc, self._h = n_p, n_t, h
-        self._psi = np.empty((h, 3))            # the GP's inputs of the last update
         self._rows = np.arange(h)
         self._coef = (np.array([model.intercept]), b, model.power_square_coefficients,
                       model.temperature_coefficients, model.temperature_square_coefficients,
                       model.power_temperature_coefficients)
         self._gp_scalars, self._gp_points, self._gp_var = model.residual.kernel_terms()
+        self._work = Workspace(h, n_p, n_t, self._gp_points.shape[1])
+        self._psi = self._work.psi              # the GP's inputs of the last update
         self._n_variance = h if ps.uncertainty_z > 0 else 1
         self._theta_p = np.r_[b, model.power_square_coefficients]
         self._e0 = float(model.power_temperature_coefficients[0]) if model.power_temperature_coefficients.size else 0.0
@@ -245,15 +246,23 @@ class PreviewMPC(Controller):
         return self._forecast_out
 
     def _linearise(self, forecast: np.ndarray, since: int, to_end: int | None, correction: np.ndarray,
-                   blind: int) -> tuple[np.ndarray, ...]:
-        """:func:`controller_node.preview_kernel.linearise` at the current histories and plan (before the
-        first state, at zero histories: that call compiles the kernel, or loads it from numba's cache)."""
+                   blind: int) -> int:
+        """:func:`controller_node.preview_kernel.linearise` at the current histories and plan into the
+        workspace; its status (before the first state, at zero histories: that call compiles the
+        kernel, or loads it from numba's cache)."""
         self._qp_terms[3] = self._p[0]
         t_hist = self._t if self._t is not None else np.zeros(self._nc)
         return linearise(self._p, t_hist, forecast, self._plan, since, -1 if to_end is None else to_end,
                          float(STEPS_SINCE_START_CAP), self.model.output == "log", self._coef, self._gp_scalars,
                          self._gp_points, self._gp_var, self._n_variance, correction, self.disturbance_m2,
-                         self._qp_terms, self.qp.moves, blind, self._psi)
+                         self._qp_terms, self.qp.moves, blind, self._work)
+
+    @property
+    def last_qp(self) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
+        """The QP of the last update (benchmarks, tests): copies of Γ (H, H) and c (H,), ``p[k]`` [W]
+        and the bound tightening (None without)."""
+        gamma, c, previous, margin = self._last_qp
+        return gamma.copy(), c.copy(), previous, None if margin is None else margin.copy()
 
     def _propose(self, m: Measurement) -> Proposal:
         s, ps = self.settings, self.settings.preview
@@ -288,8 +297,9 @@ class PreviewMPC(Controller):
         correction = self._correction_over_horizon(since, on_first, to_end) if self._learned \
             else self._no_correction
         blind = 0 if built_up else ps.observer_start_steps - (m.step - self._layer_start_step) - 1
-        gamma, c, predicted, z, std, hess, f, v, areas, status = self._linearise(forecast, since, to_end, correction,
-                                                                                blind)
+        status = self._linearise(forecast, since, to_end, correction, blind)
+        work = self._work
+        gamma, c, std, v, areas = work.gamma, work.c, work.std, work.v, work.areas
         if status == 2:  # an absurd input: no plan from it
             return Proposal(math.nan, status="model_error")
         u1 = float(self._plan[1])                                      # ū[0] = p̄[k+1], the previous plan's
@@ -298,20 +308,21 @@ class PreviewMPC(Controller):
             qp_gamma, qp_c = gamma.copy(), c.copy()
             qp_gamma[:blind], qp_c[:blind] = 0.0, 0.0
         margin = ps.uncertainty_z * std / sp if ps.uncertainty_z > 0 else None
-        self.last_qp = (qp_gamma, qp_c, float(self._p[0]), margin)  # the problem just solved (benchmarks, tests)
+        self._last_qp = (qp_gamma, qp_c, float(self._p[0]), margin)
         if status == 0:
             new_plan, fast = v * self.qp.scale, True
         else:
-            result = self.qp.finish(qp_gamma, qp_c, hess, f, v, margin)
+            result = self.qp.finish(qp_gamma, qp_c, work.hess, work.f, v, margin)
             if result.path.startswith("failed"):
                 return Proposal(math.nan, status=f"solver_{result.path}")
             plan = np.concatenate((self._plan[1:], self._plan[-1:]))   # ū = p̄[k+1..k+H]
             new_plan, fast = result.power_w, result.path == "fast"
-            areas = predicted + (gamma * (sp / self.qp.scale)) @ (new_plan - plan)  # ∂x̂/∂u (H, H) times the move
+            areas = work.predicted + (gamma * (sp / self.qp.scale)) @ (new_plan - plan)  # ∂x̂/∂u (H, H) times the move
         self._plan = new_plan
         # z of x̂[k+1] without the p[k+1] terms, for the next observer update
         t_now = float(self._t[-1])
-        self._base0_m2 = float(z[0] - self._theta_p[0] * u1 - self._theta_p[self._nb] * u1 ** 2 - self._e0 * u1 * t_now)
+        self._base0_m2 = float(work.z[0] - self._theta_p[0] * u1 - self._theta_p[self._nb] * u1 ** 2
+                               - self._e0 * u1 * t_now)
         self._base_t0 = t_now
         self._base0_correction = float(correction[0])
         return Proposal(

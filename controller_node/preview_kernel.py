@@ -36,7 +36,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["correction_into", "linearise", "push_history"]
+__all__ = ["Workspace", "correction_into", "linearise", "push_history"]
 
 _REORDER = {"reassoc", "contract"}
 """Floating-point licence of the compiled passes: sums may be reordered (vectorised) and multiply-adds
@@ -77,19 +77,18 @@ def correction_into(since, on_first, to_end, current, following, out):  # pragma
 
 
 @njit(cache=True, nogil=True)
-def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_points, psi,
-                exponents):  # pragma: no cover (compiled)
-    """The lagged powers and temperatures of the rows, their GP inputs ψ (into ``psi``) and the SE
-    kernel's exponents ``w·W_a − ‖W_a‖²/2 − ‖w‖²/2`` (into ``exponents``, shape (H, N))."""
+def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_points, psi, exponents, powers,
+                temps):  # pragma: no cover (compiled)
+    """The lagged powers and temperatures of the rows (into ``powers``, ``temps``), their GP inputs ψ
+    (into ``psi``) and the SE kernel's exponents ``w·W_a − ‖W_a‖²/2 − ‖w‖²/2`` (into ``exponents``,
+    shape (H, N))."""
     h, n_p, n_t, n_gp = plan.size, p_hist.size, t_hist.size, gp_points.shape[1]
-    powers = np.empty(n_p + h)                      # p[k−n_p+1 .. k], ū
-    for i in range(n_p):
+    for i in range(n_p):                            # p[k−n_p+1 .. k], ū
         powers[i] = p_hist[n_p - 1 - i]
     for i in range(h - 1):
         powers[n_p + i] = plan[i + 1]
     powers[n_p + h - 1] = plan[h - 1]
-    temps = np.empty(n_t + h - 1)                   # T[k−n_T+1 .. k], T̂[k+1 .. k+H−1]
-    temps[:n_t] = t_hist
+    temps[:n_t] = t_hist                            # T[k−n_T+1 .. k], T̂[k+1 .. k+H−1]
     temps[n_t:] = forecast[:h - 1]
     mean_power = 0.0
     for i in range(n_p):
@@ -106,11 +105,47 @@ def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_poi
         for a in range(n_gp):
             exponents[row, a] = w0 * gp_points[0, a] + w1 * gp_points[1, a] + w2 * gp_points[2, a] + gp_points[3, a] \
                 - half_w
-    return powers, temps
+
+
+class Workspace:
+    """The arrays one :func:`linearise` call fills, allocated once per controller (an update then
+    allocates nothing: between plant steps every fresh allocation is a cache miss).
+
+    Parameters
+    ----------
+    horizon : int
+        ``H``.
+    n_powers, n_temperatures : int
+        ``n_p`` and ``n_T`` of the model.
+    n_points : int
+        ``N``, the residual GP's training points.
+
+    Attributes
+    ----------
+    gamma, hess : numpy.ndarray, shape (H, H)
+        Γ and the QP's Hessian.
+    c, predicted, z, std, f, v, areas : numpy.ndarray, shape (H,)
+        ``c``; x̂ at ū [m²]; ``z``; ``x'(z) sqrt(σ²_latent + σ_n²)`` for the first ``n_variance``
+        rows, else 0 [m²]; the gradient; the unconstrained optimum (NaN if the Hessian is not
+        positive definite); x̂ at the plan ``P v`` [m²] (linearised).
+    psi : numpy.ndarray, shape (H, 3)
+        The GP inputs ψ_{k+m−1} (T ahead [K], log1p(min(s, cap)), mean power [W]).
+    """
+
+    def __init__(self, horizon: int, n_powers: int, n_temperatures: int, n_points: int) -> None:
+        h = horizon
+        self.matrices = np.zeros((3, h, h))         # Γ, Hessian, Cholesky factor
+        self.vectors = np.zeros((8, h))             # c, x̂, z, std, f, v, areas, ∂r/∂ψ₂
+        self.gamma, self.hess, _ = self.matrices
+        self.c, self.predicted, self.z, self.std, self.f, self.v, self.areas, _ = self.vectors
+        self.psi = np.zeros((h, 3))
+        self.kern = np.zeros((h, n_points))
+        self.powers = np.zeros(n_powers + h)        # p[k−n_p+1 .. k], ū
+        self.temps = np.zeros(n_temperatures + h - 1)   # T[k−n_T+1 .. k], T̂[k+1 .. k+H−1]
 
 
 def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, coef, gp, gp_points, var_f,
-              n_variance, correction, disturbance, qp_terms, moves, blind, psi):
+              n_variance, correction, disturbance, qp_terms, moves, blind, work):
     """Prediction, Jacobian and unconstrained QP step at the shifted plan (module docstring).
 
     Two compiled passes around numpy's vectorised ``exp`` of the H × N kernel exponents (about
@@ -159,39 +194,27 @@ def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, 
     blind : int
         Leading rows not tracked (pool build-up): weight 0 in the Hessian and gradient (Γ and c
         are returned for all rows).
-    psi : numpy.ndarray, shape (H, 3)
-        Filled with the GP inputs ψ_{k+m−1} (T ahead [K], log1p(min(s, cap)), mean power [W]).
+    work : Workspace
+        Filled with the results (:class:`Workspace`), overwritten by the next call.
 
     Returns
     -------
-    gamma : numpy.ndarray, shape (H, H)
-    c : numpy.ndarray, shape (H,)
-    predicted : numpy.ndarray, shape (H,)
-        x̂ at ū [m²].
-    z : numpy.ndarray, shape (H,)
-    std : numpy.ndarray, shape (H,)
-        ``x'(z) sqrt(σ²_latent + σ_n²)`` for the first ``n_variance`` rows [m²].
-    hess : numpy.ndarray, shape (H, H)
-    f : numpy.ndarray, shape (H,)
-    v : numpy.ndarray, shape (H,)
-        Unconstrained optimum (NaN if the Hessian is not positive definite).
-    areas : numpy.ndarray, shape (H,)
-        x̂ at the plan ``P v`` [m²] (linearised).
     status : int
         0: ``v`` solves the QP (no bound active); 1: a bound is active or the Hessian is not
         positive definite; 2: a prediction is not finite.
     """
-    kern = np.empty((plan.size, gp_points.shape[1]))
-    powers, temps = _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_points, psi, kern)
-    np.exp(kern, out=kern)
-    return _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, n_variance, correction,
-                          disturbance, qp_terms, moves, blind, psi)
+    _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_points, work.psi, work.kern,
+                work.powers, work.temps)
+    np.exp(work.kern, out=work.kern)
+    return _linearised_qp(work.powers, work.temps, work.kern, log_output, coef, gp, gp_points, var_f, n_variance,
+                          correction, disturbance, qp_terms, moves, blind, work.psi, work.vectors, work.matrices)
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
 def _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, n_variance, correction,
-                   disturbance, qp_terms, moves, blind, psi):  # pragma: no cover (compiled)
-    """:func:`linearise` from the kernel values ``kern`` = k(ψ_m, ψ_a), shape (H, N)."""
+                   disturbance, qp_terms, moves, blind, psi, vectors, matrices):  # pragma: no cover (compiled)
+    """:func:`linearise` from the kernel values ``kern`` = k(ψ_m, ψ_a), shape (H, N), into the
+    :class:`Workspace`'s ``vectors`` and ``matrices``."""
     intercept, b, q, cc, d, e = coef
     n_p, n_t, n_tq, n_x = b.size, cc.size, d.size, e.size
     h = powers.size - n_p
@@ -199,7 +222,9 @@ def _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, 
     v_lo, v_hi, e_lo, e_hi, z_sigma = qp_terms[4], qp_terms[5], qp_terms[6], qp_terms[7], qp_terms[8]
     n_gp = kern.shape[1]
     beta, moment_weights = gp_points[4], gp_points[5]
-    std = np.zeros(h)
+    c, predicted, z, std, f, v, areas, gp_slope = vectors
+    gamma, hess, chol = matrices
+    std[:] = 0.0
     for row in range(n_variance):                   # σ² − ‖σ_f L⁻¹ k‖² of the first rows
         quad = 0.0
         for a in range(n_gp):
@@ -208,8 +233,6 @@ def _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, 
                 projected += var_f[a, b2] * kern[row, b2]
             quad += projected * projected
         std[row] = max(gp[6] - quad, 0.0) + gp[7]
-    z = np.empty(h)
-    gp_slope = np.empty(h)
     for row in range(h):
         last_p, last_t = n_p + row, n_t - 1 + row   # index of p[k+m] and of T[k+m−1]
         gp_mean, gp_moment = 0.0, 0.0               # r(ψ_m) and Σ_a k_a W_a2 β_a (its mean-power slope)
@@ -230,9 +253,7 @@ def _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, 
         for i in range(n_x):
             zz += e[i] * powers[last_p - i] * temps[last_t - i]
         z[row] = zz
-    gamma = np.zeros((h, h))
-    c = np.zeros(h)
-    predicted = np.empty(h)
+    gamma[:] = 0.0
     u = powers[n_p:]
     for row in range(h):
         x = math.exp(z[row]) if log_output else z[row]
@@ -252,8 +273,8 @@ def _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, 
     finite = True
     for row in range(h):
         finite = finite and math.isfinite(predicted[row])
-    hess = moves.copy()                             # + 2 Γᵀ W Γ over the tracked rows (Γ lower triangular)
-    f = np.zeros(h)
+    hess[:] = moves                                 # + 2 Γᵀ W Γ over the tracked rows (Γ lower triangular)
+    f[:] = 0.0
     for m in range(blind, h):
         w = 2.0 * qp_terms[9 + m]
         for a in range(m + 1):
@@ -262,10 +283,7 @@ def _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, 
             for b2 in range(m + 1):
                 hess[a, b2] += wg * gamma[m, b2]
     f[0] -= 2.0 * r * p_now / scale
-    v = np.empty(h)
-    areas = np.empty(h)
     status = 0 if finite else 2
-    chol = np.zeros((h, h))
     for i in range(h):                              # Cholesky, Hessian = L Lᵀ
         for j in range(i + 1):
             acc = hess[i, j]
@@ -275,7 +293,7 @@ def _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, 
                 if not acc > 0.0:
                     v[:] = np.nan
                     areas[:] = np.nan
-                    return gamma, c, predicted, z, std, hess, f, v, areas, max(status, 1)
+                    return max(status, 1)
                 chol[i, i] = math.sqrt(acc)
             else:
                 chol[i, j] = acc / chol[j, j]
@@ -300,4 +318,4 @@ def _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, 
         tighten = z_sigma * std[row] / sp
         if e - tighten < e_lo or e + tighten > e_hi:
             status = max(status, 1)
-    return gamma, c, predicted, z, std, hess, f, v, areas, status
+    return status

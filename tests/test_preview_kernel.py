@@ -6,7 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controller_node.preview_kernel import _linearised_qp, _regressors, correction_into, linearise, push_history
+from controller_node.preview_kernel import (
+    Workspace,
+    _linearised_qp,
+    _regressors,
+    correction_into,
+    linearise,
+    push_history,
+)
 from controller_node.preview_qp import PreviewQP
 from gp_trainer.narx import DEFAULT_MODEL_PATH, STEPS_SINCE_START_CAP, NarxGPModel, forecast_into
 
@@ -20,7 +27,8 @@ def model() -> NarxGPModel:
 
 
 def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_variance: int = H,
-          area_max_m2: float = 5e-7, z_sigma: float = 0.0, power_min_w: float = -1e6, power_max_w: float = 350.0):
+          area_max_m2: float = 5e-7, z_sigma: float = 0.0, power_min_w: float = -1e6, power_max_w: float = 350.0,
+          stale: float | None = None):
     rng = np.random.default_rng(seed)
     n_p, n_t = model.power_coefficients.size, model.temperature_coefficients.size
     qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=r, power_scale_w=350.0, power_min_w=power_min_w, power_max_w=power_max_w,
@@ -34,11 +42,26 @@ def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_va
             model.temperature_coefficients, model.temperature_square_coefficients,
             model.power_temperature_coefficients)
     terms = np.r_[SP, qp.scale, qp.r, p_hist[0], qp.v_lo, qp.v_hi, qp.e_lo, qp.e_hi, z_sigma, qp.weights]
-    psi = np.empty((H, 3))
-    out = linearise(p_hist, t_hist, forecast, plan, int(rng.integers(0, 300)), int(rng.integers(-1, H)),
-                    float(STEPS_SINCE_START_CAP), True, coef, scalars, points, var_f, n_variance, np.zeros(H),
-                    0.0, terms, qp.moves, blind, psi)
-    return qp, p_hist, psi, out
+    work = Workspace(H, n_p, n_t, points.shape[1])
+    if stale is not None:  # what a previous update left in the workspace
+        for array in (work.matrices, work.vectors, work.psi, work.kern, work.powers, work.temps):
+            array[...] = stale
+    status = linearise(p_hist, t_hist, forecast, plan, int(rng.integers(0, 300)), int(rng.integers(-1, H)),
+                       float(STEPS_SINCE_START_CAP), True, coef, scalars, points, var_f, n_variance, np.zeros(H),
+                       0.0, terms, qp.moves, blind, work)
+    out = (work.gamma, work.c, work.predicted, work.z, work.std, work.hess, work.f, work.v, work.areas, status)
+    return qp, p_hist, work.psi, out
+
+
+@pytest.mark.parametrize("stale", [np.nan, 1e300])
+def test_nothing_a_previous_update_left_in_the_workspace_is_read(model, stale):
+    """The workspace is reused by every update: each result is written before it is read."""
+    for blind, n_variance in ((0, H), (7, 1)):
+        fresh = _case(model, 3, blind=blind, n_variance=n_variance)[3]
+        reused = _case(model, 3, blind=blind, n_variance=n_variance, stale=stale)[3]
+        for a, b in zip(fresh[:-1], reused[:-1], strict=True):
+            assert np.array_equal(a, b)
+        assert fresh[-1] == reused[-1]
 
 
 @pytest.mark.parametrize("seed", range(3))
