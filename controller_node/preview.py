@@ -1,4 +1,4 @@
-"""Scan-plan preview MPC on the delay-aware GP model (the default ``mpc`` controller).
+"""Scan-plan preview MPC on the delay-aware GP model (``preview-mpc``, the default controller of ``launch.py``).
 
 Each update at state k (:meth:`PreviewMPC.update`):
 
