@@ -16,7 +16,8 @@ plant and the controller connect to each other directly). ``--topology router``:
 ``launch.py`` runs, an authenticating zenoh router with per-node access control in the bench
 process (:class:`messages.auth.RunCredentials`) and every node its client (each message crosses
 the router). ``--load`` starts a busy loop on one core (a ``stress``-like process) for the whole
-measurement; ``--fifo-priority N`` runs every node process under ``SCHED_FIFO`` (``chrt``).
+measurement; ``--fifo-priority N`` runs every node process under ``SCHED_FIFO`` (``chrt``);
+``--busy-wait`` starts the controller node with ``--busy-wait`` (it polls for states).
 ``docs/realtime.md`` has the measured figures.
 
 Prints the node output, then, as the last line, JSON: the loop's round trip state → command
@@ -32,7 +33,7 @@ busy loop if any) and context. The numbers depend on what else runs on the machi
 measured in the same run, much less.
 
 Usage: ``python benchmarks/bench_loop.py --rate-hz 2000 [--duration-s 5] [--topology router] [--load]
-[--fifo-priority 10]``
+[--fifo-priority 10] [--busy-wait] [--controller preview-mpc]``
 """
 
 from __future__ import annotations
@@ -163,7 +164,8 @@ def loop(hub: Hub, args: argparse.Namespace) -> tuple[dict, list[float], str]:
     capacity = int(args.rate_hz * (args.duration_s + 30)) + 1024
     sub = hub.session.declare_subscriber(key_expr(hub.run_id, CONTROLLER_DIAGNOSTICS),
                                          zenoh.handlers.FifoChannel(capacity))
-    controller = spawn(["-m", "controller_node", "--controller", args.controller, *hub.common()],
+    busy = ["--busy-wait"] if args.busy_wait else []
+    controller = spawn(["-m", "controller_node", "--controller", args.controller, *busy, *hub.common()],
                        hub.env("controller"))
     try:
         wait_for_nodes(hub.session, hub.run_id, ["controller"], StopFlag(), timeout_s=60)
@@ -195,6 +197,8 @@ def main() -> int:
     parser.add_argument("--rate-hz", type=float, default=2000.0, help="surrogate publish rate [Hz]")
     parser.add_argument("--duration-s", type=float, default=5.0, help="measured wall time of the loop [s]")
     parser.add_argument("--controller", default="mpc", help="controller node's control law (default: %(default)s)")
+    parser.add_argument("--busy-wait", action="store_true",
+                        help="the controller node polls for states (its --busy-wait) instead of sleeping in zenoh")
     parser.add_argument("--topology", choices=("peer", "router"), default="peer",
                         help="peer: open peers on loopback (nodes started by hand); router: launch.py's "
                              "authenticating router, nodes its clients (default: %(default)s)")
@@ -250,6 +254,7 @@ def main() -> int:
         "cpu_busy_pct_during_loop": round(100.0 * (cpu1[0] - cpu0[0]) / max(1, cpu1[1] - cpu0[1]), 1),
         "load": f"busy loop on cpu {args.load_cpu}" if args.load else "none added",
         "scheduling": f"SCHED_FIFO {args.fifo_priority}" if args.fifo_priority is not None else "default",
+        "controller_busy_wait": args.busy_wait,
         "python": platform.python_version(),
     }
     print(json.dumps(result))

@@ -112,13 +112,14 @@ def inadmissible(step: int, last_step: int | None) -> str | None:
     return None
 
 
-def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, plant: str, config: dict) -> int:
+def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, plant: str, config: dict,
+        busy_wait: bool = False) -> int:
     """Answer plant states until the plant goes away or a stop is requested.
 
     The states are answered on a thread of their own that blocks in zenoh until a state arrives
-    (:class:`~messages.bus.NewestInbox`: no poll timeout, no queue hop) and publishes the command
-    before anything else; this thread waits for a stop request (signals are handled here) or the
-    plant's departure, then wakes it.
+    (:class:`~messages.bus.NewestInbox`: no poll timeout, no queue hop; ``busy_wait``: it polls
+    instead and keeps its core) and publishes the command before anything else; this thread waits
+    for a stop request (signals are handled here) or the plant's departure, then wakes it.
     """
     states = bus.newest_inbox(PLANT_STATE)
     commands = bus.publisher(LASER_COMMAND)
@@ -127,7 +128,7 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
     plant_events = bus.inbox(RUN_EVENTS)
     bus.ready(config=config, stop=stop)
     loop = AnswerLoop(bus, controller, settings, states, commands, diagnostics,
-                      done=lambda: stop.is_set() or plant_gone.is_set())
+                      done=lambda: stop.is_set() or plant_gone.is_set(), busy_wait=busy_wait)
     worker = threading.Thread(target=loop.serve, name="answer-states", daemon=True)
     gc.collect()
     gc.freeze()  # what exists now lives to the end: keep it out of the collections on the hot path
@@ -188,6 +189,7 @@ class AnswerLoop:
     status: int = 0
     error: BaseException | None = None
     state_interval_s: float = 0.0
+    busy_wait: bool = False
     _last_arrival: float | None = None
 
     def serve(self) -> None:
@@ -201,7 +203,7 @@ class AnswerLoop:
         try:
             while not self.done():
                 # free-running plant: answer the newest state only
-                state, skipped = self.states.newest(block=pending is None)
+                state, skipped = self.states.newest(block=pending is None, busy=self.busy_wait)
                 self.n_skipped += skipped
                 if state is None:
                     if pending is not None:
@@ -292,6 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="settings for another plant than the bare plate, under --config's "
                              "(launch.py passes 'part' on a part scenario)")
     parser.add_argument("--plant", default="plant", help="name of the plant node to follow (default: %(default)s)")
+    parser.add_argument("--busy-wait", action="store_true",
+                        help="poll for the plant's states instead of sleeping until one arrives: keeps one core "
+                             "busy for the whole run, answers sooner (a dedicated core, e.g. a kHz sensor)")
     parser.add_argument("--learning-state", type=Path, metavar="FILE",
                         help="preview-mpc: start from what a previous layer learned (if FILE exists) and write "
                              "what this one learned to FILE at the end")
@@ -326,10 +331,11 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as err:
         return exit_usage(parser.prog, err)
     model_file = args.model or default_model_path(args.controller)
-    config = {"controller": args.controller, "model": str(model_file) if model else None, **as_dict(settings)}
+    config = {"controller": args.controller, "model": str(model_file) if model else None, "busy_wait": args.busy_wait,
+              **as_dict(settings)}
     stop = StopFlag()
     status = run_node(parser.prog, NODE_NAME, bus_settings,
-                      lambda bus: run(bus, controller, settings, stop, args.plant, config))
+                      lambda bus: run(bus, controller, settings, stop, args.plant, config, args.busy_wait))
     if args.learning_state is not None and status == 0:
         controller.finish_run()
         try:

@@ -65,6 +65,32 @@ def test_newest_inbox_wakes_a_blocked_reader_without_counting_anything(hub, run_
         wait_for(lambda: box.newest(block=False)[0] is not None)
 
 
+def test_newest_inbox_busy_waiting_answers_and_wakes_like_the_blocking_read(hub, run_id):
+    """--busy-wait: the reader polls zenoh's channel; a state and a wake end the wait as in recv."""
+    with NodeBus("controller", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        box = bus.newest_inbox(PLANT_STATE)
+
+        class Polled:  # the channel, without the sleeping recv
+            def __init__(self, channel):
+                self.try_recv = channel.try_recv
+
+            def recv(self):
+                raise AssertionError("a busy wait must not sleep in recv")
+
+        box.subscriber = Polled(box.subscriber)
+        got = []
+        reader = threading.Thread(target=lambda: [got.append(box.newest(busy=True)) for _ in range(2)], daemon=True)
+        reader.start()
+        time.sleep(0.2)
+        assert reader.is_alive() and not got  # polling: nothing arrived
+        bus.publisher(PLANT_STATE).put(state(run_id, 4))
+        wait_for(lambda: len(got) == 1)
+        assert got[0] == (state(run_id, 4), 0)
+        box.wake()
+        reader.join(5)
+        assert not reader.is_alive() and got[1] == (None, 0) and box.n_invalid == 0
+
+
 def test_inbox_stamps_arrival_not_reading(hub, run_id):
     with NodeBus("plant", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         box = bus.inbox(LASER_COMMAND)
@@ -84,7 +110,7 @@ class _States:
     def __init__(self, states, stop, stop_with_last=False):
         self.states, self.stop, self.n_invalid, self.stop_with_last = list(states), stop, 0, stop_with_last
 
-    def newest(self, block=True):
+    def newest(self, block=True, busy=False):
         if not self.states:
             if block:
                 self.stop.set()
