@@ -6,7 +6,8 @@ solves every QP the controller solved again with the plain cvxpy formulation
 (:func:`controller_node.preview_qp.solve_reference`). Prints a summary, then, as the last line,
 JSON with ``median_us``, ``p99_us`` (update after the pool build-up), ``cvxpy_median_us``,
 ``speedup_vs_cvxpy`` (cvxpy solve median ÷ full update median), ``max_abs_diff_w`` (largest
-|Δp| over all planned powers of all updates) and the paths the QP took.
+|Δp| over all planned powers of all updates), the paths the QP took, ``warm_median_us`` (a new
+controller fed the same states back to back: the update with warm caches) and the load.
 
 Usage: ``python benchmarks/bench_preview.py [--scenario double-track]``
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -49,10 +51,12 @@ def main() -> None:
     plant = ThermalModel(sc.settings, sc.plan)
     settings = ControllerSettings(set_point_m2=0.063e-6)
     ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
+    load_at_start = os.getloadavg()[0]
     obs = plant.initial_observation()
-    times, problems, plans = [], [], []
+    times, problems, plans, seen = [], [], [], []
     while not plant.done:
         m = measurement(obs)
+        seen.append(m)
         t0 = time.perf_counter()
         cmd, diag = ctrl.update(m)
         elapsed = time.perf_counter() - t0
@@ -61,6 +65,13 @@ def main() -> None:
             problems.append(ctrl.last_qp)
             plans.append(np.array(diag.predicted_power_w))
         obs = plant.step(cmd.power_w, 0.8)
+    warm = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
+    warm_times = []
+    for m in seen:  # the same states back to back: nothing between the updates evicts their caches
+        t0 = time.perf_counter()
+        warm.update(m)
+        if m.step >= settings.preview.observer_start_steps:
+            warm_times.append(time.perf_counter() - t0)
     ref_times, diffs, paths = [], [], collections.Counter()
     for (gamma, c, previous, margin), plan in zip(problems, plans):
         paths[ctrl.qp.solve(gamma, c, previous, margin).path] += 1
@@ -74,7 +85,9 @@ def main() -> None:
         "cvxpy_median_us": round(float(np.median(ref_times)) * 1e6, 1),
         "speedup_vs_cvxpy": round(float(np.median(ref_times) / np.median(times)), 1),
         "max_abs_diff_w": max(diffs),
+        "warm_median_us": round(float(np.median(warm_times)) * 1e6, 1),
         "n_updates": len(times),
+        "loadavg_1min_at_start": round(load_at_start, 2),
         "qp_paths": dict(paths),
         "scenario": args.scenario,
         "model": "gp_trainer/models/in625_narx_gp.json",
