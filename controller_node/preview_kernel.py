@@ -1,6 +1,8 @@
-"""The preview MPC's hot path, compiled: prediction, Jacobian and unconstrained QP step in one pass.
+"""The preview MPC's hot path, compiled: prediction, Jacobian and unconstrained QP step.
 
-:class:`controller_node.preview.PreviewMPC` calls :func:`linearise` once per update. For the
+:class:`controller_node.preview.PreviewMPC` calls :func:`linearise` once per update (two compiled
+passes around numpy's vectorised ``exp`` of the GP kernel's exponents, into a :class:`Workspace`),
+after :func:`push_history` and :func:`correction_into`. For the
 planned powers ū (the previous plan, shifted) it evaluates, for m = 1..H (model of
 :mod:`gp_trainer.narx`, rows indexed ``i = m − 1``)::
 
@@ -23,7 +25,8 @@ the caller hands Γ, c to :meth:`~controller_node.preview_qp.PreviewQP.finish`.
 
 Why compiled: the same computation in numpy is ~60 array operations on (40, 150)-sized data.
 Between FE steps or plant frames the controller's caches are cold, and each operation then costs
-several µs of dispatch (``docs/controller.md``, "Speed"). The numpy formulation stays the
+several µs of dispatch; so does each fresh allocation and each small BLAS call, hence the
+workspace and the loops over Γ's triangular structure (``docs/controller.md``, "Speed"). The numpy formulation stays the
 reference: ``tests/test_preview_kernel.py`` checks this kernel against the model's own
 prediction (:meth:`gp_trainer.narx.NarxGPModel.predict_run`), its Jacobian against finite
 differences, and the QP terms against :meth:`PreviewQP.hessian` / :meth:`PreviewQP.gradient`.
