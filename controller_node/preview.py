@@ -115,6 +115,7 @@ class PreviewMPC(Controller):
         self.turn_corrections_by_turn_m2: list[np.ndarray] = []   # learned for turn j of this layer
         self._prior_by_turn: list[np.ndarray] = []                # learned for turn j of the previous layer
         self._learned = False
+        self._last_qp: tuple | None = None      # views into the workspace (see last_qp)
 
     # ------------------------------------------------------------------ bookkeeping
     def _check_period(self, m: Measurement) -> None:
@@ -258,9 +259,11 @@ class PreviewMPC(Controller):
                          self._qp_terms, self.qp.moves, blind, self._work)
 
     @property
-    def last_qp(self) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
+    def last_qp(self) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None] | None:
         """The QP of the last update (benchmarks, tests): copies of Γ (H, H) and c (H,), ``p[k]`` [W]
-        and the bound tightening (None without)."""
+        and the bound tightening (None without); None if the last update solved no QP."""
+        if self._last_qp is None:
+            return None
         gamma, c, previous, margin = self._last_qp
         return gamma.copy(), c.copy(), previous, None if margin is None else margin.copy()
 
@@ -297,6 +300,7 @@ class PreviewMPC(Controller):
         correction = self._correction_over_horizon(since, on_first, to_end) if self._learned \
             else self._no_correction
         blind = 0 if built_up else ps.observer_start_steps - (m.step - self._layer_start_step) - 1
+        self._last_qp = None                     # the workspace is overwritten now
         status = self._linearise(forecast, since, to_end, correction, blind)
         work = self._work
         gamma, c, std, v, areas = work.gamma, work.c, work.std, work.v, work.areas

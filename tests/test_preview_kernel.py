@@ -158,4 +158,5 @@ def test_an_absurd_state_gives_the_fallback_never_a_plan_from_it(model):
     cmd, diag = ctrl.update(Measurement(step=30, time_s=30 * 50e-6, area_m2=SP, t_ahead_k=1e7, power_w=250.0,
                                         speed_m_s=0.8, track=0))
     assert diag.status == "model_error" and diag.fallback
+    assert ctrl.last_qp is None  # no QP from it (the workspace holds the absurd linearisation)
     assert settings.power_min_w <= cmd.power_w <= settings.power_max_w
