@@ -69,7 +69,6 @@ class PreviewMPC(Controller):
         self._forecast_out = np.empty(h)
         n_p, n_t = b.size, model.temperature_coefficients.size
         self._nb, self._nc, self._h = n_p, n_t, h
-        self._rows = np.arange(h)
         self._coef = (np.array([model.intercept]), b, model.power_square_coefficients,
                       model.temperature_coefficients, model.temperature_square_coefficients,
                       model.power_temperature_coefficients)
@@ -89,7 +88,17 @@ class PreviewMPC(Controller):
         self._qp_terms = np.r_[settings.set_point_m2, qp.scale, qp.r, 0.0, qp.v_lo, qp.v_hi, qp.e_lo, qp.e_hi,
                                ps.uncertainty_z, qp.weights]
         super().__init__(settings)
-        self._linearise(np.zeros(h), since=0, to_end=None, correction=self._no_correction, blind=h)  # compile now
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Call every compiled function once, with the argument types of a run, at zero histories:
+        each is compiled (or loaded from numba's cache) now, not at the first state or the first
+        learned turn of a run."""
+        h = self._h
+        push_history(self._p, 0, 0.0, np.zeros(self._nc), 0, 0.0)
+        forecast = self._forecast(0.0, 0, True, None, None)
+        correction_into(0, True, -1, self._no_correction, self._no_correction, self._correction_out)
+        self._linearise(forecast, since=0, to_end=None, correction=self._no_correction, blind=h)
 
     def reset(self) -> None:
         """Forget the run: histories, disturbance estimate, plan, learned turnaround profile."""

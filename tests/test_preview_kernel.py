@@ -129,6 +129,26 @@ def test_a_closed_loop_compiles_the_kernel_once(model):
                                                    correction_into))
 
 
+def test_building_the_controller_compiles_every_compiled_function():
+    """In a fresh interpreter, constructing the controller has compiled (or loaded) every numba
+    function the update calls, so none compiles at a run's first state or first learned turn."""
+    import subprocess
+    import sys
+
+    script = (
+        "from controller_node.registry import make_controller\n"
+        "from controller_node.settings import ControllerSettings\n"
+        "from controller_node import preview_kernel as k\n"
+        "from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel, forecast_into\n"
+        "model = NarxGPModel.load(DEFAULT_MODEL_PATH)\n"
+        "make_controller('preview-mpc', ControllerSettings(set_point_m2=6.3e-8), model)\n"
+        "print([len(f.signatures) for f in (k._regressors, k._linearised_qp, k.push_history, k.correction_into,"
+        " forecast_into)])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=600)
+    assert out.stdout.strip().splitlines()[-1] == "[1, 1, 1, 1, 1]"
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_the_plan_equals_cvxpy_at_random_states_of_the_shipped_model(model, seed):
     """Issue 12: the fast path (or DAQP where a bound is active) equals the cvxpy reference within
