@@ -470,7 +470,8 @@ class NarxGPModel:
         """``x = exp(z)`` or ``z`` [m²] and ``∂x/∂z`` [m² per unit of z] at ``z``, one exponential."""
         if self.output != "log":
             return z, np.ones_like(z)
-        x = np.exp(z)
+        with np.errstate(over="ignore"):  # an absurd input overflows: handled just below
+            x = np.exp(z)
         if np.max(z) > _LOG_AREA_MAX:  # an absurd input: inf, which the controller's safety layer rejects
             return np.full_like(np.asarray(z, dtype=float), np.inf), x
         return x, x
