@@ -33,10 +33,8 @@ import math
 
 import numpy as np
 
-from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_into
-
 from .base import Controller, Proposal
-from .preview_kernel import Workspace, correction_into, linearise, push_history
+from .preview_kernel import Kernel
 from .preview_qp import PreviewQP
 from .settings import ControllerSettings
 from .types import ConfigurationError, Measurement
@@ -65,46 +63,32 @@ class PreviewMPC(Controller):
         self.model = model
         ps = settings.preview
         h, b = ps.horizon, model.power_coefficients
-        self._decay = model.forecast_persistence ** np.arange(1.0, h + 1)   # ρ^j of the T forecast
-        self._forecast_out = np.empty(h)
-        n_p, n_t = b.size, model.temperature_coefficients.size
-        self._nb, self._nc, self._h = n_p, n_t, h
-        self._coef = (np.array([model.intercept]), b, model.power_square_coefficients,
-                      model.temperature_coefficients, model.temperature_square_coefficients,
-                      model.power_temperature_coefficients)
-        self._gp_scalars, self._gp_points, self._gp_var = model.residual.kernel_terms()
-        self._work = Workspace(h, n_p, n_t, self._gp_points.shape[1])
-        self._psi = self._work.psi              # the GP's inputs of the last update
-        self._n_variance = h if ps.uncertainty_z > 0 else 1
-        self._theta_p = np.r_[b, model.power_square_coefficients]
+        self._nb, self._h = b.size, h
+        self._b0, self._q0 = float(b[0]), float(model.power_square_coefficients[0])   # of p[k+1]
         self._e0 = float(model.power_temperature_coefficients[0]) if model.power_temperature_coefficients.size else 0.0
-        self._no_correction = np.zeros(h)
-        self._correction_out = np.zeros(h)
         self.qp = PreviewQP(h, settings.set_point_m2, q=ps.q, q_f=ps.q_f, r=ps.r, power_scale_w=ps.power_scale_w,
                             power_min_w=settings.power_min_w, power_max_w=settings.power_max_w,
                             area_min_m2=ps.area_min_m2, area_max_m2=ps.area_max_m2,
                             slack_linear=ps.slack_linear, slack_quadratic=ps.slack_quadratic)
-        qp = self.qp
-        self._qp_terms = np.r_[settings.set_point_m2, qp.scale, qp.r, 0.0, qp.v_lo, qp.v_hi, qp.e_lo, qp.e_hi,
-                               ps.uncertainty_z, qp.weights]
+        self._kernel = Kernel(model, self.qp, h if ps.uncertainty_z > 0 else 1, ps.uncertainty_z,
+                              len(model.turn_profile_k), ps.turn_learning_steps)
+        self._psi = self._kernel.psi             # the GP's inputs of the last update
         super().__init__(settings)
         self._warm_up()
 
     def _warm_up(self) -> None:
-        """Call every compiled function once, with the argument types of a run, at zero histories:
-        each is compiled (or loaded from numba's cache) now, not at the first state or the first
-        learned turn of a run."""
-        h = self._h
-        push_history(self._p, 0, 0.0, np.zeros(self._nc), 0, 0.0)
-        forecast = self._forecast(0.0, 0, True, None, None)
-        correction_into(0, True, -1, self._no_correction, self._no_correction, self._correction_out)
-        self._linearise(forecast, since=0, to_end=None, correction=self._no_correction, blind=h)
+        """Call the compiled update once, with the argument types of a run, pushing nothing into the
+        histories: it is compiled (or loaded from numba's cache) now, not at the first state of a run."""
+        self._kernel.update(0, 0.0, 0, 0.0, 0, True, -1, math.nan, True, 0.0, self._h)
 
     def reset(self) -> None:
         """Forget the run: histories, disturbance estimate, plan, learned turnaround profile."""
         super().reset()
-        self._p = np.zeros(self._nb)             # p[k], p[k−1], ...
-        self._t: np.ndarray | None = None        # T[k−n_c+1 .. k]
+        k = self._kernel
+        self._p, self._t = k.p_hist, k.t_hist     # p[k], p[k−1], ... and T[k−n_T+1 .. k], in the kernel
+        self._p[:] = 0.0
+        self._t_known = False                    # T history filled with the first state's
+        self._p_fill = self._t_fill = 0          # copies of p[k], T[k] that the next update pushes
         self._prev: Measurement | None = None
         self._first: Measurement | None = None
         self._first_track: int | None = None
@@ -112,8 +96,10 @@ class PreviewMPC(Controller):
         self._layer_start_step = 0               # laser-on of the current layer (a new pool)
         self._turn_base_k: float | None = None   # T ahead in the state before the last turn
         self._observed: list[float] = []        # T rise after the last turn, as seen
-        self._profile = np.array(self.model.turn_profile_k, dtype=float)
-        self._plan = np.full(self._h, self.settings.nominal_power_w)
+        self._profile = k.profile
+        self._profile[:] = self.model.turn_profile_k
+        self._plan = k.plan
+        self._plan[:] = self.settings.nominal_power_w
         self._base0_m2: float | None = None      # x̂[k+1|k] without p[k+1] and d̂, for the observer
         self._base0_correction = 0.0             # the learned turnaround correction in that prediction
         self.disturbance_m2 = 0.0
@@ -124,6 +110,7 @@ class PreviewMPC(Controller):
         self.turn_corrections_by_turn_m2: list[np.ndarray] = []   # learned for turn j of this layer
         self._prior_by_turn: list[np.ndarray] = []                # learned for turn j of the previous layer
         self._learned = False
+        self._sync_corrections()
         self._last_qp: tuple | None = None      # views into the workspace (see last_qp)
 
     # ------------------------------------------------------------------ bookkeeping
@@ -138,18 +125,18 @@ class PreviewMPC(Controller):
                                      f"identified at {expected * 1e6:.4g} µs; retrain at the plant's period")
 
     def _observe(self, m: Measurement) -> None:
-        """Push ``p[k]``, ``T[k]`` into the histories and follow tracks and turnarounds."""
+        """Count the copies of ``p[k]``, ``T[k]`` the update pushes into the histories (one per step
+        since the last state) and follow tracks and turnarounds."""
         prev = self._prev
         gap = 1 if prev is None else max(1, m.step - prev.step)
-        fill = min(gap, self._nb)
+        self._p_fill = min(gap, self._nb)
         if m.step == 0:
             self._p[:] = 0.0
-            fill = 0
-        t_fill = min(gap, self._nc)
-        if self._t is None:
-            self._t = np.full(self._nc, m.t_ahead_k)
-            t_fill = 0
-        push_history(self._p, fill, m.power_w, self._t, t_fill, m.t_ahead_k)
+            self._p_fill = 0
+        self._t_fill = min(gap, self._t.size)
+        if not self._t_known:
+            self._t[:] = m.t_ahead_k
+            self._t_known, self._t_fill = True, 0
         if self._first_track is None:
             self._first_track = m.track
         new_layer = prev is not None and m.layer is not None and m.layer != prev.layer
@@ -159,6 +146,7 @@ class PreviewMPC(Controller):
             self._learn_turn_correction()
             self._prior_by_turn, self.turn_corrections_by_turn_m2 = self.turn_corrections_by_turn_m2, []
             self._turn = -1
+            self._sync_corrections()
         new_track = not new_layer and prev is not None and m.track is not None and m.track != prev.track
         if new_track:
             self._learn_profile()
@@ -167,6 +155,7 @@ class PreviewMPC(Controller):
             self._turn_base_k = prev.t_ahead_k
             self._observed = []
             self._track_start_step = m.step
+            self._sync_corrections()
         if m.track_elapsed_s is not None:
             self._track_start_step = m.step - round(m.track_elapsed_s / self.model.sample_period_s)
         if self._turn_base_k is not None:
@@ -176,6 +165,12 @@ class PreviewMPC(Controller):
         """The correction applied after turn ``turn`` of the layer: what the previous layer learned at
         the same turn, else the latest learned in this run."""
         return self._prior_by_turn[turn] if 0 <= turn < len(self._prior_by_turn) else self.turn_correction_m2
+
+    def _sync_corrections(self) -> None:
+        """Copy the corrections after the current track's turn and after the next turn into the kernel
+        (after every change of the turn index or of what was learned)."""
+        self._kernel.current[:] = self._correction_for(self._turn)
+        self._kernel.following[:] = self._correction_for(self._turn + 1)
 
     def _learn_turn_correction(self) -> None:
         """Iterative learning over turnarounds: ``c ← c_j + κ ε_j`` with ``c_j`` the correction applied
@@ -227,17 +222,8 @@ class PreviewMPC(Controller):
         self.turn_correction_m2[:] = correction
         self._prior_by_turn = [c.copy() for c in by_turn]
         self._profile[:] = profile
-        self._learned = bool(np.any(correction)) or any(np.any(c) for c in by_turn)
-
-    def _correction_over_horizon(self, since: int, on_first: bool, to_end: int | None) -> np.ndarray:
-        """The learned correction of the states k+1..k+H, shape (H,) [m²]
-        (:func:`~controller_node.preview_kernel.correction_into`; the array is reused by the next
-        update): ``since`` the states since the current track's start, ``to_end`` until its last
-        (None: no turn ahead)."""
-        if self.turn_correction_m2.size:
-            correction_into(since, on_first, -1 if to_end is None else to_end, self._correction_for(self._turn),
-                            self._correction_for(self._turn + 1), self._correction_out)
-        return self._correction_out
+        self._learned = bool(np.any(correction)) or any(bool(np.any(c)) for c in by_turn)
+        self._sync_corrections()
 
     def _learn_profile(self) -> None:
         """Replace the trained turnaround profile by the one just observed, where observed."""
@@ -247,26 +233,6 @@ class PreviewMPC(Controller):
             self._profile[n:] = self._profile[n - 1] if n < self._profile.size and n > 0 else self._profile[n:]
 
     # ------------------------------------------------------------------ control law
-    def _forecast(self, t_now_k: float, since: int, on_first: bool, to_end: int | None,
-                  t_base_k: float | None) -> np.ndarray:
-        """T ahead over the horizon, shape (H,) [K] (:func:`gp_trainer.narx.forecast_t_ahead` with
-        this run's turnaround profile; the array is reused by the next update)."""
-        forecast_into(t_now_k, since, on_first, -1 if to_end is None else to_end, self._profile,
-                      math.nan if t_base_k is None else t_base_k, self._decay, self._forecast_out)
-        return self._forecast_out
-
-    def _linearise(self, forecast: np.ndarray, since: int, to_end: int | None, correction: np.ndarray,
-                   blind: int) -> int:
-        """:func:`controller_node.preview_kernel.linearise` at the current histories and plan into the
-        workspace; its status (before the first state, at zero histories: that call compiles the
-        kernel, or loads it from numba's cache)."""
-        self._qp_terms[3] = self._p[0]
-        t_hist = self._t if self._t is not None else np.zeros(self._nc)
-        return linearise(self._p, t_hist, forecast, self._plan, since, -1 if to_end is None else to_end,
-                         float(STEPS_SINCE_START_CAP), self.model.output == "log", self._coef, self._gp_scalars,
-                         self._gp_points, self._gp_var, self._n_variance, correction, self.disturbance_m2,
-                         self._qp_terms, self.qp.moves, blind, self._work)
-
     @property
     def last_qp(self) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None] | None:
         """The QP of the last update (benchmarks, tests): copies of Γ (H, H) and c (H,), ``p[k]`` [W]
@@ -285,7 +251,7 @@ class PreviewMPC(Controller):
         self._observe(m)
         built_up = m.step - self._layer_start_step >= ps.observer_start_steps
         if consecutive and self._base0_m2 is not None and built_up:
-            z = (self._base0_m2 + self._theta_p[0] * m.power_w + self._theta_p[self._nb] * m.power_w ** 2
+            z = (self._base0_m2 + self._b0 * m.power_w + self._q0 * m.power_w ** 2
                  + self._e0 * m.power_w * self._base_t0)
             predicted = self.model.area_at(z) + self._base0_correction  # x̂[k|k−1], applied p[k]
             error = m.area_m2 - predicted - self.disturbance_m2
@@ -304,14 +270,14 @@ class PreviewMPC(Controller):
             if m.next_track is False:
                 to_end = None  # the layer ends: nothing after this track to forecast
         on_first = m.track is None or m.track == self._first_track
-        forecast = self._forecast(m.t_ahead_k, since, on_first, to_end, self._turn_base_k)
         sp = s.set_point_m2
-        correction = self._correction_over_horizon(since, on_first, to_end) if self._learned \
-            else self._no_correction
         blind = 0 if built_up else ps.observer_start_steps - (m.step - self._layer_start_step) - 1
         self._last_qp = None                     # the workspace is overwritten now
-        status = self._linearise(forecast, since, to_end, correction, blind)
-        work = self._work
+        work = self._kernel
+        status = work.update(self._p_fill, m.power_w, self._t_fill, m.t_ahead_k, since, on_first,
+                             -1 if to_end is None else to_end,
+                             math.nan if self._turn_base_k is None else self._turn_base_k, self._learned,
+                             self.disturbance_m2, blind)
         gamma, c, std, v, areas = work.gamma, work.c, work.std, work.v, work.areas
         if status == 2:  # an absurd input: no plan from it
             return Proposal(math.nan, status="model_error")
@@ -331,13 +297,12 @@ class PreviewMPC(Controller):
             plan = np.concatenate((self._plan[1:], self._plan[-1:]))   # ū = p̄[k+1..k+H]
             new_plan, fast = result.power_w, result.path == "fast"
             areas = work.predicted + (gamma * (sp / self.qp.scale)) @ (new_plan - plan)  # ∂x̂/∂u (H, H) times the move
-        self._plan = new_plan
+        self._plan[:] = new_plan
         # z of x̂[k+1] without the p[k+1] terms, for the next observer update
         t_now = float(self._t[-1])
-        self._base0_m2 = float(work.z[0] - self._theta_p[0] * u1 - self._theta_p[self._nb] * u1 ** 2
-                               - self._e0 * u1 * t_now)
+        self._base0_m2 = float(work.z[0] - self._b0 * u1 - self._q0 * u1 ** 2 - self._e0 * u1 * t_now)
         self._base_t0 = t_now
-        self._base0_correction = float(correction[0])
+        self._base0_correction = float(work.correction[0])
         return Proposal(
             power_w=float(new_plan[0]),
             plan_w=tuple(new_plan.tolist()),

@@ -1,10 +1,10 @@
 """The preview MPC's hot path, compiled: prediction, Jacobian and unconstrained QP step.
 
-:class:`controller_node.preview.PreviewMPC` calls :func:`linearise` once per update (two compiled
-passes around numpy's vectorised ``exp`` of the GP kernel's exponents, into a :class:`Workspace`),
-after :func:`push_history` and :func:`correction_into`. For the
-planned powers ū (the previous plan, shifted) it evaluates, for m = 1..H (model of
-:mod:`gp_trainer.narx`, rows indexed ``i = m − 1``)::
+:class:`controller_node.preview.PreviewMPC` makes one call per update, :meth:`Kernel.update`
+(compiled :func:`update_into`): it pushes the state's power and T ahead into the histories,
+forecasts T ahead over the horizon (:func:`gp_trainer.narx.forecast_into`), lays out the learned
+turnaround correction (:func:`correction_into`), and, for the planned powers ū (the previous plan,
+shifted), evaluates for m = 1..H (model of :mod:`gp_trainer.narx`, rows indexed ``i = m − 1``)::
 
     z_m = c₀ + Σ_i (b_i p_i + q_i p_i²) + Σ_j c_j T_j + Σ_{j<n_Tq} d_j T_j² + Σ_{i<n_x} e_i p_i T_i + r(ψ_{k+m−1})
     x̂_m = exp(z_m) (log output) + d̂ + κ-learned correction_m
@@ -23,11 +23,14 @@ bounds and ``e = Γ v* + c`` (± the bound tightening) inside the area bounds, i
 solution (the fast path, as :meth:`controller_node.preview_qp.PreviewQP.finish` decides); else
 the caller hands Γ, c to :meth:`~controller_node.preview_qp.PreviewQP.finish`.
 
-Why compiled: the same computation in numpy is ~60 array operations on (40, 150)-sized data.
-Between FE steps or plant frames the controller's caches are cold, and each operation then costs
-several µs of dispatch; so does each fresh allocation and each small BLAS call, hence the
-workspace and the loops over Γ's triangular structure (``docs/controller.md``, "Speed"). The numpy formulation stays the
-reference: ``tests/test_preview_kernel.py`` checks this kernel against the model's own
+Why one compiled call over flat arrays: between FE steps or plant frames the controller's caches
+are cold, and each call from Python into compiled code or numpy then costs about 10 µs of
+dispatch, each argument more, each fresh allocation and each small BLAS call a cache miss
+(``docs/controller.md``, "Speed"). So the model's constants, the run's histories and plan, and
+every result live in three flat arrays allocated once (:class:`Kernel`, named views into them),
+the GP kernel's exponential is a vectorisable loop (:func:`exp_into`, within 1 ulp of numpy's),
+and the Hessian is formed by loops over Γ's triangular structure. The numpy formulation stays
+the reference: ``tests/test_preview_kernel.py`` checks this kernel against the model's own
 prediction (:meth:`gp_trainer.narx.NarxGPModel.predict_run`), its Jacobian against finite
 differences, and the QP terms against :meth:`PreviewQP.hessian` / :meth:`PreviewQP.gradient`.
 """
@@ -39,7 +42,9 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["Workspace", "correction_into", "linearise", "push_history"]
+from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_into
+
+__all__ = ["Kernel", "correction_into", "exp_into", "push_history", "update_into"]
 
 _REORDER = {"reassoc", "contract"}
 """Floating-point licence of the compiled passes: sums may be reordered (vectorised) and multiply-adds
@@ -80,12 +85,10 @@ def correction_into(since, on_first, to_end, current, following, out):  # pragma
 
 
 @njit(cache=True, nogil=True)
-def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_points, psi, exponents, powers,
-                temps):  # pragma: no cover (compiled)
-    """The lagged powers and temperatures of the rows (into ``powers``, ``temps``), their GP inputs ψ
-    (into ``psi``) and the SE kernel's exponents ``w·W_a − ‖W_a‖²/2 − ‖w‖²/2`` (into ``exponents``,
-    shape (H, N))."""
-    h, n_p, n_t, n_gp = plan.size, p_hist.size, t_hist.size, gp_points.shape[1]
+def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, psi, powers, temps):  # pragma: no cover
+    """The lagged powers and temperatures of the rows (into ``powers``, ``temps``) and their GP inputs ψ
+    (into ``psi``)."""
+    h, n_p, n_t = plan.size, p_hist.size, t_hist.size
     for i in range(n_p):                            # p[k−n_p+1 .. k], ū
         powers[i] = p_hist[n_p - 1 - i]
     for i in range(h - 1):
@@ -101,30 +104,145 @@ def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_poi
         mean_power += powers[last_p] - powers[last_p - n_p]
         s = since + row if to_end < 0 or row <= to_end else row - to_end - 1
         psi[row, 0], psi[row, 1], psi[row, 2] = temps[last_t], math.log1p(min(s, s_cap)), mean_power / n_p
-        w0 = (psi[row, 0] - gp[0]) * gp[3]
-        w1 = (psi[row, 1] - gp[1]) * gp[4]
-        w2 = (psi[row, 2] - gp[2]) * gp[5]
-        half_w = 0.5 * (w0 * w0 + w1 * w1 + w2 * w2)
-        for a in range(n_gp):
-            exponents[row, a] = w0 * gp_points[0, a] + w1 * gp_points[1, a] + w2 * gp_points[2, a] + gp_points[3, a] \
-                - half_w
 
 
-class Workspace:
-    """The arrays one :func:`linearise` call fills, allocated once per controller (an update then
-    allocates nothing: between plant steps every fresh allocation is a cache miss).
+_EXP_MAX = 709.782712893384
+"""Largest argument whose exponential is finite."""
+_EXP_MIN = -708.0
+"""Smallest argument whose exponential :func:`exp_into` evaluates (below it: 0, an error < 3.4e-308)."""
+_LOG2E, _LN2_HI, _LN2_LO = 1.4426950408889634, 6.93147180369123816490e-01, 1.90821492927058770002e-10
+
+
+@njit(cache=True, nogil=True, fastmath=_REORDER)
+def exp_into(a, bits):  # pragma: no cover (compiled)
+    """``a ← exp(a)`` elementwise, in place, as loops the compiler vectorises (``math.exp`` in a
+    compiled loop is one scalar call per element, about 7× slower here).
+
+    ``exp(x) = 2ⁿ e^r`` with ``n = round(x / ln 2)``, ``r = x − n ln 2`` (Cody–Waite, ``|r| <= ln2/2``)
+    and ``e^r`` by its Taylor polynomial to degree 13 (truncation < 2e-16 relative); ``2ⁿ`` is
+    built from its exponent bits in ``bits``, int64 of ``a``'s size. Within 1 ulp of ``numpy.exp``
+    (``tests/test_preview_kernel.py``); ``+inf`` above 709.78, 0 below −708 (where the true value
+    is below 3.4e-308), NaN stays NaN.
+    """
+    flat, exponent = a.reshape(-1), bits.reshape(-1)
+    for i in range(flat.size):
+        x0 = flat[i]
+        x = x0 if x0 >= _EXP_MIN else _EXP_MIN      # NaN too: its n must stay an integer
+        x = x if x <= _EXP_MAX else _EXP_MAX
+        n = math.floor(x * _LOG2E + 0.5)
+        r = (x - n * _LN2_HI) - n * _LN2_LO
+        e_r = 1.0 + r * (1.0 + r * (1 / 2 + r * (1 / 6 + r * (1 / 24 + r * (1 / 120 + r * (
+            1 / 720 + r * (1 / 5040 + r * (1 / 40320 + r * (1 / 362880 + r * (1 / 3628800 + r * (
+                1 / 39916800 + r * (1 / 479001600 + r / 6227020800))))))))))))
+        e_r = math.inf if x0 > _EXP_MAX else e_r
+        e_r = 0.0 if x0 < _EXP_MIN else e_r
+        flat[i] = e_r if x0 == x0 else x0
+        exponent[i] = (np.int64(n) + 1023) << 52
+    two_n = exponent.view(np.float64)
+    for i in range(flat.size):
+        flat[i] *= two_n[i]
+
+
+@njit(cache=True, nogil=True, fastmath=_REORDER)
+def _kernel_row(psi_row, gp, gp_points, kern, bits):  # pragma: no cover (compiled)
+    """The SE kernel ``k(ψ, ψ_a) = exp(w·W_a − ‖W_a‖²/2 − ‖w‖²/2)`` of one row's GP input ψ against every
+    training point, ``w`` the scaled input, into ``kern``, shape (N,) (``bits``: scratch of
+    :func:`exp_into`)."""
+    w0 = (psi_row[0] - gp[0]) * gp[3]
+    w1 = (psi_row[1] - gp[1]) * gp[4]
+    w2 = (psi_row[2] - gp[2]) * gp[5]
+    half_w = 0.5 * (w0 * w0 + w1 * w1 + w2 * w2)
+    for a in range(kern.size):
+        kern[a] = w0 * gp_points[0, a] + w1 * gp_points[1, a] + w2 * gp_points[2, a] + gp_points[3, a] - half_w
+    exp_into(kern, bits)
+
+
+@njit(cache=True, nogil=True)
+def _views(dims, consts, state, work):  # pragma: no cover (compiled)
+    """The named arrays inside the three flat ones (:class:`Kernel`): the one definition of their layout."""
+    n_p, n_t, n_tq, n_x, n_gp, h, n_profile, n_corr = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], \
+        dims[6], dims[7]
+    ends = np.cumsum(np.array([1, n_p, n_p, n_t, n_tq, n_x, 8, h, h + 9, h * h, 6 * n_gp, n_gp * n_gp]))
+    intercept, b, q, cc = consts[0:ends[0]], consts[ends[0]:ends[1]], consts[ends[1]:ends[2]], consts[ends[2]:ends[3]]
+    d, e, gp, decay = consts[ends[3]:ends[4]], consts[ends[4]:ends[5]], consts[ends[5]:ends[6]], consts[ends[6]:ends[7]]
+    qp_terms, moves = consts[ends[7]:ends[8]], consts[ends[8]:ends[9]].reshape((h, h))
+    gp_points = consts[ends[9]:ends[10]].reshape((6, n_gp))
+    var_f = consts[ends[10]:ends[11]].reshape((n_gp, n_gp))
+    ends = np.cumsum(np.array([n_p, n_t, h, n_profile, n_corr, n_corr]))
+    p_hist, t_hist, plan = state[0:ends[0]], state[ends[0]:ends[1]], state[ends[1]:ends[2]]
+    profile, current, following = state[ends[2]:ends[3]], state[ends[3]:ends[4]], state[ends[4]:ends[5]]
+    ends = np.cumsum(np.array([3 * h * h, 8 * h, 3 * h, n_gp, n_gp, n_p + h, n_t + h - 1, h, h]))
+    matrices, vectors = work[0:ends[0]].reshape((3, h, h)), work[ends[0]:ends[1]].reshape((8, h))
+    psi, kern = work[ends[1]:ends[2]].reshape((h, 3)), work[ends[2]:ends[3]]
+    bits, powers, temps = work[ends[3]:ends[4]].view(np.int64), work[ends[4]:ends[5]], work[ends[5]:ends[6]]
+    forecast, correction = work[ends[6]:ends[7]], work[ends[7]:ends[8]]
+    return (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f,
+            p_hist, t_hist, plan, profile, current, following,
+            matrices, vectors, psi, kern, bits, powers, temps, forecast, correction)
+
+
+def _sizes(dims) -> tuple[int, int, int]:
+    """Lengths of the flat ``consts``, ``state`` and ``work`` arrays of :func:`_views`."""
+    n_p, n_t, n_tq, n_x, n_gp, h, n_profile, n_corr = (int(v) for v in dims[:8])
+    return (1 + 2 * n_p + n_t + n_tq + n_x + 8 + h + h + 9 + h * h + 6 * n_gp + n_gp * n_gp,
+            n_p + n_t + h + n_profile + 2 * n_corr,
+            3 * h * h + 8 * h + 3 * h + 2 * n_gp + n_p + h + n_t + h - 1 + 2 * h)
+
+
+@njit(cache=True, nogil=True)
+def update_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k, since, on_first, to_end, t_base,
+                learned, disturbance, blind):  # pragma: no cover (compiled)
+    """One update's numerics (module docstring) in place; the status of :func:`_linearised_qp`.
+
+    ``p_fill``/``t_fill`` copies of ``power_w`` [W] / ``t_ahead_k`` [K] enter the histories
+    (:func:`push_history`); ``since``, ``on_first``, ``to_end`` (−1: no turn ahead), ``t_base`` [K]
+    (NaN: none) place the state on the scan plan (:func:`gp_trainer.narx.forecast_into`);
+    ``learned``: the learned turnaround correction applies (:func:`correction_into`, else 0);
+    ``disturbance`` d̂ [m²]; ``blind`` leading rows not tracked."""
+    (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f, p_hist, t_hist, plan, profile,
+     current, following, matrices, vectors, psi, kern, bits, powers, temps, forecast,
+     correction) = _views(dims, consts, state, work)
+    push_history(p_hist, p_fill, power_w, t_hist, t_fill, t_ahead_k)
+    forecast_into(t_ahead_k, since, on_first, to_end, profile, t_base, decay, forecast)
+    if learned and current.size:
+        correction_into(since, on_first, to_end, current, following, correction)
+    else:
+        correction[:] = 0.0
+    _regressors(p_hist, t_hist, forecast, plan, since, to_end, float(dims[10]), psi, powers, temps)
+    return _linearised_qp(powers, temps, kern, bits, dims[9] != 0, intercept[0], b, q, cc, d, e, gp, gp_points, var_f,
+                          dims[8], correction, disturbance, qp_terms, p_hist[0], moves, blind, psi, vectors, matrices)
+
+
+class Kernel:
+    """The model's constants, the run's histories and plan, and the workspace of one controller, as
+    the three flat arrays :func:`update_into` reads and fills (allocated once: an update allocates
+    nothing), with named views into them.
 
     Parameters
     ----------
-    horizon : int
-        ``H``.
-    n_powers, n_temperatures : int
-        ``n_p`` and ``n_T`` of the model.
-    n_points : int
-        ``N``, the residual GP's training points.
+    model : gp_trainer.narx.NarxGPModel
+        The delay-aware model.
+    qp : controller_node.preview_qp.PreviewQP
+        The QP (set point, scales, bounds, weights, move matrix).
+    n_variance : int
+        Rows whose GP variance is computed (the others' ``std`` is 0).
+    uncertainty_z : float
+        Bound tightening in standard deviations.
+    n_profile, n_correction : int
+        Lengths of the turnaround profile and of the learned correction.
 
     Attributes
     ----------
+    p_hist : numpy.ndarray, shape (n_p,)
+        ``p[k], p[k−1], …`` [W].
+    t_hist : numpy.ndarray, shape (n_T,)
+        ``T[k−n_T+1 .. k]`` [K].
+    plan : numpy.ndarray, shape (H,)
+        The previous plan ``p̄[k .. k+H−1]`` [W] (shifted to ū = p̄[k+1 .. k+H], last held, by the update).
+    profile : numpy.ndarray, shape (n_profile,)
+        Turnaround profile of the T-ahead forecast [K].
+    current, following : numpy.ndarray, shape (n_correction,)
+        Learned correction after the current track's turn and after the next turn [m²].
     gamma, hess : numpy.ndarray, shape (H, H)
         Γ and the QP's Hessian.
     c, predicted, z, std, f, v, areas : numpy.ndarray, shape (H,)
@@ -133,118 +251,76 @@ class Workspace:
         positive definite); x̂ at the plan ``P v`` [m²] (linearised).
     psi : numpy.ndarray, shape (H, 3)
         The GP inputs ψ_{k+m−1} (T ahead [K], log1p(min(s, cap)), mean power [W]).
+    forecast, correction : numpy.ndarray, shape (H,)
+        ``T̂[k+1 .. k+H]`` [K] and the learned correction of x̂_{k+1..k+H} [m²].
     """
 
-    def __init__(self, horizon: int, n_powers: int, n_temperatures: int, n_points: int) -> None:
-        h = horizon
-        self.matrices = np.zeros((3, h, h))         # Γ, Hessian, Cholesky factor
-        self.vectors = np.zeros((8, h))             # c, x̂, z, std, f, v, areas, ∂r/∂ψ₂
+    def __init__(self, model, qp, n_variance: int, uncertainty_z: float, n_profile: int, n_correction: int) -> None:
+        h = qp.horizon
+        scalars, points, var_f = model.residual.kernel_terms()
+        b, cc = model.power_coefficients, model.temperature_coefficients
+        self.dims = np.array([b.size, cc.size, model.temperature_square_coefficients.size,
+                              model.power_temperature_coefficients.size, points.shape[1], h, n_profile, n_correction,
+                              n_variance, model.output == "log", STEPS_SINCE_START_CAP], dtype=np.int64)
+        n_consts, n_state, n_work = _sizes(self.dims)
+        self.consts, self.state, self.work = np.zeros(n_consts), np.zeros(n_state), np.zeros(n_work)
+        (intercept, b_, q, cc_, d, e, gp, decay, qp_terms, moves, gp_points, var_f_, self.p_hist, self.t_hist,
+         self.plan, self.profile, self.current, self.following, self.matrices, self.vectors, self.psi, self.kern, _,
+         self.powers, self.temps, self.forecast, self.correction) = _views(self.dims, self.consts, self.state,
+                                                                           self.work)
+        intercept[0] = model.intercept
+        for view, value in ((b_, b), (q, model.power_square_coefficients), (cc_, cc),
+                            (d, model.temperature_square_coefficients), (e, model.power_temperature_coefficients),
+                            (gp, scalars), (decay, model.forecast_persistence ** np.arange(1.0, h + 1)),
+                            (moves, qp.moves), (gp_points, points), (var_f_, var_f),
+                            (qp_terms, np.r_[qp.x_sp, qp.scale, qp.r, 0.0, qp.v_lo, qp.v_hi, qp.e_lo, qp.e_hi,
+                                             uncertainty_z, qp.weights])):
+            view[...] = value
         self.gamma, self.hess, _ = self.matrices
         self.c, self.predicted, self.z, self.std, self.f, self.v, self.areas, _ = self.vectors
-        self.psi = np.zeros((h, 3))
-        self.kern = np.zeros((h, n_points))
-        self.powers = np.zeros(n_powers + h)        # p[k−n_p+1 .. k], ū
-        self.temps = np.zeros(n_temperatures + h - 1)   # T[k−n_T+1 .. k], T̂[k+1 .. k+H−1]
 
-
-def linearise(p_hist, t_hist, forecast, plan, since, to_end, s_cap, log_output, coef, gp, gp_points, var_f,
-              n_variance, correction, disturbance, qp_terms, moves, blind, work):
-    """Prediction, Jacobian and unconstrained QP step at the shifted plan (module docstring).
-
-    Two compiled passes around numpy's vectorised ``exp`` of the H × N kernel exponents (about
-    4 µs; a compiled loop of scalar exponentials took about 30 µs).
-
-    Parameters
-    ----------
-    p_hist : numpy.ndarray, shape (n_p,)
-        ``p[k], p[k−1], …`` [W].
-    t_hist : numpy.ndarray, shape (n_T,)
-        ``T[k−n_T+1 .. k]`` [K].
-    forecast : numpy.ndarray, shape (H,)
-        ``T̂[k+1 .. k+H]`` [K].
-    plan : numpy.ndarray, shape (H,)
-        The previous plan ``p̄[k .. k+H−1]`` [W]; shifted here to ū = p̄[k+1 .. k+H] (last held).
-    since : int
-        States since the current track's first state.
-    to_end : int
-        States until the current track's last state, −1 if no turn is ahead in the plan.
-    s_cap : float
-        Cap of the steps-since-start input.
-    log_output : bool
-        ``x = exp(z)`` (else ``x = z``).
-    coef : tuple of numpy.ndarray
-        ``(c₀ as shape (1,), b, q, c, d, e)`` of the model.
-    gp : numpy.ndarray, shape (8,)
-        ``(μ₀, μ₁, μ₂, g₀, g₁, g₂, σ², σ_n²)`` of the residual GP (input mean, inverse scaled
-        length-scales, prior and noise variance).
-    gp_points : numpy.ndarray, shape (6, N)
-        Per training point (columns): scaled input ``W_a`` (3 rows), ``−‖W_a‖²/2``, weight ``β_a``
-        and ``W_a2 β_a``.
-    var_f : numpy.ndarray, shape (N, N)
-        ``σ_f L⁻¹`` (lower triangular) in target units.
-    n_variance : int
-        Rows whose latent variance is computed (the others are 0).
-    correction : numpy.ndarray, shape (H,)
-        Learned turnaround correction of x̂_m [m²].
-    disturbance : float
-        ``d̂`` [m²].
-    qp_terms : numpy.ndarray, shape (H + 9,)
-        ``(x_sp [m²], P [W], r, p[k] [W], v_l, v_u, e_l, e_u, z, W_1 .. W_H)``: set point, power
-        scale, move weight, applied power, normalised power and area bounds, bound tightening in
-        standard deviations, stage weights.
-    moves : numpy.ndarray, shape (H, H)
-        ``2 r DᵀD``.
-    blind : int
-        Leading rows not tracked (pool build-up): weight 0 in the Hessian and gradient (Γ and c
-        are returned for all rows).
-    work : Workspace
-        Filled with the results (:class:`Workspace`), overwritten by the next call.
-
-    Returns
-    -------
-    status : int
-        0: ``v`` solves the QP (no bound active); 1: a bound is active or the Hessian is not
-        positive definite; 2: a prediction is not finite.
-    """
-    _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_points, work.psi, work.kern,
-                work.powers, work.temps)
-    np.exp(work.kern, out=work.kern)
-    return _linearised_qp(work.powers, work.temps, work.kern, log_output, coef, gp, gp_points, var_f, n_variance,
-                          correction, disturbance, qp_terms, moves, blind, work.psi, work.vectors, work.matrices)
+    def update(self, p_fill: int, power_w: float, t_fill: int, t_ahead_k: float, since: int, on_first: bool,
+               to_end: int, t_base_k: float, learned: bool, disturbance_m2: float, blind: int) -> int:
+        """:func:`update_into` on this kernel's arrays (its parameters); the status: 0 ``v`` solves the
+        QP (no bound active), 1 a bound is active or the Hessian is not positive definite, 2 a
+        prediction is not finite."""
+        return update_into(self.dims, self.consts, self.state, self.work, p_fill, power_w, t_fill, t_ahead_k, since,
+                           on_first, to_end, t_base_k, learned, disturbance_m2, blind)
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
-def _linearised_qp(powers, temps, kern, log_output, coef, gp, gp_points, var_f, n_variance, correction,
-                   disturbance, qp_terms, moves, blind, psi, vectors, matrices):  # pragma: no cover (compiled)
-    """:func:`linearise` from the kernel values ``kern`` = k(ψ_m, ψ_a), shape (H, N), into the
-    :class:`Workspace`'s ``vectors`` and ``matrices``."""
-    intercept, b, q, cc, d, e = coef
+def _linearised_qp(powers, temps, kern, bits, log_output, intercept, b, q, cc, d, e, gp, gp_points, var_f, n_variance,
+                   correction, disturbance, qp_terms, p_now, moves, blind, psi, vectors, matrices):  # pragma: no cover
+    """Prediction, Jacobian and unconstrained QP step (module docstring) from the regressors and the GP
+    inputs ``psi`` into :class:`Kernel`'s ``vectors`` and ``matrices`` (``kern``, ``bits``: one row's
+    kernel values and its scratch, shape (N,)); its status (:meth:`Kernel.update`)."""
     n_p, n_t, n_tq, n_x = b.size, cc.size, d.size, e.size
     h = powers.size - n_p
-    sp, scale, r, p_now = qp_terms[0], qp_terms[1], qp_terms[2], qp_terms[3]
+    sp, scale, r = qp_terms[0], qp_terms[1], qp_terms[2]
     v_lo, v_hi, e_lo, e_hi, z_sigma = qp_terms[4], qp_terms[5], qp_terms[6], qp_terms[7], qp_terms[8]
-    n_gp = kern.shape[1]
+    n_gp = kern.size
     beta, moment_weights = gp_points[4], gp_points[5]
     c, predicted, z, std, f, v, areas, gp_slope = vectors
     gamma, hess, chol = matrices
     std[:] = 0.0
-    for row in range(n_variance):                   # σ² − ‖σ_f L⁻¹ k‖² of the first rows
-        quad = 0.0
-        for a in range(n_gp):
-            projected = 0.0
-            for b2 in range(a + 1):
-                projected += var_f[a, b2] * kern[row, b2]
-            quad += projected * projected
-        std[row] = max(gp[6] - quad, 0.0) + gp[7]
     for row in range(h):
         last_p, last_t = n_p + row, n_t - 1 + row   # index of p[k+m] and of T[k+m−1]
+        _kernel_row(psi[row], gp, gp_points, kern, bits)
+        if row < n_variance:                        # σ² − ‖σ_f L⁻¹ k‖²
+            quad = 0.0
+            for a in range(n_gp):
+                projected = 0.0
+                for b2 in range(a + 1):
+                    projected += var_f[a, b2] * kern[b2]
+                quad += projected * projected
+            std[row] = max(gp[6] - quad, 0.0) + gp[7]
         gp_mean, gp_moment = 0.0, 0.0               # r(ψ_m) and Σ_a k_a W_a2 β_a (its mean-power slope)
         for a in range(n_gp):
-            gp_mean += kern[row, a] * beta[a]
-            gp_moment += kern[row, a] * moment_weights[a]
+            gp_mean += kern[a] * beta[a]
+            gp_moment += kern[a] * moment_weights[a]
         w2 = (psi[row, 2] - gp[2]) * gp[5]
         gp_slope[row] = gp[5] * (gp_moment - w2 * gp_mean) / n_p    # ∂r/∂ū_n through the mean power
-        zz = intercept[0] + gp_mean
+        zz = intercept + gp_mean
         for i in range(n_p):
             p = powers[last_p - i]
             zz += (b[i] + q[i] * p) * p

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from controller_node.preview import PreviewMPC
+from controller_node.preview_kernel import correction_into
 from controller_node.preview_qp import solve_reference
 from controller_node.registry import make_controller
 from controller_node.settings import ControllerSettings, PreviewSettings
@@ -192,11 +193,12 @@ def test_prediction_matches_the_model_along_the_previous_plan(turn_at):
         temperature_square_coefficients=np.full(2, 1e-6), power_temperature_coefficients=np.full(5, -2e-6),
         output="log", residual=fitted.residual, turn_profile_k=fitted.turn_profile_k, forecast_persistence=1.0,
         speed_m_s=0.8)
-    settings = ControllerSettings(set_point_m2=2e-8, preview=PreviewSettings(horizon=12, r=1e6, turn_learning_gain=0.0))
+    settings = ControllerSettings(set_point_m2=2e-8, preview=PreviewSettings(horizon=12, r=1e6, turn_learning_gain=0.0,
+                                                                             learn_turn_profile=False))
     ctrl = PreviewMPC(settings, model)
     run = runs[0]
     track = np.zeros(52, dtype=int) if turn_at is None else (np.arange(52) >= turn_at).astype(int)
-    ctrl._forecast = lambda t_now, *args: np.full(12, t_now)         # T held, after a turn too
+    ctrl._profile[:] = 0.0                                          # no T rise at a turn, ρ = 1: T held
     for k in range(40):
         plan = np.r_[ctrl._plan[1:], ctrl._plan[-1:]]             # ū: the previous plan, shifted
         _, diag = ctrl.update(_measurement(k, run.area_m2[k], run.t_ahead_k[k], run.power_w[k], int(track[k])))
@@ -258,7 +260,8 @@ def test_jacobian_of_lag_matched_interactions_uses_each_powers_own_temperature()
         temperature_square_coefficients=np.zeros(0), power_temperature_coefficients=np.array([4, 3, 2, 1, 0.5]) * 1e-14,
         output="identity", residual=fitted.residual, turn_profile_k=fitted.turn_profile_k, forecast_persistence=1.0,
         speed_m_s=0.8)
-    settings = ControllerSettings(set_point_m2=C0, preview=PreviewSettings(horizon=12, r=1.0, turn_learning_gain=0.0))
+    settings = ControllerSettings(set_point_m2=C0, preview=PreviewSettings(horizon=12, r=1.0, turn_learning_gain=0.0,
+                                                                            learn_turn_profile=False))
     ctrl = PreviewMPC(settings, model)
     run = synthetic_run(0)
     t = run.t_ahead_k + 300.0 * (np.arange(len(run)) % 4)          # 0, 300, 600, 900 K on top, repeating
@@ -266,14 +269,15 @@ def test_jacobian_of_lag_matched_interactions_uses_each_powers_own_temperature()
         _, diag = ctrl.update(_measurement(k, run.area_m2[k], t[k], run.power_w[k]))
         plan = np.r_[diag.predicted_power_w[1:], diag.predicted_power_w[-1:]]
     forecast = t[41] + 250.0 * (np.arange(1, 13) % 3)                   # T ahead over the horizon, varying too
-    ctrl._forecast = lambda *args: forecast
-    _, diag = ctrl.update(_measurement(41, run.area_m2[41], t[41], run.power_w[41]))
+    ctrl._profile[:13] = np.r_[0.0, forecast - t[41]]  # state 41 starts a track: T̂ = T[41] + profile[j] − profile[0]
+    _, diag = ctrl.update(_measurement(41, run.area_m2[41], t[41], run.power_w[41], track=1))
     jac = ctrl.last_qp[0] * settings.set_point_m2 / ctrl.qp.scale
     t_future = np.r_[t[:42], forecast]
+    track = (np.arange(54) >= 41).astype(int)
 
     def predicted(u):
         p = np.r_[run.power_w[:42], u]
-        return model.predict_run(RunSeries("f", np.ones(54), t_future, p, np.zeros(54, dtype=int), DT))[0][41:53]
+        return model.predict_run(RunSeries("f", np.ones(54), t_future, p, track, DT))[0][41:53]
 
     fd = np.column_stack([(predicted(plan + 1e-3 * e) - predicted(plan - 1e-3 * e)) / 2e-3 for e in np.eye(12)])
     assert np.allclose(jac, fd, rtol=0.0, atol=1e-4 * np.abs(fd).max())
@@ -353,9 +357,16 @@ def test_turnaround_learning_is_indexed_by_the_turn_across_layers(model):
     second._learn_turn_correction()
     assert _same(second.turn_corrections_by_turn_m2[0], learned[1] + 0.5e-9)   # from turn 1's own
     second._turn = 0  # state k is the 1st of track 1 (after turn 0); turn 1 comes after k+2
-    assert _same(second._correction_over_horizon(0, False, 2),
+    second._sync_corrections()
+
+    def over_horizon(on_first):  # what the update lays out over the horizon from the kernel's copies
+        out = np.zeros(10)
+        correction_into(0, on_first, 2, second._kernel.current, second._kernel.following, out)
+        return out
+
+    assert _same(over_horizon(False),
                  [learned[0][1], learned[0][2], learned[1][0], learned[1][1], learned[1][2]] + [0.0] * 5)
-    assert _same(second._correction_over_horizon(0, True, 2),   # the layer's first track: none before the turn
+    assert _same(over_horizon(True),   # the layer's first track: none before the turn
                  [0.0, 0.0, learned[1][0], learned[1][1], learned[1][2]] + [0.0] * 5)
     with pytest.raises(ValueError, match="by_turn"):
         second.load_learning_state({**first.learning_state(), "turn_corrections_by_turn_m2": [[1.0]]})

@@ -1,21 +1,16 @@
 """The compiled hot path of the preview MPC (controller_node.preview_kernel) against the numpy/LAPACK
-formulation: the GP's variance, the QP's Hessian and gradient, the Cholesky solve."""
+formulation: the exponential, the histories, forecast and learned correction of one update, the GP's
+variance, the QP's Hessian and gradient, the Cholesky solve."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from controller_node.preview_kernel import (
-    Workspace,
-    _linearised_qp,
-    _regressors,
-    correction_into,
-    linearise,
-    push_history,
-)
+from controller_node import preview_kernel
+from controller_node.preview_kernel import Kernel, correction_into, exp_into
 from controller_node.preview_qp import PreviewQP
-from gp_trainer.narx import DEFAULT_MODEL_PATH, STEPS_SINCE_START_CAP, NarxGPModel, forecast_into
+from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel, forecast_t_ahead
 
 H = 40
 SP = 0.063e-6
@@ -29,28 +24,23 @@ def model() -> NarxGPModel:
 def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_variance: int = H,
           area_max_m2: float = 5e-7, z_sigma: float = 0.0, power_min_w: float = -1e6, power_max_w: float = 350.0,
           stale: float | None = None):
+    """One update at random histories, plan and turnaround profile (so a random T forecast), pushing
+    nothing into the histories."""
     rng = np.random.default_rng(seed)
-    n_p, n_t = model.power_coefficients.size, model.temperature_coefficients.size
     qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=r, power_scale_w=350.0, power_min_w=power_min_w, power_max_w=power_max_w,
                    area_min_m2=0.0, area_max_m2=area_max_m2, slack_linear=100.0, slack_quadratic=1000.0)
-    p_hist = rng.uniform(150.0, 300.0, n_p)
-    t_hist = 900.0 + rng.normal(0.0, 50.0, n_t).cumsum()
-    forecast = t_hist[-1] + rng.normal(0.0, 20.0, H).cumsum()
-    plan = _case.plan = rng.uniform(150.0, 300.0, H)
-    scalars, points, var_f = model.residual.kernel_terms()
-    coef = (np.array([model.intercept]), model.power_coefficients, model.power_square_coefficients,
-            model.temperature_coefficients, model.temperature_square_coefficients,
-            model.power_temperature_coefficients)
-    terms = np.r_[SP, qp.scale, qp.r, p_hist[0], qp.v_lo, qp.v_hi, qp.e_lo, qp.e_hi, z_sigma, qp.weights]
-    work = Workspace(H, n_p, n_t, points.shape[1])
+    work = Kernel(model, qp, n_variance, z_sigma, len(model.turn_profile_k), 60)
     if stale is not None:  # what a previous update left in the workspace
-        for array in (work.matrices, work.vectors, work.psi, work.kern, work.powers, work.temps):
-            array[...] = stale
-    status = linearise(p_hist, t_hist, forecast, plan, int(rng.integers(0, 300)), int(rng.integers(-1, H)),
-                       float(STEPS_SINCE_START_CAP), True, coef, scalars, points, var_f, n_variance, np.zeros(H),
-                       0.0, terms, qp.moves, blind, work)
+        work.work[...] = stale
+    work.p_hist[:] = rng.uniform(150.0, 300.0, work.p_hist.size)
+    work.t_hist[:] = 900.0 + rng.normal(0.0, 50.0, work.t_hist.size).cumsum()
+    work.profile[:] = rng.normal(0.0, 20.0, work.profile.size).cumsum()
+    work.plan[:] = _case.plan = rng.uniform(150.0, 300.0, H)
+    t_now = float(work.t_hist[-1])
+    status = work.update(0, 0.0, 0, t_now, int(rng.integers(0, 300)), False, int(rng.integers(-1, H)), t_now - 30.0,
+                         False, 0.0, blind)
     out = (work.gamma, work.c, work.predicted, work.z, work.std, work.hess, work.f, work.v, work.areas, status)
-    return qp, p_hist, work.psi, out
+    return qp, work.p_hist.copy(), work.psi, out
 
 
 @pytest.mark.parametrize("stale", [np.nan, 1e300])
@@ -110,9 +100,10 @@ def test_a_hessian_that_is_not_positive_definite_gives_no_step(model):
     assert np.all(np.isnan(v)) and status == 1
 
 
-def test_a_closed_loop_compiles_the_kernel_once(model):
+def test_a_closed_loop_compiles_the_kernel_once_and_predicts_with_what_it_learned(model):
     """Every update calls the kernel with the argument types of its first (warm-up) call: no
-    recompilation, of seconds, in the middle of a run."""
+    recompilation, of seconds, in the middle of a run; after a turn it predicts with the correction
+    learned at the turns before."""
     from controller_node.registry import make_controller
     from controller_node.settings import ControllerSettings
     from controller_node.types import Measurement
@@ -124,9 +115,13 @@ def test_a_closed_loop_compiles_the_kernel_once(model):
                                 power_w=0.0 if k == 0 else 250.0, speed_m_s=0.8, track=track,
                                 track_elapsed_s=(k % 30) * 50e-6, track_remaining_s=(29 - k % 30) * 50e-6,
                                 next_track=track < 2))
+        if k == 65:  # 5 states into the layer's last track: the prediction carries what the turns taught
+            expected = np.zeros(H)
+            correction_into(5, False, -1, ctrl._correction_for(ctrl._turn), ctrl._correction_for(ctrl._turn + 1),
+                            expected)
+            assert np.any(expected) and np.array_equal(ctrl._kernel.correction, expected)
     assert ctrl._learned
-    assert all(len(f.signatures) == 1 for f in (_regressors, _linearised_qp, push_history, forecast_into,
-                                                   correction_into))
+    assert all(len(f.signatures) == 1 for f in (preview_kernel.update_into, preview_kernel._views))
 
 
 def test_building_the_controller_compiles_every_compiled_function():
@@ -139,14 +134,13 @@ def test_building_the_controller_compiles_every_compiled_function():
         "from controller_node.registry import make_controller\n"
         "from controller_node.settings import ControllerSettings\n"
         "from controller_node import preview_kernel as k\n"
-        "from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel, forecast_into\n"
+        "from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel\n"
         "model = NarxGPModel.load(DEFAULT_MODEL_PATH)\n"
         "make_controller('preview-mpc', ControllerSettings(set_point_m2=6.3e-8), model)\n"
-        "print([len(f.signatures) for f in (k._regressors, k._linearised_qp, k.push_history, k.correction_into,"
-        " forecast_into)])\n"
+        "print([len(f.signatures) for f in (k.update_into, k._views)])\n"
     )
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=600)
-    assert out.stdout.strip().splitlines()[-1] == "[1, 1, 1, 1, 1]"
+    assert out.stdout.strip().splitlines()[-1] == "[1, 1]"
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -180,3 +174,70 @@ def test_an_absurd_state_gives_the_fallback_never_a_plan_from_it(model):
     assert diag.status == "model_error" and diag.fallback
     assert ctrl.last_qp is None  # no QP from it (the workspace holds the absurd linearisation)
     assert settings.power_min_w <= cmd.power_w <= settings.power_max_w
+
+
+def test_the_exponential_is_numpys_within_one_ulp():
+    """exp_into, the kernel's vectorisable exponential, against numpy.exp over the kernel's range and
+    at its edges: +inf above 709.78, 0 below -708, NaN kept."""
+    rng = np.random.default_rng(0)
+    x = np.r_[rng.uniform(-708.0, 709.0, 20000), rng.uniform(-1.0, 1.0, 20000), rng.uniform(-40.0, 0.0, 20000),
+              -708.0, 0.0, 709.0, np.log(2.0) / 2, -np.log(2.0) / 2]
+    got = x.copy()
+    exp_into(got, np.zeros(x.size, dtype=np.int64))
+    assert np.all(np.abs(got - np.exp(x)) <= np.spacing(np.exp(x)))
+    edges = np.array([710.0, np.inf, -709.0, -np.inf, np.nan])
+    exp_into(edges, np.zeros(edges.size, dtype=np.int64))
+    assert edges[0] == edges[1] == np.inf and edges[2] == edges[3] == 0.0 and np.isnan(edges[4])
+
+
+def test_one_update_pushes_forecasts_and_lays_out_the_correction_as_the_reference_functions(model):
+    """The fused update's first steps: the histories shifted by p_fill/t_fill copies, T ahead forecast
+    as gp_trainer.narx.forecast_t_ahead, the learned correction as correction_into (0 when nothing
+    is learned)."""
+    rng = np.random.default_rng(7)
+    qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=1.0, power_scale_w=350.0, power_min_w=0.0, power_max_w=350.0,
+                   area_min_m2=0.0, area_max_m2=5e-7, slack_linear=100.0, slack_quadratic=1000.0)
+    work = Kernel(model, qp, 1, 0.0, len(model.turn_profile_k), 60)
+    work.p_hist[:] = p_before = rng.uniform(150.0, 300.0, work.p_hist.size)
+    work.t_hist[:] = t_before = 900.0 + rng.normal(0.0, 50.0, work.t_hist.size).cumsum()
+    work.profile[:] = rng.normal(0.0, 20.0, work.profile.size).cumsum()
+    work.current[:], work.following[:] = rng.normal(0.0, 1e-9, 60), rng.normal(0.0, 1e-9, 60)
+    work.plan[:] = rng.uniform(150.0, 300.0, H)
+    for since, to_end, learned in ((12, 25, True), (3, -1, True), (40, 5, False)):
+        work.p_hist[:], work.t_hist[:] = p_before, t_before
+        assert work.update(2, 210.0, 3, 1010.0, since, False, to_end, 950.0, learned, 0.0, 0) in (0, 1)
+        assert np.array_equal(work.p_hist, np.r_[210.0, 210.0, p_before[:-2]])
+        assert np.array_equal(work.t_hist, np.r_[t_before[3:], 1010.0, 1010.0, 1010.0])
+        expected = forecast_t_ahead(1010.0, since, False, None if to_end < 0 else to_end, work.profile, H, 950.0,
+                                    model.forecast_persistence)
+        assert np.allclose(work.forecast, expected, rtol=1e-15, atol=0.0)
+        correction = np.zeros(H)
+        if learned:
+            correction_into(since, False, to_end, work.current, work.following, correction)
+            assert np.any(correction)
+        assert np.array_equal(work.correction, correction)
+
+
+def test_each_turn_of_a_layer_predicts_with_the_previous_layers_correction_of_that_turn(model):
+    """Learning over layers: after turn j the kernel holds what the previous layer learned at turn j
+    (and at turn j + 1 for the states after the next turn)."""
+    from controller_node.preview import LEARNING_FORMAT
+    from controller_node.registry import make_controller
+    from controller_node.settings import ControllerSettings
+    from controller_node.types import Measurement
+
+    ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=SP), model)
+    by_turn = [np.full(60, (j + 1) * 1e-9) for j in range(3)]
+    ctrl.load_learning_state({"format": LEARNING_FORMAT, "sample_period_s": model.sample_period_s,
+                              "turn_correction_m2": [0.0] * 60,
+                              "turn_corrections_by_turn_m2": [c.tolist() for c in by_turn],
+                              "turn_profile_k": list(model.turn_profile_k)})
+    for k in range(100):  # four tracks of 25 states: turns 0, 1, 2
+        track = k // 25
+        ctrl.update(Measurement(step=k, time_s=k * 50e-6, area_m2=SP * min(1.0, k / 20), t_ahead_k=900.0 + 5 * k,
+                                power_w=0.0 if k == 0 else 250.0, speed_m_s=0.8, track=track,
+                                track_elapsed_s=(k % 25) * 50e-6, track_remaining_s=(24 - k % 25) * 50e-6,
+                                next_track=track < 3))
+        if track and k % 25 == 3:
+            assert np.array_equal(ctrl._kernel.current, by_turn[track - 1])
+            assert np.array_equal(ctrl._kernel.following, by_turn[track] if track < 3 else ctrl.turn_correction_m2)
