@@ -85,10 +85,12 @@ def correction_into(since, on_first, to_end, current, following, out):  # pragma
 
 
 @njit(cache=True, nogil=True)
-def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, psi, powers, temps):  # pragma: no cover
-    """The lagged powers and temperatures of the rows (into ``powers``, ``temps``) and their GP inputs ψ
-    (into ``psi``)."""
-    h, n_p, n_t = plan.size, p_hist.size, t_hist.size
+def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_points, psi, exponents, powers,
+                temps):  # pragma: no cover (compiled)
+    """The lagged powers and temperatures of the rows (into ``powers``, ``temps``), their GP inputs ψ
+    (into ``psi``) and the SE kernel's exponents ``w·W_a − ‖W_a‖²/2 − ‖w‖²/2`` (into ``exponents``,
+    shape (H, N), ``w`` the scaled input)."""
+    h, n_p, n_t, n_gp = plan.size, p_hist.size, t_hist.size, gp_points.shape[1]
     for i in range(n_p):                            # p[k−n_p+1 .. k], ū
         powers[i] = p_hist[n_p - 1 - i]
     for i in range(h - 1):
@@ -104,6 +106,13 @@ def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, psi, power
         mean_power += powers[last_p] - powers[last_p - n_p]
         s = since + row if to_end < 0 or row <= to_end else row - to_end - 1
         psi[row, 0], psi[row, 1], psi[row, 2] = temps[last_t], math.log1p(min(s, s_cap)), mean_power / n_p
+        w0 = (psi[row, 0] - gp[0]) * gp[3]
+        w1 = (psi[row, 1] - gp[1]) * gp[4]
+        w2 = (psi[row, 2] - gp[2]) * gp[5]
+        half_w = 0.5 * (w0 * w0 + w1 * w1 + w2 * w2)
+        for a in range(n_gp):
+            exponents[row, a] = w0 * gp_points[0, a] + w1 * gp_points[1, a] + w2 * gp_points[2, a] + gp_points[3, a] \
+                - half_w
 
 
 _EXP_MAX = 709.782712893384
@@ -143,20 +152,6 @@ def exp_into(a, bits):  # pragma: no cover (compiled)
         flat[i] *= two_n[i]
 
 
-@njit(cache=True, nogil=True, fastmath=_REORDER)
-def _kernel_row(psi_row, gp, gp_points, kern, bits):  # pragma: no cover (compiled)
-    """The SE kernel ``k(ψ, ψ_a) = exp(w·W_a − ‖W_a‖²/2 − ‖w‖²/2)`` of one row's GP input ψ against every
-    training point, ``w`` the scaled input, into ``kern``, shape (N,) (``bits``: scratch of
-    :func:`exp_into`)."""
-    w0 = (psi_row[0] - gp[0]) * gp[3]
-    w1 = (psi_row[1] - gp[1]) * gp[4]
-    w2 = (psi_row[2] - gp[2]) * gp[5]
-    half_w = 0.5 * (w0 * w0 + w1 * w1 + w2 * w2)
-    for a in range(kern.size):
-        kern[a] = w0 * gp_points[0, a] + w1 * gp_points[1, a] + w2 * gp_points[2, a] + gp_points[3, a] - half_w
-    exp_into(kern, bits)
-
-
 @njit(cache=True, nogil=True)
 def _views(dims, consts, state, work):  # pragma: no cover (compiled)
     """The named arrays inside the three flat ones (:class:`Kernel`): the one definition of their layout."""
@@ -171,9 +166,9 @@ def _views(dims, consts, state, work):  # pragma: no cover (compiled)
     ends = np.cumsum(np.array([n_p, n_t, h, n_profile, n_corr, n_corr]))
     p_hist, t_hist, plan = state[0:ends[0]], state[ends[0]:ends[1]], state[ends[1]:ends[2]]
     profile, current, following = state[ends[2]:ends[3]], state[ends[3]:ends[4]], state[ends[4]:ends[5]]
-    ends = np.cumsum(np.array([3 * h * h, 8 * h, 3 * h, n_gp, n_gp, n_p + h, n_t + h - 1, h, h]))
+    ends = np.cumsum(np.array([3 * h * h, 8 * h, 3 * h, h * n_gp, h * n_gp, n_p + h, n_t + h - 1, h, h]))
     matrices, vectors = work[0:ends[0]].reshape((3, h, h)), work[ends[0]:ends[1]].reshape((8, h))
-    psi, kern = work[ends[1]:ends[2]].reshape((h, 3)), work[ends[2]:ends[3]]
+    psi, kern = work[ends[1]:ends[2]].reshape((h, 3)), work[ends[2]:ends[3]].reshape((h, n_gp))
     bits, powers, temps = work[ends[3]:ends[4]].view(np.int64), work[ends[4]:ends[5]], work[ends[5]:ends[6]]
     forecast, correction = work[ends[6]:ends[7]], work[ends[7]:ends[8]]
     return (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f,
@@ -186,7 +181,7 @@ def _sizes(dims) -> tuple[int, int, int]:
     n_p, n_t, n_tq, n_x, n_gp, h, n_profile, n_corr = (int(v) for v in dims[:8])
     return (1 + 2 * n_p + n_t + n_tq + n_x + 8 + h + h + 9 + h * h + 6 * n_gp + n_gp * n_gp,
             n_p + n_t + h + n_profile + 2 * n_corr,
-            3 * h * h + 8 * h + 3 * h + 2 * n_gp + n_p + h + n_t + h - 1 + 2 * h)
+            3 * h * h + 8 * h + 3 * h + 2 * h * n_gp + n_p + h + n_t + h - 1 + 2 * h)
 
 
 @njit(cache=True, nogil=True)
@@ -208,8 +203,10 @@ def update_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k, s
         correction_into(since, on_first, to_end, current, following, correction)
     else:
         correction[:] = 0.0
-    _regressors(p_hist, t_hist, forecast, plan, since, to_end, float(dims[10]), psi, powers, temps)
-    return _linearised_qp(powers, temps, kern, bits, dims[9] != 0, intercept[0], b, q, cc, d, e, gp, gp_points, var_f,
+    _regressors(p_hist, t_hist, forecast, plan, since, to_end, float(dims[10]), gp, gp_points, psi, kern, powers,
+                temps)
+    exp_into(kern, bits)
+    return _linearised_qp(powers, temps, kern, dims[9] != 0, intercept[0], b, q, cc, d, e, gp, gp_points, var_f,
                           dims[8], correction, disturbance, qp_terms, p_hist[0], moves, blind, psi, vectors, matrices)
 
 
@@ -289,35 +286,34 @@ class Kernel:
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
-def _linearised_qp(powers, temps, kern, bits, log_output, intercept, b, q, cc, d, e, gp, gp_points, var_f, n_variance,
+def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, gp, gp_points, var_f, n_variance,
                    correction, disturbance, qp_terms, p_now, moves, blind, psi, vectors, matrices):  # pragma: no cover
-    """Prediction, Jacobian and unconstrained QP step (module docstring) from the regressors and the GP
-    inputs ``psi`` into :class:`Kernel`'s ``vectors`` and ``matrices`` (``kern``, ``bits``: one row's
-    kernel values and its scratch, shape (N,)); its status (:meth:`Kernel.update`)."""
+    """Prediction, Jacobian and unconstrained QP step (module docstring) from the regressors and the
+    kernel values ``kern`` = k(ψ_m, ψ_a), shape (H, N), into :class:`Kernel`'s ``vectors`` and
+    ``matrices``; its status (:meth:`Kernel.update`)."""
     n_p, n_t, n_tq, n_x = b.size, cc.size, d.size, e.size
     h = powers.size - n_p
     sp, scale, r = qp_terms[0], qp_terms[1], qp_terms[2]
     v_lo, v_hi, e_lo, e_hi, z_sigma = qp_terms[4], qp_terms[5], qp_terms[6], qp_terms[7], qp_terms[8]
-    n_gp = kern.size
+    n_gp = kern.shape[1]
     beta, moment_weights = gp_points[4], gp_points[5]
     c, predicted, z, std, f, v, areas, gp_slope = vectors
     gamma, hess, chol = matrices
     std[:] = 0.0
+    for row in range(n_variance):                   # σ² − ‖σ_f L⁻¹ k‖² of the first rows
+        quad = 0.0
+        for a in range(n_gp):
+            projected = 0.0
+            for b2 in range(a + 1):
+                projected += var_f[a, b2] * kern[row, b2]
+            quad += projected * projected
+        std[row] = max(gp[6] - quad, 0.0) + gp[7]
     for row in range(h):
         last_p, last_t = n_p + row, n_t - 1 + row   # index of p[k+m] and of T[k+m−1]
-        _kernel_row(psi[row], gp, gp_points, kern, bits)
-        if row < n_variance:                        # σ² − ‖σ_f L⁻¹ k‖²
-            quad = 0.0
-            for a in range(n_gp):
-                projected = 0.0
-                for b2 in range(a + 1):
-                    projected += var_f[a, b2] * kern[b2]
-                quad += projected * projected
-            std[row] = max(gp[6] - quad, 0.0) + gp[7]
         gp_mean, gp_moment = 0.0, 0.0               # r(ψ_m) and Σ_a k_a W_a2 β_a (its mean-power slope)
         for a in range(n_gp):
-            gp_mean += kern[a] * beta[a]
-            gp_moment += kern[a] * moment_weights[a]
+            gp_mean += kern[row, a] * beta[a]
+            gp_moment += kern[row, a] * moment_weights[a]
         w2 = (psi[row, 2] - gp[2]) * gp[5]
         gp_slope[row] = gp[5] * (gp_moment - w2 * gp_mean) / n_p    # ∂r/∂ū_n through the mean power
         zz = intercept + gp_mean
