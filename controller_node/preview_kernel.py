@@ -152,21 +152,37 @@ def exp_into(a, bits):  # pragma: no cover (compiled)
         flat[i] *= two_n[i]
 
 
+N_SIZES = 11
+"""Leading entries of :class:`Kernel`'s ``dims``: n_p, n_T, n_Tq, n_x, N, H, profile and correction
+lengths, n_variance, log output, steps-since-start cap; :func:`_layout`'s ends follow."""
+
+
 @njit(cache=True, nogil=True)
-def _views(dims, consts, state, work):  # pragma: no cover (compiled)
-    """The named arrays inside the three flat ones (:class:`Kernel`): the one definition of their layout."""
+def _layout(dims):  # pragma: no cover (compiled)
+    """Where each named array ends in the flat ``consts``, ``state`` and ``work`` of :class:`Kernel`
+    (cumulative lengths; the last of each is the flat array's length): the one definition of their layout."""
     n_p, n_t, n_tq, n_x, n_gp, h, n_profile, n_corr = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], \
         dims[6], dims[7]
-    ends = np.cumsum(np.array([1, n_p, n_p, n_t, n_tq, n_x, 8, h, h + 9, h * h, 6 * n_gp, n_gp * n_gp]))
+    return (np.cumsum(np.array([1, n_p, n_p, n_t, n_tq, n_x, 8, h, h + 9, h * h, 6 * n_gp, n_gp * n_gp])),
+            np.cumsum(np.array([n_p, n_t, h, n_profile, n_corr, n_corr])),
+            np.cumsum(np.array([3 * h * h, 8 * h, 3 * h, h * n_gp, h * n_gp, n_p + h, n_t + h - 1, h, h])))
+
+
+@njit(cache=True, nogil=True)
+def _views(dims, consts, state, work):  # pragma: no cover (compiled)
+    """The named arrays inside the three flat ones, at the ends of :func:`_layout` that ``dims`` carries
+    from index ``N_SIZES`` on (:class:`Kernel`; nothing allocated per update)."""
+    h, n_gp = dims[5], dims[4]
+    ends, state_ends, work_ends = dims[N_SIZES:N_SIZES + 12], dims[N_SIZES + 12:N_SIZES + 18], dims[N_SIZES + 18:]
     intercept, b, q, cc = consts[0:ends[0]], consts[ends[0]:ends[1]], consts[ends[1]:ends[2]], consts[ends[2]:ends[3]]
     d, e, gp, decay = consts[ends[3]:ends[4]], consts[ends[4]:ends[5]], consts[ends[5]:ends[6]], consts[ends[6]:ends[7]]
     qp_terms, moves = consts[ends[7]:ends[8]], consts[ends[8]:ends[9]].reshape((h, h))
     gp_points = consts[ends[9]:ends[10]].reshape((6, n_gp))
     var_f = consts[ends[10]:ends[11]].reshape((n_gp, n_gp))
-    ends = np.cumsum(np.array([n_p, n_t, h, n_profile, n_corr, n_corr]))
+    ends = state_ends
     p_hist, t_hist, plan = state[0:ends[0]], state[ends[0]:ends[1]], state[ends[1]:ends[2]]
     profile, current, following = state[ends[2]:ends[3]], state[ends[3]:ends[4]], state[ends[4]:ends[5]]
-    ends = np.cumsum(np.array([3 * h * h, 8 * h, 3 * h, h * n_gp, h * n_gp, n_p + h, n_t + h - 1, h, h]))
+    ends = work_ends
     matrices, vectors = work[0:ends[0]].reshape((3, h, h)), work[ends[0]:ends[1]].reshape((8, h))
     psi, kern = work[ends[1]:ends[2]].reshape((h, 3)), work[ends[2]:ends[3]].reshape((h, n_gp))
     bits, powers, temps = work[ends[3]:ends[4]].view(np.int64), work[ends[4]:ends[5]], work[ends[5]:ends[6]]
@@ -174,14 +190,6 @@ def _views(dims, consts, state, work):  # pragma: no cover (compiled)
     return (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f,
             p_hist, t_hist, plan, profile, current, following,
             matrices, vectors, psi, kern, bits, powers, temps, forecast, correction)
-
-
-def _sizes(dims) -> tuple[int, int, int]:
-    """Lengths of the flat ``consts``, ``state`` and ``work`` arrays of :func:`_views`."""
-    n_p, n_t, n_tq, n_x, n_gp, h, n_profile, n_corr = (int(v) for v in dims[:8])
-    return (1 + 2 * n_p + n_t + n_tq + n_x + 8 + h + h + 9 + h * h + 6 * n_gp + n_gp * n_gp,
-            n_p + n_t + h + n_profile + 2 * n_corr,
-            3 * h * h + 8 * h + 3 * h + 2 * h * n_gp + n_p + h + n_t + h - 1 + 2 * h)
 
 
 @njit(cache=True, nogil=True)
@@ -230,6 +238,11 @@ class Kernel:
 
     Attributes
     ----------
+    dims : numpy.ndarray of int64
+        The sizes (``N_SIZES`` of them) and the layout's ends (:func:`_layout`).
+    consts, state, work : numpy.ndarray
+        The flat arrays: the model's and QP's constants, the run's (histories, plan, profile,
+        corrections), the results.
     p_hist : numpy.ndarray, shape (n_p,)
         ``p[k], p[k−1], …`` [W].
     t_hist : numpy.ndarray, shape (n_T,)
@@ -256,11 +269,12 @@ class Kernel:
         h = qp.horizon
         scalars, points, var_f = model.residual.kernel_terms()
         b, cc = model.power_coefficients, model.temperature_coefficients
-        self.dims = np.array([b.size, cc.size, model.temperature_square_coefficients.size,
+        sizes = np.array([b.size, cc.size, model.temperature_square_coefficients.size,
                               model.power_temperature_coefficients.size, points.shape[1], h, n_profile, n_correction,
                               n_variance, model.output == "log", STEPS_SINCE_START_CAP], dtype=np.int64)
-        n_consts, n_state, n_work = _sizes(self.dims)
-        self.consts, self.state, self.work = np.zeros(n_consts), np.zeros(n_state), np.zeros(n_work)
+        layout = _layout(sizes)
+        self.dims = np.concatenate((sizes, *layout))
+        self.consts, self.state, self.work = (np.zeros(int(ends[-1])) for ends in layout)
         (intercept, b_, q, cc_, d, e, gp, decay, qp_terms, moves, gp_points, var_f_, self.p_hist, self.t_hist,
          self.plan, self.profile, self.current, self.following, self.matrices, self.vectors, self.psi, self.kern, _,
          self.powers, self.temps, self.forecast, self.correction) = _views(self.dims, self.consts, self.state,
