@@ -172,16 +172,55 @@ def open_session(settings: BusSettings, node: str) -> zenoh.Session:
                               f"{str(err).split(' at ')[0]}") from None
 
 
+class _SignalRelay:
+    """The process's one bridge from a signal handler to a :class:`threading.Event`.
+
+    A Python signal handler runs on the main thread between two bytecodes, possibly while that
+    thread holds the lock inside ``Event.wait``; calling ``Event.set`` there blocks forever on that
+    lock. The handler therefore only writes a byte to a pipe (no lock taken) and this relay's
+    thread, blocked on the pipe, sets the event of the current :class:`StopFlag`.
+    """
+
+    _instance: _SignalRelay | None = None
+
+    def __init__(self) -> None:
+        self._read_fd, self._write_fd = os.pipe()
+        os.set_blocking(self._write_fd, False)
+        self.target: StopFlag | None = None
+        threading.Thread(target=self._relay, name="stop-signal-relay", daemon=True).start()
+
+    @classmethod
+    def get(cls) -> _SignalRelay:
+        if cls._instance is None:
+            cls._instance = cls()
+        return cls._instance
+
+    def notify(self) -> None:
+        """Wake the relay thread (async-signal safe: one non-blocking write)."""
+        try:
+            os.write(self._write_fd, b"\0")
+        except BlockingIOError:  # the pipe is full of earlier wake-ups: one is enough
+            pass
+
+    def _relay(self) -> None:
+        while os.read(self._read_fd, 4096):
+            if self.target is not None:
+                self.target._event.set()
+
+
 class StopFlag:
     """Set by SIGINT/SIGTERM, or when the supervising ``launch.py`` disappears.
 
     Installing the handlers also resets an inherited 'ignore SIGINT' disposition (a background
-    process started from a non-interactive shell would otherwise ignore Ctrl-C).
+    process started from a non-interactive shell would otherwise ignore Ctrl-C). The handler takes
+    no lock (see :class:`_SignalRelay`): a signal can land while the main thread waits here.
     """
 
     def __init__(self) -> None:
         self._event = threading.Event()
         self.signal_name: str | None = None
+        self._signals = _SignalRelay.get()
+        self._signals.target = self
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._handle)
         supervisor = os.environ.get(SUPERVISOR_ENV)
@@ -190,7 +229,7 @@ class StopFlag:
 
     def _handle(self, signum: int, _frame: Any) -> None:
         self.signal_name = signal.Signals(signum).name
-        self._event.set()
+        self._signals.notify()
 
     def _watch_parent(self, pid: int) -> None:
         while not self._event.wait(0.5):
@@ -204,11 +243,11 @@ class StopFlag:
 
     def is_set(self) -> bool:
         """Whether a stop was requested."""
-        return self._event.is_set()
+        return self.signal_name is not None or self._event.is_set()
 
     def wait(self, timeout: float) -> bool:
         """Sleep up to ``timeout`` seconds, waking early on a stop request."""
-        return self._event.wait(timeout)
+        return self.is_set() or self._event.wait(timeout)
 
 
 def wait_for_nodes(session: zenoh.Session, run_id: str, nodes: list[str], stop: StopFlag | threading.Event,

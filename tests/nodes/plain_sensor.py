@@ -68,7 +68,22 @@ def open_session(connect: list[str]) -> zenoh.Session:
     return zenoh.open(config)
 
 
-def wait_for(session: zenoh.Session, run_id: str, nodes: list[str], stop: threading.Event) -> None:
+class Stop:
+    """Set by SIGINT/SIGTERM. The handler only flips a flag: a handler calling ``Event.set`` can
+    deadlock against an ``Event.wait`` of the same (main) thread."""
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def is_set(self) -> bool:
+        return self.requested
+
+    def wait(self, timeout: float) -> bool:
+        time.sleep(timeout)
+        return self.requested
+
+
+def wait_for(session: zenoh.Session, run_id: str, nodes: list[str], stop: Stop) -> None:
     """Until every node in ``nodes`` holds its liveliness token (``TimeoutError`` after the limit)."""
     missing, deadline = set(nodes), time.monotonic() + REQUIRE_TIMEOUT_S
     while missing and not stop.is_set():
@@ -150,7 +165,7 @@ class Node:
         print(text, flush=True)
 
 
-def run(node: Node, args: argparse.Namespace, stop: threading.Event) -> None:
+def run(node: Node, args: argparse.Namespace, stop: Stop) -> None:
     """Subscribe, announce readiness, publish frames and apply commands until the last step or a stop."""
     inbox: queue.SimpleQueue[bytes] = queue.SimpleQueue()
     prefix = f"{PREFIX}/{args.run_id}"
@@ -217,9 +232,9 @@ def run(node: Node, args: argparse.Namespace, stop: threading.Event) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Exit status 0 done (also after SIGINT/SIGTERM), 1 no session or a required node missing, 2 usage."""
     args = parse_args(argv)
-    stop = threading.Event()
+    stop = Stop()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, lambda *_: setattr(stop, "requested", True))
     try:
         session = open_session(args.connect)
     except zenoh.ZError as err:
