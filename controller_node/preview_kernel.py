@@ -29,7 +29,8 @@ dispatch, each argument more, each fresh allocation and each small BLAS call a c
 (``docs/controller.md``, "Speed"). So the model's constants, the run's histories and plan, and
 every result live in three flat arrays allocated once (:class:`Kernel`, named views into them),
 the GP kernel's exponential is a vectorisable loop (:func:`exp_into`, within 1 ulp of numpy's),
-and the Hessian is formed by loops over Γ's triangular structure. The numpy formulation stays
+and the Hessian and its Cholesky factor are formed by loops over their band (n_p powers
+per row of Γ). The numpy formulation stays
 the reference: ``tests/test_preview_kernel.py`` checks this kernel against the model's own
 prediction (:meth:`gp_trainer.narx.NarxGPModel.predict_run`), its Jacobian against finite
 differences, and the QP terms against :meth:`PreviewQP.hessian` / :meth:`PreviewQP.gradient`.
@@ -267,6 +268,8 @@ class Kernel:
 
     def __init__(self, model, qp, n_variance: int, uncertainty_z: float, n_profile: int, n_correction: int) -> None:
         h = qp.horizon
+        if np.any(np.triu(qp.moves, 2)) or np.any(np.tril(qp.moves, -2)):
+            raise ValueError("the QP's move penalty must be tridiagonal (the kernel's Cholesky is banded)")
         scalars, points, var_f = model.residual.kernel_terms()
         b, cc = model.power_coefficients, model.temperature_coefficients
         sizes = np.array([b.size, cc.size, model.temperature_square_coefficients.size,
@@ -311,8 +314,10 @@ def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, g
     v_lo, v_hi, e_lo, e_hi, z_sigma = qp_terms[4], qp_terms[5], qp_terms[6], qp_terms[7], qp_terms[8]
     n_gp = kern.shape[1]
     beta, moment_weights = gp_points[4], gp_points[5]
-    c, predicted, z, std, f, v, areas, gp_slope = vectors
-    gamma, hess, chol = matrices
+    # rows by index, not by unpacking: an unpacked row's layout is unknown to the compiler (no vector code)
+    c, predicted, z, std, f, v = vectors[0], vectors[1], vectors[2], vectors[3], vectors[4], vectors[5]
+    areas, gp_slope = vectors[6], vectors[7]
+    gamma, hess, chol = matrices[0], matrices[1], matrices[2]
     std[:] = 0.0
     for row in range(n_variance):                   # σ² − ‖σ_f L⁻¹ k‖² of the first rows
         quad = 0.0
@@ -362,44 +367,48 @@ def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, g
     finite = True
     for row in range(h):
         finite = finite and math.isfinite(predicted[row])
-    hess[:] = moves                                 # + 2 Γᵀ W Γ over the tracked rows (Γ lower triangular)
+    hess[:] = moves                                 # + 2 Γᵀ W Γ over the tracked rows
     f[:] = 0.0
-    for m in range(blind, h):
-        w = 2.0 * qp_terms[9 + m]
-        for a in range(m + 1):
+    for m in range(blind, h):                       # Γ is banded (n_p powers per row), so is the Hessian:
+        w, first = 2.0 * qp_terms[9 + m], max(0, m + 1 - n_p)   # square blocks (equal-length loops vectorise)
+        for a in range(first, m + 1):
             wg = w * gamma[m, a]
             f[a] += wg * c[m]
-            for b2 in range(m + 1):
+            for b2 in range(first, m + 1):
                 hess[a, b2] += wg * gamma[m, b2]
     f[0] -= 2.0 * r * p_now / scale
     status = 0 if finite else 2
-    for i in range(h):                              # Cholesky, Hessian = L Lᵀ
-        for j in range(i + 1):
+    band, inv_diag = max(n_p - 1, 1), areas         # the moves' band is 1 (Kernel checks); areas: scratch
+    for i in range(h):                              # banded Cholesky, Hessian = L Lᵀ (1/L_jj multiplies:
+        first = max(0, i - band)                    # a division's latency would chain the row)
+        for j in range(first, i):
             acc = hess[i, j]
-            for k in range(j):
+            for k in range(first, j):
                 acc -= chol[i, k] * chol[j, k]
-            if i == j:
-                if not acc > 0.0:
-                    v[:] = np.nan
-                    areas[:] = np.nan
-                    return max(status, 1)
-                chol[i, i] = math.sqrt(acc)
-            else:
-                chol[i, j] = acc / chol[j, j]
+            chol[i, j] = acc * inv_diag[j]
+        acc = hess[i, i]
+        for k in range(first, i):
+            acc -= chol[i, k] * chol[i, k]
+        if not acc > 0.0:
+            v[:] = np.nan
+            areas[:] = np.nan
+            return max(status, 1)
+        chol[i, i] = math.sqrt(acc)
+        inv_diag[i] = 1.0 / chol[i, i]
     for i in range(h):                              # L y = −f
         acc = -f[i]
-        for k in range(i):
+        for k in range(max(0, i - band), i):
             acc -= chol[i, k] * v[k]
-        v[i] = acc / chol[i, i]
+        v[i] = acc * inv_diag[i]
     for i in range(h - 1, -1, -1):                  # Lᵀ v = y, by columns of Lᵀ
-        v[i] /= chol[i, i]
-        for k in range(i):
+        v[i] *= inv_diag[i]
+        for k in range(max(0, i - band), i):
             v[k] -= chol[i, k] * v[i]
         if not (v_lo <= v[i] <= v_hi):
             status = max(status, 1)
     for row in range(h):                            # e = Γ v + c of the tracked rows, x̂ at P v
         e, dx = 0.0, 0.0
-        for col in range(row + 1):
+        for col in range(max(0, row + 1 - n_p), row + 1):
             e += gamma[row, col] * v[col]
             dx += gamma[row, col] * (v[col] - u[col] / scale)
         areas[row] = predicted[row] + dx * sp
