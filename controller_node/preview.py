@@ -64,22 +64,20 @@ class PreviewMPC(Controller):
         ps = settings.preview
         h, b = ps.horizon, model.power_coefficients
         self._nb, self._h = b.size, h
-        self._b0, self._q0 = float(b[0]), float(model.power_square_coefficients[0])   # of p[k+1]
-        self._e0 = float(model.power_temperature_coefficients[0]) if model.power_temperature_coefficients.size else 0.0
         self.qp = PreviewQP(h, settings.set_point_m2, q=ps.q, q_f=ps.q_f, r=ps.r, power_scale_w=ps.power_scale_w,
                             power_min_w=settings.power_min_w, power_max_w=settings.power_max_w,
                             area_min_m2=ps.area_min_m2, area_max_m2=ps.area_max_m2,
                             slack_linear=ps.slack_linear, slack_quadratic=ps.slack_quadratic)
         self._kernel = Kernel(model, self.qp, h if ps.uncertainty_z > 0 else 1, ps.uncertainty_z,
-                              len(model.turn_profile_k), ps.turn_learning_steps)
+                              len(model.turn_profile_k), ps.turn_learning_steps, ps.observer_gain)
         self._psi = self._kernel.psi             # the GP's inputs of the last update
-        super().__init__(settings)
         self._warm_up()
+        super().__init__(settings)              # reset(): the run's state, after the warm-up wrote into it
 
     def _warm_up(self) -> None:
         """Call the compiled update once, with the argument types of a run, pushing nothing into the
         histories: it is compiled (or loaded from numba's cache) now, not at the first state of a run."""
-        self._kernel.update(0, 0.0, 0, 0.0, 0, True, -1, math.nan, True, 0.0, self._h)
+        self._kernel.update(0, 0.0, 0, 0.0, 0.0, True, 0, True, -1, math.nan, True, self._h)
 
     def reset(self) -> None:
         """Forget the run: histories, disturbance estimate, plan, learned turnaround profile."""
@@ -100,18 +98,17 @@ class PreviewMPC(Controller):
         self._profile[:] = self.model.turn_profile_k
         self._plan = k.plan
         self._plan[:] = self.settings.nominal_power_w
-        self._base0_m2: float | None = None      # x̂[k+1|k] without p[k+1] and d̂, for the observer
-        self._base0_correction = 0.0             # the learned turnaround correction in that prediction
-        self.disturbance_m2 = 0.0
+        k.observer[:] = (0.0, math.nan, 0.0, 0.0)  # d̂ = 0, no x̂[k+1|k] yet
         n = self.settings.preview.turn_learning_steps
         self.turn_correction_m2 = np.zeros(n)    # learned model error after a turnaround, by state since the turn
-        self._turn_errors = np.full(n, np.nan)   # one-step errors seen after the current turn
+        self._turn_errors = k.turn_errors        # one-step errors seen after the current turn (the kernel's)
+        self._turn_errors[:] = np.nan
         self._turn = -1                          # index of the current turn in the layer (-1: first track)
         self.turn_corrections_by_turn_m2: list[np.ndarray] = []   # learned for turn j of this layer
         self._prior_by_turn: list[np.ndarray] = []                # learned for turn j of the previous layer
         self._learned = False
         self._sync_corrections()
-        self._last_qp: tuple | None = None      # views into the workspace (see last_qp)
+        self._last_qp: tuple | None = None      # (p[k], blind rows) of the QP in the workspace (see last_qp)
 
     # ------------------------------------------------------------------ bookkeeping
     def _check_period(self, m: Measurement) -> None:
@@ -239,8 +236,24 @@ class PreviewMPC(Controller):
         and the bound tightening (None without); None if the last update solved no QP."""
         if self._last_qp is None:
             return None
-        gamma, c, previous, margin = self._last_qp
-        return gamma.copy(), c.copy(), previous, None if margin is None else margin.copy()
+        previous, blind = self._last_qp
+        return (*self._tracked(blind), previous, self._margin())
+
+    @property
+    def disturbance_m2(self) -> float:
+        """The observer's output disturbance estimate d̂ [m²]."""
+        return float(self._kernel.observer[0])
+
+    def _tracked(self, blind: int) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the workspace's Γ, c with the ``blind`` leading rows (not tracked) zero."""
+        gamma, c = self._kernel.gamma.copy(), self._kernel.c.copy()
+        gamma[:blind], c[:blind] = 0.0, 0.0
+        return gamma, c
+
+    def _margin(self) -> np.ndarray | None:
+        """The area bounds' tightening zσ / x_sp of the workspace's rows (None without)."""
+        z_sigma = self.settings.preview.uncertainty_z
+        return z_sigma * self._kernel.std / self.settings.set_point_m2 if z_sigma > 0 else None
 
     def _propose(self, m: Measurement) -> Proposal:
         s, ps = self.settings, self.settings.preview
@@ -250,64 +263,40 @@ class PreviewMPC(Controller):
         consecutive = self._prev is not None and m.step == self._prev.step + 1
         self._observe(m)
         built_up = m.step - self._layer_start_step >= ps.observer_start_steps
-        if consecutive and self._base0_m2 is not None and built_up:
-            z = (self._base0_m2 + self._b0 * m.power_w + self._q0 * m.power_w ** 2
-                 + self._e0 * m.power_w * self._base_t0)
-            predicted = self.model.area_at(z) + self._base0_correction  # x̂[k|k−1], applied p[k]
-            error = m.area_m2 - predicted - self.disturbance_m2
-            since_now = m.step - self._track_start_step
-            if self._turn_base_k is not None and 0 <= since_now < self._turn_errors.size:
-                self._turn_errors[since_now] = error
-            self.disturbance_m2 += ps.observer_gain * error
         self._prev = m
-        self._base0_m2 = None
-
         dt = self.model.sample_period_s
         since = m.step - self._track_start_step
-        to_end = None
-        if m.track_remaining_s is not None:
+        to_end = -1                              # no turn ahead
+        if m.track_remaining_s is not None and m.next_track is not False:  # (False: the layer ends here)
             to_end = max(round(m.track_remaining_s / dt) - 1, 0)
-            if m.next_track is False:
-                to_end = None  # the layer ends: nothing after this track to forecast
         on_first = m.track is None or m.track == self._first_track
-        sp = s.set_point_m2
         blind = 0 if built_up else ps.observer_start_steps - (m.step - self._layer_start_step) - 1
         self._last_qp = None                     # the workspace is overwritten now
         work = self._kernel
-        status = work.update(self._p_fill, m.power_w, self._t_fill, m.t_ahead_k, since, on_first,
-                             -1 if to_end is None else to_end,
-                             math.nan if self._turn_base_k is None else self._turn_base_k, self._learned,
-                             self.disturbance_m2, blind)
-        gamma, c, std, v, areas = work.gamma, work.c, work.std, work.v, work.areas
+        status = work.update(self._p_fill, m.power_w, self._t_fill, m.t_ahead_k, m.area_m2, consecutive and built_up,
+                             since, on_first, to_end, math.nan if self._turn_base_k is None else self._turn_base_k,
+                             self._learned, blind)
         if status == 2:  # an absurd input: no plan from it
             return Proposal(math.nan, status="model_error")
-        u1 = float(self._plan[1])                                      # ū[0] = p̄[k+1], the previous plan's
-        qp_gamma, qp_c = gamma, c
-        if blind:  # targets inside the pool build-up are outside the fitted model: not tracked
-            qp_gamma, qp_c = gamma.copy(), c.copy()
-            qp_gamma[:blind], qp_c[:blind] = 0.0, 0.0
-        margin = ps.uncertainty_z * std / sp if ps.uncertainty_z > 0 else None
-        self._last_qp = (qp_gamma, qp_c, float(self._p[0]), margin)
-        if status == 0:
-            new_plan, fast = v * self.qp.scale, True
-        else:
-            result = self.qp.finish(qp_gamma, qp_c, work.hess, work.f, v, margin)
+        self._last_qp = (float(self._p[0]), blind)
+        areas, fast = work.areas, status == 0
+        if not fast:     # a bound is active: the kernel's step is not the solution (the plan is unchanged)
+            gamma, c = self._tracked(blind)
+            result = self.qp.finish(gamma, c, work.hess, work.f, work.v, self._margin())
             if result.path.startswith("failed"):
+                work.observer[1] = math.nan      # no prediction from this state
                 return Proposal(math.nan, status=f"solver_{result.path}")
             plan = np.concatenate((self._plan[1:], self._plan[-1:]))   # ū = p̄[k+1..k+H]
             new_plan, fast = result.power_w, result.path == "fast"
-            areas = work.predicted + (gamma * (sp / self.qp.scale)) @ (new_plan - plan)  # ∂x̂/∂u (H, H) times the move
-        self._plan[:] = new_plan
-        # z of x̂[k+1] without the p[k+1] terms, for the next observer update
-        t_now = float(self._t[-1])
-        self._base0_m2 = float(work.z[0] - self._b0 * u1 - self._q0 * u1 ** 2 - self._e0 * u1 * t_now)
-        self._base_t0 = t_now
-        self._base0_correction = float(work.correction[0])
+            sp = s.set_point_m2
+            areas = work.predicted + (work.gamma * (sp / self.qp.scale)) @ (new_plan - plan)  # ∂x̂/∂u times the move
+            self._plan[:] = new_plan
+        new_plan = self._plan
         return Proposal(
             power_w=float(new_plan[0]),
             plan_w=tuple(new_plan.tolist()),
             predicted_area_m2=tuple(areas.tolist()),
-            model_std_m2=float(std[0]),
+            model_std_m2=float(work.std[0]),
             feedforward_w=0.0,
             reference_power_w=None,
             iterations=0 if fast else 1,

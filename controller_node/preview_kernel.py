@@ -1,7 +1,8 @@
 """The preview MPC's hot path, compiled: prediction, Jacobian and unconstrained QP step.
 
 :class:`controller_node.preview.PreviewMPC` makes one call per update, :meth:`Kernel.update`
-(compiled :func:`update_into`): it pushes the state's power and T ahead into the histories,
+(compiled :func:`update_into`): it updates the disturbance observer with the state's area
+(:func:`_observe`), pushes the state's power and T ahead into the histories,
 forecasts T ahead over the horizon (:func:`gp_trainer.narx.forecast_into`), lays out the learned
 turnaround correction (:func:`correction_into`), and, for the planned powers ū (the previous plan,
 shifted), evaluates for m = 1..H (model of :mod:`gp_trainer.narx`, rows indexed ``i = m − 1``)::
@@ -20,8 +21,8 @@ the condensed QP of :mod:`controller_node.preview_qp` in ``v = u / P``, ``e = Γ
 
 and its unconstrained optimum ``v* = −Hessian⁻¹ f`` by Cholesky. When ``v*`` is inside the power
 bounds and ``e = Γ v* + c`` (± the bound tightening) inside the area bounds, it is the QP's
-solution (the fast path, as :meth:`controller_node.preview_qp.PreviewQP.finish` decides); else
-the caller hands Γ, c to :meth:`~controller_node.preview_qp.PreviewQP.finish`.
+solution (the fast path, as :meth:`controller_node.preview_qp.PreviewQP.finish` decides) and
+becomes the plan; else the caller hands Γ, c to :meth:`~controller_node.preview_qp.PreviewQP.finish`.
 
 Why one compiled call over flat arrays: between FE steps or plant frames the controller's caches
 are cold, and each call from Python into compiled code or numpy then costs about 10 µs of
@@ -165,7 +166,7 @@ def _layout(dims):  # pragma: no cover (compiled)
     n_p, n_t, n_tq, n_x, n_gp, h, n_profile, n_corr = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], \
         dims[6], dims[7]
     return (np.cumsum(np.array([1, n_p, n_p, n_t, n_tq, n_x, 8, h, h + 9, h * h, 6 * n_gp, n_gp * n_gp])),
-            np.cumsum(np.array([n_p, n_t, h, n_profile, n_corr, n_corr])),
+            np.cumsum(np.array([n_p, n_t, h, n_profile, n_corr, n_corr, n_corr, 4])),
             np.cumsum(np.array([3 * h * h, 8 * h, 3 * h, h * n_gp, h * n_gp, n_p + h, n_t + h - 1, h, h])))
 
 
@@ -174,7 +175,7 @@ def _views(dims, consts, state, work):  # pragma: no cover (compiled)
     """The named arrays inside the three flat ones, at the ends of :func:`_layout` that ``dims`` carries
     from index ``N_SIZES`` on (:class:`Kernel`; nothing allocated per update)."""
     h, n_gp = dims[5], dims[4]
-    ends, state_ends, work_ends = dims[N_SIZES:N_SIZES + 12], dims[N_SIZES + 12:N_SIZES + 18], dims[N_SIZES + 18:]
+    ends, state_ends, work_ends = dims[N_SIZES:N_SIZES + 12], dims[N_SIZES + 12:N_SIZES + 20], dims[N_SIZES + 20:]
     intercept, b, q, cc = consts[0:ends[0]], consts[ends[0]:ends[1]], consts[ends[1]:ends[2]], consts[ends[2]:ends[3]]
     d, e, gp, decay = consts[ends[3]:ends[4]], consts[ends[4]:ends[5]], consts[ends[5]:ends[6]], consts[ends[6]:ends[7]]
     qp_terms, moves = consts[ends[7]:ends[8]], consts[ends[8]:ends[9]].reshape((h, h))
@@ -183,29 +184,37 @@ def _views(dims, consts, state, work):  # pragma: no cover (compiled)
     ends = state_ends
     p_hist, t_hist, plan = state[0:ends[0]], state[ends[0]:ends[1]], state[ends[1]:ends[2]]
     profile, current, following = state[ends[2]:ends[3]], state[ends[3]:ends[4]], state[ends[4]:ends[5]]
+    turn_errors, observer = state[ends[5]:ends[6]], state[ends[6]:ends[7]]
     ends = work_ends
     matrices, vectors = work[0:ends[0]].reshape((3, h, h)), work[ends[0]:ends[1]].reshape((8, h))
     psi, kern = work[ends[1]:ends[2]].reshape((h, 3)), work[ends[2]:ends[3]].reshape((h, n_gp))
     bits, powers, temps = work[ends[3]:ends[4]].view(np.int64), work[ends[4]:ends[5]], work[ends[5]:ends[6]]
     forecast, correction = work[ends[6]:ends[7]], work[ends[7]:ends[8]]
     return (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f,
-            p_hist, t_hist, plan, profile, current, following,
+            p_hist, t_hist, plan, profile, current, following, turn_errors, observer,
             matrices, vectors, psi, kern, bits, powers, temps, forecast, correction)
 
 
 @njit(cache=True, nogil=True)
-def update_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k, since, on_first, to_end, t_base,
-                learned, disturbance, blind):  # pragma: no cover (compiled)
+def update_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k, area_m2, observe, since, on_first,
+                to_end, t_base, learned, blind):  # pragma: no cover (compiled)
     """One update's numerics (module docstring) in place; the status of :func:`_linearised_qp`.
 
-    ``p_fill``/``t_fill`` copies of ``power_w`` [W] / ``t_ahead_k`` [K] enter the histories
-    (:func:`push_history`); ``since``, ``on_first``, ``to_end`` (−1: no turn ahead), ``t_base`` [K]
-    (NaN: none) place the state on the scan plan (:func:`gp_trainer.narx.forecast_into`);
-    ``learned``: the learned turnaround correction applies (:func:`correction_into`, else 0);
-    ``disturbance`` d̂ [m²]; ``blind`` leading rows not tracked."""
+    ``observe``: the state follows the last one and the pool is built up, so the disturbance
+    observer compares ``area_m2`` [m²] with x̂[k|k−1] (:func:`_observe`). ``p_fill``/``t_fill``
+    copies of ``power_w`` [W] / ``t_ahead_k`` [K] enter the histories (:func:`push_history`);
+    ``since``, ``on_first``, ``to_end`` (−1: no turn ahead), ``t_base`` [K] (NaN: none) place the
+    state on the scan plan (:func:`gp_trainer.narx.forecast_into`); ``learned``: the learned
+    turnaround correction applies (:func:`correction_into`, else 0); ``blind`` leading rows not
+    tracked. With no bound active the plan becomes the QP's solution here."""
     (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f, p_hist, t_hist, plan, profile,
-     current, following, matrices, vectors, psi, kern, bits, powers, temps, forecast,
+     current, following, turn_errors, observer, matrices, vectors, psi, kern, bits, powers, temps, forecast,
      correction) = _views(dims, consts, state, work)
+    log_output, e0 = dims[9] != 0, e[0] if e.size else 0.0
+    if observe:
+        _observe(observer, b[0], q[0], e0, log_output, qp_terms[3], power_w, area_m2,
+                 since if t_base == t_base else -1, turn_errors)
+    observer[1] = math.nan                          # no x̂[k+1|k] until this update gives one
     push_history(p_hist, p_fill, power_w, t_hist, t_fill, t_ahead_k)
     forecast_into(t_ahead_k, since, on_first, to_end, profile, t_base, decay, forecast)
     if learned and current.size:
@@ -215,8 +224,34 @@ def update_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k, s
     _regressors(p_hist, t_hist, forecast, plan, since, to_end, float(dims[10]), gp, gp_points, psi, kern, powers,
                 temps)
     exp_into(kern, bits)
-    return _linearised_qp(powers, temps, kern, dims[9] != 0, intercept[0], b, q, cc, d, e, gp, gp_points, var_f,
-                          dims[8], correction, disturbance, qp_terms, p_hist[0], moves, blind, psi, vectors, matrices)
+    status = _linearised_qp(powers, temps, kern, log_output, intercept[0], b, q, cc, d, e, gp, gp_points, var_f,
+                            dims[8], correction, observer[0], qp_terms, p_hist[0], moves, blind, psi, vectors,
+                            matrices)
+    if status != 2:                                 # z of x̂[k+1] without its p[k+1] terms, for the next state
+        u1, t_now = powers[p_hist.size], t_hist[t_hist.size - 1]
+        observer[1] = vectors[2, 0] - (b[0] + q[0] * u1 + e0 * t_now) * u1
+        observer[2], observer[3] = t_now, correction[0]
+    if status == 0:                                 # the unconstrained step is the QP's solution
+        for i in range(plan.size):
+            plan[i] = vectors[5, i] * qp_terms[1]
+    return status
+
+
+@njit(cache=True, nogil=True)
+def _observe(observer, b0, q0, e0, log_output, gain, power_w, area_m2, since, turn_errors):  # pragma: no cover
+    """The disturbance observer ``d̂ ← d̂ + L (x[k] − x̂[k|k−1] − d̂)`` (``observer`` = d̂ [m²], the
+    z of x̂[k|k−1] without its p[k] terms (NaN: none), the T ahead in them [K], its learned
+    correction [m²]); x̂[k|k−1] completed with the applied ``power_w`` [W]. The one-step error is
+    kept in ``turn_errors[since]`` when ``0 <= since`` < its length (after a turn)."""
+    base = observer[1]
+    if base != base:
+        return
+    z = base + (b0 + q0 * power_w + e0 * observer[2]) * power_w
+    predicted = (math.exp(z) if log_output else z) + observer[3]
+    error = area_m2 - predicted - observer[0]
+    if 0 <= since < turn_errors.size:
+        turn_errors[since] = error
+    observer[0] += gain * error
 
 
 class Kernel:
@@ -236,6 +271,8 @@ class Kernel:
         Bound tightening in standard deviations.
     n_profile, n_correction : int
         Lengths of the turnaround profile and of the learned correction.
+    observer_gain : float
+        Gain L of the disturbance observer.
 
     Attributes
     ----------
@@ -254,6 +291,11 @@ class Kernel:
         Turnaround profile of the T-ahead forecast [K].
     current, following : numpy.ndarray, shape (n_correction,)
         Learned correction after the current track's turn and after the next turn [m²].
+    turn_errors : numpy.ndarray, shape (n_correction,)
+        The observer's one-step errors after the current track's turn, by state since it (NaN: not seen) [m²].
+    observer : numpy.ndarray, shape (4,)
+        d̂ [m²]; z of x̂[k+1|k] without its p[k+1] terms (NaN: none); the T ahead [K] and the learned
+        correction [m²] in it.
     gamma, hess : numpy.ndarray, shape (H, H)
         Γ and the QP's Hessian.
     c, predicted, z, std, f, v, areas : numpy.ndarray, shape (H,)
@@ -266,7 +308,8 @@ class Kernel:
         ``T̂[k+1 .. k+H]`` [K] and the learned correction of x̂_{k+1..k+H} [m²].
     """
 
-    def __init__(self, model, qp, n_variance: int, uncertainty_z: float, n_profile: int, n_correction: int) -> None:
+    def __init__(self, model, qp, n_variance: int, uncertainty_z: float, n_profile: int, n_correction: int,
+                 observer_gain: float) -> None:
         h = qp.horizon
         if np.any(np.triu(qp.moves, 2)) or np.any(np.tril(qp.moves, -2)):
             raise ValueError("the QP's move penalty must be tridiagonal (the kernel's Cholesky is banded)")
@@ -279,7 +322,8 @@ class Kernel:
         self.dims = np.concatenate((sizes, *layout))
         self.consts, self.state, self.work = (np.zeros(int(ends[-1])) for ends in layout)
         (intercept, b_, q, cc_, d, e, gp, decay, qp_terms, moves, gp_points, var_f_, self.p_hist, self.t_hist,
-         self.plan, self.profile, self.current, self.following, self.matrices, self.vectors, self.psi, self.kern, _,
+         self.plan, self.profile, self.current, self.following, self.turn_errors, self.observer, self.matrices,
+         self.vectors, self.psi, self.kern, _,
          self.powers, self.temps, self.forecast, self.correction) = _views(self.dims, self.consts, self.state,
                                                                            self.work)
         intercept[0] = model.intercept
@@ -287,19 +331,20 @@ class Kernel:
                             (d, model.temperature_square_coefficients), (e, model.power_temperature_coefficients),
                             (gp, scalars), (decay, model.forecast_persistence ** np.arange(1.0, h + 1)),
                             (moves, qp.moves), (gp_points, points), (var_f_, var_f),
-                            (qp_terms, np.r_[qp.x_sp, qp.scale, qp.r, 0.0, qp.v_lo, qp.v_hi, qp.e_lo, qp.e_hi,
+                            (qp_terms, np.r_[qp.x_sp, qp.scale, qp.r, observer_gain, qp.v_lo, qp.v_hi, qp.e_lo, qp.e_hi,
                                              uncertainty_z, qp.weights])):
             view[...] = value
+        self.observer[:] = (0.0, math.nan, 0.0, 0.0)   # d̂ = 0, no x̂[k+1|k] yet
         self.gamma, self.hess, _ = self.matrices
         self.c, self.predicted, self.z, self.std, self.f, self.v, self.areas, _ = self.vectors
 
-    def update(self, p_fill: int, power_w: float, t_fill: int, t_ahead_k: float, since: int, on_first: bool,
-               to_end: int, t_base_k: float, learned: bool, disturbance_m2: float, blind: int) -> int:
+    def update(self, p_fill: int, power_w: float, t_fill: int, t_ahead_k: float, area_m2: float, observe: bool,
+               since: int, on_first: bool, to_end: int, t_base_k: float, learned: bool, blind: int) -> int:
         """:func:`update_into` on this kernel's arrays (its parameters); the status: 0 ``v`` solves the
-        QP (no bound active), 1 a bound is active or the Hessian is not positive definite, 2 a
-        prediction is not finite."""
-        return update_into(self.dims, self.consts, self.state, self.work, p_fill, power_w, t_fill, t_ahead_k, since,
-                           on_first, to_end, t_base_k, learned, disturbance_m2, blind)
+        QP (no bound active; ``plan`` is its solution), 1 a bound is active or the Hessian is not
+        positive definite, 2 a prediction is not finite."""
+        return update_into(self.dims, self.consts, self.state, self.work, p_fill, power_w, t_fill, t_ahead_k, area_m2,
+                           observe, since, on_first, to_end, t_base_k, learned, blind)
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)

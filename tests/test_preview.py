@@ -447,3 +447,25 @@ def test_evaluate_splits_error_and_coverage_between_turnarounds_and_tracks():
     assert result["n_turnaround"] == 50
     assert result["coverage_95_along_pct"] > 85.0 and result["coverage_95_turnaround_pct"] < 10.0
     assert result["mape_turnaround_pct"] > 5 * result["mape_along_pct"]
+
+
+def test_a_new_controller_answers_as_one_reset_after_a_run():
+    """Nothing of the compile warm-up or of a previous run reaches the next run's commands."""
+    from gp_trainer.narx import DEFAULT_MODEL_PATH
+
+    model = NarxGPModel.load(DEFAULT_MODEL_PATH)
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+
+    def run(ctrl: PreviewMPC, n: int = 80) -> list[float]:
+        powers, power = [], 0.0
+        for k in range(n):
+            area = 0.063e-6 * min(1.0, k / 25) * (1.0 + 0.02 * np.sin(k))
+            cmd, _ = ctrl.update(Measurement(step=k, time_s=k * 50e-6, area_m2=area, t_ahead_k=900.0 + 3.0 * k,
+                                             power_w=power, speed_m_s=0.8))
+            powers.append(power := cmd.power_w)
+        return powers
+
+    used = PreviewMPC(settings, model)
+    run(used)
+    used.reset()
+    assert run(PreviewMPC(settings, model)) == run(used)

@@ -4,6 +4,8 @@ variance, the QP's Hessian and gradient, the Cholesky solve."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -29,7 +31,7 @@ def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_va
     rng = np.random.default_rng(seed)
     qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=r, power_scale_w=350.0, power_min_w=power_min_w, power_max_w=power_max_w,
                    area_min_m2=0.0, area_max_m2=area_max_m2, slack_linear=100.0, slack_quadratic=1000.0)
-    work = Kernel(model, qp, n_variance, z_sigma, len(model.turn_profile_k), 60)
+    work = Kernel(model, qp, n_variance, z_sigma, len(model.turn_profile_k), 60, 0.3)
     if stale is not None:  # what a previous update left in the workspace
         work.work[...] = stale
     work.p_hist[:] = rng.uniform(150.0, 300.0, work.p_hist.size)
@@ -37,8 +39,8 @@ def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_va
     work.profile[:] = rng.normal(0.0, 20.0, work.profile.size).cumsum()
     work.plan[:] = _case.plan = rng.uniform(150.0, 300.0, H)
     t_now = float(work.t_hist[-1])
-    status = work.update(0, 0.0, 0, t_now, int(rng.integers(0, 300)), False, int(rng.integers(-1, H)), t_now - 30.0,
-                         False, 0.0, blind)
+    status = work.update(0, 0.0, 0, t_now, 0.0, False, int(rng.integers(0, 300)), False, int(rng.integers(-1, H)),
+                         t_now - 30.0, False, blind)
     out = (work.gamma, work.c, work.predicted, work.z, work.std, work.hess, work.f, work.v, work.areas, status)
     return qp, work.p_hist.copy(), work.psi, out
 
@@ -197,7 +199,7 @@ def test_one_update_pushes_forecasts_and_lays_out_the_correction_as_the_referenc
     rng = np.random.default_rng(7)
     qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=1.0, power_scale_w=350.0, power_min_w=0.0, power_max_w=350.0,
                    area_min_m2=0.0, area_max_m2=5e-7, slack_linear=100.0, slack_quadratic=1000.0)
-    work = Kernel(model, qp, 1, 0.0, len(model.turn_profile_k), 60)
+    work = Kernel(model, qp, 1, 0.0, len(model.turn_profile_k), 60, 0.3)
     work.p_hist[:] = p_before = rng.uniform(150.0, 300.0, work.p_hist.size)
     work.t_hist[:] = t_before = 900.0 + rng.normal(0.0, 50.0, work.t_hist.size).cumsum()
     work.profile[:] = rng.normal(0.0, 20.0, work.profile.size).cumsum()
@@ -205,7 +207,7 @@ def test_one_update_pushes_forecasts_and_lays_out_the_correction_as_the_referenc
     work.plan[:] = rng.uniform(150.0, 300.0, H)
     for since, to_end, learned in ((12, 25, True), (3, -1, True), (40, 5, False)):
         work.p_hist[:], work.t_hist[:] = p_before, t_before
-        assert work.update(2, 210.0, 3, 1010.0, since, False, to_end, 950.0, learned, 0.0, 0) in (0, 1)
+        assert work.update(2, 210.0, 3, 1010.0, 0.0, False, since, False, to_end, 950.0, learned, 0) in (0, 1)
         assert np.array_equal(work.p_hist, np.r_[210.0, 210.0, p_before[:-2]])
         assert np.array_equal(work.t_hist, np.r_[t_before[3:], 1010.0, 1010.0, 1010.0])
         expected = forecast_t_ahead(1010.0, since, False, None if to_end < 0 else to_end, work.profile, H, 950.0,
@@ -241,3 +243,30 @@ def test_each_turn_of_a_layer_predicts_with_the_previous_layers_correction_of_th
         if track and k % 25 == 3:
             assert np.array_equal(ctrl._kernel.current, by_turn[track - 1])
             assert np.array_equal(ctrl._kernel.following, by_turn[track] if track < 3 else ctrl.turn_correction_m2)
+
+
+@pytest.mark.parametrize("after_turn", [False, True])
+def test_the_observer_compares_the_state_with_the_last_prediction(model, after_turn):
+    """d̂ ← d̂ + L (x[k] − x̂[k|k−1] − d̂), x̂[k|k−1] the previous update's row 0 completed with the
+    power applied; the error is kept by state since the turn only after a turn."""
+    qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=1.0, power_scale_w=350.0, power_min_w=-1e6, power_max_w=350.0,
+                   area_min_m2=0.0, area_max_m2=5e-7, slack_linear=100.0, slack_quadratic=1000.0)
+    work = Kernel(model, qp, 1, 0.0, len(model.turn_profile_k), 60, 0.3)
+    work.p_hist[:], work.t_hist[:], work.plan[:] = 230.0, 1000.0, 240.0
+    work.current[:] = work.following[:] = 2e-9
+    work.turn_errors[:] = np.nan
+    t_base = 950.0 if after_turn else math.nan
+    assert work.update(0, 0.0, 0, 1000.0, 0.0, False, 5, False, -1, t_base, True, 0) in (0, 1)
+    u1 = work.powers[work.p_hist.size]                  # ū[0] = p[k+1] of row 0
+    b0, q0 = model.power_coefficients[0], model.power_square_coefficients[0]
+    e0 = model.power_temperature_coefficients[0]
+    base = work.z[0] - (b0 + q0 * u1 + e0 * 1000.0) * u1
+    assert work.observer[1] == pytest.approx(base, rel=1e-14) and work.observer[3] == work.correction[0] == 2e-9
+    applied, area, d_before = 215.0, 0.07e-6, work.observer[0]
+    predicted = math.exp(base + (b0 + q0 * applied + e0 * 1000.0) * applied) + 2e-9
+    work.update(1, applied, 1, 1005.0, area, True, 6, False, -1, t_base, True, 0)
+    error = area - predicted - d_before
+    assert work.observer[0] == pytest.approx(d_before + 0.3 * error, rel=1e-12)
+    if after_turn:
+        assert work.turn_errors[6] == pytest.approx(error, rel=1e-12)
+    assert np.all(np.isnan(np.delete(work.turn_errors, 6) if after_turn else work.turn_errors))
