@@ -20,9 +20,10 @@ from .types import Command, ConfigurationError, Diagnostics, Measurement
 __all__ = ["Controller", "Proposal"]
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Proposal:
-    """A control law's answer to one measurement, before the safety layer.
+    """A control law's answer to one measurement, before the safety layer (internal to
+    :meth:`Controller.update`; not frozen, which makes it cheaper to build).
 
     Attributes
     ----------

@@ -125,6 +125,18 @@ class PreviewMPC(Controller):
         """Count the copies of ``p[k]``, ``T[k]`` the update pushes into the histories (one per step
         since the last state) and follow tracks and turnarounds."""
         prev = self._prev
+        if (prev is not None and m.step == prev.step + 1 and m.track == prev.track and m.layer == prev.layer
+                and self._t_known):              # the next state of the same track: one copy of each
+            self._p_fill = self._t_fill = 1
+        else:
+            self._observe_jump(m, prev)
+        if m.track_elapsed_s is not None:
+            self._track_start_step = m.step - round(m.track_elapsed_s / self.model.sample_period_s)
+        if self._turn_base_k is not None:
+            self._observed.append(m.t_ahead_k - self._turn_base_k)
+
+    def _observe_jump(self, m: Measurement, prev: Measurement | None) -> None:
+        """:meth:`_observe` for a first state, a gap in the steps, a new track or a new layer."""
         gap = 1 if prev is None else max(1, m.step - prev.step)
         self._p_fill = min(gap, self._nb)
         if m.step == 0:
@@ -153,10 +165,6 @@ class PreviewMPC(Controller):
             self._observed = []
             self._track_start_step = m.step
             self._sync_corrections()
-        if m.track_elapsed_s is not None:
-            self._track_start_step = m.step - round(m.track_elapsed_s / self.model.sample_period_s)
-        if self._turn_base_k is not None:
-            self._observed.append(m.t_ahead_k - self._turn_base_k)
 
     def _correction_for(self, turn: int) -> np.ndarray:
         """The correction applied after turn ``turn`` of the layer: what the previous layer learned at
