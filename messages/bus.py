@@ -184,16 +184,27 @@ class _SignalRelay:
     _instance: _SignalRelay | None = None
 
     def __init__(self) -> None:
+        self.target: StopFlag | None = None
+        self._open()
+
+    def _open(self) -> None:
         self._read_fd, self._write_fd = os.pipe()
         os.set_blocking(self._write_fd, False)
-        self.target: StopFlag | None = None
-        threading.Thread(target=self._relay, name="stop-signal-relay", daemon=True).start()
+        threading.Thread(target=self._relay, args=(self._read_fd,), name="stop-signal-relay", daemon=True).start()
 
     @classmethod
     def get(cls) -> _SignalRelay:
         if cls._instance is None:
             cls._instance = cls()
+            os.register_at_fork(after_in_child=cls._instance._reopen_in_child)
         return cls._instance
+
+    def _reopen_in_child(self) -> None:
+        """A forked child gets a pipe and relay thread of its own (threads do not survive a fork, and
+        a byte on the inherited pipe would stop the parent)."""
+        os.close(self._read_fd)
+        os.close(self._write_fd)
+        self._open()
 
     def notify(self) -> None:
         """Wake the relay thread (async-signal safe: one non-blocking write)."""
@@ -202,8 +213,8 @@ class _SignalRelay:
         except BlockingIOError:  # the pipe is full of earlier wake-ups: one is enough
             pass
 
-    def _relay(self) -> None:
-        while os.read(self._read_fd, 4096):
+    def _relay(self, read_fd: int) -> None:
+        while os.read(read_fd, 4096):
             if self.target is not None:
                 self.target._event.set()
 

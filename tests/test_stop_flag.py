@@ -53,3 +53,26 @@ def test_a_signal_wakes_a_waiting_node_at_once():
     woke, is_set, name, waited = proc.stdout.split()
     assert (woke, is_set, name) == ("True", "True", "SIGTERM")
     assert float(waited) < 5
+
+
+# A forked child's SIGTERM stops the child, never the parent that shares its StopFlag's past.
+FORK = textwrap.dedent("""
+    import os, signal, sys, time
+    from messages.bus import StopFlag
+    stop = StopFlag()
+    pid = os.fork()
+    if pid == 0:
+        woke = stop.wait(30)
+        os._exit(0 if woke and stop.signal_name == "SIGTERM" else 3)
+    time.sleep(0.3)
+    os.kill(pid, signal.SIGTERM)
+    _, status = os.waitpid(pid, 0)
+    time.sleep(0.3)
+    print(os.waitstatus_to_exitcode(status), stop.is_set())
+""")
+
+
+def test_a_forked_childs_signal_stops_the_child_only():
+    proc = run(FORK)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ["0", "False"]
