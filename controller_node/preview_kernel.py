@@ -42,7 +42,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, typeof
 
 from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_into
 
@@ -335,6 +335,7 @@ class Kernel:
                                              uncertainty_z, qp.weights])):
             view[...] = value
         self.observer[:] = (0.0, math.nan, 0.0, 0.0)   # d̂ = 0, no x̂[k+1|k] yet
+        self._compiled = self._compile_and_bind
         self.gamma, self.hess, _ = self.matrices
         self.c, self.predicted, self.z, self.std, self.f, self.v, self.areas, _ = self.vectors
 
@@ -342,9 +343,18 @@ class Kernel:
                since: int, on_first: bool, to_end: int, t_base_k: float, learned: bool, blind: int) -> int:
         """:func:`update_into` on this kernel's arrays (its parameters); the status: 0 ``v`` solves the
         QP (no bound active; ``plan`` is its solution), 1 a bound is active or the Hessian is not
-        positive definite, 2 a prediction is not finite."""
-        return update_into(self.dims, self.consts, self.state, self.work, p_fill, power_w, t_fill, t_ahead_k, area_m2,
-                           observe, since, on_first, to_end, t_base_k, learned, blind)
+        positive definite, 2 a prediction is not finite. Pass the types of the first call (int, float,
+        bool as annotated) every time."""
+        return self._compiled(self.dims, self.consts, self.state, self.work, p_fill, power_w, t_fill, t_ahead_k,
+                              area_m2, observe, since, on_first, to_end, t_base_k, learned, blind)
+
+    def _compile_and_bind(self, *args):  # noqa: ANN002, ANN202
+        """First call: through numba's dispatcher (compiling or loading), then bind the machine code of
+        these argument types, so later calls skip the dispatcher's type resolution (about 9 µs of
+        each cold call, ``docs/controller.md``, Speed)."""
+        status = update_into(*args)
+        self._compiled = update_into.overloads[tuple(typeof(a) for a in args)].entry_point
+        return status
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
