@@ -108,7 +108,7 @@ class PreviewMPC(Controller):
         self._prior_by_turn: list[np.ndarray] = []                # learned for turn j of the previous layer
         self._learned = False
         self._sync_corrections()
-        self._last_qp: tuple | None = None      # (p[k], blind rows) of the QP in the workspace (see last_qp)
+        self._last_qp: int | None = None        # blind rows of the QP in the workspace (see last_qp)
 
     # ------------------------------------------------------------------ bookkeeping
     def _check_period(self, m: Measurement) -> None:
@@ -244,8 +244,7 @@ class PreviewMPC(Controller):
         and the bound tightening (None without); None if the last update solved no QP."""
         if self._last_qp is None:
             return None
-        previous, blind = self._last_qp
-        return (*self._tracked(blind), previous, self._margin())
+        return (*self._tracked(self._last_qp), float(self._p[0]), self._margin())
 
     @property
     def disturbance_m2(self) -> float:
@@ -286,7 +285,7 @@ class PreviewMPC(Controller):
                              self._learned, blind)
         if status == 2:  # an absurd input: no plan from it
             return Proposal(math.nan, status="model_error")
-        self._last_qp = (float(self._p[0]), blind)
+        self._last_qp = blind
         areas, fast = work.areas, status == 0
         if not fast:     # a bound is active: the kernel's step is not the solution (the plan is unchanged)
             gamma, c = self._tracked(blind)
@@ -299,13 +298,5 @@ class PreviewMPC(Controller):
             sp = s.set_point_m2
             areas = work.predicted + (work.gamma * (sp / self.qp.scale)) @ (new_plan - plan)  # ∂x̂/∂u times the move
             self._plan[:] = new_plan
-        new_plan = self._plan
-        return Proposal(
-            power_w=float(new_plan[0]),
-            plan_w=tuple(new_plan.tolist()),
-            predicted_area_m2=tuple(areas.tolist()),
-            model_std_m2=float(work.std[0]),
-            feedforward_w=0.0,
-            reference_power_w=None,
-            iterations=0 if fast else 1,
-        )
+        plan_w = tuple(self._plan.tolist())
+        return Proposal(plan_w[0], "ok", plan_w, tuple(areas.tolist()), float(work.std[0]), 0.0, None, 0 if fast else 1)

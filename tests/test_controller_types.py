@@ -109,3 +109,10 @@ def test_registry_rejects_unknown_name_and_missing_model() -> None:
     assert make_controller("feedforward", ControllerSettings()).name == "feedforward"  # fixed FE gain by default
     assert make_controller("feedforward", ControllerSettings(
         feedforward=FeedForwardSettings(enabled=True, direct_gain=1.0, gain_w_per_k=-0.1))).name == "feedforward"
+
+
+def test_command_fields_are_plain_python_numbers():
+    """numpy and int inputs become int and float (what the codec and the bounds checks expect)."""
+    cmd = Command(step=np.int64(3), power_w=200, speed_m_s=np.float32(0.8))
+    assert (type(cmd.step), type(cmd.power_w), type(cmd.speed_m_s)) == (int, float, float)
+    assert (cmd.step, cmd.power_w) == (3, 200.0) and cmd.speed_m_s == pytest.approx(0.8)
