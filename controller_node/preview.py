@@ -70,7 +70,6 @@ class PreviewMPC(Controller):
                             slack_linear=ps.slack_linear, slack_quadratic=ps.slack_quadratic)
         self._kernel = Kernel(model, self.qp, h if ps.uncertainty_z > 0 else 1, ps.uncertainty_z,
                               len(model.turn_profile_k), ps.turn_learning_steps, ps.observer_gain)
-        self._psi = self._kernel.psi             # the GP's inputs of the last update
         self._warm_up()
         super().__init__(settings)              # reset(): the run's state, after the warm-up wrote into it
 

@@ -327,6 +327,7 @@ class Kernel:
          self.powers, self.temps, self.forecast, self.correction) = _views(self.dims, self.consts, self.state,
                                                                            self.work)
         intercept[0] = model.intercept
+        # qp_terms: x_sp, P, r, observer gain L, v_lo, v_hi, e_lo, e_hi, zσ, then the H row weights
         for view, value in ((b_, b), (q, model.power_square_coefficients), (cc_, cc),
                             (d, model.temperature_square_coefficients), (e, model.power_temperature_coefficients),
                             (gp, scalars), (decay, model.forecast_persistence ** np.arange(1.0, h + 1)),

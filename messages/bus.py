@@ -216,7 +216,7 @@ class _SignalRelay:
     def _relay(self, read_fd: int) -> None:
         while os.read(read_fd, 4096):
             if self.target is not None:
-                self.target._event.set()
+                self.target.set()
 
 
 class StopFlag:

@@ -212,7 +212,7 @@ def test_prediction_matches_the_model_along_the_previous_plan(turn_at):
     future = RunSeries("f", np.ones(n), t, p, track, DT)
     expected = model.predict_run(future)[0][39:39 + 12] + ctrl.disturbance_m2
     assert np.allclose(at_plan, expected, rtol=1e-9, atol=0.0)
-    assert np.allclose(ctrl._psi, model.residual_inputs(future)[39:39 + 12], rtol=1e-12, atol=0.0)  # the GP's ψ
+    assert np.allclose(ctrl._kernel.psi, model.residual_inputs(future)[39:39 + 12], rtol=1e-12, atol=0.0)  # the GP's ψ
 
 
 def test_jacobian_is_the_models_own_including_the_gp_residual():
