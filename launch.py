@@ -20,7 +20,7 @@ from controller_node.settings import ControllerSettings
 from controller_node.summary import comparison_table, summarise, table_line
 from fe_node.scenarios import PART_NAMES
 from messages.bus import BusSettings, StopFlag, zenoh_config
-from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 from messages.launch.node import NodeSpec, load_node_list
 from messages.launch.service import LaunchService, RunFailed, free_loopback_endpoint, new_recording, writable_recording
 from messages.live import DEFAULT_PORT, check_port
@@ -295,4 +295,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

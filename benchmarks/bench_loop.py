@@ -57,6 +57,7 @@ import zenoh  # noqa: E402
 from launch import free_loopback_endpoint  # noqa: E402
 from messages.auth import RunCredentials  # noqa: E402
 from messages.bus import SUPERVISOR_ENV, BusSettings, StopFlag, wait_for_nodes, zenoh_config  # noqa: E402
+from messages.cli import run_main  # noqa: E402
 from messages.codec import MessageError, decode  # noqa: E402
 from messages.hub import router_config  # noqa: E402
 from messages.topics import CONTROLLER_DIAGNOSTICS, key_expr  # noqa: E402
@@ -262,4 +263,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

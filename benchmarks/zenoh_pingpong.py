@@ -33,6 +33,7 @@ import numpy as np  # noqa: E402
 import zenoh  # noqa: E402
 
 from messages.bus import BusSettings, StopFlag, open_session, wait_for_nodes  # noqa: E402
+from messages.cli import run_main  # noqa: E402
 from messages.topics import LASER_COMMAND, PLANT_STATE, key_expr, liveliness_key  # noqa: E402
 
 STATE_SIZE = 394  # bytes of a typical encoded MeltPoolState (run id of 16 characters)
@@ -118,4 +119,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

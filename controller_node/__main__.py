@@ -1,7 +1,6 @@
 """``python -m controller_node``: see :mod:`controller_node.node`."""
 
-import sys
-
 from controller_node.node import main
+from messages.cli import run_main
 
-sys.exit(main())
+run_main(main)

@@ -38,7 +38,7 @@ from messages.bus import (
     bus_settings_from_args,
     run_node,
 )
-from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 from messages.config import as_dict, build, load_toml
 from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE, RUN_EVENTS
 
@@ -358,4 +358,4 @@ def load_learning_state(controller, path: Path) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

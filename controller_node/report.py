@@ -50,13 +50,12 @@ from __future__ import annotations
 
 import json
 import re
-import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.recording import RecordingError, is_complete, read_messages
 
 WINDOW_START_S = 1.0e-3  # the evaluation window opens this long after laser-on (first state) [s]
@@ -379,4 +378,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

@@ -1,6 +1,8 @@
 """``python -m fe_node [node|run|validate] ...``; no subcommand or ``node`` starts the zenoh node."""
 import sys
 
+from messages.cli import run_main
+
 
 def _main(argv: list[str]) -> int:
     if not argv or argv[0] == "node" or argv[0].startswith("-") and argv[0] not in ("-h", "--help"):
@@ -10,4 +12,4 @@ def _main(argv: list[str]) -> int:
     return main(argv)
 
 
-sys.exit(_main(sys.argv[1:]))
+run_main(_main, sys.argv[1:])

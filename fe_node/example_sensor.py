@@ -12,12 +12,11 @@ contract stays; see ``docs/node-contract.md``.
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass
 
 from fe_node.freerun import PlantSample, add_free_run_arguments, serve, settings_from_args
 from messages.bus import add_bus_arguments, bus_settings_from_args
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 
 NODE_NAME = "plant"
 
@@ -109,4 +108,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

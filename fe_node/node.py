@@ -17,7 +17,6 @@ import argparse
 import dataclasses
 import json
 import math
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from fe_node.scene import laser_pose, scene_update
 from fe_node.solver import ThermalModel
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
 from messages.bus import Inbox, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.config import load_toml
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_LASER, PLANT_SCENE, PLANT_STATE, PLANT_TEMPERATURE
 
@@ -290,4 +289,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

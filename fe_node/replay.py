@@ -10,7 +10,6 @@ recording is open data). Useful to test a controller on sensor data or a past ru
 from __future__ import annotations
 
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import msgspec
 
 from messages import LogLevel, MeltPoolState
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.recording import RecordingError, read_messages
 from messages.topics import LASER_COMMAND, PLANT_STATE
 
@@ -90,4 +89,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

@@ -13,7 +13,6 @@ by the GP's step (50 µs) per tick, whatever the wall rate.
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import numpy as np
 
 from fe_node.freerun import PlantSample, add_free_run_arguments, serve, settings_from_args
 from messages.bus import add_bus_arguments, bus_settings_from_args
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 
 NODE_NAME = "plant"
 GP_STEP_S = 50e-6  # the time step of the FE data the GP was trained on [s]
@@ -115,4 +114,4 @@ def load_model(path: Path):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

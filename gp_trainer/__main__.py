@@ -1,7 +1,6 @@
 """``python -m gp_trainer``: see :mod:`gp_trainer.cli`."""
 
-import sys
-
 from gp_trainer.cli import main
+from messages.cli import run_main
 
-sys.exit(main())
+run_main(main)

@@ -37,13 +37,12 @@ from __future__ import annotations
 
 import json
 import statistics
-import sys
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.codec import MessageError, decode
 from messages.recording import Recording, RecordingError, read_recording
 from messages.topics import LASER_COMMAND, LOG, PLANT_STATE, RUN_EVENTS, TOPICS, Topic, message_node
@@ -389,4 +388,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

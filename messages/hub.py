@@ -19,12 +19,11 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 from pathlib import Path
 
 from messages.auth import ROLES, RunCredentials
 from messages.bus import BusSettings, StopFlag, is_name, zenoh_config
-from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 
 
 def parse_nodes(items: list[str]) -> dict[str, tuple[str, ...]]:
@@ -133,4 +132,4 @@ def serve(run_id: str, endpoint: str, roles: dict[str, tuple[str, ...]], out_dir
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

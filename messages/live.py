@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import threading
 import time
 from collections import Counter, deque
@@ -44,7 +43,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.codec import MessageError, decode, json_schema
 from messages.foxglove import LogLevel
 from messages.recorder import log_time_ns
@@ -367,4 +366,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

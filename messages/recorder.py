@@ -46,7 +46,7 @@ from typing import Any, BinaryIO
 from mcap.writer import CompressionType, Writer
 
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
-from messages.cli import ArgumentParser, UsageError, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.codec import MessageError, decode, encode, json_schema
 from messages.foxglove import Log, LogLevel, Timestamp
 from messages.provenance import git_revision, package_versions
@@ -581,4 +581,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import os
 import struct
-import sys
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -36,7 +35,7 @@ from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage
+from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 from messages.codec import MessageError, decode
 from messages.topics import TOPICS, Topic
 
@@ -357,4 +356,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from messages.auth import ROLES
-from messages.cli import ArgumentParser
+from messages.cli import ArgumentParser, run_main
 from messages.codec import json_schema
 from messages.topics import PREFIX, TOPICS, Topic
 
@@ -199,4 +199,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
 import pytest
 
+from messages.cli import SIGPIPE_STATUS
 from tests.conftest import REPO
 
 CASES = [
@@ -94,3 +96,43 @@ def test_launch_with_its_hub_port_in_use_fails_in_one_line():
                              cwd=REPO, capture_output=True, text=True, timeout=60)
     assert run.returncode == 1 and run.stdout == "", run.stdout
     assert run.stderr.count("\n") == 1 and "cannot open the run's hub" in run.stderr, run.stderr
+
+
+def _run_with_reader_gone(argv: list[str], unbuffered: bool) -> subprocess.CompletedProcess:
+    """Run ``python argv`` with a standard output whose reader has already closed its end."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    env.update({"PYTHONUNBUFFERED": "1"} if unbuffered else {})
+    try:
+        return subprocess.run([sys.executable, *argv], cwd=REPO, stdout=write_end, stderr=subprocess.PIPE, text=True,
+                              env=env, timeout=60)
+    finally:
+        os.close(write_end)
+
+
+PRINTS_AND_RETURNS = "from messages.cli import run_main\nrun_main(lambda: print('x' * 100_000) or 3)"
+
+
+@pytest.mark.parametrize("unbuffered", [False, True], ids=["buffered", "unbuffered"])
+@pytest.mark.parametrize("argv", [["launch.py", "--help"], ["-m", "controller_node.report", "--help"],
+                                  ["-m", "gp_trainer", "--help"], ["-m", "fe_node", "validate", "--help"],
+                                  ["-c", PRINTS_AND_RETURNS]],
+                         ids=["launch.py", "controller_node.report", "gp_trainer", "fe_node validate", "run_main"])
+def test_a_reader_that_leaves_early_ends_the_program_quietly(argv, unbuffered):
+    """``... | head -1``: no traceback, no "Exception ignored" message; status 141 as for SIGPIPE
+    (0 where argparse's help already ignored the failed write)."""
+    run = _run_with_reader_gone(argv, unbuffered)
+    assert run.stderr == "", run.stderr
+    expected = {0, SIGPIPE_STATUS} if unbuffered and argv[-1] == "--help" else {SIGPIPE_STATUS}
+    assert run.returncode in expected
+
+
+def test_run_main_passes_on_the_status_and_other_broken_pipes():
+    done = subprocess.run([sys.executable, "-c", PRINTS_AND_RETURNS], cwd=REPO, capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 3 and len(done.stdout) == 100_001
+    other_pipe = ("import os\nfrom messages.cli import run_main\nr, w = os.pipe()\nos.close(r)\n"
+                  "run_main(lambda: os.write(w, b'x'))")
+    run = subprocess.run([sys.executable, "-c", other_pipe], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 1 and "BrokenPipeError" in run.stderr, run.stderr
