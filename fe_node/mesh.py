@@ -13,6 +13,7 @@ view used in the public API.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,10 +40,11 @@ def graded_axis(lo: float, hi: float, fine_lo: float, fine_hi: float, h: float,
     hf = (fine_hi - fine_lo) / n
 
     def outer(length):
-        sizes, s = [], hf
-        while sum(sizes) < length - 1e-12 * max(length, 1e-3):
+        sizes, s, total = [], hf, 0.0
+        while total < length - 1e-12 * max(length, 1e-3):
             s = min(s * growth, h_max)
             sizes.append(s)
+            total += s
         sizes = np.asarray(sizes)
         return np.cumsum(sizes * (length / sizes.sum())) if len(sizes) else sizes
 
@@ -51,6 +53,29 @@ def graded_axis(lo: float, hi: float, fine_lo: float, fine_hi: float, h: float,
     x = np.concatenate([left, fine, right])
     x[0], x[-1] = lo, hi
     return x
+
+
+def graded_axis_size(lo: float, hi: float, fine_lo: float, fine_hi: float, h: float,
+                     growth: float, h_max: float) -> int:
+    """Number of nodes of :func:`graded_axis` with the same arguments, counted without placing
+    them (a plan too large to mesh is refused before anything is allocated); its outer sequences
+    are counted geometrically up to ``h_max`` and in closed form beyond (within one node of
+    :func:`graded_axis` where rounding differs)."""
+    if not lo <= fine_lo < fine_hi <= hi:
+        raise ValueError("mesh: fine region must lie inside the domain")
+    n = max(1, math.ceil((fine_hi - fine_lo) / h - 1e-9))
+    hf = (fine_hi - fine_lo) / n
+
+    def outer(length):
+        goal = length - 1e-12 * max(length, 1e-3)
+        count, s, total = 0, hf, 0.0
+        while total < goal and s < h_max:
+            s = min(s * growth, h_max)
+            total += s
+            count += 1
+        return count + (max(0, math.ceil((goal - total) / h_max)) if total < goal else 0)
+
+    return outer(fine_lo - lo) + n + 1 + outer(hi - fine_hi)
 
 
 def fe1d(x: np.ndarray, w: np.ndarray | None = None):

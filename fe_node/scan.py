@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fe_node.settings import check_type
+
 
 @dataclass(frozen=True)
 class ScanPlan:
@@ -42,7 +44,11 @@ class ScanPlan:
 
         Bidirectional (serpentine) by default: odd tracks run in -x.
         """
-        if n_tracks < 1 or int(n_tracks) != n_tracks:
+        check_type("scan plan: n_tracks", n_tracks, "int")
+        check_type("scan plan: track length", length_m, "float")
+        check_type("scan plan: hatch", hatch_m, "float")
+        check_type("scan plan: bidirectional", bidirectional, "bool")
+        if n_tracks < 1:
             raise ValueError(f"scan plan: n_tracks must be a positive integer, got {n_tracks}")
         if not length_m > 0:
             raise ValueError(f"scan plan: track length must be > 0, got {length_m}")

@@ -48,7 +48,8 @@ from pathlib import Path
 import numpy as np
 
 from fe_node.scan import Profile, ScanPlan, Signal
-from fe_node.settings import Settings
+from fe_node.settings import Settings, check_type
+from fe_node.solver import check_grid_size
 
 P_SINE = Signal(mean=225.0, amplitude=75.0, period_s=2e-3)
 P_PROFILE = Signal(times_s=tuple(i * 1.5e-3 for i in range(7)),
@@ -143,6 +144,19 @@ class Scenario:
     """The part's STL (``part``; shown in Foxglove by :mod:`fe_node.scene`)."""
 
 
+_PLAN_KINDS = {"n_tracks": "int", "track_length_m": "float", "hatch_m": "float", "bidirectional": "bool"}
+"""The plan overrides of :func:`scenario` and their kinds (:func:`fe_node.settings.check_type`)."""
+
+
+def _constant(key: str, value: object) -> float:
+    """A constant power (``power_w`` >= 0 W) or speed (``speed_m_s`` > 0 m/s) override as a float
+    (ValueError naming the key otherwise)."""
+    check_type(f"scenario override {key!r}", value, "float")
+    if not (value > 0 if key == "speed_m_s" else value >= 0):
+        raise ValueError(f"scenario override {key!r} must be {'> 0' if key == 'speed_m_s' else '>= 0'}, got {value!r}")
+    return float(value)
+
+
 def scenario(name: str = DEFAULT, **overrides) -> Scenario:
     """Build a named scenario.
 
@@ -175,11 +189,12 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
         if key in IDENT_DEFAULTS:
             ident_kw[key] = value
         elif key in keys:
+            check_type(f"scenario override {key!r}", value, _PLAN_KINDS[key])
             plan_kw[keys[key]] = value
         elif key == "power_w":
-            power = Signal(float(value))
+            power = Signal(_constant(key, value))
         elif key == "speed_m_s":
-            speed = Signal(float(value))
+            speed = Signal(_constant(key, value))
         elif key in Settings.field_names():
             settings_kw[key] = value
         else:
@@ -196,6 +211,7 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
         n_steps = math.ceil(plan.total_length / (v_min * settings.dt_s) - 1e-9) * settings.n_layers
         power = ident_power(ident["ident_seed"], ident["ident_mean_w"], ident["ident_amplitude_w"],
                             n_steps, settings.dt_s)
+    check_grid_size(settings, plan)
     return Scenario(name=name, settings=settings, plan=plan, profile=Profile(power, speed, settings.dt_s))
 
 
@@ -226,7 +242,8 @@ def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w
         power = ident_power(ident["ident_seed"], ident["ident_mean_w"], ident["ident_amplitude_w"],
                             n_steps, settings.dt_s)
     else:
-        power = Signal(PART_POWER_W if power_w is None else float(power_w))
-    profile = Profile(power, Signal(float(speed_m_s)), settings.dt_s)
+        power = Signal(PART_POWER_W if power_w is None else _constant("power_w", power_w))
+    profile = Profile(power, Signal(_constant("speed_m_s", speed_m_s)), settings.dt_s)
+    check_grid_size(settings, plans[0], plans[:n])
     return Scenario(name=name, settings=settings, plan=plans[0], profile=profile, layer_plans=plans[:n],
                     part_stl=stl)

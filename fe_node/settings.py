@@ -1,9 +1,24 @@
 """Plant settings (process, boundary conditions, discretisation), validated on construction."""
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field, fields
 
 from fe_node.material import Material
+
+
+def check_type(what: str, value: object, kind: str) -> None:
+    """Raise ValueError (naming ``what``) unless ``value`` is of ``kind``: ``"float"`` a finite real
+    number (an integer too, not a boolean), ``"int"`` an integer (not a boolean), ``"bool"`` true or
+    false, ``"str"`` a string; other kinds are not checked here."""
+    ok = {"float": lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v),
+          "int": lambda v: isinstance(v, numbers.Integral) and not isinstance(v, bool),
+          "bool": lambda v: isinstance(v, bool),
+          "str": lambda v: isinstance(v, str)}.get(kind)
+    if ok is not None and not ok(value):
+        name = {"float": "a finite number", "int": "an integer", "bool": "true or false", "str": "a string"}[kind]
+        raise ValueError(f"{what} must be {name}, got {value!r}")
 
 OPERATORS = ("tensor", "csr")
 
@@ -123,6 +138,8 @@ class Settings:
     def __post_init__(self):
         if not isinstance(self.material, Material):
             raise ValueError("settings: material must be a fe_node.material.Material")
+        for f in fields(self):
+            check_type(f"settings: {f.name}", getattr(self, f.name), f.type)
         positive = ("beam_radius_m", "dt_s", "h_fine_m", "h_max_m", "fine_pad_m",
                     "fine_depth_m", "margin_m", "depth_m", "t0_k", "t_amb_k")
         for name in positive:

@@ -26,7 +26,7 @@ import numpy as np
 from fe_node.boundary import evaporate, loss_flux, loss_flux_slope
 from fe_node.dwell import implicit_step
 from fe_node.material import Constitutive
-from fe_node.mesh import Grid, graded_axis
+from fe_node.mesh import Grid, graded_axis, graded_axis_size
 from fe_node.observe import Observation, bilinear, interp_matrix, pool_geometry
 from fe_node.operators import CsrOperator, TensorOperator
 from fe_node.powder import PowderBed
@@ -48,11 +48,46 @@ def plan_bands(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, 
                  for lo, hi in ((b[:, 0].min(), b[:, 1].max()), (b[:, 2].min(), b[:, 3].max())))
 
 
+MAX_GRID_NODES = 50_000_000
+"""Most nodes a plant grid may have: about 9 GB of nodal fields at the 184 B per node measured on
+the default layer (``docs/fe.md``). A larger plan is refused (:func:`check_grid_size`) before
+anything is allocated."""
+
+
+def grid_shape(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None
+               ) -> tuple[int, int, int]:
+    """Nodes along x, y, z of :func:`build_grid`'s grid, counted without building it (exact for the
+    whole-plan band; with ``window_m > 0`` an estimate, as if the whole window lay inside the band)."""
+    s = settings
+    ax = dict(h=s.h_fine_m, growth=s.growth, h_max=s.h_max_m)
+    counts = []
+    for domain, (band_lo, band_hi) in plan_bands(settings, plan, layer_plans):
+        if s.window_m > 0:
+            band_hi = min(band_hi, band_lo + s.window_m + 2 * s.h_fine_m)
+        counts.append(graded_axis_size(*domain, band_lo, band_hi, **ax))
+    nz = graded_axis_size(-s.depth_m, 0.0, -s.fine_depth_m, 0.0, **ax)
+    if s.powder_layer_m > 0:
+        nz += math.ceil(s.powder_layer_m / s.h_fine_m - 1e-9)
+    return counts[0], counts[1], nz
+
+
+def check_grid_size(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None) -> None:
+    """Raise ValueError (one line, naming what to change) if the plant's grid would have more than
+    :data:`MAX_GRID_NODES` nodes."""
+    nx, ny, nz = grid_shape(settings, plan, layer_plans)
+    if nx * ny * nz > MAX_GRID_NODES:
+        raise ValueError(f"the FE grid would have {nx * ny * nz:,} nodes ({nx} x {ny} x {nz}), more than "
+                         f"{MAX_GRID_NODES:,}: shorten the scan plan (n_tracks, track_length_m, hatch_m), coarsen "
+                         "h_fine_m, or let a fine window follow the laser (window_m)")
+
+
 def build_grid(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None,
                window_centre: np.ndarray | None = None) -> Grid:
     """Graded grid: fine band of size ``h_fine_m`` around the tracks (or, with ``window_m > 0``, a
     window of that side around ``window_centre``, :mod:`fe_node.window`), graded outwards; the
-    plate's top at z = 0, a powder layer (``powder_layer_m``, elements <= ``h_fine_m``) above it."""
+    plate's top at z = 0, a powder layer (``powder_layer_m``, elements <= ``h_fine_m``) above it.
+    ValueError if it would be too large (:func:`check_grid_size`)."""
+    check_grid_size(settings, plan, layer_plans)
     s = settings
     ax = dict(h=s.h_fine_m, growth=s.growth, h_max=s.h_max_m)
     axes = []

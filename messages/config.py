@@ -21,15 +21,20 @@ T = TypeVar("T")
 
 
 def load_toml(path: Path | None) -> dict[str, Any]:
-    """The parsed TOML file (``{}`` for ``None``); :class:`UsageError` if missing or invalid."""
+    """The parsed TOML file (``{}`` for ``None``); :class:`UsageError` if missing or invalid, or if
+    its ``[plant]`` or ``[controller]`` is not a table (e.g. ``[[plant]]``, an array of tables)."""
     if path is None:
         return {}
     try:
-        return tomllib.loads(Path(path).read_text())
+        data = tomllib.loads(Path(path).read_text())
     except FileNotFoundError:
         raise UsageError(f"config file not found: {path}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
         raise UsageError(f"{path}: invalid TOML: {err}") from None
+    for table in ("plant", "controller"):
+        if table in data and not isinstance(data[table], dict):
+            raise UsageError(f"{path}: [{table}] must be a table, got {type(data[table]).__name__}")
+    return data
 
 
 def build(cls: type[T], data: Mapping[str, Any], where: str, **overrides: Any) -> T:
