@@ -110,7 +110,25 @@ def check_config(opts: RunOptions) -> None:
     except (ValueError, TypeError) as err:
         raise UsageError(f"{opts.config} [plant]: {err}" if opts.config else str(err)) from None
     table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
-    build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint() * 1e-6)
+    settings = build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint() * 1e-6)
+    if opts.closed_loop:
+        check_within_plant(settings, f"{opts.config} [controller]")
+
+
+def check_within_plant(settings: ControllerSettings, where: str) -> None:
+    """:class:`UsageError` unless the controller's power bounds and speed lie within the bounds the
+    plant node starts with (:class:`fe_node.commands.CommandPolicy`'s): the plant would drop every
+    command outside them."""
+    from fe_node.commands import CommandPolicy
+
+    plant = CommandPolicy()
+    if not plant.power_min_w <= settings.power_min_w < settings.power_max_w <= plant.power_max_w:
+        raise UsageError(f"{where}: power bounds [{settings.power_min_w:g}, {settings.power_max_w:g}] W must lie "
+                         f"within the plant's [{plant.power_min_w:g}, {plant.power_max_w:g}] W (it drops any command "
+                         "outside them)")
+    if not plant.speed_min_m_s <= settings.nominal_speed_m_s <= plant.speed_max_m_s:
+        raise UsageError(f"{where}: nominal_speed_m_s {settings.nominal_speed_m_s:g} m/s must lie within the plant's "
+                         f"[{plant.speed_min_m_s:g}, {plant.speed_max_m_s:g}] m/s")
 
 
 def default_model(opts: RunOptions) -> Path | None:

@@ -136,3 +136,15 @@ def test_run_main_passes_on_the_status_and_other_broken_pipes():
                   "run_main(lambda: os.write(w, b'x'))")
     run = subprocess.run([sys.executable, "-c", other_pipe], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert run.returncode == 1 and "BrokenPipeError" in run.stderr, run.stderr
+
+
+@pytest.mark.parametrize("table, message", [
+    ("power_max_w = 1e6", "power bounds [0, 1e+06] W must lie within the plant's [0, 350] W"),
+    ("nominal_speed_m_s = 9.0", "nominal_speed_m_s 9 m/s must lie within the plant's [0.05, 5] m/s"),
+])
+def test_launch_refuses_controller_bounds_the_plant_would_drop(tmp_path, table, message):
+    config = tmp_path / "run.toml"
+    config.write_text(f"[controller]\n{table}\n")
+    run = subprocess.run([sys.executable, "launch.py", "--config", str(config)], cwd=REPO, capture_output=True,
+                         text=True, timeout=60)
+    assert run.returncode == 2 and run.stderr.count("\n") == 1 and message in run.stderr, run.stderr
