@@ -20,6 +20,7 @@ def check_type(what: str, value: object, kind: str) -> None:
         name = {"float": "a finite number", "int": "an integer", "bool": "true or false", "str": "a string"}[kind]
         raise ValueError(f"{what} must be {name}, got {value!r}")
 
+
 OPERATORS = ("tensor", "csr")
 
 
