@@ -11,6 +11,7 @@ of 50 µm).  PySLM is an optional dependency: ``pip install pythonslm``.
 from __future__ import annotations
 
 import importlib.util
+import math
 from pathlib import Path
 
 import numpy as np
@@ -60,9 +61,16 @@ def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float) -> tuple[Sc
     if not path.is_file():
         raise ValueError(f"scenario part: no STL file {str(path)!r}")
     part = pyslm.Part(path.stem)
-    part.setGeometry(str(path))
-    part.dropToPlatform()
-    x0, y0, _, x1, y1, z1 = part.boundingBox
+    try:
+        part.setGeometry(str(path))
+        part.dropToPlatform()
+        x0, y0, _, x1, y1, z1 = (float(v) for v in part.boundingBox)
+    except Exception as err:  # the mesh loader raises its own types for a file it cannot read
+        raise ValueError(f"scenario part: cannot read {str(path)!r} as an STL mesh "
+                         f"({type(err).__name__}: {' '.join(str(err).split())[:200]})") from None
+    if not all(math.isfinite(v) for v in (x0, y0, x1, y1, z1)) or not (x1 > x0 and y1 > y0 and z1 > 0):
+        raise ValueError(f"scenario part: {str(path)!r} holds no solid (bounding box {x0:g}..{x1:g} x "
+                         f"{y0:g}..{y1:g} x 0..{z1:g} mm)")
     centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
     hatcher = hatching.Hatcher()
     hatcher.hatchAngle, hatcher.layerAngleIncrement, hatcher.hatchDistance = 90.0, 0.0, hatch_m * 1e3

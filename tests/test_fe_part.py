@@ -93,3 +93,33 @@ def test_launch_builds_a_part_and_shows_it(tmp_path):
     status, output = run_launch("--scenario", "part", "--layers", "11")
     assert status == 2 and output.strip() == ("python launch.py: error: scenario part: n_layers must be in [1, 10] "
                                               "for this part, got 11")
+
+
+@pytest.mark.parametrize("content", [b"", b"solid x\nendsolid x\n", bytes(range(256)) * 12],
+                         ids=["empty", "no facets", "binary noise"])
+def test_a_file_that_is_no_stl_mesh_is_refused_in_one_line(tmp_path, content):
+    stl = tmp_path / "bad.stl"
+    stl.write_bytes(content)
+    with pytest.raises(ValueError, match=r"^scenario part: cannot read .*bad\.stl' as an STL mesh \(") as err:
+        scenario("part", part_stl=str(stl))
+    assert "\n" not in str(err.value)
+
+
+def test_a_flat_mesh_is_refused_as_no_solid(tmp_path):
+    stl = tmp_path / "flat.stl"
+    stl.write_text("solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 1 0\nendloop\n"
+                   "endfacet\nendsolid x\n")
+    with pytest.raises(ValueError, match=r"flat\.stl' holds no solid \(bounding box 0\.\.1 x 0\.\.1 x 0\.\.0 mm\)"):
+        scenario("part", part_stl=str(stl))
+
+
+def test_launch_refuses_a_part_file_that_is_not_an_stl():
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    run = subprocess.run([sys.executable, "launch.py", "--scenario", "part", "--part", "README.md"], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
+    assert "cannot read 'README.md' as an STL mesh" in run.stderr
