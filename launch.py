@@ -16,6 +16,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from controller_node.node import default_model_path, load_model
 from controller_node.settings import ControllerSettings
 from controller_node.summary import comparison_table, summarise, table_line
 from fe_node.scenarios import PART_NAMES
@@ -66,6 +67,8 @@ class RunOptions:
             (self.config is None or self.config.is_file(), f"--config: file not found: {self.config}"),
             (self.live is None or 1 <= self.live <= 65535, "--live: the port must be in 1..65535"),
             (self.model is None or self.model.is_file(), f"--model: file not found: {self.model}"),
+            (self.model is None or default_model_path(self.controller) is not None,
+             f"--model: the {self.controller} controller uses no model"),
             (self.learning_state is None or self.controller == "preview-mpc",
              "--learning-state needs --controller preview-mpc"),
         ]
@@ -113,6 +116,7 @@ def check_config(opts: RunOptions) -> None:
     settings = build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint() * 1e-6)
     if opts.closed_loop:
         check_within_plant(settings, f"{opts.config} [controller]")
+        load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
 
 
 def check_within_plant(settings: ControllerSettings, where: str) -> None:
@@ -200,7 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
     add("--setpoint-mm2", type=float, help=f"melt-pool area set point [mm²] (default {DEFAULT_SETPOINT_MM2:g})")
     add("--config", type=Path, help="TOML run configuration: [plant] and [controller] tables of settings")
     add("--learning-state", type=Path, metavar="FILE", help="preview-mpc: start from FILE's learning, write this run's")
-    add("--model", type=Path, help="model file (default: the controller's shipped model in gp_trainer/models/)")
+    add("--model", type=Path, help="model file of mpc, feedforward or preview-mpc (default: the controller's shipped "
+                                   "model in gp_trainer/models/; refused with --compare)")
     add("--max-steps", type=int, help="end the run after this many plant steps")
     add("--h-um", type=float, help="fine FE element size [µm]")
     add("--fallback", help="what the plant applies when the controller is gone or late: safe (default) or hold")
@@ -268,6 +273,10 @@ def main(argv: list[str] | None = None) -> int:
 
             setpoint = ["--setpoint-mm2", str(args.setpoint_mm2)] if args.setpoint_mm2 else []
             return report_main([str(args.report), "--json", *setpoint])
+        if args.compare and (given := [f"--{k.replace('_', '-')}" for k in ("controller", "model", "learning_state")
+                                       if getattr(args, k) is not None]):
+            raise UsageError(f"{', '.join(given)} cannot be combined with --compare (it runs every controller, each "
+                             "with its own model)")
         opts = RunOptions(**{f.name: getattr(args, f.name) for f in fields(RunOptions)}
                           | {"scenario": args.scenario or "layer", "controller": args.controller or DEFAULT_CONTROLLER})
         specs = load_node_list(args.nodes) if args.nodes is not None else None

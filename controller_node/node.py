@@ -75,9 +75,12 @@ def default_model_path(name: str) -> Path | None:
 
 def load_model(name: str, path: Path | None):
     """The model for controllers that need one (``mpc``, ``feedforward``: the one-step GP;
-    ``preview-mpc``: the delay-aware model), else ``None``."""
+    ``preview-mpc``: the delay-aware model), else ``None``; :class:`UsageError` if it cannot be
+    loaded, or if ``path`` is given for a controller that uses no model."""
     default = default_model_path(name)
     if default is None:
+        if path is not None:
+            raise UsageError(f"--model: the {name} controller uses no model")
         return None
     from gp_trainer.errors import GPTrainerError
     from gp_trainer.model import GPModel

@@ -29,6 +29,13 @@ CASES = [
     (["launch.py", "--part", "fe_node/parts/cylinder_d1.5_h0.5_mm.stl"], "--part needs --scenario part"),
     (["launch.py", "--scenario", "part", "--part", "missing.stl"], "--part: file not found: missing.stl"),
     (["launch.py", "--layers", "0"], "--layers must be >= 1"),
+    (["launch.py", "--controller", "pid", "--model", "gp_trainer/models/in625_gp.json"],
+     "--model: the pid controller uses no model"),
+    (["launch.py", "--model", "README.md"], "cannot load GP model README.md"),
+    (["launch.py", "--controller", "mpc", "--model", "gp_trainer/models/in625_narx_gp.json"],
+     "is not a meltloop-gp-model file"),
+    (["launch.py", "--compare", "--controller", "pid"], "--controller cannot be combined with --compare"),
+    (["launch.py", "--compare", "--learning-state", "x.json"], "--learning-state cannot be combined with --compare"),
     (["-m", "fe_node", "--part", "fe_node/parts/cylinder_d1.5_h0.5_mm.stl"], "--part needs --scenario part"),
     # the FE plant node
     (["-m", "fe_node", "--max-steps", "0"], "--max-steps must be >= 1"),
@@ -44,6 +51,8 @@ CASES = [
     (["-m", "controller_node", "--config", "missing.toml"], "config file not found"),
     (["-m", "controller_node", "--setpoint-mm2", "nan"], "must be a finite number"),
     (["-m", "controller_node", "--require", "a/b"], "invalid node name"),
+    (["-m", "controller_node", "--controller", "pid", "--model", "gp_trainer/models/in625_gp.json"],
+     "--model: the pid controller uses no model"),
     # recorder
     (["-m", "messages.recorder", "--out", "x.txt"], "--out must name a .mcap file"),
     (["-m", "messages.recorder", "--drain-s", "-1"], "--drain-s must be >= 0"),
