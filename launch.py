@@ -116,7 +116,23 @@ def check_config(opts: RunOptions) -> None:
     settings = build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint() * 1e-6)
     if opts.closed_loop:
         check_within_plant(settings, f"{opts.config} [controller]")
-        load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
+        model = load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
+        if opts.learning_state is not None and opts.learning_state.is_file():
+            check_learning_state(opts.learning_state, model, settings)
+
+
+def check_learning_state(path: Path, model, settings: ControllerSettings) -> None:
+    """:class:`UsageError` unless ``path`` holds learning the preview MPC on ``model`` can start from
+    (:func:`controller_node.preview.parse_learning_state`; a missing file starts afresh)."""
+    from controller_node.preview import parse_learning_state
+
+    try:
+        parse_learning_state(json.loads(path.read_bytes()), model.sample_period_s,
+                             settings.preview.turn_learning_steps, len(model.turn_profile_k))
+    except json.JSONDecodeError as err:
+        raise UsageError(f"--learning-state {path}: not JSON ({err})") from None
+    except (OSError, ValueError) as err:
+        raise UsageError(f"--learning-state {path}: {' '.join(str(err).split())}") from None
 
 
 def check_within_plant(settings: ControllerSettings, where: str) -> None:

@@ -469,3 +469,32 @@ def test_a_new_controller_answers_as_one_reset_after_a_run():
     run(used)
     used.reset()
     assert run(PreviewMPC(settings, model)) == run(used)
+
+
+@pytest.mark.parametrize("content, message", [
+    ("{not json", "not JSON (Expecting property name"),
+    ('{"format": "meltloop-preview-learning-1"}', "written by an older meltloop"),
+    ("[]", "not a meltloop-preview-learning-2 document"),
+    (None, "learned at a sample period of 0.0001 s"),
+    ("short", "another turn_learning_steps"),
+])
+def test_launch_checks_the_learning_state_before_any_node_starts(tmp_path, content, message):
+    """``launch.py --learning-state FILE``: a file the controller could not start from is a usage
+    error of launch.py (the same checks as :meth:`PreviewMPC.load_learning_state`), a written one passes."""
+    import launch
+    from gp_trainer.narx import DEFAULT_MODEL_PATH
+    from messages.cli import UsageError
+
+    model, settings = NarxGPModel.load(DEFAULT_MODEL_PATH), ControllerSettings()
+    written = make_controller("preview-mpc", settings, model).learning_state()
+    path = tmp_path / "learn.json"
+    path.write_text(json.dumps(written))
+    launch.check_learning_state(path, model, settings)                  # what a run wrote is accepted
+    if content is None:
+        content = json.dumps({**written, "sample_period_s": 1e-4})
+    elif content == "short":
+        content = json.dumps({**written, "turn_correction_m2": written["turn_correction_m2"][:-1],
+                              "turn_corrections_by_turn_m2": []})
+    path.write_text(content)
+    with pytest.raises(UsageError, match=f"^--learning-state {path}: .*" + message.replace("(", r"\(")):
+        launch.check_learning_state(path, model, settings)
