@@ -78,8 +78,9 @@ class RunOptions:
 
     @property
     def plant_overrides(self) -> dict[str, Any]:
-        """``--part`` and ``--layers`` as scenario overrides (as the plant node applies them)."""
-        return {k: v for k, v in (("part_stl", self.part and str(self.part)), ("n_layers", self.layers)) if v}
+        """``--part``, ``--layers`` and ``--h-um`` as scenario overrides (as the plant node applies them)."""
+        return {k: v for k, v in (("part_stl", self.part and str(self.part)), ("n_layers", self.layers),
+                                  ("h_fine_m", self.h_um and self.h_um * 1e-6)) if v}
 
     @property
     def closed_loop(self) -> bool:
@@ -314,6 +315,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             name = "nodes" if specs else f"{opts.scenario}-{opts.controller}"
             default = Path("recordings") / f"{stamp}-{name}.mcap"
+            if args.out is not None and (args.out.suffix != ".mcap" or args.out.is_dir()):
+                raise UsageError(f"--out {args.out}: must name a .mcap file (a folder only with --compare)")
             out = writable_recording(args.out) if args.out else new_recording(default)
     except UsageError as err:
         return exit_usage(parser.prog, err)
