@@ -556,8 +556,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         settings = bus_settings_from_args(args)
-        if args.drain_s < 0:
-            raise UsageError("--drain-s must be >= 0")
+        if not 0 <= args.drain_s <= 60:
+            raise UsageError(f"--drain-s must be >= 0 and at most 60 s, got {args.drain_s}")
         if args.out is not None and args.out.suffix != ".mcap":
             raise UsageError(f"--out must name a .mcap file, got {args.out}")
         path = args.out or default_path(settings.run_id)

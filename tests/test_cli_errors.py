@@ -59,6 +59,7 @@ CASES = [
     # recorder
     (["-m", "messages.recorder", "--out", "x.txt"], "--out must name a .mcap file"),
     (["-m", "messages.recorder", "--drain-s", "-1"], "--drain-s must be >= 0"),
+    (["-m", "messages.recorder", "--drain-s", "nan"], "--drain-s must be >= 0 and at most 60 s, got nan"),
     # example sensor, surrogate (free-running plants)
     (["-m", "fe_node.example_sensor", "--rate-hz", "0"], "--rate-hz must be in"),
     (["-m", "fe_node.example_sensor", "--rate-hz", "1e9"], "--rate-hz must be in"),
