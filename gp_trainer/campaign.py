@@ -230,6 +230,29 @@ def recording_path(settings: CampaignSettings, case: int) -> Path:
     return job_recording(settings, case_job(case))
 
 
+def requested_mesh_m(job: Job, settings: RunnerSettings) -> float:
+    """The FE mesh size ``h_fine_m`` [m] a run of ``job`` asks for: the runner's ``--h-um`` (launch.py's
+    option wins over the job's ``[plant]`` table), else the table's ``h_fine_m``, else the plant's default."""
+    from fe_node.settings import Settings
+
+    args = list(getattr(settings, "launch_args", ()))
+    if "--h-um" in args:
+        return float(args[args.index("--h-um") + 1]) * 1e-6
+    return float(dict(job.plant).get("h_fine_m", Settings().h_fine_m))
+
+
+def check_recorded_mesh(path: Path, job: Job, settings: RunnerSettings) -> None:
+    """:class:`CampaignError` if the complete recording ``path``, which a re-run would keep, was made on
+    another FE mesh than ``job`` asks for (e.g. an earlier ``--h-um 50`` run in the same ``--out-dir``)."""
+    from messages.recording import run_config
+
+    recorded = run_config(path).get("plant", {}).get("settings", {}).get("h_fine_m")
+    wanted = requested_mesh_m(job, settings)
+    if recorded is not None and not math.isclose(recorded, wanted, rel_tol=1e-9):
+        raise CampaignError(f"{path} was recorded on a {recorded * 1e6:g} µm mesh, this run asks for "
+                            f"{wanted * 1e6:g} µm: use another --out-dir, or delete it to record it again")
+
+
 def recording_complete(path: Path) -> bool:
     """True if ``path`` exists and the recorder finished it with no message missing."""
     from messages.recording import is_complete
@@ -521,6 +544,8 @@ def run_jobs(jobs: list[Job] | tuple[Job, ...], settings: RunnerSettings, *, pro
     spec.out_dir.mkdir(parents=True, exist_ok=True)
     results = {j.name: JobResult(j.name, str(job_recording(settings, j)), "skipped", 0.0, "recording complete", 0)
                for j in jobs if recording_complete(job_recording(settings, j))}
+    for name in results:
+        check_recorded_mesh(Path(results[name].recording), next(j for j in jobs if j.name == name), settings)
     pending = [j for j in jobs if j.name not in results]
     retries = getattr(settings, "retries", 1)
     with contextlib.ExitStack() as stack:

@@ -155,7 +155,8 @@ def _runner_options(p: argparse.ArgumentParser, unit: str) -> None:
     p.add_argument("--max-steps", type=int, default=None,
                    help=f"launch.py --max-steps for every {unit} (short test runs; use another --out-dir)")
     p.add_argument("--h-um", type=float, default=None,
-                   help=f"launch.py --h-um for every {unit} (coarser mesh; use another --out-dir)")
+                   help=f"launch.py --h-um for every {unit} (coarser mesh; use another --out-dir: a re-run refuses "
+                   "recordings made on another mesh)")
     p.add_argument("--no-progress", action="store_true", help=f"no progress bar and no line per finished {unit}")
     p.add_argument("--json", action="store_true", help="print a JSON summary (last line)")
 
@@ -164,6 +165,10 @@ def _runner_settings(args: argparse.Namespace) -> dict:
     """The runner fields of the campaign/identify settings from the command line."""
     from gp_trainer.campaign import CampaignSettings
 
+    if args.h_um is not None and not 0 < args.h_um <= 1000:
+        raise CampaignError(f"--h-um must be in (0, 1000] µm, got {args.h_um}")
+    if args.max_steps is not None and args.max_steps < 1:
+        raise CampaignError(f"--max-steps must be >= 1, got {args.max_steps}")
     launch_args = (*(("--max-steps", str(args.max_steps)) if args.max_steps is not None else ()),
                    *(("--h-um", repr(args.h_um)) if args.h_um is not None else ()))
     return dict(out_dir=args.out_dir, workers=getattr(args, "workers", CampaignSettings.workers),

@@ -167,3 +167,20 @@ def test_existing_cluster_via_scheduler_address(tmp_path):
         worker = next(iter(cluster.scheduler_info["workers"]))
     assert (result.status, result.worker, result.attempts) == ("ok", worker, 1)
     assert result.states_sha256 == reference.states_sha256 is not None
+
+
+def test_a_rerun_on_another_mesh_does_not_keep_the_recordings_of_the_first(tmp_path):
+    """A complete recording is kept by a re-run only if it was made on the mesh the re-run asks for:
+    an earlier ``--h-um 50`` run in the same ``--out-dir`` is not silently taken as a 25 µm one."""
+    from gp_trainer.errors import CampaignError
+
+    jobs = [Job("table2-case1", "table2-case1", args=("--max-steps", "5"))]
+    coarse = CampaignSettings(out_dir=tmp_path, sequential=True, launch_args=SHORT)
+    assert [r.status for r in run_jobs(jobs, coarse, progress=False)] == ["ok"]
+    assert [r.status for r in run_jobs(jobs, coarse, progress=False)] == ["skipped"]
+    with pytest.raises(CampaignError, match=r"table2-case1\.mcap was recorded on a 50 µm mesh, this run asks for "
+                                            r"25 µm: use another --out-dir"):
+        run_jobs(jobs, dataclasses.replace(coarse, launch_args=()), progress=False)
+    with pytest.raises(CampaignError, match="recorded on a 50 µm mesh, this run asks for 40 µm"):
+        run_jobs([Job("table2-case1", "table2-case1", plant=(("h_fine_m", 40e-6),), args=("--max-steps", "5"))],
+                 dataclasses.replace(coarse, launch_args=()), progress=False)
