@@ -71,6 +71,9 @@ class RunOptions:
              f"--model: the {self.controller} controller uses no model"),
             (self.learning_state is None or self.controller == "preview-mpc",
              "--learning-state needs --controller preview-mpc"),
+            (self.controller != "none" or (self.fallback is None and self.command_timeout_s is None),
+             "--fallback and --command-timeout-s set how the plant treats a controller's commands; with "
+             "--controller none there are none"),
         ]
         for ok, message in checks:
             if not ok:

@@ -29,6 +29,7 @@ CASES = [
     (["launch.py", "--part", "fe_node/parts/cylinder_d1.5_h0.5_mm.stl"], "--part needs --scenario part"),
     (["launch.py", "--scenario", "part", "--part", "missing.stl"], "--part: file not found: missing.stl"),
     (["launch.py", "--layers", "0"], "--layers must be >= 1"),
+    (["launch.py", "--controller", "none", "--fallback", "hold"], "with --controller none there are none"),
     (["launch.py", "--out", "run.txt"], "--out run.txt: must name a .mcap file (a folder only with --compare)"),
     (["launch.py", "--out", "recordings"], "--out recordings: must name a .mcap file"),
     (["launch.py", "--h-um", "1000"], "mesh too coarse for the beam: h_fine_m 0.001 m"),
