@@ -16,7 +16,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from controller_node.node import default_model_path, load_model
+from controller_node.node import load_model
 from controller_node.settings import ControllerSettings
 from controller_node.summary import comparison_table, summarise, table_line
 from fe_node.scenarios import PART_NAMES
@@ -67,8 +67,6 @@ class RunOptions:
             (self.config is None or self.config.is_file(), f"--config: file not found: {self.config}"),
             (self.live is None or 1 <= self.live <= 65535, "--live: the port must be in 1..65535"),
             (self.model is None or self.model.is_file(), f"--model: file not found: {self.model}"),
-            (self.model is None or default_model_path(self.controller) is not None,
-             f"--model: the {self.controller} controller uses no model"),
             (self.learning_state is None or self.controller == "preview-mpc",
              "--learning-state needs --controller preview-mpc"),
             (self.controller != "none" or (self.fallback is None and self.command_timeout_s is None),
@@ -118,11 +116,11 @@ def check_config(opts: RunOptions) -> None:
         raise UsageError(f"{opts.config} [plant]: {err}" if opts.config else str(err)) from None
     table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
     settings = build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint() * 1e-6)
+    model = load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
     if opts.closed_loop:
         check_within_plant(settings, f"{opts.config} [controller]")
-        model = load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
-        if opts.learning_state is not None and opts.learning_state.is_file():
-            check_learning_state(opts.learning_state, model, settings)
+    if opts.learning_state is not None and opts.learning_state.is_file():
+        check_learning_state(opts.learning_state, model, settings)
 
 
 def check_learning_state(path: Path, model, settings: ControllerSettings) -> None:

@@ -544,8 +544,8 @@ def run_jobs(jobs: list[Job] | tuple[Job, ...], settings: RunnerSettings, *, pro
     spec.out_dir.mkdir(parents=True, exist_ok=True)
     results = {j.name: JobResult(j.name, str(job_recording(settings, j)), "skipped", 0.0, "recording complete", 0)
                for j in jobs if recording_complete(job_recording(settings, j))}
-    for name in results:
-        check_recorded_mesh(Path(results[name].recording), next(j for j in jobs if j.name == name), settings)
+    for job in (j for j in jobs if j.name in results):
+        check_recorded_mesh(Path(results[job.name].recording), job, settings)
     pending = [j for j in jobs if j.name not in results]
     retries = getattr(settings, "retries", 1)
     with contextlib.ExitStack() as stack:
