@@ -53,7 +53,7 @@ def main() -> None:
     ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
     load_at_start = os.getloadavg()[0]
     obs = plant.initial_observation()
-    times, problems, plans, seen = [], [], [], []
+    times, problems, plans, seen, prepare_times = [], [], [], [], []
     while not plant.done:
         m = measurement(obs)
         seen.append(m)
@@ -64,6 +64,9 @@ def main() -> None:
             times.append(elapsed)
             problems.append(ctrl.last_qp)
             plans.append(np.array(diag.predicted_power_w))
+        t0 = time.perf_counter()
+        ctrl.prepare()
+        prepare_times.append(time.perf_counter() - t0)
         obs = plant.step(cmd.power_w, 0.8)
     warm = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
     warm_times = []
@@ -86,6 +89,7 @@ def main() -> None:
         "speedup_vs_cvxpy": round(float(np.median(ref_times) / np.median(times)), 1),
         "max_abs_diff_w": max(diffs),
         "warm_median_us": round(float(np.median(warm_times)) * 1e6, 1),
+        "prepare_median_us": round(float(np.median(prepare_times)) * 1e6, 1),
         "n_updates": len(times),
         "loadavg_1min_at_start": round(load_at_start, 2),
         "qp_paths": dict(paths),

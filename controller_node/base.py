@@ -79,6 +79,10 @@ class Controller(ABC):
         self._last_step: int | None = None
         self.n_fallbacks = 0
 
+    def prepare(self) -> None:  # noqa: B027 (a hook: nothing to prepare by default)
+        """Work for the next :meth:`update` that needs no new measurement, done after a command is
+        sent and before the next state arrives (the node calls it; none by default)."""
+
     @abstractmethod
     def _propose(self, m: Measurement) -> Proposal:
         """Control law for a plausible, fresh measurement (may raise; contained by ``update``)."""

@@ -220,6 +220,7 @@ class AnswerLoop:
                 pending = diag
                 if not answered:
                     return
+                self.controller.prepare()        # the next update's preparation, after the command is out
                 if pending is not None and self.pause():
                     time.sleep(DIAGNOSTICS_DELAY_S)
         except BaseException as err:  # re-raised on the node's main thread

@@ -104,9 +104,14 @@ class PreviewMPC(Controller):
         super().__init__(settings)              # reset(): the run's state, after the warm-up wrote into it
 
     def _warm_up(self) -> None:
-        """Call the compiled update once, with the argument types of a run, pushing nothing into the
-        histories: it is compiled (or loaded from numba's cache) now, not at the first state of a run."""
-        self._kernel.update(0, 0.0, 0, 0.0, 0.0, True, 0, True, -1, math.nan, True, self._h)
+        """Call the compiled update, preparation and feedback once, with the argument types of a run,
+        pushing nothing into the histories: they are compiled (or loaded from numba's cache) now, not at
+        the first states of a run."""
+        k = self._kernel
+        k.update(0, 0.0, 0, 0.0, 0.0, True, 0, True, -1, math.nan, True, self._h)
+        k.prepare(0, 0.0, 0, 0.0, 0, True, -1, math.nan, True, self._h)
+        k.prepared = True                        # the feedback is compiled whatever this preparation gave
+        k.feedback(0, 0.0, 0, 0.0, 0.0, True, 0, True, -1, math.nan, self._h)
 
     def reset(self) -> None:
         """Forget the run: histories, disturbance estimate, plan, learned turnaround profile."""
@@ -138,6 +143,10 @@ class PreviewMPC(Controller):
         self._learned = False
         self._sync_corrections()
         self._last_qp: int | None = None        # blind rows of the QP in the workspace (see last_qp)
+        self._last_args: tuple | None = None     # the kernel's arguments of the last update (see prepare)
+        self._prepared_for: tuple | None = None  # the arguments the kernel is prepared for
+        self.n_feedback = 0                      # updates that took the feedback phase (prepare)
+        k.prepared = False
 
     # ------------------------------------------------------------------ bookkeeping
     def _check_period(self, m: Measurement) -> None:
@@ -205,6 +214,7 @@ class PreviewMPC(Controller):
         (after every change of the turn index or of what was learned)."""
         self._kernel.current[:] = self._correction_for(self._turn)
         self._kernel.following[:] = self._correction_for(self._turn + 1)
+        self._prepared_for = None
 
     def _learn_turn_correction(self) -> None:
         """Iterative learning over turnarounds: ``c ← c_j + κ ε_j`` with ``c_j`` the correction applied
@@ -250,8 +260,28 @@ class PreviewMPC(Controller):
             n = min(len(self._observed), self._profile.size)
             self._profile[:n] = self._observed[:n]
             self._profile[n:] = self._profile[n - 1] if n < self._profile.size and n > 0 else self._profile[n:]
+            self._prepared_for = None
 
     # ------------------------------------------------------------------ control law
+    def prepare(self) -> None:
+        """Preparation phase of a real-time iteration, to run after the command is sent and before the
+        next state arrives: linearise and factor the QP of the state expected next (the next step of
+        the same track, with the power just commanded and the forecast T ahead), so that its
+        :meth:`update` only moves the prediction by the measured T ahead and area and solves
+        (:func:`~controller_node.preview_kernel.feedback_into`). Any other next state (a gap, a new
+        track or layer, another power) gets the full update, as without a preparation."""
+        args = self._last_args
+        if args is None or args[6] == 0:        # (to_end 0: the next state starts a track)
+            return
+        _, _, _, _, since, on_first, to_end, turn_base, learned, blind = args
+        ps, step = self.settings.preview, self._prev.step + 1
+        built_up = step - self._layer_start_step >= ps.observer_start_steps
+        nxt = (1, self._fallback.last_power_w, 1, built_up, since + 1, on_first, max(to_end - 1, -1), turn_base,
+               learned, 0 if built_up else ps.observer_start_steps - (step - self._layer_start_step) - 1)
+        if self._kernel.prepare(1, nxt[1], 1, float(self._kernel.forecast[0]), since + 1, on_first, nxt[6],
+                                math.nan if turn_base is None else turn_base, learned, nxt[9]):
+            self._prepared_for = nxt
+
     @property
     def last_qp(self) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None] | None:
         """The QP of the last update (benchmarks, tests): copies of Γ (H, H) and c (H,), ``p[k]`` [W]
@@ -294,9 +324,20 @@ class PreviewMPC(Controller):
         blind = 0 if built_up else ps.observer_start_steps - (m.step - self._layer_start_step) - 1
         self._last_qp = None                     # the workspace is overwritten now
         work = self._kernel
-        status = work.update(self._p_fill, m.power_w, self._t_fill, m.t_ahead_k, m.area_m2, consecutive and built_up,
-                             since, on_first, to_end, math.nan if self._turn_base_k is None else self._turn_base_k,
-                             self._learned, blind)
+        t_base = math.nan if self._turn_base_k is None else self._turn_base_k
+        args = (self._p_fill, m.power_w, self._t_fill, consecutive and built_up, since, on_first, to_end,
+                self._turn_base_k, self._learned, blind)
+        status = -1
+        if work.prepared and args == self._prepared_for:   # the state prepared for: the feedback phase
+            status = work.feedback(self._p_fill, m.power_w, self._t_fill, m.t_ahead_k, m.area_m2,
+                                   consecutive and built_up, since, on_first, to_end, t_base, blind)
+        if status >= 0:
+            self.n_feedback += 1
+        else:
+            status = work.update(self._p_fill, m.power_w, self._t_fill, m.t_ahead_k, m.area_m2,
+                                 consecutive and built_up, since, on_first, to_end, t_base, self._learned, blind)
+        self._prepared_for = None
+        self._last_args = args if status != 2 else None
         if status == 2:  # an absurd input: no plan from it
             return Proposal(math.nan, status="model_error")
         self._last_qp = blind

@@ -46,7 +46,7 @@ from numba import njit, typeof
 
 from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_into
 
-__all__ = ["Kernel", "correction_into", "exp_into", "push_history", "update_into"]
+__all__ = ["Kernel", "correction_into", "exp_into", "feedback_into", "prepare_into", "push_history", "update_into"]
 
 _REORDER = {"reassoc", "contract"}
 """Floating-point licence of the compiled passes: sums may be reordered (vectorised) and multiply-adds
@@ -88,10 +88,10 @@ def correction_into(since, on_first, to_end, current, following, out):  # pragma
 
 @njit(cache=True, nogil=True)
 def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_points, psi, exponents, powers,
-                temps):  # pragma: no cover (compiled)
+                temps, n_rows):  # pragma: no cover (compiled)
     """The lagged powers and temperatures of the rows (into ``powers``, ``temps``), their GP inputs ψ
-    (into ``psi``) and the SE kernel's exponents ``w·W_a − ‖W_a‖²/2 − ‖w‖²/2`` (into ``exponents``,
-    shape (H, N), ``w`` the scaled input)."""
+    (into ``psi``) and, for the first ``n_rows`` rows, the SE kernel's exponents
+    ``w·W_a − ‖W_a‖²/2 − ‖w‖²/2`` (into ``exponents``, shape (H, N), ``w`` the scaled input)."""
     h, n_p, n_t, n_gp = plan.size, p_hist.size, t_hist.size, gp_points.shape[1]
     for i in range(n_p):                            # p[k−n_p+1 .. k], ū
         powers[i] = p_hist[n_p - 1 - i]
@@ -108,6 +108,8 @@ def _regressors(p_hist, t_hist, forecast, plan, since, to_end, s_cap, gp, gp_poi
         mean_power += powers[last_p] - powers[last_p - n_p]
         s = since + row if to_end < 0 or row <= to_end else row - to_end - 1
         psi[row, 0], psi[row, 1], psi[row, 2] = temps[last_t], math.log1p(min(s, s_cap)), mean_power / n_p
+        if row >= n_rows:
+            continue
         w0 = (psi[row, 0] - gp[0]) * gp[3]
         w1 = (psi[row, 1] - gp[1]) * gp[4]
         w2 = (psi[row, 2] - gp[2]) * gp[5]
@@ -154,6 +156,12 @@ def exp_into(a, bits):  # pragma: no cover (compiled)
         flat[i] *= two_n[i]
 
 
+MOMENTS = 9
+"""Terms of the series in which :func:`feedback_into` moves the GP's kernel sums to the measured T ahead."""
+SERIES_RADIUS = 0.5
+"""Largest ``|ε W_a0|`` of that series (its truncation is then below ``0.5⁹/9! e^0.5`` ≈ 9e-9 of
+``Σ_a |k_a β_a|``); beyond it the state gets the full update."""
+
 N_SIZES = 11
 """Leading entries of :class:`Kernel`'s ``dims``: n_p, n_T, n_Tq, n_x, N, H, profile and correction
 lengths, n_variance, log output, steps-since-start cap; :func:`_layout`'s ends follow."""
@@ -167,7 +175,8 @@ def _layout(dims):  # pragma: no cover (compiled)
         dims[6], dims[7]
     return (np.cumsum(np.array([1, n_p, n_p, n_t, n_tq, n_x, 8, h, h + 9, h * h, 6 * n_gp, n_gp * n_gp])),
             np.cumsum(np.array([n_p, n_t, h, n_profile, n_corr, n_corr, n_corr, 4])),
-            np.cumsum(np.array([3 * h * h, 8 * h, 3 * h, h * n_gp, h * n_gp, n_p + h, n_t + h - 1, h, h])))
+            np.cumsum(np.array([3 * h * h, 11 * h, 3 * h, h * n_gp, h * n_gp, n_p + h, n_t + h - 1, h, h,
+                                h * (2 * MOMENTS + 1)])))
 
 
 @njit(cache=True, nogil=True)
@@ -186,13 +195,14 @@ def _views(dims, consts, state, work):  # pragma: no cover (compiled)
     profile, current, following = state[ends[2]:ends[3]], state[ends[3]:ends[4]], state[ends[4]:ends[5]]
     turn_errors, observer = state[ends[5]:ends[6]], state[ends[6]:ends[7]]
     ends = work_ends
-    matrices, vectors = work[0:ends[0]].reshape((3, h, h)), work[ends[0]:ends[1]].reshape((8, h))
+    matrices, vectors = work[0:ends[0]].reshape((3, h, h)), work[ends[0]:ends[1]].reshape((11, h))
     psi, kern = work[ends[1]:ends[2]].reshape((h, 3)), work[ends[2]:ends[3]].reshape((h, n_gp))
     bits, powers, temps = work[ends[3]:ends[4]].view(np.int64), work[ends[4]:ends[5]], work[ends[5]:ends[6]]
     forecast, correction = work[ends[6]:ends[7]], work[ends[7]:ends[8]]
+    moments = work[ends[8]:ends[9]].reshape((h, 2 * MOMENTS + 1))
     return (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f,
             p_hist, t_hist, plan, profile, current, following, turn_errors, observer,
-            matrices, vectors, psi, kern, bits, powers, temps, forecast, correction)
+            matrices, vectors, psi, kern, bits, powers, temps, forecast, correction, moments)
 
 
 @njit(cache=True, nogil=True)
@@ -209,7 +219,7 @@ def update_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k, a
     tracked. With no bound active the plan becomes the QP's solution here."""
     (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f, p_hist, t_hist, plan, profile,
      current, following, turn_errors, observer, matrices, vectors, psi, kern, bits, powers, temps, forecast,
-     correction) = _views(dims, consts, state, work)
+     correction, moments) = _views(dims, consts, state, work)
     log_output, e0 = dims[9] != 0, e[0] if e.size else 0.0
     if observe:
         _observe(observer, b[0], q[0], e0, log_output, qp_terms[3], power_w, area_m2,
@@ -222,18 +232,104 @@ def update_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k, a
     else:
         correction[:] = 0.0
     _regressors(p_hist, t_hist, forecast, plan, since, to_end, float(dims[10]), gp, gp_points, psi, kern, powers,
-                temps)
+                temps, plan.size)
     exp_into(kern, bits)
     status = _linearised_qp(powers, temps, kern, log_output, intercept[0], b, q, cc, d, e, gp, gp_points, var_f,
                             dims[8], correction, observer[0], qp_terms, p_hist[0], moves, blind, psi, vectors,
                             matrices)
-    if status != 2:                                 # z of x̂[k+1] without its p[k+1] terms, for the next state
-        u1, t_now = powers[p_hist.size], t_hist[t_hist.size - 1]
-        observer[1] = vectors[2, 0] - (b[0] + q[0] * u1 + e0 * t_now) * u1
-        observer[2], observer[3] = t_now, correction[0]
-    if status == 0:                                 # the unconstrained step is the QP's solution
+    _finish(status, observer, b[0], q[0], e0, powers[p_hist.size], t_hist[t_hist.size - 1], vectors, correction[0],
+            qp_terms[1], plan)
+    return status
+
+
+@njit(cache=True, nogil=True)
+def _finish(status, observer, b0, q0, e0, u1, t_now, vectors, correction0, scale, plan):  # pragma: no cover
+    """What an update leaves for the next one: the z of x̂[k+1|k] without its p[k+1] terms, its T ahead
+    ``t_now`` [K] and learned correction [m²] for the observer (unless the prediction is not finite),
+    and, when the unconstrained step is the QP's solution (status 0), the plan ``P v`` [W]."""
+    if status != 2:
+        observer[1] = vectors[2, 0] - (b0 + q0 * u1 + e0 * t_now) * u1
+        observer[2], observer[3] = t_now, correction0
+    if status == 0:
         for i in range(plan.size):
-            plan[i] = vectors[5, i] * qp_terms[1]
+            plan[i] = vectors[5, i] * scale
+
+
+@njit(cache=True, nogil=True)
+def prepare_into(dims, consts, state, scratch, work, p_fill, power_w, t_fill, t_ahead_k, since, on_first, to_end,
+                 t_base, learned, blind):  # pragma: no cover (compiled)
+    """Preparation phase of a real-time iteration: :func:`update_into` for the state expected next
+    (its arguments, with T ahead ``t_ahead_k`` [K] forecast; the area is not known yet, so the
+    observer is not run) on a copy of ``state`` in ``scratch`` (``state`` is not changed), into
+    ``work``; then, per row m, the moments of the GP's kernel sums in the scaled T input,
+    ``Σ_a k_ma β_a W_a0ʲ`` and ``Σ_a k_ma β_a W_a2 W_a0ʲ``, j < :data:`MOMENTS`, and the row's scaled
+    T input w_m0 (``moments``, for :func:`feedback_into`). Returns the update's status."""
+    scratch[:] = state
+    area = math.nan                                 # not measured yet: no observer (a typed, not a literal, False)
+    status = update_into(dims, consts, scratch, work, p_fill, power_w, t_fill, t_ahead_k, area, not math.isnan(area),
+                         since, on_first, to_end, t_base, learned, blind)
+    (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f, p_hist, t_hist, plan, profile,
+     current, following, turn_errors, observer, matrices, vectors, psi, kern, bits, powers, temps, forecast,
+     correction, moments) = _views(dims, consts, scratch, work)
+    moments[:] = 0.0
+    for row in range(plan.size):
+        for a in range(kern.shape[1]):
+            term, w = kern[row, a] * gp_points[4, a], gp_points[0, a]
+            for j in range(MOMENTS):
+                moments[row, j] += term
+                moments[row, MOMENTS + j] += term * gp_points[2, a]
+                term *= w
+        moments[row, 2 * MOMENTS] = (psi[row, 0] - gp[0]) * gp[3]
+    return status
+
+
+@njit(cache=True, nogil=True)
+def feedback_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k, area_m2, observe, since, on_first,
+                  to_end, t_base, blind):  # pragma: no cover (compiled)
+    """Feedback phase of a real-time iteration: the update of the state that :func:`prepare_into`
+    prepared ``work`` for (same arguments), with its measured T ahead ``t_ahead_k`` [K] and area
+    ``area_m2`` [m²]. The prediction x̂ at ū is the model's own at the measured T ahead, as in
+    :func:`update_into`, except that the GP's kernel sums of the rows beyond the variance rows come
+    from the prepared moments: with ``ε`` the row's shift of the scaled T input,
+    ``k_a(w + ε e₀) = k_a(w) exp(ε W_a0 − w₀ ε − ε²/2)``, so ``Σ_a k_a β_a`` moves to
+    ``exp(−w₀ ε − ε²/2) Σ_j εʲ/j! Σ_a k_a β_a W_a0ʲ`` (the mean-power moment likewise). The
+    Jacobian Γ, the Hessian and its factor stay those of the forecast T ahead (the real-time
+    iteration's linearisation); ``c``, the gradient, the step and the bound checks are those of the
+    new prediction. Returns :func:`update_into`'s status, or −1, changing nothing in ``state``, when a
+    shift is outside :data:`SERIES_RADIUS` (the caller then runs the full update)."""
+    (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f, p_hist, t_hist, plan, profile,
+     current, following, turn_errors, observer, matrices, vectors, psi, kern, bits, powers, temps, forecast,
+     correction, moments) = _views(dims, consts, state, work)
+    h, n_gp, n_variance, log_output = plan.size, gp_points.shape[1], dims[8], dims[9] != 0
+    forecast_into(t_ahead_k, since, on_first, to_end, profile, t_base, decay, forecast)
+    w_max = 0.0
+    for a in range(n_gp):
+        w_max = max(w_max, abs(gp_points[0, a]))
+    for row in range(h):
+        t_row = t_ahead_k if row == 0 else forecast[row - 1]
+        if not abs(((t_row - gp[0]) * gp[3] - moments[row, 2 * MOMENTS]) * w_max) <= SERIES_RADIUS:
+            return -1
+    e0, n_p = e[0] if e.size else 0.0, b.size
+    if observe:
+        _observe(observer, b[0], q[0], e0, log_output, qp_terms[3], power_w, area_m2,
+                 since if t_base == t_base else -1, turn_errors)
+    observer[1] = math.nan
+    push_history(p_hist, p_fill, power_w, t_hist, t_fill, t_ahead_k)
+    _regressors(p_hist, t_hist, forecast, plan, since, to_end, float(dims[10]), gp, gp_points, psi, kern, powers,
+                temps, n_variance)
+    exp_into(kern[:n_variance], bits[:n_variance * n_gp])
+    finite = _prediction(powers, temps, kern, log_output, intercept[0], b, q, cc, d, e, gp, gp_points, var_f,
+                         n_variance, correction, observer[0], psi, vectors, n_variance, moments)
+    sp = qp_terms[0]
+    c, predicted, jac_u = vectors[0], vectors[1], vectors[10]
+    for row in range(h):
+        c[row] = (predicted[row] - jac_u[row] - sp) / sp
+    gamma, chol = matrices[0], matrices[2]
+    _gradient(gamma, c, qp_terms, p_hist[0], blind, n_p, vectors[4])
+    status = max(0 if finite else 2, _step(gamma, c, chol, vectors[8], qp_terms, blind, n_p, predicted, vectors[3],
+                                            powers[n_p:], vectors[4], vectors[5], vectors[6]))
+    _finish(status, observer, b[0], q[0], e0, powers[n_p], t_hist[t_hist.size - 1], vectors, correction[0],
+            qp_terms[1], plan)
     return status
 
 
@@ -322,10 +418,8 @@ class Kernel:
         self.dims = np.concatenate((sizes, *layout))
         self.consts, self.state, self.work = (np.zeros(int(ends[-1])) for ends in layout)
         (intercept, b_, q, cc_, d, e, gp, decay, qp_terms, moves, gp_points, var_f_, self.p_hist, self.t_hist,
-         self.plan, self.profile, self.current, self.following, self.turn_errors, self.observer, self.matrices,
-         self.vectors, self.psi, self.kern, _,
-         self.powers, self.temps, self.forecast, self.correction) = _views(self.dims, self.consts, self.state,
-                                                                           self.work)
+         self.plan, self.profile, self.current, self.following, self.turn_errors, self.observer,
+         *_) = _views(self.dims, self.consts, self.state, self.work)
         intercept[0] = model.intercept
         # qp_terms: x_sp, P, r, observer gain L, v_lo, v_hi, e_lo, e_hi, zσ, then the H row weights
         for view, value in ((b_, b), (q, model.power_square_coefficients), (cc_, cc),
@@ -336,26 +430,76 @@ class Kernel:
                                              uncertainty_z, qp.weights])):
             view[...] = value
         self.observer[:] = (0.0, math.nan, 0.0, 0.0)   # d̂ = 0, no x̂[k+1|k] yet
-        self._compiled = self._compile_and_bind
-        self.gamma, self.hess, _ = self.matrices
-        self.c, self.predicted, self.z, self.std, self.f, self.v, self.areas, _ = self.vectors
+        self._scratch = np.zeros_like(self.state)
+        self.prepared = False
+        self._workspaces = (self._named(self.work), self._named(np.zeros_like(self.work)))
+        self.__dict__.update(self._workspaces[0])
+        self._update, self._prepare, self._feedback = (_BoundOnFirstCall(f) for f in (update_into, prepare_into,
+                                                                                     feedback_into))
+
+    def _named(self, work: np.ndarray) -> dict:
+        """The named views of one workspace (the attributes that follow the workspace in use)."""
+        matrices, vectors, psi, kern, _, powers, temps, forecast, correction, _ = _views(self.dims, self.consts,
+                                                                                         self.state, work)[20:]
+        c, predicted, z, std, f, v, areas, *_ = vectors
+        return dict(work=work, matrices=matrices, vectors=vectors, psi=psi, kern=kern, powers=powers, temps=temps,
+                    forecast=forecast, correction=correction, gamma=matrices[0], hess=matrices[1], c=c,
+                    predicted=predicted, z=z, std=std, f=f, v=v, areas=areas)
 
     def update(self, p_fill: int, power_w: float, t_fill: int, t_ahead_k: float, area_m2: float, observe: bool,
                since: int, on_first: bool, to_end: int, t_base_k: float, learned: bool, blind: int) -> int:
         """:func:`update_into` on this kernel's arrays (its parameters); the status: 0 ``v`` solves the
         QP (no bound active; ``plan`` is its solution), 1 a bound is active or the Hessian is not
         positive definite, 2 a prediction is not finite. Pass the types of the first call (int, float,
-        bool as annotated) every time."""
-        return self._compiled(self.dims, self.consts, self.state, self.work, p_fill, power_w, t_fill, t_ahead_k,
-                              area_m2, observe, since, on_first, to_end, t_base_k, learned, blind)
+        bool as annotated) every time. Discards a preparation."""
+        self.prepared = False
+        return self._update.call(self.dims, self.consts, self.state, self.work, p_fill, power_w, t_fill, t_ahead_k,
+                                 area_m2, observe, since, on_first, to_end, t_base_k, learned, blind)
 
-    def _compile_and_bind(self, *args):  # noqa: ANN002, ANN202
-        """First call: through numba's dispatcher (compiling or loading), then bind the machine code of
-        these argument types, so later calls skip the dispatcher's type resolution (about 9 µs of
-        each cold call, ``docs/controller.md``, Speed)."""
-        status = update_into(*args)
-        self._compiled = update_into.overloads[tuple(typeof(a) for a in args)].entry_point
+    def prepare(self, p_fill: int, power_w: float, t_fill: int, t_ahead_k: float, since: int, on_first: bool,
+                to_end: int, t_base_k: float, learned: bool, blind: int) -> bool:
+        """:func:`prepare_into` in the spare workspace, for a next state with these arguments of
+        :meth:`update` and T ahead near ``t_ahead_k`` [K]; the state and the workspace in use are not
+        changed. True if the prepared step exists (finite prediction, positive definite Hessian), and
+        :meth:`feedback` may then be called for that state."""
+        spare = self._workspaces[1]
+        status = self._prepare.call(self.dims, self.consts, self.state, self._scratch, spare["work"], p_fill, power_w,
+                                    t_fill, t_ahead_k, since, on_first, to_end, t_base_k, learned, blind)
+        self.prepared = status != 2 and not math.isnan(spare["v"][0])
+        return self.prepared
+
+    def feedback(self, p_fill: int, power_w: float, t_fill: int, t_ahead_k: float, area_m2: float, observe: bool,
+                 since: int, on_first: bool, to_end: int, t_base_k: float, blind: int) -> int:
+        """:func:`feedback_into` for the state :meth:`prepare` prepared (the caller checks that the
+        arguments are those it prepared for); on success the prepared workspace becomes the one in use.
+        The status of :meth:`update`, or −1 (nothing changed) if the measured T ahead is too far from
+        the forecast for the prepared series: call :meth:`update` then."""
+        if not self.prepared:
+            raise RuntimeError("feedback without a preparation")
+        self.prepared = False
+        spare = self._workspaces[1]
+        status = self._feedback.call(self.dims, self.consts, self.state, spare["work"], p_fill, power_w, t_fill,
+                                     t_ahead_k, area_m2, observe, since, on_first, to_end, t_base_k, blind)
+        if status >= 0:
+            self._workspaces = self._workspaces[::-1]
+            self.__dict__.update(spare)
         return status
+
+
+class _BoundOnFirstCall:
+    """A compiled function whose ``call`` goes through numba's dispatcher once (compiling or loading),
+    then straight to the machine code of that call's argument types, skipping the dispatcher's type
+    resolution (about 9 µs of each cold call, ``docs/controller.md``, Speed). Pass the same argument
+    types every time."""
+
+    def __init__(self, dispatcher) -> None:
+        self._dispatcher = dispatcher
+        self.call = self._first
+
+    def _first(self, *args):  # noqa: ANN002, ANN202
+        result = self._dispatcher(*args)
+        self.call = self._dispatcher.overloads[tuple(typeof(a) for a in args)].entry_point
+        return result
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
@@ -364,16 +508,51 @@ def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, g
     """Prediction, Jacobian and unconstrained QP step (module docstring) from the regressors and the
     kernel values ``kern`` = k(ψ_m, ψ_a), shape (H, N), into :class:`Kernel`'s ``vectors`` and
     ``matrices``; its status (:meth:`Kernel.update`)."""
+    n_p, n_t, n_x = b.size, cc.size, e.size
+    h = powers.size - n_p
+    sp, scale = qp_terms[0], qp_terms[1]
+    # rows by index, not by unpacking: an unpacked row's layout is unknown to the compiler (no vector code)
+    c, predicted, std, f, v = vectors[0], vectors[1], vectors[3], vectors[4], vectors[5]
+    areas, gp_slope, inv_diag, slopes, jac_u = vectors[6], vectors[7], vectors[8], vectors[9], vectors[10]
+    gamma, hess, chol = matrices[0], matrices[1], matrices[2]
+    finite = _prediction(powers, temps, kern, log_output, intercept, b, q, cc, d, e, gp, gp_points, var_f, n_variance,
+                         correction, disturbance, psi, vectors, h, vectors)
+    gamma[:] = 0.0
+    u = powers[n_p:]
+    for row in range(h):
+        slope = slopes[row]
+        du = 0.0
+        for col in range(max(0, row + 1 - n_p), row + 1):
+            lag = row - col
+            dz = b[lag] + 2.0 * q[lag] * u[col] + gp_slope[row]
+            if lag < n_x:
+                dz += e[lag] * temps[n_t - 1 + row - min(lag, n_t - 1)]
+            jac = slope * dz
+            du += jac * u[col]
+            gamma[row, col] = jac * (scale / sp)
+        jac_u[row] = du
+        c[row] = (predicted[row] - du - sp) / sp
+    status = 0 if finite else 2
+    _gradient(gamma, c, qp_terms, p_now, blind, n_p, f)
+    if not _factor(gamma, moves, qp_terms, blind, n_p, hess, chol, inv_diag):
+        v[:] = np.nan
+        areas[:] = np.nan
+        return max(status, 1)
+    return max(status, _step(gamma, c, chol, inv_diag, qp_terms, blind, n_p, predicted, std, u, f, v, areas))
+
+
+@njit(cache=True, nogil=True, fastmath=_REORDER)
+def _prediction(powers, temps, kern, log_output, intercept, b, q, cc, d, e, gp, gp_points, var_f, n_variance,
+                correction, disturbance, psi, vectors, gp_rows, moments):  # pragma: no cover (compiled)
+    """x̂ at ū (into ``vectors``: z, x̂, std, the GP's mean-power slope and ``x'(z)``); the GP's kernel
+    sums from ``kern`` for the first ``gp_rows`` rows, from the prepared ``moments`` beyond
+    (:func:`feedback_into`); the variance from ``kern`` for the first ``n_variance`` rows. True if
+    every x̂ is finite."""
     n_p, n_t, n_tq, n_x = b.size, cc.size, d.size, e.size
     h = powers.size - n_p
-    sp, scale, r = qp_terms[0], qp_terms[1], qp_terms[2]
-    v_lo, v_hi, e_lo, e_hi, z_sigma = qp_terms[4], qp_terms[5], qp_terms[6], qp_terms[7], qp_terms[8]
     n_gp = kern.shape[1]
     beta, moment_weights = gp_points[4], gp_points[5]
-    # rows by index, not by unpacking: an unpacked row's layout is unknown to the compiler (no vector code)
-    c, predicted, z, std, f, v = vectors[0], vectors[1], vectors[2], vectors[3], vectors[4], vectors[5]
-    areas, gp_slope = vectors[6], vectors[7]
-    gamma, hess, chol = matrices[0], matrices[1], matrices[2]
+    predicted, z, std, gp_slope, slopes = vectors[1], vectors[2], vectors[3], vectors[7], vectors[9]
     std[:] = 0.0
     for row in range(n_variance):                   # σ² − ‖σ_f L⁻¹ k‖² of the first rows
         quad = 0.0
@@ -386,9 +565,18 @@ def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, g
     for row in range(h):
         last_p, last_t = n_p + row, n_t - 1 + row   # index of p[k+m] and of T[k+m−1]
         gp_mean, gp_moment = 0.0, 0.0               # r(ψ_m) and Σ_a k_a W_a2 β_a (its mean-power slope)
-        for a in range(n_gp):
-            gp_mean += kern[row, a] * beta[a]
-            gp_moment += kern[row, a] * moment_weights[a]
+        if row < gp_rows:
+            for a in range(n_gp):
+                gp_mean += kern[row, a] * beta[a]
+                gp_moment += kern[row, a] * moment_weights[a]
+        else:                                       # the prepared sums, moved by ε in the scaled T input
+            w0 = moments[row, 2 * MOMENTS]
+            eps = (psi[row, 0] - gp[0]) * gp[3] - w0
+            power = math.exp(-w0 * eps - 0.5 * eps * eps)
+            for j in range(MOMENTS):
+                gp_mean += moments[row, j] * power
+                gp_moment += moments[row, MOMENTS + j] * power
+                power *= eps / (j + 1)
         w2 = (psi[row, 2] - gp[2]) * gp[5]
         gp_slope[row] = gp[5] * (gp_moment - w2 * gp_mean) / n_p    # ∂r/∂ū_n through the mean power
         zz = intercept + gp_mean
@@ -403,38 +591,42 @@ def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, g
         for i in range(n_x):
             zz += e[i] * powers[last_p - i] * temps[last_t - i]
         z[row] = zz
-    gamma[:] = 0.0
-    u = powers[n_p:]
+    finite = True
     for row in range(h):
         x = math.exp(z[row]) if log_output else z[row]
         slope = x if log_output else 1.0
+        slopes[row] = slope
         std[row] = slope * math.sqrt(std[row]) if row < n_variance else 0.0
         predicted[row] = x + disturbance + correction[row]
-        du = 0.0
-        for col in range(max(0, row + 1 - n_p), row + 1):
-            lag = row - col
-            dz = b[lag] + 2.0 * q[lag] * u[col] + gp_slope[row]
-            if lag < n_x:
-                dz += e[lag] * temps[n_t - 1 + row - min(lag, n_t - 1)]
-            jac = slope * dz
-            du += jac * u[col]
-            gamma[row, col] = jac * (scale / sp)
-        c[row] = (predicted[row] - du - sp) / sp
-    finite = True
-    for row in range(h):
         finite = finite and math.isfinite(predicted[row])
-    hess[:] = moves                                 # + 2 Γᵀ W Γ over the tracked rows
+    return finite
+
+
+@njit(cache=True, nogil=True, fastmath=_REORDER)
+def _gradient(gamma, c, qp_terms, p_now, blind, n_p, f):  # pragma: no cover (compiled)
+    """The QP's gradient ``f = 2 Γᵀ W c − 2 r (p[k] / P) e₁`` over the tracked rows (Γ banded: n_p
+    powers per row)."""
     f[:] = 0.0
+    for m in range(blind, c.size):
+        w = 2.0 * qp_terms[9 + m]
+        for a in range(max(0, m + 1 - n_p), m + 1):
+            f[a] += w * gamma[m, a] * c[m]
+    f[0] -= 2.0 * qp_terms[2] * p_now / qp_terms[1]
+
+
+@njit(cache=True, nogil=True, fastmath=_REORDER)
+def _factor(gamma, moves, qp_terms, blind, n_p, hess, chol, inv_diag):  # pragma: no cover (compiled)
+    """The QP's Hessian ``2 Γᵀ W Γ + 2 r DᵀD`` over the tracked rows and its banded Cholesky factor
+    ``L`` (``chol``) with ``1/L_jj`` in ``inv_diag``; False if the Hessian is not positive definite."""
+    h = gamma.shape[0]
+    hess[:] = moves                                 # + 2 Γᵀ W Γ over the tracked rows
     for m in range(blind, h):                       # Γ is banded (n_p powers per row), so is the Hessian:
         w, first = 2.0 * qp_terms[9 + m], max(0, m + 1 - n_p)   # square blocks (equal-length loops vectorise)
         for a in range(first, m + 1):
             wg = w * gamma[m, a]
-            f[a] += wg * c[m]
             for b2 in range(first, m + 1):
                 hess[a, b2] += wg * gamma[m, b2]
-    f[0] -= 2.0 * r * p_now / scale
-    status = 0 if finite else 2
-    band, inv_diag = max(n_p - 1, 1), areas         # the moves' band is 1 (Kernel checks); areas: scratch
+    band = max(n_p - 1, 1)                          # the moves' band is 1 (Kernel checks)
     for i in range(h):                              # banded Cholesky, Hessian = L Lᵀ (1/L_jj multiplies:
         first = max(0, i - band)                    # a division's latency would chain the row)
         for j in range(first, i):
@@ -446,11 +638,21 @@ def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, g
         for k in range(first, i):
             acc -= chol[i, k] * chol[i, k]
         if not acc > 0.0:
-            v[:] = np.nan
-            areas[:] = np.nan
-            return max(status, 1)
+            return False
         chol[i, i] = math.sqrt(acc)
         inv_diag[i] = 1.0 / chol[i, i]
+    return True
+
+
+@njit(cache=True, nogil=True, fastmath=_REORDER)
+def _step(gamma, c, chol, inv_diag, qp_terms, blind, n_p, predicted, std, u, f, v, areas):  # pragma: no cover
+    """The unconstrained optimum ``v = −Hessian⁻¹ f`` from the factor of :func:`_factor`, the areas
+    x̂ at ``P v`` (linearised) and the status: 0 when no power bound and no (tightened) area bound of
+    the tracked rows is active, else 1."""
+    h, band = c.size, max(n_p - 1, 1)
+    sp, scale = qp_terms[0], qp_terms[1]
+    v_lo, v_hi, e_lo, e_hi, z_sigma = qp_terms[4], qp_terms[5], qp_terms[6], qp_terms[7], qp_terms[8]
+    status = 0
     for i in range(h):                              # L y = −f
         acc = -f[i]
         for k in range(max(0, i - band), i):
@@ -461,7 +663,7 @@ def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, g
         for k in range(max(0, i - band), i):
             v[k] -= chol[i, k] * v[i]
         if not (v_lo <= v[i] <= v_hi):
-            status = max(status, 1)
+            status = 1
     for row in range(h):                            # e = Γ v + c of the tracked rows, x̂ at P v
         e, dx = 0.0, 0.0
         for col in range(max(0, row + 1 - n_p), row + 1):
@@ -471,5 +673,5 @@ def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, g
         e = e + c[row] if row >= blind else 0.0     # untracked rows: Γ and c are 0 in the QP
         tighten = z_sigma * std[row] / sp
         if e - tighten < e_lo or e + tighten > e_hi:
-            status = max(status, 1)
+            status = 1
     return status

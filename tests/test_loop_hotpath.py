@@ -154,6 +154,36 @@ def test_answer_loop_publishes_each_command_before_its_diagnostics_and_every_dia
         assert kinds.index(("LaserCommand", step)) < kinds.index(("ControllerDiagnostics", step))
 
 
+class _Preparing:
+    """A controller that logs its updates and preparations into the publishers' log."""
+
+    name = "logging"
+
+    def __init__(self, inner, log):
+        self.inner, self.log = inner, log
+
+    def update(self, measurement):
+        self.log.append(("update", measurement.step))
+        return self.inner.update(measurement)
+
+    def prepare(self):
+        self.log.append(("prepare", None))
+
+
+def test_answer_loop_prepares_the_next_update_after_each_command():
+    """The preparation phase runs after a state's command is published, before the next state."""
+    stop = threading.Event()
+    sent: list = []
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+    states = _States([state("t", k) for k in range(4)], stop, True)
+    loop = AnswerLoop(_Bus(), _Preparing(make_controller("pid", settings), sent), settings, states, _Publisher(sent),
+                      _Publisher(sent), done=stop.is_set)
+    loop.serve()
+    order = [m if isinstance(m, tuple) else (type(m).__name__, m.step) for m in sent]
+    order = [o for o in order if o[0] != "ControllerDiagnostics"]
+    assert order == [entry for k in range(4) for entry in (("update", k), ("LaserCommand", k + 1), ("prepare", None))]
+
+
 @pytest.mark.parametrize(("interval_s", "pause"), [(PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S, True),
                                                     (PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S * 0.9, False),
                                                     (0.0, False)])

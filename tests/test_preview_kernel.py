@@ -139,10 +139,10 @@ def test_building_the_controller_compiles_every_compiled_function():
         "from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel\n"
         "model = NarxGPModel.load(DEFAULT_MODEL_PATH)\n"
         "make_controller('preview-mpc', ControllerSettings(set_point_m2=6.3e-8), model)\n"
-        "print([len(f.signatures) for f in (k.update_into, k._views)])\n"
+        "print([len(f.signatures) for f in (k.update_into, k._views, k.prepare_into, k.feedback_into)])\n"
     )
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=600)
-    assert out.stdout.strip().splitlines()[-1] == "[1, 1]"
+    assert out.stdout.strip().splitlines()[-1] == "[1, 1, 1, 1]"
 
 
 @pytest.mark.parametrize("seed", range(6))
