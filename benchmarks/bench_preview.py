@@ -1,15 +1,23 @@
-"""Benchmark of the preview MPC's full update on the FE plant, against the cvxpy reference.
+"""Benchmark of the preview MPC's update on the FE plant, against the cvxpy reference.
 
-Runs ``preview-mpc`` with the shipped delay-aware model in closed loop on the FE plant
-(in process, no zenoh; default the double track, 250 steps), timing every ``update``; then
-solves every QP the controller solved again with the plain cvxpy formulation
-(:func:`controller_node.preview_qp.solve_reference`). Prints a summary, then, as the last line,
-JSON with ``median_us``, ``p99_us`` (update after the pool build-up), ``cvxpy_median_us``,
-``speedup_vs_cvxpy`` (cvxpy solve median ÷ full update median), ``max_abs_diff_w`` (largest
-|Δp| over all planned powers of all updates), the paths the QP took, ``warm_median_us`` (a new
-controller fed the same states back to back: the update with warm caches) and the load.
+Runs ``preview-mpc`` with the shipped delay-aware model in closed loop on the FE plant (in
+process, no zenoh; default the double track, 250 steps) as the controller node runs it: ``update``
+on each state, timed (between FE steps: cold caches), then ``prepare`` for the next state after the
+command, timed apart (the real-time iteration's preparation, off the state-to-command path). Then
+the same loop on a fresh plant without ``prepare`` (every update is the full update); the two
+alternate ``--rounds`` times. Then the states of the last loop with ``prepare`` back to back to a
+fresh controller (warm caches). Last, every QP that loop solved is solved again with the plain
+cvxpy formulation (:func:`controller_node.preview_qp.solve_reference`).
 
-Usage: ``python benchmarks/bench_preview.py [--scenario double-track]``
+Prints a summary, then, as the last line, JSON: ``median_us``, ``p99_us`` (the update, state to
+command and diagnostics, after the pool build-up), ``prepare_median_us``, ``feedback_updates`` (of
+``n_updates``, the updates that took the feedback phase), ``full_update_median_us`` (the loops
+without preparation) and ``ratio_vs_full_update`` (of the medians), ``warm_median_us``,
+``cvxpy_median_us``, ``speedup_vs_cvxpy`` (cvxpy solve median ÷ update median),
+``max_abs_diff_w`` (largest |Δp| over all planned powers of all updates), the paths the QP took and
+the load.
+
+Usage: ``python benchmarks/bench_preview.py [--scenario double-track] [--rounds 2]``
 """
 
 from __future__ import annotations
@@ -43,17 +51,12 @@ def measurement(obs) -> Measurement:
                        next_track=obs.next_track)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenario", default="double-track")
-    args = parser.parse_args()
-    sc = scenario(args.scenario)
+def closed_loop(sc, ctrl, settings: ControllerSettings, prepare: bool) -> tuple[list, list, list, list, list]:
+    """One closed loop on a fresh FE plant: the update times after the pool build-up [s], the
+    preparation times [s], every state, and the QPs and plans of the timed updates."""
     plant = ThermalModel(sc.settings, sc.plan)
-    settings = ControllerSettings(set_point_m2=0.063e-6)
-    ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
-    load_at_start = os.getloadavg()[0]
     obs = plant.initial_observation()
-    times, problems, plans, seen, prepare_times = [], [], [], [], []
+    times, prepare_times, seen, problems, plans = [], [], [], [], []
     while not plant.done:
         m = measurement(obs)
         seen.append(m)
@@ -64,10 +67,31 @@ def main() -> None:
             times.append(elapsed)
             problems.append(ctrl.last_qp)
             plans.append(np.array(diag.predicted_power_w))
-        t0 = time.perf_counter()
-        ctrl.prepare()
-        prepare_times.append(time.perf_counter() - t0)
+        if prepare:
+            t0 = time.perf_counter()
+            ctrl.prepare()
+            prepare_times.append(time.perf_counter() - t0)
         obs = plant.step(cmd.power_w, 0.8)
+    return times, prepare_times, seen, problems, plans
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", default="double-track")
+    parser.add_argument("--rounds", type=int, default=2, help="alternated pairs of loops with and without prepare")
+    args = parser.parse_args()
+    sc = scenario(args.scenario)
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+    load_at_start = os.getloadavg()[0]
+    times, prepare_times, full_times, feedback_updates = [], [], [], 0
+    for _ in range(args.rounds):   # alternated: this host's speed drifts by tens of percent within minutes
+        ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
+        round_times, round_prepare, seen, problems, plans = closed_loop(sc, ctrl, settings, prepare=True)
+        times += round_times
+        prepare_times += round_prepare
+        feedback_updates += ctrl.n_feedback
+        full_times += closed_loop(sc, make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH)),
+                                  settings, prepare=False)[0]
     warm = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
     warm_times = []
     for m in seen:  # the same states back to back: nothing between the updates evicts their caches
@@ -90,7 +114,11 @@ def main() -> None:
         "max_abs_diff_w": max(diffs),
         "warm_median_us": round(float(np.median(warm_times)) * 1e6, 1),
         "prepare_median_us": round(float(np.median(prepare_times)) * 1e6, 1),
-        "n_updates": len(times),
+        "feedback_updates": feedback_updates,
+        "full_update_median_us": round(float(np.median(full_times)) * 1e6, 1),
+        "n_updates": len(seen) * args.rounds,
+        "rounds": args.rounds,
+        "ratio_vs_full_update": round(float(np.median(times) / np.median(full_times)), 3),
         "loadavg_1min_at_start": round(load_at_start, 2),
         "qp_paths": dict(paths),
         "scenario": args.scenario,

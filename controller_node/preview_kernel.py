@@ -156,11 +156,17 @@ def exp_into(a, bits):  # pragma: no cover (compiled)
         flat[i] *= two_n[i]
 
 
-MOMENTS = 9
-"""Terms of the series in which :func:`feedback_into` moves the GP's kernel sums to the measured T ahead."""
+MOMENTS = 12
+"""Terms of the series in which :func:`feedback_into` moves the GP's kernel sums (and, without bound
+tightening, the variance) to the measured T ahead."""
 SERIES_RADIUS = 0.5
-"""Largest ``|ε W_a0|`` of that series (its truncation is then below ``0.5⁹/9! e^0.5`` ≈ 9e-9 of
-``Σ_a |k_a β_a|``); beyond it the state gets the full update."""
+"""Largest ``|ε W_a0|`` of those series: their truncation is then below ``0.5¹²/12! e^0.5`` ≈ 5e-13 of
+``Σ_a |k_a β_a|`` (the mean) and ``1/12! e`` ≈ 6e-9 of ``Σ_ab |k_a A_ab k_b|`` (the variance's
+quadratic form, whose variable ``ε (W_a0 + W_b0)`` reaches twice the radius); beyond it the state
+gets the full update."""
+_MEAN, _SLOPE, _W0, _VARIANCE = 0, MOMENTS, 2 * MOMENTS, 2 * MOMENTS + 1
+"""Where a row of the prepared ``moments`` keeps the mean's and the mean-power slope's moments, the
+row's scaled T input and the variance's moments."""
 
 N_SIZES = 11
 """Leading entries of :class:`Kernel`'s ``dims``: n_p, n_T, n_Tq, n_x, N, H, profile and correction
@@ -173,10 +179,11 @@ def _layout(dims):  # pragma: no cover (compiled)
     (cumulative lengths; the last of each is the flat array's length): the one definition of their layout."""
     n_p, n_t, n_tq, n_x, n_gp, h, n_profile, n_corr = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], \
         dims[6], dims[7]
-    return (np.cumsum(np.array([1, n_p, n_p, n_t, n_tq, n_x, 8, h, h + 9, h * h, 6 * n_gp, n_gp * n_gp])),
+    return (np.cumsum(np.array([1, n_p, n_p, n_t, n_tq, n_x, 8, h, h + 9, h * h, 6 * n_gp, n_gp * n_gp,
+                                2 * MOMENTS * n_gp])),
             np.cumsum(np.array([n_p, n_t, h, n_profile, n_corr, n_corr, n_corr, 4])),
             np.cumsum(np.array([3 * h * h, 11 * h, 3 * h, h * n_gp, h * n_gp, n_p + h, n_t + h - 1, h, h,
-                                h * (2 * MOMENTS + 1)])))
+                                h * (3 * MOMENTS + 1), MOMENTS * n_gp])))
 
 
 @njit(cache=True, nogil=True)
@@ -184,12 +191,13 @@ def _views(dims, consts, state, work):  # pragma: no cover (compiled)
     """The named arrays inside the three flat ones, at the ends of :func:`_layout` that ``dims`` carries
     from index ``N_SIZES`` on (:class:`Kernel`; nothing allocated per update)."""
     h, n_gp = dims[5], dims[4]
-    ends, state_ends, work_ends = dims[N_SIZES:N_SIZES + 12], dims[N_SIZES + 12:N_SIZES + 20], dims[N_SIZES + 20:]
+    ends, state_ends, work_ends = dims[N_SIZES:N_SIZES + 13], dims[N_SIZES + 13:N_SIZES + 21], dims[N_SIZES + 21:]
     intercept, b, q, cc = consts[0:ends[0]], consts[ends[0]:ends[1]], consts[ends[1]:ends[2]], consts[ends[2]:ends[3]]
     d, e, gp, decay = consts[ends[3]:ends[4]], consts[ends[4]:ends[5]], consts[ends[5]:ends[6]], consts[ends[6]:ends[7]]
     qp_terms, moves = consts[ends[7]:ends[8]], consts[ends[8]:ends[9]].reshape((h, h))
     gp_points = consts[ends[9]:ends[10]].reshape((6, n_gp))
     var_f = consts[ends[10]:ends[11]].reshape((n_gp, n_gp))
+    series_weights = consts[ends[11]:ends[12]].reshape((n_gp, 2 * MOMENTS))
     ends = state_ends
     p_hist, t_hist, plan = state[0:ends[0]], state[ends[0]:ends[1]], state[ends[1]:ends[2]]
     profile, current, following = state[ends[2]:ends[3]], state[ends[3]:ends[4]], state[ends[4]:ends[5]]
@@ -199,10 +207,12 @@ def _views(dims, consts, state, work):  # pragma: no cover (compiled)
     psi, kern = work[ends[1]:ends[2]].reshape((h, 3)), work[ends[2]:ends[3]].reshape((h, n_gp))
     bits, powers, temps = work[ends[3]:ends[4]].view(np.int64), work[ends[4]:ends[5]], work[ends[5]:ends[6]]
     forecast, correction = work[ends[6]:ends[7]], work[ends[7]:ends[8]]
-    moments = work[ends[8]:ends[9]].reshape((h, 2 * MOMENTS + 1))
+    moments = work[ends[8]:ends[9]].reshape((h, 3 * MOMENTS + 1))
+    powers_of_w0 = work[ends[9]:ends[10]].reshape((n_gp, MOMENTS))
     return (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f,
             p_hist, t_hist, plan, profile, current, following, turn_errors, observer,
-            matrices, vectors, psi, kern, bits, powers, temps, forecast, correction, moments)
+            matrices, vectors, psi, kern, bits, powers, temps, forecast, correction, moments, powers_of_w0,
+            series_weights)
 
 
 @njit(cache=True, nogil=True)
@@ -219,7 +229,7 @@ def update_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k, a
     tracked. With no bound active the plan becomes the QP's solution here."""
     (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f, p_hist, t_hist, plan, profile,
      current, following, turn_errors, observer, matrices, vectors, psi, kern, bits, powers, temps, forecast,
-     correction, moments) = _views(dims, consts, state, work)
+     correction, moments, powers_of_w0, series_weights) = _views(dims, consts, state, work)
     log_output, e0 = dims[9] != 0, e[0] if e.size else 0.0
     if observe:
         _observe(observer, b[0], q[0], e0, log_output, qp_terms[3], power_w, area_m2,
@@ -262,25 +272,45 @@ def prepare_into(dims, consts, state, scratch, work, p_fill, power_w, t_fill, t_
     (its arguments, with T ahead ``t_ahead_k`` [K] forecast; the area is not known yet, so the
     observer is not run) on a copy of ``state`` in ``scratch`` (``state`` is not changed), into
     ``work``; then, per row m, the moments of the GP's kernel sums in the scaled T input,
-    ``Σ_a k_ma β_a W_a0ʲ`` and ``Σ_a k_ma β_a W_a2 W_a0ʲ``, j < :data:`MOMENTS`, and the row's scaled
-    T input w_m0 (``moments``, for :func:`feedback_into`). Returns the update's status."""
+    ``Σ_a k_ma β_a W_a0ʲ`` and ``Σ_a k_ma β_a W_a2 W_a0ʲ``, j < :data:`MOMENTS`, the row's scaled
+    T input w_m0 and, for the variance rows when the feedback takes the variance from the series
+    (:func:`_series_variance`), the moments of its quadratic form ``Σ_ab k_a A_ab k_b (W_a0 + W_b0)ʲ``,
+    ``A = (σ_f L⁻¹)ᵀ σ_f L⁻¹`` (``moments``, for :func:`feedback_into`). Returns the update's status."""
     scratch[:] = state
     area = math.nan                                 # not measured yet: no observer (a typed, not a literal, False)
     status = update_into(dims, consts, scratch, work, p_fill, power_w, t_fill, t_ahead_k, area, not math.isnan(area),
                          since, on_first, to_end, t_base, learned, blind)
     (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f, p_hist, t_hist, plan, profile,
      current, following, turn_errors, observer, matrices, vectors, psi, kern, bits, powers, temps, forecast,
-     correction, moments) = _views(dims, consts, scratch, work)
-    moments[:] = 0.0
-    for row in range(plan.size):
-        for a in range(kern.shape[1]):
-            term, w = kern[row, a] * gp_points[4, a], gp_points[0, a]
-            for j in range(MOMENTS):
-                moments[row, j] += term
-                moments[row, MOMENTS + j] += term * gp_points[2, a]
-                term *= w
-        moments[row, 2 * MOMENTS] = (psi[row, 0] - gp[0]) * gp[3]
+     correction, moments, powers_of_w0, series_weights) = _views(dims, consts, scratch, work)
+    h = plan.size
+    sums = np.dot(kern, series_weights)             # (H, 2 MOMENTS): Σ_a k_ma β_a W_a0ʲ, Σ_a k_ma β_a W_a2 W_a0ʲ
+    for row in range(h):
+        for j in range(2 * MOMENTS):
+            moments[row, _MEAN + j] = sums[row, j]
+        moments[row, _W0] = (psi[row, 0] - gp[0]) * gp[3]
+    for row in range(0 if _series_variance(qp_terms) else dims[8], dims[8]):
+        for a in range(kern.shape[1]):              # k ∘ W_0ⁱ, i < MOMENTS, as columns
+            weighted = kern[row, a]
+            for i in range(MOMENTS):
+                powers_of_w0[a, i] = weighted
+                weighted *= gp_points[0, a]
+        projected = np.dot(var_f, powers_of_w0)     # y_i = σ_f L⁻¹ (k ∘ W_0ⁱ)
+        gram = np.dot(projected.T, projected)
+        for j in range(MOMENTS):                    # Q_j = Σ_i C(j, i) y_iᵀ y_{j−i} = kᵀA(W_a0 + W_b0)ʲk
+            binomial, total = 1.0, 0.0
+            for i in range(j + 1):
+                total += binomial * gram[i, j - i]
+                binomial = binomial * (j - i) / (i + 1)
+            moments[row, _VARIANCE + j] = total
     return status
+
+
+@njit(cache=True, nogil=True)
+def _series_variance(qp_terms):  # pragma: no cover (compiled)
+    """Whether the feedback takes the variance from the series (no bound tightening, zσ = 0: the
+    variance is the diagnostics' only), not from kernel values at the measured T ahead."""
+    return qp_terms[8] == 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -289,17 +319,19 @@ def feedback_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k,
     """Feedback phase of a real-time iteration: the update of the state that :func:`prepare_into`
     prepared ``work`` for (same arguments), with its measured T ahead ``t_ahead_k`` [K] and area
     ``area_m2`` [m²]. The prediction x̂ at ū is the model's own at the measured T ahead, as in
-    :func:`update_into`, except that the GP's kernel sums of the rows beyond the variance rows come
-    from the prepared moments: with ``ε`` the row's shift of the scaled T input,
-    ``k_a(w + ε e₀) = k_a(w) exp(ε W_a0 − w₀ ε − ε²/2)``, so ``Σ_a k_a β_a`` moves to
-    ``exp(−w₀ ε − ε²/2) Σ_j εʲ/j! Σ_a k_a β_a W_a0ʲ`` (the mean-power moment likewise). The
+    :func:`update_into`, except that the GP's kernel sums come from the prepared moments: with ``ε``
+    the row's shift of the scaled T input, ``k_a(w + ε e₀) = k_a(w) exp(ε W_a0 − w₀ ε − ε²/2)``, so
+    ``Σ_a k_a β_a`` moves to ``exp(−w₀ ε − ε²/2) Σ_j εʲ/j! Σ_a k_a β_a W_a0ʲ`` (the mean-power
+    moment likewise, and the variance's quadratic form with ``exp(−2 w₀ ε − ε²)`` and
+    ``(W_a0 + W_b0)ʲ``); with bound tightening the variance rows are computed from their kernel
+    values instead (:func:`_series_variance`). The
     Jacobian Γ, the Hessian and its factor stay those of the forecast T ahead (the real-time
     iteration's linearisation); ``c``, the gradient, the step and the bound checks are those of the
     new prediction. Returns :func:`update_into`'s status, or −1, changing nothing in ``state``, when a
     shift is outside :data:`SERIES_RADIUS` (the caller then runs the full update)."""
     (intercept, b, q, cc, d, e, gp, decay, qp_terms, moves, gp_points, var_f, p_hist, t_hist, plan, profile,
      current, following, turn_errors, observer, matrices, vectors, psi, kern, bits, powers, temps, forecast,
-     correction, moments) = _views(dims, consts, state, work)
+     correction, moments, powers_of_w0, series_weights) = _views(dims, consts, state, work)
     h, n_gp, n_variance, log_output = plan.size, gp_points.shape[1], dims[8], dims[9] != 0
     forecast_into(t_ahead_k, since, on_first, to_end, profile, t_base, decay, forecast)
     w_max = 0.0
@@ -307,7 +339,7 @@ def feedback_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k,
         w_max = max(w_max, abs(gp_points[0, a]))
     for row in range(h):
         t_row = t_ahead_k if row == 0 else forecast[row - 1]
-        if not abs(((t_row - gp[0]) * gp[3] - moments[row, 2 * MOMENTS]) * w_max) <= SERIES_RADIUS:
+        if not abs(((t_row - gp[0]) * gp[3] - moments[row, _W0]) * w_max) <= SERIES_RADIUS:
             return -1
     e0, n_p = e[0] if e.size else 0.0, b.size
     if observe:
@@ -315,11 +347,12 @@ def feedback_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k,
                  since if t_base == t_base else -1, turn_errors)
     observer[1] = math.nan
     push_history(p_hist, p_fill, power_w, t_hist, t_fill, t_ahead_k)
+    kern_rows = 0 if _series_variance(qp_terms) else n_variance
     _regressors(p_hist, t_hist, forecast, plan, since, to_end, float(dims[10]), gp, gp_points, psi, kern, powers,
-                temps, n_variance)
-    exp_into(kern[:n_variance], bits[:n_variance * n_gp])
+                temps, kern_rows)
+    exp_into(kern[:kern_rows], bits[:kern_rows * n_gp])
     finite = _prediction(powers, temps, kern, log_output, intercept[0], b, q, cc, d, e, gp, gp_points, var_f,
-                         n_variance, correction, observer[0], psi, vectors, n_variance, moments)
+                         n_variance, correction, observer[0], psi, vectors, kern_rows, moments)
     sp = qp_terms[0]
     c, predicted, jac_u = vectors[0], vectors[1], vectors[10]
     for row in range(h):
@@ -419,7 +452,9 @@ class Kernel:
         self.consts, self.state, self.work = (np.zeros(int(ends[-1])) for ends in layout)
         (intercept, b_, q, cc_, d, e, gp, decay, qp_terms, moves, gp_points, var_f_, self.p_hist, self.t_hist,
          self.plan, self.profile, self.current, self.following, self.turn_errors, self.observer,
-         *_) = _views(self.dims, self.consts, self.state, self.work)
+         *_, series_weights) = _views(self.dims, self.consts, self.state, self.work)
+        w0_powers = points[0][:, None] ** np.arange(MOMENTS)          # W_a0ʲ, (N, MOMENTS)
+        series_weights[...] = np.hstack((points[4][:, None] * w0_powers, points[5][:, None] * w0_powers))
         intercept[0] = model.intercept
         # qp_terms: x_sp, P, r, observer gain L, v_lo, v_hi, e_lo, e_hi, zσ, then the H row weights
         for view, value in ((b_, b), (q, model.power_square_coefficients), (cc_, cc),
@@ -439,8 +474,8 @@ class Kernel:
 
     def _named(self, work: np.ndarray) -> dict:
         """The named views of one workspace (the attributes that follow the workspace in use)."""
-        matrices, vectors, psi, kern, _, powers, temps, forecast, correction, _ = _views(self.dims, self.consts,
-                                                                                         self.state, work)[20:]
+        matrices, vectors, psi, kern, _, powers, temps, forecast, correction = _views(self.dims, self.consts,
+                                                                                      self.state, work)[20:29]
         c, predicted, z, std, f, v, areas, *_ = vectors
         return dict(work=work, matrices=matrices, vectors=vectors, psi=psi, kern=kern, powers=powers, temps=temps,
                     forecast=forecast, correction=correction, gamma=matrices[0], hess=matrices[1], c=c,
@@ -545,9 +580,8 @@ def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, g
 def _prediction(powers, temps, kern, log_output, intercept, b, q, cc, d, e, gp, gp_points, var_f, n_variance,
                 correction, disturbance, psi, vectors, gp_rows, moments):  # pragma: no cover (compiled)
     """x̂ at ū (into ``vectors``: z, x̂, std, the GP's mean-power slope and ``x'(z)``); the GP's kernel
-    sums from ``kern`` for the first ``gp_rows`` rows, from the prepared ``moments`` beyond
-    (:func:`feedback_into`); the variance from ``kern`` for the first ``n_variance`` rows. True if
-    every x̂ is finite."""
+    sums and the variance (of the first ``n_variance`` rows) from ``kern`` for the first ``gp_rows``
+    rows, from the prepared ``moments`` beyond (:func:`feedback_into`). True if every x̂ is finite."""
     n_p, n_t, n_tq, n_x = b.size, cc.size, d.size, e.size
     h = powers.size - n_p
     n_gp = kern.shape[1]
@@ -556,11 +590,19 @@ def _prediction(powers, temps, kern, log_output, intercept, b, q, cc, d, e, gp, 
     std[:] = 0.0
     for row in range(n_variance):                   # σ² − ‖σ_f L⁻¹ k‖² of the first rows
         quad = 0.0
-        for a in range(n_gp):
-            projected = 0.0
-            for b2 in range(a + 1):
-                projected += var_f[a, b2] * kern[row, b2]
-            quad += projected * projected
+        if row < gp_rows:
+            for a in range(n_gp):
+                projected = 0.0
+                for b2 in range(a + 1):
+                    projected += var_f[a, b2] * kern[row, b2]
+                quad += projected * projected
+        else:                                       # the prepared quadratic form, moved by ε
+            w0 = moments[row, _W0]
+            eps = (psi[row, 0] - gp[0]) * gp[3] - w0
+            power = math.exp(-2.0 * w0 * eps - eps * eps)
+            for j in range(MOMENTS):
+                quad += moments[row, _VARIANCE + j] * power
+                power *= eps / (j + 1)
         std[row] = max(gp[6] - quad, 0.0) + gp[7]
     for row in range(h):
         last_p, last_t = n_p + row, n_t - 1 + row   # index of p[k+m] and of T[k+m−1]
@@ -570,12 +612,12 @@ def _prediction(powers, temps, kern, log_output, intercept, b, q, cc, d, e, gp, 
                 gp_mean += kern[row, a] * beta[a]
                 gp_moment += kern[row, a] * moment_weights[a]
         else:                                       # the prepared sums, moved by ε in the scaled T input
-            w0 = moments[row, 2 * MOMENTS]
+            w0 = moments[row, _W0]
             eps = (psi[row, 0] - gp[0]) * gp[3] - w0
             power = math.exp(-w0 * eps - 0.5 * eps * eps)
             for j in range(MOMENTS):
-                gp_mean += moments[row, j] * power
-                gp_moment += moments[row, MOMENTS + j] * power
+                gp_mean += moments[row, _MEAN + j] * power
+                gp_moment += moments[row, _SLOPE + j] * power
                 power *= eps / (j + 1)
         w2 = (psi[row, 2] - gp[2]) * gp[5]
         gp_slope[row] = gp[5] * (gp_moment - w2 * gp_mean) / n_p    # ∂r/∂ū_n through the mean power

@@ -27,8 +27,9 @@ def model() -> NarxGPModel:
     return NarxGPModel.load(DEFAULT_MODEL_PATH)
 
 
-def _kernels(model, seed: int, blind: int) -> tuple[PreviewQP, list[Kernel]]:
-    """Three kernels with the same random histories, plan, turnaround profile and disturbance."""
+def _kernels(model, seed: int, blind: int, z_sigma: float = 0.0) -> tuple[PreviewQP, list[Kernel]]:
+    """Three kernels with the same random histories, plan, turnaround profile and disturbance (the
+    variance of every row with bound tightening zσ > 0, else of the first)."""
     rng = np.random.default_rng(seed)
     qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=0.5, power_scale_w=350.0, power_min_w=0.0, power_max_w=350.0,
                    area_min_m2=0.0, area_max_m2=5e-7, slack_linear=100.0, slack_quadratic=1000.0)
@@ -38,7 +39,7 @@ def _kernels(model, seed: int, blind: int) -> tuple[PreviewQP, list[Kernel]]:
     plan = rng.uniform(200.0, 260.0, H)
     kernels = []
     for _ in range(3):
-        k = Kernel(model, qp, 1, 0.0, len(model.turn_profile_k), 60, 0.3)
+        k = Kernel(model, qp, H if z_sigma else 1, z_sigma, len(model.turn_profile_k), 60, 0.3)
         k.p_hist[:], k.t_hist[:], k.profile[:], k.plan[:] = p_hist, t_hist, profile, plan
         k.observer[:] = (2e-10, math.log(SP) - 0.5, 600.0, 0.0)   # d̂, z of x̂[k+1|k] without p[k+1] terms, T, correction
         kernels.append(k)
@@ -47,13 +48,14 @@ def _kernels(model, seed: int, blind: int) -> tuple[PreviewQP, list[Kernel]]:
 
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("shift_k", [0.0, 3.0, -20.0, 60.0])
-@pytest.mark.parametrize("blind", [0, 5])
-def test_the_feedback_predicts_as_the_update_and_solves_the_prepared_qp(model, seed, shift_k, blind):
+@pytest.mark.parametrize(("blind", "z_sigma"), [(0, 0.0), (5, 0.0), (0, 2.0)])
+def test_the_feedback_predicts_as_the_update_and_solves_the_prepared_qp(model, seed, shift_k, blind, z_sigma):
     """Prepared at the forecast T ahead, fed the measured one: the observer, histories, forecast and
     the prediction x̂ at ū are those of the full update (within the series' truncation); Γ and the
     Hessian are those of the update at the forecast T ahead; c, the gradient and the step are the
-    QP of that Γ and this prediction, solved as cvxpy solves it."""
-    qp, (fed, updated, at_forecast) = _kernels(model, seed, blind)
+    QP of that Γ and this prediction, solved as cvxpy solves it (the variance from the prepared series
+    without bound tightening, from the kernel values with it)."""
+    qp, (fed, updated, at_forecast) = _kernels(model, seed, blind, z_sigma)
     t_forecast, power, area = 610.0, 240.0, 1.02 * SP
     since, to_end, t_base = 40, 25, 590.0
     assert fed.prepare(1, power, 1, t_forecast, since, False, to_end, t_base, False, blind)
@@ -73,7 +75,10 @@ def test_the_feedback_predicts_as_the_update_and_solves_the_prepared_qp(model, s
     tracked_gamma, tracked_c = fed.gamma.copy(), fed.c.copy()
     tracked_gamma[:blind], tracked_c[:blind] = 0.0, 0.0
     assert np.allclose(fed.f, qp.gradient(tracked_gamma, tracked_c, power), rtol=1e-12, atol=1e-12)
-    assert np.allclose(fed.v * qp.scale, solve_reference(qp, tracked_gamma, tracked_c, power), rtol=0.0, atol=1e-3)
+    margin = z_sigma * fed.std / SP if z_sigma else None
+    plan = fed.v * qp.scale if status == 0 else qp.finish(tracked_gamma, tracked_c, fed.hess, fed.f, fed.v,
+                                                            margin).power_w
+    assert np.allclose(plan, solve_reference(qp, tracked_gamma, tracked_c, power, margin), rtol=0.0, atol=1e-3)
     if shift_k == 0.0:  # at the forecast itself the feedback is the update
         assert np.allclose(fed.v, updated.v, rtol=1e-9, atol=1e-12)
         assert np.allclose(fed.c, updated.c, rtol=1e-9, atol=1e-12)
