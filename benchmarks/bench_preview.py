@@ -14,8 +14,10 @@ command and diagnostics, after the pool build-up), ``prepare_median_us``, ``feed
 ``n_updates``, the updates that took the feedback phase), ``full_update_median_us`` (the loops
 without preparation) and ``ratio_vs_full_update`` (of the medians), ``warm_median_us``,
 ``cvxpy_median_us``, ``speedup_vs_cvxpy`` (cvxpy solve median ÷ update median),
-``max_abs_diff_w`` (largest |Δp| over all planned powers of all updates), the paths the QP took and
-the load.
+``max_abs_diff_w`` (largest |Δp| over all planned powers of all updates),
+``command_diff_vs_full_median_w`` and ``..._max_w`` (|Δp| between each command and that of a controller
+without preparation fed the same states: the real-time iteration's linearisation lag), the paths
+the QP took and the load.
 
 Usage: ``python benchmarks/bench_preview.py [--scenario double-track] [--rounds 2]``
 """
@@ -51,12 +53,15 @@ def measurement(obs) -> Measurement:
                        next_track=obs.next_track)
 
 
-def closed_loop(sc, ctrl, settings: ControllerSettings, prepare: bool) -> tuple[list, list, list, list, list]:
+def closed_loop(sc, ctrl, settings: ControllerSettings, prepare: bool, shadow=None
+                ) -> tuple[list, list, list, list, list, list]:
     """One closed loop on a fresh FE plant: the update times after the pool build-up [s], the
-    preparation times [s], every state, and the QPs and plans of the timed updates."""
+    preparation times [s], every state, the QPs and plans of the timed updates, and |Δp| [W]
+    between each command and that of ``shadow`` (a controller without preparation, fed the same
+    states after the FE step's command is fixed; not timed)."""
     plant = ThermalModel(sc.settings, sc.plan)
     obs = plant.initial_observation()
-    times, prepare_times, seen, problems, plans = [], [], [], [], []
+    times, prepare_times, seen, problems, plans, differences = [], [], [], [], [], []
     while not plant.done:
         m = measurement(obs)
         seen.append(m)
@@ -71,8 +76,10 @@ def closed_loop(sc, ctrl, settings: ControllerSettings, prepare: bool) -> tuple[
             t0 = time.perf_counter()
             ctrl.prepare()
             prepare_times.append(time.perf_counter() - t0)
+        if shadow is not None:
+            differences.append(abs(shadow.update(m)[0].power_w - cmd.power_w))
         obs = plant.step(cmd.power_w, 0.8)
-    return times, prepare_times, seen, problems, plans
+    return times, prepare_times, seen, problems, plans, differences
 
 
 def main() -> None:
@@ -83,10 +90,13 @@ def main() -> None:
     sc = scenario(args.scenario)
     settings = ControllerSettings(set_point_m2=0.063e-6)
     load_at_start = os.getloadavg()[0]
-    times, prepare_times, full_times, feedback_updates = [], [], [], 0
+    times, prepare_times, full_times, differences, feedback_updates = [], [], [], [], 0
     for _ in range(args.rounds):   # alternated: this host's speed drifts by tens of percent within minutes
         ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
-        round_times, round_prepare, seen, problems, plans = closed_loop(sc, ctrl, settings, prepare=True)
+        shadow = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
+        round_times, round_prepare, seen, problems, plans, round_differences = closed_loop(sc, ctrl, settings, True,
+                                                                                           shadow)
+        differences += round_differences
         times += round_times
         prepare_times += round_prepare
         feedback_updates += ctrl.n_feedback
@@ -119,6 +129,8 @@ def main() -> None:
         "n_updates": len(seen) * args.rounds,
         "rounds": args.rounds,
         "ratio_vs_full_update": round(float(np.median(times) / np.median(full_times)), 3),
+        "command_diff_vs_full_median_w": float(np.median(differences)),
+        "command_diff_vs_full_max_w": float(np.max(differences)),
         "loadavg_1min_at_start": round(load_at_start, 2),
         "qp_paths": dict(paths),
         "scenario": args.scenario,

@@ -13,6 +13,15 @@ Each update at state k (:meth:`PreviewMPC.update`):
 4. **Optimise**: the QP of :mod:`controller_node.preview_qp` (tracking of the set point,
    move penalty, hard power bounds, soft area bounds tightened by the GP's predictive std).
 
+**Real-time iteration.** After the command is sent, :meth:`PreviewMPC.prepare` (the node calls
+it) runs steps 2–4 for the state expected next (the next step of the same track, with the power
+just commanded and the forecast T ahead) and keeps the linearisation, the QP's Hessian and its
+factor, and moments of the GP's kernel sums. When that state arrives, :meth:`~PreviewMPC.update`
+takes the feedback phase (:func:`~controller_node.preview_kernel.feedback_into`): steps 1–3 at
+the measured T ahead and area, the GP's sums moved to it by a series (exact to ~1e-9), then step 4
+on the prepared linearisation. Any other state (a gap, a new track or layer, another power, a T
+ahead far from the forecast) gets the full update.
+
 The pool build-up (the first ``observer_start_steps`` states of the run and of every layer of a
 build) is outside the fitted model: there the observer stands still and the QP does not track the
 states inside the build-up, only those after it (the powers of the build-up are lags of theirs).

@@ -31,7 +31,11 @@ dispatch, each argument more, each fresh allocation and each small BLAS call a c
 every result live in three flat arrays allocated once (:class:`Kernel`, named views into them),
 the GP kernel's exponential is a vectorisable loop (:func:`exp_into`, within 1 ulp of numpy's),
 and the Hessian and its Cholesky factor are formed by loops over their band (n_p powers
-per row of Γ). The numpy formulation stays
+per row of Γ). The real-time iteration splits an update in two (:class:`controller_node.preview.PreviewMPC`):
+:func:`prepare_into` runs :func:`update_into` for the state expected next into a spare workspace
+before it arrives; :func:`feedback_into` then recomputes only what the measurement changes (observer,
+histories, forecast, prediction, gradient, step) on the prepared Γ and Cholesky factor.
+The numpy formulation stays
 the reference: ``tests/test_preview_kernel.py`` checks this kernel against the model's own
 prediction (:meth:`gp_trainer.narx.NarxGPModel.predict_run`), its Jacobian against finite
 differences, and the QP terms against :meth:`PreviewQP.hessian` / :meth:`PreviewQP.gradient`.
