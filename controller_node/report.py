@@ -148,6 +148,15 @@ def recorded_setpoint(path: Path) -> float | None:
     return None
 
 
+def update_latency_us(path: Path) -> tuple[float | None, float | None]:
+    """Median and 99th percentile [µs] of the controller's update as its node timed it (each
+    diagnostics' ``solve_time_us``: state in, command and diagnostics out); None without diagnostics."""
+    times = np.array([d.solve_time_us for d in read_messages(path, "/controller/diagnostics")], dtype=float)
+    if not times.size:
+        return None, None
+    return round(float(np.median(times)), 1), round(float(np.percentile(times, 99)), 1)
+
+
 def _segment_starts(*keys: np.ndarray) -> np.ndarray:
     """Index of the first state of the run of equal ``keys`` each state belongs to, shape (n,)."""
     n = keys[0].size
@@ -352,6 +361,7 @@ def report(path: Path, setpoint_mm2: float | None = None, figure: Path | None = 
             raise
         result = {"setpoint_mm2": setpoint, "window_start_s": WINDOW_START_S, "steps": int(trace.time_s.size)}
     result.update(complete=done.complete, incomplete_reason=done.reason)
+    result["update_median_us"], result["update_p99_us"] = update_latency_us(path)
     result["figure"] = str(plot({path.stem: trace}, setpoint, figure or path.with_suffix(".png")))
     result["recording"] = str(path)
     return result

@@ -7,7 +7,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from controller_node.report import TURNAROUND_STEPS, WINDOW_START_S, metrics, read_trace, recording_completeness
+from controller_node.report import (
+    TURNAROUND_STEPS,
+    WINDOW_START_S,
+    metrics,
+    read_trace,
+    recording_completeness,
+    update_latency_us,
+)
 from messages.recording import RecordingError
 
 
@@ -37,6 +44,7 @@ def summarise(out: Path, scenario: str, controller: str, setpoint_mm2: float | N
                        rmse_turnaround_pct=_round(m.rmse_turnaround_pct), rmse_along_pct=_round(m.rmse_along_pct),
                        turnaround_share_pct=_round(m.turnaround_share_pct, 1),
                        n_turnaround=m.n_turnaround, n_along=m.n_along)
+        summary["update_median_us"], summary["update_p99_us"] = update_latency_us(out)
     return summary
 
 

@@ -190,7 +190,7 @@ def _write_recording(path, n_states: int, total_steps: int | None, *, complete: 
             run_id="r", step=k, time_s=k * DT_S, laser_x_mm=0.04 * k, laser_y_mm=0.0, scan_dir_x=1.0, scan_dir_y=0.0,
             track=0, area_mm2=0.1 if k >= 5 else 0.0, t_ahead_k=500.0, power_w=250.0, speed_mm_s=800.0))
         put(CONTROLLER_DIAGNOSTICS, ControllerDiagnostics(
-            run_id="r", step=k, time_s=k * DT_S, controller="pid", status="ok", solve_time_us=1.0,
+            run_id="r", step=k, time_s=k * DT_S, controller="pid", status="ok", solve_time_us=10.0 + k,
             setpoint_mm2=setpoint_mm2))
     put(RUN_EVENTS, RunEvent(run_id="r", node="plant", event="end", time_s=(n_states - 1) * DT_S, detail=end_detail))
     rec.finish({"complete": "true" if complete else "false"})
@@ -225,6 +225,8 @@ def test_complete_recording_prints_the_table4_line(tmp_path, capsys):
     assert result["complete"] is True and result["incomplete_reason"] is None
     assert result["window_start_s"] == WINDOW_START_S and result["n_along"] == 41
     assert result["rmse_turnaround_pct"] is None  # single track
+    # the node's update as its diagnostics timed it: 10 + k µs for k = 0..60
+    assert result["update_median_us"] == 40.0 and result["update_p99_us"] == pytest.approx(69.4)
 
 
 def test_plan_finished_before_the_announced_total_is_complete(tmp_path):
