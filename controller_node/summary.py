@@ -65,17 +65,18 @@ def table_line(summary: dict[str, Any]) -> str:
 
 
 def comparison_table(scenario: str, setpoint_mm2: float, rows: list[dict[str, Any]]) -> str:
-    """Markdown comparison of several runs' summaries, with the window stated."""
+    """Markdown comparison of several runs' summaries, with the window stated (and each controller's
+    update median in its node, state in to command out)."""
     heading = (f"Scenario `{scenario}`, set point {setpoint_mm2:.4f} mm². Every figure in % of the set point, "
                f"over one fixed window for every controller: from {WINDOW_START_S * 1e3:g} ms after laser-on to the "
                f"end of the run; turnaround = the first {TURNAROUND_STEPS} states of every track after the first, "
                "along-track = the rest of the window.")
     lines = [("| controller | max overshoot [%] | max undershoot [%] | steady-state RMSE [%] | turnaround RMSE [%] "
-              "| along-track RMSE [%] | wall time [s] |"),
-             "|---|---:|---:|---:|---:|---:|---:|"]
+              "| along-track RMSE [%] | update median [µs] | wall time [s] |"),
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     lines += [f"| {r['controller']} | {r['overshoot_pct']:.1f} | {r['undershoot_pct']:.1f} "
               f"| {r['steady_rmse_pct']:.2f} | {_cell(r['rmse_turnaround_pct'])} | {_cell(r['rmse_along_pct'])} "
-              f"| {r['wall_s']:.1f} |" for r in rows]
+              f"| {_cell(r.get('update_median_us'), 0)} | {r['wall_s']:.1f} |" for r in rows]
     return heading + "\n\n" + "\n".join(lines) + "\n"
 
 

@@ -268,3 +268,14 @@ def test_launch_exits_1_when_a_normally_ended_run_did_not_finish(
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert status == expected_status and summary["status"] == expected_status
     assert summary["complete"] is (expected_status == 0)
+
+
+def test_comparison_table_states_each_controllers_update_median():
+    from controller_node.summary import comparison_table
+
+    row = {"controller": "preview-mpc", "overshoot_pct": 5.76, "undershoot_pct": 9.6, "steady_rmse_pct": 1.19,
+           "rmse_turnaround_pct": 3.0, "rmse_along_pct": 0.25, "wall_s": 28.0}
+    table = comparison_table("layer", 0.063, [{**row, "update_median_us": 104.9}, {**row, "controller": "replay"}])
+    assert "| update median [µs] |" in table
+    assert "| preview-mpc | 5.8 | 9.6 | 1.19 | 3.00 | 0.25 | 105 | 28.0 |" in table
+    assert "| replay | 5.8 | 9.6 | 1.19 | 3.00 | 0.25 | n/a | 28.0 |" in table
