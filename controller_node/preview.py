@@ -278,7 +278,9 @@ class PreviewMPC(Controller):
         the same track, with the power just commanded and the forecast T ahead), so that its
         :meth:`update` only moves the prediction by the measured T ahead and area and solves
         (:func:`~controller_node.preview_kernel.feedback_into`). Any other next state (a gap, a new
-        track or layer, another power) gets the full update, as without a preparation."""
+        track or layer, another power) gets the full update, as without a preparation. Nothing is
+        prepared after a state that did not follow the previous one by one step: a loop that skips
+        states would not use the preparation."""
         args = self._last_args
         if args is None or args[6] == 0:        # (to_end 0: the next state starts a track)
             return
@@ -346,7 +348,9 @@ class PreviewMPC(Controller):
             status = work.update(self._p_fill, m.power_w, self._t_fill, m.t_ahead_k, m.area_m2,
                                  consecutive and built_up, since, on_first, to_end, t_base, self._learned, blind)
         self._prepared_for = None
-        self._last_args = args if status != 2 else None
+        # prepare only while states come one step apart: a loop that skips states (a free-running
+        # sensor faster than the controller) would not use the preparation and pays for it in CPU
+        self._last_args = args if status != 2 and consecutive else None
         if status == 2:  # an absurd input: no plan from it
             return Proposal(math.nan, status="model_error")
         self._last_qp = blind

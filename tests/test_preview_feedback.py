@@ -111,8 +111,9 @@ def _synthetic_layer(n: int = 240, seed: int = 0) -> tuple[np.ndarray, np.ndarra
 
 def test_the_closed_loop_with_preparation_follows_the_full_update(model):
     """The same measurements to a controller that prepares after each command and to one that does
-    not: nearly every state after the first takes the feedback path, and the commands differ by
-    the real-time iteration's linearisation lag only (< 1 W on ~240 W)."""
+    not: every state takes the feedback path but the first two (nothing is prepared after the
+    first), the turn and a few after it (T ahead beyond the series), and the commands differ by the
+    real-time iteration's linearisation lag only (< 1 W on ~240 W)."""
     settings = ControllerSettings(set_point_m2=SP)
     rti, full = PreviewMPC(settings, model), PreviewMPC(settings, model)
     t, area = _synthetic_layer()
@@ -124,7 +125,7 @@ def test_the_closed_loop_with_preparation_follows_the_full_update(model):
         rti.prepare()
         diffs.append(abs(a.power_w - b.power_w))
         power = a.power_w
-    assert rti.n_feedback >= t.size - 5 and full.n_feedback == 0
+    assert rti.n_feedback >= t.size - 8 and full.n_feedback == 0
     assert max(diffs) < 1.0 and np.median(diffs) < 0.05
 
 
