@@ -18,8 +18,9 @@ import json
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -172,6 +173,14 @@ DIAGNOSTICS_DELAY_S = 100e-6
 at least :data:`PAUSE_MIN_PERIODS` times this apart): on a machine with few cores they would
 otherwise take the CPU the command needs on its way to the plant."""
 PAUSE_MIN_PERIODS = 4
+PREPARE_AT = 0.9
+"""The controller's preparation for the next state (:meth:`Controller.prepare`) runs this fraction
+of the shortest of the last :data:`PREPARE_WINDOW` state intervals after a state arrived, not right
+after its command: what it touches is then still in the caches when the next state comes (in a
+``launch.py`` layer the FE step takes ~25 ms; ``docs/controller.md``, Real-time iteration)."""
+PREPARE_WINDOW = 8
+PREPARE_LATE_MIN_S = 2e-3
+"""States closer than this (a free-running sensor): the preparation runs right after the command."""
 
 
 @dataclass
@@ -194,6 +203,10 @@ class AnswerLoop:
     state_interval_s: float = 0.0
     busy_wait: bool = False
     _last_arrival: float | None = None
+    _intervals: deque = field(default_factory=lambda: deque(maxlen=PREPARE_WINDOW))
+    _prepare_timer: threading.Timer | None = None
+    _prepare_due: bool = False
+    _prepare_generation: int = 0
 
     def serve(self) -> None:
         """Answer states until ``done()`` (checked after every wake-up); errors are kept for the caller.
@@ -201,6 +214,7 @@ class AnswerLoop:
         A state is answered with its command at once; the answer's diagnostics follow after a
         pause of :data:`DIAGNOSTICS_DELAY_S` without a new state (no pause when states come
         faster than :data:`PAUSE_MIN_PERIODS` pauses apart), or right after the next command.
+        The controller prepares its next update after the command (:meth:`schedule_prepare`).
         """
         pending: ControllerDiagnostics | None = None
         try:
@@ -212,7 +226,11 @@ class AnswerLoop:
                     if pending is not None:
                         self.diagnostics.put(pending)
                         pending = None
+                    if self._prepare_due:        # woken by the preparation's timer
+                        self._prepare_due = False
+                        self.controller.prepare()
                     continue
+                self._cancel_prepare()
                 self._arrived(time.monotonic())
                 answered, diag = self.answer(state)
                 if pending is not None:
@@ -220,19 +238,53 @@ class AnswerLoop:
                 pending = diag
                 if not answered:
                     return
-                self.controller.prepare()        # the next update's preparation, after the command is out
+                self.schedule_prepare()
                 if pending is not None and self.pause():
                     time.sleep(DIAGNOSTICS_DELAY_S)
         except BaseException as err:  # re-raised on the node's main thread
             self.error = err
         finally:
+            self._cancel_prepare()
             if pending is not None and self.error is None:
                 self.diagnostics.put(pending)
 
     def _arrived(self, t: float) -> None:
         if self._last_arrival is not None:
             self.state_interval_s = t - self._last_arrival
+            self._intervals.append(self.state_interval_s)
         self._last_arrival = t
+
+    def schedule_prepare(self) -> None:
+        """Prepare the controller's next update (after a command): at :data:`PREPARE_AT` of the
+        shortest recent state interval after the state's arrival, by a timer that wakes this
+        thread; at once while fewer than :data:`PREPARE_WINDOW` intervals are known or states come
+        closer than :data:`PREPARE_LATE_MIN_S`. A state that arrives first is answered at once
+        (its update is then the full one) and the timer is cancelled."""
+        intervals = self._intervals
+        delay = -1.0
+        if len(intervals) == intervals.maxlen and min(intervals) >= PREPARE_LATE_MIN_S:
+            delay = PREPARE_AT * min(intervals) - (time.monotonic() - self._last_arrival)
+        if delay <= 0.0:
+            self.controller.prepare()
+            return
+        generation = self._prepare_generation
+        self._prepare_timer = threading.Timer(delay, self._prepare_wake, args=(generation,))
+        self._prepare_timer.daemon = True
+        self._prepare_timer.start()
+
+    def _prepare_wake(self, generation: int) -> None:
+        """The timer's end: mark the preparation due and wake the answering thread (unless a state
+        came first)."""
+        if generation == self._prepare_generation:
+            self._prepare_due = True
+            self.states.wake()
+
+    def _cancel_prepare(self) -> None:
+        self._prepare_generation += 1
+        self._prepare_due = False
+        if self._prepare_timer is not None:
+            self._prepare_timer.cancel()
+            self._prepare_timer = None
 
     def pause(self) -> bool:
         """Whether to hold the diagnostics back after a command (states come far enough apart)."""

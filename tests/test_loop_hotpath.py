@@ -184,6 +184,62 @@ def test_answer_loop_prepares_the_next_update_after_each_command():
     assert order == [entry for k in range(4) for entry in (("update", k), ("LaserCommand", k + 1), ("prepare", None))]
 
 
+class _PacedStates:
+    """A NewestInbox stand-in that releases one scripted state every ``period_s`` and can be woken."""
+
+    def __init__(self, states, period_s, stop):
+        self.states, self.period_s, self.stop, self.n_invalid = list(states), period_s, stop, 0
+        self.start, self.woken = time.monotonic(), threading.Event()
+
+    def newest(self, block=True, busy=False):
+        while self.states:
+            due = self.start + self.states[0].step * self.period_s
+            if time.monotonic() >= due:
+                return self.states.pop(0), 0
+            if not block or self.woken.wait(due - time.monotonic()):
+                self.woken.clear()
+                return None, 0
+        self.stop.set()
+        return None, 0
+
+    def wake(self):
+        self.woken.set()
+
+
+def test_answer_loop_prepares_late_when_states_come_far_apart():
+    """States 20 ms apart: once the last PREPARE_WINDOW intervals are known, the preparation runs
+    about PREPARE_AT of the interval after each state arrived (a timer wakes the answering thread),
+    still before the next state; before that, right after the command."""
+    from controller_node.node import PREPARE_AT, PREPARE_WINDOW
+
+    stop, log = threading.Event(), []
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+    period, n = 0.02, PREPARE_WINDOW + 5
+    states = _PacedStates([state("t", k) for k in range(n)], period, stop)
+
+    class Timed(_Preparing):
+        def update(self, measurement):
+            self.log.append(("update", measurement.step, time.monotonic()))
+            return self.inner.update(measurement)
+
+        def prepare(self):
+            self.log.append(("prepare", None, time.monotonic()))
+
+    loop = AnswerLoop(_Bus(), Timed(make_controller("pid", settings), log), settings, states, _Publisher([]),
+                      _Publisher([]), done=stop.is_set)
+    loop.serve()
+    assert loop.error is None
+    kinds = [entry[0] for entry in log]
+    assert kinds == ["update", "prepare"] * (n - 1) + ["update"] or kinds == ["update", "prepare"] * n
+    for k in range(n - 1):
+        (_, step, answered), (_, _, prepared), (_, _, next_update) = log[2 * k], log[2 * k + 1], log[2 * k + 2]
+        assert step == k and prepared < next_update
+        if k <= PREPARE_WINDOW - 1:   # fewer intervals known than the window: at once
+            assert prepared - answered < 0.3 * period
+        else:                         # late, but before the next state
+            assert prepared - answered > 0.5 * PREPARE_AT * period
+
+
 @pytest.mark.parametrize(("interval_s", "pause"), [(PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S, True),
                                                     (PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S * 0.9, False),
                                                     (0.0, False)])
