@@ -206,6 +206,7 @@ class AnswerLoop:
     _intervals: deque = field(default_factory=lambda: deque(maxlen=PREPARE_WINDOW))
     _prepare_timer: threading.Timer | None = None
     _prepare_due: bool = False
+    _prepare_pending: bool = False
     _prepare_generation: int = 0
 
     def serve(self) -> None:
@@ -226,13 +227,19 @@ class AnswerLoop:
                     if pending is not None:
                         self.diagnostics.put(pending)
                         pending = None
-                    if self._prepare_due:        # woken by the preparation's timer
-                        self._prepare_due = False
+                    if self._prepare_due and self._prepare_pending:   # woken by the preparation's timer
+                        self._prepare_due = self._prepare_pending = False
                         self.controller.prepare()
                     continue
+                arrived, on_path_s = time.monotonic(), 0.0
+                if self._prepare_pending:        # the state came before the timer: prepare first, on its path
+                    self._cancel_prepare()
+                    t0 = time.perf_counter()
+                    self.controller.prepare()
+                    on_path_s = time.perf_counter() - t0
                 self._cancel_prepare()
-                self._arrived(time.monotonic())
-                answered, diag = self.answer(state)
+                self._arrived(arrived)
+                answered, diag = self.answer(state, on_path_s)
                 if pending is not None:
                     self.diagnostics.put(pending)
                 pending = diag
@@ -258,8 +265,10 @@ class AnswerLoop:
         """Prepare the controller's next update (after a command): at :data:`PREPARE_AT` of the
         shortest recent state interval after the state's arrival, by a timer that wakes this
         thread; at once while fewer than :data:`PREPARE_WINDOW` intervals are known or states come
-        closer than :data:`PREPARE_LATE_MIN_S`. A state that arrives first is answered at once
-        (its update is then the full one) and the timer is cancelled."""
+        closer than :data:`PREPARE_LATE_MIN_S`. A state that arrives first has the preparation run
+        before its update, on its path (counted in its ``solve_time_us``): every state is then
+        answered as if prepared right after the command, whatever the timing (same run, same
+        recording)."""
         intervals = self._intervals
         delay = -1.0
         if len(intervals) == intervals.maxlen and min(intervals) >= PREPARE_LATE_MIN_S:
@@ -267,6 +276,7 @@ class AnswerLoop:
         if delay <= 0.0:
             self.controller.prepare()
             return
+        self._prepare_pending = True
         generation = self._prepare_generation
         self._prepare_timer = threading.Timer(delay, self._prepare_wake, args=(generation,))
         self._prepare_timer.daemon = True
@@ -281,7 +291,7 @@ class AnswerLoop:
 
     def _cancel_prepare(self) -> None:
         self._prepare_generation += 1
-        self._prepare_due = False
+        self._prepare_due = self._prepare_pending = False
         if self._prepare_timer is not None:
             self._prepare_timer.cancel()
             self._prepare_timer = None
@@ -290,9 +300,10 @@ class AnswerLoop:
         """Whether to hold the diagnostics back after a command (states come far enough apart)."""
         return self.state_interval_s >= PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S
 
-    def answer(self, state: MeltPoolState) -> tuple[bool, ControllerDiagnostics | None]:
+    def answer(self, state: MeltPoolState, on_path_s: float = 0.0) -> tuple[bool, ControllerDiagnostics | None]:
         """Answer one state (or drop it, counted): publish its command; (``False`` if the controller
-        refused the plant, the diagnostics to publish)."""
+        refused the plant, the diagnostics to publish). ``on_path_s`` [s]: a preparation that ran
+        between the state's arrival and its update, added to the update's ``solve_time_us``."""
         bus, settings = self.bus, self.settings
         reason = inadmissible(state.step, self.last_step)
         if reason is not None:
@@ -323,7 +334,7 @@ class AnswerLoop:
         ))
         return True, ControllerDiagnostics(
             run_id=bus.run_id, step=command.step, time_s=state.time_s, controller=controller.name,
-            status=diag.status[:64], solve_time_us=diag.solve_time_s * 1e6, fallback=diag.fallback,
+            status=diag.status[:64], solve_time_us=(diag.solve_time_s + on_path_s) * 1e6, fallback=diag.fallback,
             n_fallbacks=diag.n_fallbacks, n_dropped=self.states.n_invalid + self.n_skipped + self.n_impossible,
             setpoint_mm2=settings.set_point_m2 * 1e6,
             predicted_area_mm2=[a * 1e6 for a in diag.predicted_area_m2],

@@ -187,13 +187,14 @@ def test_answer_loop_prepares_the_next_update_after_each_command():
 class _PacedStates:
     """A NewestInbox stand-in that releases one scripted state every ``period_s`` and can be woken."""
 
-    def __init__(self, states, period_s, stop):
+    def __init__(self, states, period_s, stop, release_s=None):
         self.states, self.period_s, self.stop, self.n_invalid = list(states), period_s, stop, 0
+        self.release_s = release_s or [s.step * period_s for s in self.states]
         self.start, self.woken = time.monotonic(), threading.Event()
 
     def newest(self, block=True, busy=False):
         while self.states:
-            due = self.start + self.states[0].step * self.period_s
+            due = self.start + self.release_s[len(self.release_s) - len(self.states)]
             if time.monotonic() >= due:
                 return self.states.pop(0), 0
             if not block or self.woken.wait(due - time.monotonic()):
@@ -307,3 +308,30 @@ def test_free_running_plant_times_commands_from_their_arrival_not_from_its_tick(
                      "surrogate", threading.Event())
     assert stats.steps == 20 and stats.misses == 0 and len(stats.rtt_s) == len(bus.published) == 21
     assert all(r == pytest.approx(100e-6, abs=1e-9) for r in stats.rtt_s)  # not up to the 5 ms tick period
+
+
+def test_a_state_before_the_preparations_timer_is_prepared_for_on_its_path():
+    """A state that comes before the timer gets the preparation first (so every state is answered
+    as if prepared right after the command: the run does not depend on timing), and the time
+    spent preparing is in its diagnostics' solve_time_us."""
+    from controller_node.node import PREPARE_WINDOW
+
+    stop, log, diagnostics = threading.Event(), [], []
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+    n, period = PREPARE_WINDOW + 3, 0.02
+    release = [k * period for k in range(n - 1)] + [(n - 2) * period + 0.004]   # the last one early
+
+    class Slow(_Preparing):
+        def prepare(self):
+            self.log.append(("prepare", None))
+            time.sleep(0.003)
+
+    states = _PacedStates([state("t", k) for k in range(n)], period, stop, release)
+    loop = AnswerLoop(_Bus(), Slow(make_controller("pid", settings), log), settings, states, _Publisher([]),
+                      _Publisher(diagnostics), done=stop.is_set)
+    loop.serve()
+    assert loop.error is None
+    last = log.index(("update", n - 1))
+    assert log[last - 2:last + 1] == [("update", n - 2), ("prepare", None), ("update", n - 1)]
+    times = {d.step: d.solve_time_us for d in diagnostics}
+    assert times[n] >= 3000.0 and times[n - 1] < 3000.0
