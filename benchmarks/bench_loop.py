@@ -17,7 +17,9 @@ plant and the controller connect to each other directly). ``--topology router``:
 process (:class:`messages.auth.RunCredentials`) and every node its client (each message crosses
 the router). ``--load`` starts a busy loop on one core (a ``stress``-like process) for the whole
 measurement; ``--fifo-priority N`` runs every node process under ``SCHED_FIFO`` (``chrt``);
-``--busy-wait`` starts the controller node with ``--busy-wait`` (it polls for states).
+``--busy-wait`` starts the controller node with ``--busy-wait`` (it polls for states);
+``--pin`` pins the plant side (surrogate, ping) to CPU 0 and the controller side (controller,
+pong) to CPU 1, as a real-time deployment would (the bench process and its hub are not pinned).
 ``docs/realtime.md`` has the measured figures.
 
 Prints the node output, then, as the last line, JSON: the loop's round trip state → command
@@ -68,14 +70,19 @@ BUSY_LOOP = "import os, sys\nos.sched_setaffinity(0, {int(sys.argv[1])})\nwhile 
 
 
 FIFO_PRIORITY: int | None = None  # --fifo-priority: every node process under SCHED_FIFO at this priority
+PIN = False  # --pin: the plant side on CPU 0, the controller side on CPU 1
+SIDE_CPU = {"plant": 0, "controller": 1}
 
 
-def spawn(argv: list[str], env: dict[str, str]) -> subprocess.Popen[str]:
-    """``python argv`` in its own process group, output captured, ``env`` added."""
+def spawn(argv: list[str], env: dict[str, str], side: str) -> subprocess.Popen[str]:
+    """``python argv`` in its own process group, output captured, ``env`` added; on its side's CPU
+    (:data:`SIDE_CPU`) with ``--pin``."""
     prefix = [] if FIFO_PRIORITY is None else ["chrt", "--fifo", str(FIFO_PRIORITY)]
+    cpu = SIDE_CPU[side] if PIN else None
     return subprocess.Popen([*prefix, sys.executable, "-u", *argv], cwd=REPO, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True,
-                            env={**os.environ, **env})
+                            env={**os.environ, **env},
+                            preexec_fn=None if cpu is None else lambda: os.sched_setaffinity(0, {cpu}))
 
 
 def cpu_times() -> tuple[int, int]:
@@ -148,10 +155,10 @@ def finish(proc: subprocess.Popen[str], timeout: float, name: str) -> str:
 
 def pingpong(hub: Hub, rate_hz: float, duration_s: float) -> list[float]:
     """Round trips [µs] of a bare ping-pong between two node processes through ``hub``."""
-    pong = spawn([PINGPONG, "pong", *hub.common()], hub.env("pong"))
+    pong = spawn([PINGPONG, "pong", *hub.common()], hub.env("pong"), "controller")
     try:
         ping = spawn([PINGPONG, "ping", *hub.common(), "--rate-hz", repr(rate_hz), "--duration-s",
-                      repr(duration_s), "--samples"], hub.env("ping"))
+                      repr(duration_s), "--samples"], hub.env("ping"), "plant")
         out = finish(ping, duration_s + 90, "ping")
     finally:
         pong.terminate()
@@ -167,11 +174,12 @@ def loop(hub: Hub, args: argparse.Namespace) -> tuple[dict, list[float], str]:
                                          zenoh.handlers.FifoChannel(capacity))
     busy = ["--busy-wait"] if args.busy_wait else []
     controller = spawn(["-m", "controller_node", "--controller", args.controller, *busy, *hub.common()],
-                       hub.env("controller"))
+                       hub.env("controller"), "controller")
     try:
         wait_for_nodes(hub.session, hub.run_id, ["controller"], StopFlag(), timeout_s=60)
         plant = spawn(["-m", "fe_node.surrogate", "--rate-hz", repr(args.rate_hz), "--duration-s",
-                       repr(args.duration_s), "--require", "controller", "--json", *hub.common()], hub.env("plant"))
+                       repr(args.duration_s), "--require", "controller", "--json", *hub.common()], hub.env("plant"),
+                      "plant")
         plant_out = finish(plant, args.duration_s + 90, "plant")
         controller_out = finish(controller, 30, "controller")
     finally:
@@ -210,9 +218,14 @@ def main() -> int:
     parser.add_argument("--fifo-priority", type=int, metavar="N",
                         help="run every node process (ping, pong, plant, controller) under SCHED_FIFO priority N "
                              "(chrt; needs CAP_SYS_NICE): how a real-time deployment would run them")
+    parser.add_argument("--pin", action="store_true",
+                        help="pin the plant side (surrogate, ping) to CPU 0 and the controller side (controller, pong) "
+                             "to CPU 1")
     args = parser.parse_args()
-    global FIFO_PRIORITY
-    FIFO_PRIORITY = args.fifo_priority
+    global FIFO_PRIORITY, PIN
+    FIFO_PRIORITY, PIN = args.fifo_priority, args.pin
+    if PIN and len(os.sched_getaffinity(0)) < 2:
+        parser.error("--pin needs two CPUs")
     run_id = f"bench-loop-{os.getpid()}"
     load_at_start = os.getloadavg()[0]
     busy = start_load(args.load_cpu) if args.load else None
@@ -256,6 +269,7 @@ def main() -> int:
         "load": f"busy loop on cpu {args.load_cpu}" if args.load else "none added",
         "scheduling": f"SCHED_FIFO {args.fifo_priority}" if args.fifo_priority is not None else "default",
         "controller_busy_wait": args.busy_wait,
+        "pinning": "plant side cpu 0, controller side cpu 1" if args.pin else "none",
         "python": platform.python_version(),
     }
     print(json.dumps(result))
