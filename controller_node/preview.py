@@ -94,6 +94,11 @@ class PreviewMPC(Controller):
         ``settings.preview`` configures it.
     model : gp_trainer.narx.NarxGPModel
         Delay-aware model (FIR part, residual GP, turnaround profile, sample period).
+
+    Attributes
+    ----------
+    n_feedback : int
+        Updates of this run that took the feedback phase of a preparation (:meth:`prepare`).
     """
 
     name = "preview-mpc"

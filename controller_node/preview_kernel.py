@@ -390,7 +390,8 @@ def _observe(observer, b0, q0, e0, log_output, gain, power_w, area_m2, since, tu
 class Kernel:
     """The model's constants, the run's histories and plan, and the workspace of one controller, as
     the three flat arrays :func:`update_into` reads and fills (allocated once: an update allocates
-    nothing), with named views into them.
+    nothing), with named views into them. A second workspace takes :meth:`prepare`'s results; the
+    workspace's named views follow the one in use (swapped by a successful :meth:`feedback`).
 
     Parameters
     ----------
@@ -439,6 +440,8 @@ class Kernel:
         The GP inputs ψ_{k+m−1} (T ahead [K], log1p(min(s, cap)), mean power [W]).
     forecast, correction : numpy.ndarray, shape (H,)
         ``T̂[k+1 .. k+H]`` [K] and the learned correction of x̂_{k+1..k+H} [m²].
+    prepared : bool
+        A preparation is waiting for its :meth:`feedback`.
     """
 
     def __init__(self, model, qp, n_variance: int, uncertainty_z: float, n_profile: int, n_correction: int,
