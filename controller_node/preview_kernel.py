@@ -183,7 +183,7 @@ def _layout(dims):  # pragma: no cover (compiled)
     (cumulative lengths; the last of each is the flat array's length): the one definition of their layout."""
     n_p, n_t, n_tq, n_x, n_gp, h, n_profile, n_corr = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], \
         dims[6], dims[7]
-    return (np.cumsum(np.array([1, n_p, n_p, n_t, n_tq, n_x, 8, h, h + 9, h * h, 6 * n_gp, n_gp * n_gp,
+    return (np.cumsum(np.array([1, n_p, n_p, n_t, n_tq, n_x, 9, h, h + 9, h * h, 6 * n_gp, n_gp * n_gp,
                                 2 * MOMENTS * n_gp])),
             np.cumsum(np.array([n_p, n_t, h, n_profile, n_corr, n_corr, n_corr, 4])),
             np.cumsum(np.array([3 * h * h, 11 * h, 3 * h, h * n_gp, h * n_gp, n_p + h, n_t + h - 1, h, h,
@@ -250,7 +250,7 @@ def update_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k, a
     exp_into(kern, bits)
     status = _linearised_qp(powers, temps, kern, log_output, intercept[0], b, q, cc, d, e, gp, gp_points, var_f,
                             dims[8], correction, observer[0], qp_terms, p_hist[0], moves, blind, psi, vectors,
-                            matrices)
+                            matrices, moments)
     _finish(status, observer, b[0], q[0], e0, powers[p_hist.size], t_hist[t_hist.size - 1], vectors, correction[0],
             qp_terms[1], plan)
     return status
@@ -338,9 +338,7 @@ def feedback_into(dims, consts, state, work, p_fill, power_w, t_fill, t_ahead_k,
      correction, moments, powers_of_w0, series_weights) = _views(dims, consts, state, work)
     h, n_gp, n_variance, log_output = plan.size, gp_points.shape[1], dims[8], dims[9] != 0
     forecast_into(t_ahead_k, since, on_first, to_end, profile, t_base, decay, forecast)
-    w_max = 0.0
-    for a in range(n_gp):
-        w_max = max(w_max, abs(gp_points[0, a]))
+    w_max = gp[8]
     for row in range(h):
         t_row = t_ahead_k if row == 0 else forecast[row - 1]
         if not abs(((t_row - gp[0]) * gp[3] - moments[row, _W0]) * w_max) <= SERIES_RADIUS:
@@ -463,10 +461,12 @@ class Kernel:
         w0_powers = points[0][:, None] ** np.arange(MOMENTS)          # W_a0ʲ, (N, MOMENTS)
         series_weights[...] = np.hstack((points[4][:, None] * w0_powers, points[5][:, None] * w0_powers))
         intercept[0] = model.intercept
-        # qp_terms: x_sp, P, r, observer gain L, v_lo, v_hi, e_lo, e_hi, zσ, then the H row weights
+        # qp_terms: x_sp, P, r, observer gain L, v_lo, v_hi, e_lo, e_hi, zσ, then the H row weights;
+        # gp: the GP's (μ, g, σ², σ_n²) of kernel_terms and max |W_a0| (feedback_into's series radius)
         for view, value in ((b_, b), (q, model.power_square_coefficients), (cc_, cc),
                             (d, model.temperature_square_coefficients), (e, model.power_temperature_coefficients),
-                            (gp, scalars), (decay, model.forecast_persistence ** np.arange(1.0, h + 1)),
+                            (gp, np.r_[scalars, np.abs(points[0]).max()]),
+                            (decay, model.forecast_persistence ** np.arange(1.0, h + 1)),
                             (moves, qp.moves), (gp_points, points), (var_f_, var_f),
                             (qp_terms, np.r_[qp.x_sp, qp.scale, qp.r, observer_gain, qp.v_lo, qp.v_hi, qp.e_lo, qp.e_hi,
                                              uncertainty_z, qp.weights])):
@@ -546,7 +546,8 @@ class _BoundOnFirstCall:
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
 def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, gp, gp_points, var_f, n_variance,
-                   correction, disturbance, qp_terms, p_now, moves, blind, psi, vectors, matrices):  # pragma: no cover
+                   correction, disturbance, qp_terms, p_now, moves, blind, psi, vectors, matrices,
+                   moments):  # pragma: no cover
     """Prediction, Jacobian and unconstrained QP step (module docstring) from the regressors and the
     kernel values ``kern`` = k(ψ_m, ψ_a), shape (H, N), into :class:`Kernel`'s ``vectors`` and
     ``matrices``; its status (:meth:`Kernel.update`)."""
@@ -558,7 +559,7 @@ def _linearised_qp(powers, temps, kern, log_output, intercept, b, q, cc, d, e, g
     areas, gp_slope, inv_diag, slopes, jac_u = vectors[6], vectors[7], vectors[8], vectors[9], vectors[10]
     gamma, hess, chol = matrices[0], matrices[1], matrices[2]
     finite = _prediction(powers, temps, kern, log_output, intercept, b, q, cc, d, e, gp, gp_points, var_f, n_variance,
-                         correction, disturbance, psi, vectors, h, vectors)
+                         correction, disturbance, psi, vectors, h, moments)
     gamma[:] = 0.0
     u = powers[n_p:]
     for row in range(h):
