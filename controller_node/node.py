@@ -168,11 +168,6 @@ def ended(events: Inbox, node: str, wait_s: float) -> bool:
     return False
 
 
-DIAGNOSTICS_DELAY_S = 100e-6
-"""The diagnostics of an answer leave this long after its command (when the plant's states come
-at least :data:`PAUSE_MIN_PERIODS` times this apart): on a machine with few cores they would
-otherwise take the CPU the command needs on its way to the plant."""
-PAUSE_MIN_PERIODS = 4
 PREPARE_AT = 0.9
 """The controller's preparation for the next state (:meth:`Controller.prepare`) runs this fraction
 of the shortest of the last :data:`PREPARE_WINDOW` state intervals after a state arrived, not right
@@ -212,21 +207,15 @@ class AnswerLoop:
     def serve(self) -> None:
         """Answer states until ``done()`` (checked after every wake-up); errors are kept for the caller.
 
-        A state is answered with its command at once; the answer's diagnostics follow after a
-        pause of :data:`DIAGNOSTICS_DELAY_S` without a new state (no pause when states come
-        faster than :data:`PAUSE_MIN_PERIODS` pauses apart), or right after the next command.
-        The controller prepares its next update after the command (:meth:`schedule_prepare`).
+        A state is answered with its command first, then the answer's diagnostics; the controller
+        then prepares its next update (:meth:`schedule_prepare`).
         """
-        pending: ControllerDiagnostics | None = None
         try:
             while not self.done():
                 # free-running plant: answer the newest state only
-                state, skipped = self.states.newest(block=pending is None, busy=self.busy_wait)
+                state, skipped = self.states.newest(busy=self.busy_wait)
                 self.n_skipped += skipped
                 if state is None:
-                    if pending is not None:
-                        self.diagnostics.put(pending)
-                        pending = None
                     if self._prepare_due and self._prepare_pending:   # woken by the preparation's timer
                         self._prepare_due = self._prepare_pending = False
                         self.controller.prepare()
@@ -240,20 +229,15 @@ class AnswerLoop:
                 self._cancel_prepare()
                 self._arrived(arrived)
                 answered, diag = self.answer(state, on_path_s)
-                if pending is not None:
-                    self.diagnostics.put(pending)
-                pending = diag
+                if diag is not None:
+                    self.diagnostics.put(diag)
                 if not answered:
                     return
                 self.schedule_prepare()
-                if pending is not None and self.pause():
-                    time.sleep(DIAGNOSTICS_DELAY_S)
         except BaseException as err:  # re-raised on the node's main thread
             self.error = err
         finally:
             self._cancel_prepare()
-            if pending is not None and self.error is None:
-                self.diagnostics.put(pending)
 
     def _arrived(self, t: float) -> None:
         if self._last_arrival is not None:
@@ -295,10 +279,6 @@ class AnswerLoop:
         if self._prepare_timer is not None:
             self._prepare_timer.cancel()
             self._prepare_timer = None
-
-    def pause(self) -> bool:
-        """Whether to hold the diagnostics back after a command (states come far enough apart)."""
-        return self.state_interval_s >= PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S
 
     def answer(self, state: MeltPoolState, on_path_s: float = 0.0) -> tuple[bool, ControllerDiagnostics | None]:
         """Answer one state (or drop it, counted): publish its command; (``False`` if the controller

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from controller_node.node import DIAGNOSTICS_DELAY_S, PAUSE_MIN_PERIODS, AnswerLoop
+from controller_node.node import AnswerLoop
 from controller_node.registry import make_controller
 from controller_node.settings import ControllerSettings
 from fe_node.commands import CommandPolicy
@@ -137,7 +137,7 @@ class _Bus:
 
 
 @pytest.mark.parametrize("stop_with_last", [False, True])
-def test_answer_loop_publishes_each_command_before_its_diagnostics_and_every_diagnostics(stop_with_last):
+def test_answer_loop_publishes_each_command_then_its_diagnostics_before_the_next_state(stop_with_last):
     stop = threading.Event()
     sent: list = []
     settings = ControllerSettings(set_point_m2=0.063e-6)
@@ -150,8 +150,7 @@ def test_answer_loop_publishes_each_command_before_its_diagnostics_and_every_dia
     commands = [s for k, s in kinds if k == "LaserCommand"]
     diagnostics = [s for k, s in kinds if k == "ControllerDiagnostics"]
     assert commands == diagnostics == [1, 2, 3, 4, 5]
-    for step in commands:
-        assert kinds.index(("LaserCommand", step)) < kinds.index(("ControllerDiagnostics", step))
+    assert kinds == [(kind, step) for step in commands for kind in ("LaserCommand", "ControllerDiagnostics")]
 
 
 class _Preparing:
@@ -239,17 +238,6 @@ def test_answer_loop_prepares_late_when_states_come_far_apart():
             assert prepared - answered < 0.3 * period
         else:                         # late, but before the next state
             assert prepared - answered > 0.5 * PREPARE_AT * period
-
-
-@pytest.mark.parametrize(("interval_s", "pause"), [(PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S, True),
-                                                    (PAUSE_MIN_PERIODS * DIAGNOSTICS_DELAY_S * 0.9, False),
-                                                    (0.0, False)])
-def test_diagnostics_pause_only_when_states_come_far_enough_apart(interval_s, pause):
-    settings = ControllerSettings(set_point_m2=0.063e-6)
-    loop = AnswerLoop(_Bus(), None, settings, None, None, None, done=lambda: True)
-    loop._arrived(0.0)
-    loop._arrived(interval_s)
-    assert loop.state_interval_s == pytest.approx(interval_s) and loop.pause() is pause
 
 
 class _Plant:
