@@ -5,6 +5,16 @@ multicast scouting off, connecting to the run's hub endpoint (``launch.py`` open
 hand, start one node with ``--listen tcp/127.0.0.1:7447``). Peers discover each other through
 the hub by gossip and then talk directly.
 
+``--low-latency`` switches a session to zenoh's low-latency unicast transport
+(``transport/unicast/lowlatency``, which needs ``transport/unicast/qos/enabled = false``): the
+thread that publishes writes the message to the socket itself instead of handing it to zenoh's
+transmit thread, one thread wake-up less on each leg of the loop. It has no QoS priorities and no
+fragmentation, and zenoh loses some messages above 32 KiB on it (measured, ``docs/realtime.md``):
+a node on it refuses to publish a message larger than :data:`LOW_LATENCY_MAX_BYTES` with a
+:class:`~messages.codec.MessageError` instead. Both ends of a link must enable it, else zenoh
+uses its default transport on that link. It suits a sensor ↔ controller loop; the FE node's
+temperature images (up to 4 MiB) do not fit.
+
 A :class:`NodeBus` owns one session for one node: typed publishers that validate and count
 what they send, inboxes whose zenoh callbacks only enqueue raw bytes (decoding and validation
 happen in the node's own loop), a liveliness token that says the node is ready, and start/end
@@ -41,6 +51,9 @@ DEFAULT_HUB = "tcp/127.0.0.1:7447"
 DEFAULT_LISTEN = "tcp/127.0.0.1:0"
 SUPERVISOR_ENV = "MELTLOOP_SUPERVISOR_PID"
 REQUIRE_TIMEOUT_S = 60.0
+LOW_LATENCY_MAX_BYTES = 32 * 1024
+"""Largest message a session on zenoh's low-latency transport publishes [bytes] (it does not
+fragment; 300 random sizes in 32-64 KiB lost 19 on loopback, 2 300 up to 32 KiB none)."""
 _NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
 
 
@@ -69,6 +82,9 @@ class BusSettings:
         Seeing a node's liveliness token means its subscriptions (declared before the token)
         have reached this session, so nothing published afterwards is lost to it; a node that
         is recorded requires ``recorder`` for that reason.
+    low_latency : bool
+        Use zenoh's low-latency unicast transport (module docstring): fewer thread hops per
+        message, no QoS, messages of at most :data:`LOW_LATENCY_MAX_BYTES`.
     """
 
     run_id: str = "default"
@@ -76,6 +92,7 @@ class BusSettings:
     listen: tuple[str, ...] = (DEFAULT_LISTEN,)
     zenoh_config: Path | None = None
     require: tuple[str, ...] = ()
+    low_latency: bool = False
 
     def __post_init__(self) -> None:
         if not is_name(self.run_id):
@@ -92,7 +109,8 @@ class BusSettings:
 
 
 def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the options every node shares: ``--run-id --connect --listen --zenoh-config --require``."""
+    """Add the options every node shares: ``--run-id --connect --listen --zenoh-config --require
+    --low-latency``."""
     group = parser.add_argument_group("zenoh bus")
     group.add_argument("--run-id", default="default", help="run identifier, the key namespace (default: %(default)s)")
     group.add_argument(
@@ -108,6 +126,11 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
         "--require", action="append", default=[], metavar="NODE",
         help="wait until this node of the run is present before announcing readiness; repeatable",
     )
+    group.add_argument(
+        "--low-latency", action="store_true",
+        help="zenoh's low-latency transport: the publishing thread writes to the socket, no QoS; messages up to "
+             f"{LOW_LATENCY_MAX_BYTES // 1024} KiB (for a sensor-controller loop; both ends must enable it)",
+    )
 
 
 def bus_settings_from_args(args: argparse.Namespace) -> BusSettings:
@@ -118,6 +141,7 @@ def bus_settings_from_args(args: argparse.Namespace) -> BusSettings:
         listen=tuple(args.listen) if args.listen else (() if args.zenoh_config else (DEFAULT_LISTEN,)),
         zenoh_config=args.zenoh_config,
         require=tuple(args.require),
+        low_latency=args.low_latency,
     )
 
 
@@ -127,7 +151,8 @@ def zenoh_config(settings: BusSettings, credentials: tuple[str, str] | None = No
     - a configuration file given: that file (explicit ``connect``/``listen`` still override);
     - ``credentials`` (user, password), as ``launch.py`` hands them to its nodes: a client of the
       run's authenticating hub (``settings.connect``), multicast off, listening nowhere;
-    - neither: an unauthenticated peer on loopback with multicast off.
+    - neither: an unauthenticated peer on loopback with multicast off;
+    - ``settings.low_latency``: zenoh's low-latency unicast transport on top (QoS off).
     """
     if settings.zenoh_config is not None:
         try:
@@ -138,6 +163,9 @@ def zenoh_config(settings: BusSettings, credentials: tuple[str, str] | None = No
         config = zenoh.Config()
         config.insert_json5("mode", '"client"' if credentials else '"peer"')
         config.insert_json5("scouting/multicast/enabled", "false")
+    if settings.low_latency:
+        config.insert_json5("transport/unicast/lowlatency", "true")
+        config.insert_json5("transport/unicast/qos/enabled", "false")
     if credentials is not None:
         user, password = credentials
         config.insert_json5("transport/auth/usrpwd", json.dumps({"user": user, "password": password}))
@@ -146,6 +174,11 @@ def zenoh_config(settings: BusSettings, credentials: tuple[str, str] | None = No
     if settings.connect:
         config.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
     return config
+
+
+def low_latency(config: zenoh.Config) -> bool:
+    """Whether ``config`` selects zenoh's low-latency unicast transport (by ``--low-latency`` or a file)."""
+    return json.loads(config.get_json("transport/unicast/lowlatency")) is True
 
 
 def open_session(settings: BusSettings, node: str) -> zenoh.Session:
@@ -160,11 +193,12 @@ def open_session(settings: BusSettings, node: str) -> zenoh.Session:
         If the hub cannot be reached or refuses the credentials (one line, naming the endpoints).
     """
     credentials = node_credentials()
+    config = zenoh_config(settings, credentials)
     if credentials is None and settings.zenoh_config is None:
         print(f"warning: {node}: no run credentials ({USER_ENV}/{PASSWORD_ENV}); this zenoh session is "
               "unauthenticated (start the run with launch.py for per-node access control)", flush=True)
     try:
-        return zenoh.open(zenoh_config(settings, credentials))
+        return zenoh.open(config)
     except zenoh.ZError as err:
         where = ", ".join(settings.connect) or "the configured endpoints"
         reason = "refused or unreachable" if credentials else "unreachable"
@@ -298,7 +332,8 @@ class TopicPublisher:
         self._publisher = publisher
 
     def put(self, msg: Any) -> float:
-        """Encode (validating) and publish ``msg``; raises :class:`MessageError` if invalid.
+        """Encode (validating) and publish ``msg``; raises :class:`MessageError` if invalid, or
+        larger than the session's transport carries (:data:`LOW_LATENCY_MAX_BYTES`).
 
         Returns the monotonic time [s] at which the encoded message was handed to zenoh (a
         free-running plant times its round trips from there, as a bare ping-pong does).
@@ -306,6 +341,9 @@ class TopicPublisher:
         if not isinstance(msg, self.topic.type):
             raise MessageError(f"{self.topic.channel} carries {self.topic.type.__name__}, not {type(msg).__name__}")
         payload = encode(msg)
+        if len(payload) > self._bus.max_payload_bytes:
+            raise MessageError(f"{self.topic.channel}: a {len(payload)}-byte message exceeds the "
+                               f"{self._bus.max_payload_bytes}-byte limit of zenoh's low-latency transport")
         t = time.monotonic()
         self._publisher.put(payload)
         self._bus.published[self.topic.suffix] = self._bus.published.get(self.topic.suffix, 0) + 1
@@ -453,10 +491,15 @@ class NodeBus:
     _publishers: dict[str, TopicPublisher] = field(default_factory=dict)
     _end_detail: str = ""
     _last_time_s: float = 0.0
+    max_payload_bytes: int | float = float("inf")
+    """Largest message this session publishes [bytes]: :data:`LOW_LATENCY_MAX_BYTES` on the
+    low-latency transport, else no limit of the bus's own (each topic still has its own)."""
 
     def __enter__(self) -> NodeBus:
         zenoh.try_init_log_from_env()
         self.session = open_session(self.settings, self.node)
+        if low_latency(zenoh_config(self.settings, node_credentials())):
+            self.max_payload_bytes = LOW_LATENCY_MAX_BYTES
         return self
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
@@ -601,7 +644,8 @@ def run_node(prog: str, node: str, settings: BusSettings, body: Callable[[NodeBu
     session failure into one line and an exit status.
 
     Returns ``body``'s status; 2 (naming the key) for a zenoh configuration that cannot be
-    loaded, 1 for a hub that cannot be reached or a required node that never appeared.
+    loaded, 1 for a hub that cannot be reached, a required node that never appeared, or a message
+    the node could not publish (e.g. too large for the low-latency transport).
     """
     from messages.cli import exit_error, exit_usage
 
@@ -610,5 +654,5 @@ def run_node(prog: str, node: str, settings: BusSettings, body: Callable[[NodeBu
             return body(bus)
     except UsageError as err:
         return exit_usage(prog, err)
-    except (TimeoutError, ConnectionError) as err:
+    except (TimeoutError, ConnectionError, MessageError) as err:
         return exit_error(prog, err)
