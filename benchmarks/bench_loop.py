@@ -11,7 +11,11 @@ Three phases on one hub (the bench process), each pair of nodes a separate proce
    takes the controller update time from their ``solve_time_us``;
 3. the ping-pong again (both ping-pongs' round trips are pooled).
 
-``--topology peer`` (default): unauthenticated peers on loopback, as nodes started by hand (the
+``--transport low-latency`` (default): every session of the run (hub, ping, pong, plant,
+controller) on zenoh's low-latency unicast transport, the nodes started with ``--low-latency``
+(``messages.bus``: the publishing thread writes to the socket, no QoS, messages up to 32 KiB), as
+a sensor loop is deployed; ``--transport default``: zenoh's default transport (a transmit thread
+per session). ``--topology peer`` (default): unauthenticated peers on loopback, as nodes started by hand (the
 plant and the controller connect to each other directly). ``--topology router``: what
 ``launch.py`` runs, an authenticating zenoh router with per-node access control in the bench
 process (:class:`messages.auth.RunCredentials`) and every node its client (each message crosses
@@ -29,12 +33,13 @@ after the next state was published (``deadline_miss_pct``), the bare round trip
 ``overhead_ratio`` = loop round-trip median ÷ (bare median + update median),
 ``controller_update_p99_us``, ``transport_miss_pct`` (the misses a loop with no overhead of its
 own would have: random pairs of a bare round trip and an update whose sum exceeds the period),
-the topology, the
+the topology and the transport, the
 load (1-minute load average at the start and end, the machine's CPU use during the loop, the
 busy loop if any) and context. The numbers depend on what else runs on the machine; the ratio,
 measured in the same run, much less.
 
-Usage: ``python benchmarks/bench_loop.py --rate-hz 2000 [--duration-s 5] [--topology router] [--load]
+Usage: ``python benchmarks/bench_loop.py --rate-hz 2000 [--duration-s 5] [--topology router]
+[--transport default] [--load]
 [--fifo-priority 10] [--busy-wait] [--controller preview-mpc]``
 """
 
@@ -114,18 +119,20 @@ def ratio(loop_us: float | None, bare_us: float | None, update_us: float | None)
 class Hub:
     """The run's hub in the bench process: an open peer, or launch.py's authenticating router."""
 
-    def __init__(self, topology: str, run_id: str) -> None:
+    def __init__(self, topology: str, run_id: str, low_latency: bool) -> None:
         self.endpoint = free_loopback_endpoint()
         self.run_id = run_id
         self.topology = topology
+        self.low_latency = low_latency
         self._stack = contextlib.ExitStack()
         self.credentials = None
         if topology == "router":
             self.credentials = self._stack.enter_context(RunCredentials(run_id, NODES))
         if self.credentials is not None:  # the hub launch.py opens
-            config = router_config(self.credentials, self.endpoint)
+            config = router_config(self.credentials, self.endpoint, low_latency=low_latency)
         else:
-            config = zenoh_config(BusSettings(run_id=run_id, connect=(), listen=(self.endpoint,)))
+            config = zenoh_config(BusSettings(run_id=run_id, connect=(), listen=(self.endpoint,),
+                                              low_latency=low_latency))
         self.session = self._stack.enter_context(zenoh.open(config))
 
     def close(self) -> None:
@@ -137,7 +144,7 @@ class Hub:
         return {**env, **self.credentials.env(node)} if self.credentials is not None else env
 
     def common(self) -> list[str]:
-        return ["--run-id", self.run_id, "--connect", self.endpoint]
+        return ["--run-id", self.run_id, "--connect", self.endpoint, *(["--low-latency"] if self.low_latency else [])]
 
 
 def finish(proc: subprocess.Popen[str], timeout: float, name: str) -> str:
@@ -211,6 +218,9 @@ def main() -> int:
     parser.add_argument("--topology", choices=("peer", "router"), default="peer",
                         help="peer: open peers on loopback (nodes started by hand); router: launch.py's "
                              "authenticating router, nodes its clients (default: %(default)s)")
+    parser.add_argument("--transport", choices=("low-latency", "default"), default="low-latency",
+                        help="zenoh transport of every session: low-latency (the nodes' --low-latency) or zenoh's "
+                             "default (default: %(default)s)")
     parser.add_argument("--pingpong-s", type=float, default=2.0,
                         help="bare ping-pong before and after the loop, each [s] (default: %(default)s)")
     parser.add_argument("--load", action="store_true", help="run a busy loop on one core during the measurement")
@@ -229,7 +239,7 @@ def main() -> int:
     run_id = f"bench-loop-{os.getpid()}"
     load_at_start = os.getloadavg()[0]
     busy = start_load(args.load_cpu) if args.load else None
-    hub = Hub(args.topology, run_id)
+    hub = Hub(args.topology, run_id, args.transport == "low-latency")
     try:
         if busy is not None:
             time.sleep(1.0)  # let the busy loop settle on its core
@@ -260,7 +270,7 @@ def main() -> int:
         "overhead_ratio": ratio(stats["rtt_median_us"], zenoh_median, update_median),
         "controller_update_p99_us": round(float(np.percentile(updates, 99)), 1) if updates else None,
         "transport_miss_pct": transport_miss_pct(bare_us, updates, 1e6 / args.rate_hz),
-        "topology": args.topology,
+        "topology": args.topology, "transport": args.transport,
         "steps": stats["steps"], "commands": stats["commands"], "late_commands": stats["late_commands"],
         "zenoh_pings": int(bare_us.size), "controller_updates": len(updates),
         "controller": args.controller, "duration_s": args.duration_s, "cpus": os.cpu_count(),

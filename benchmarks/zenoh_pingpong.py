@@ -109,8 +109,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration-s", type=float, default=2.0, help="timed pinging [s]")
     parser.add_argument("--size", type=int, default=STATE_SIZE, help="payload size [bytes] (default: a state's)")
     parser.add_argument("--samples", action="store_true", help="also print every round trip [µs] (rtt_us)")
+    parser.add_argument("--low-latency", action="store_true", help="zenoh's low-latency transport (as the nodes')")
     args = parser.parse_args(argv)
-    settings = BusSettings(run_id=args.run_id, connect=tuple(args.connect))
+    settings = BusSettings(run_id=args.run_id, connect=tuple(args.connect), low_latency=args.low_latency)
     stop = StopFlag()
     if args.role == "pong":
         return pong(settings, stop)

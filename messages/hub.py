@@ -48,10 +48,12 @@ def tls_settings(ca: Path, cert: Path | None = None, key: Path | None = None) ->
     return tls
 
 
-def router_config(credentials: RunCredentials, endpoint: str, tls: dict | None = None):
+def router_config(credentials: RunCredentials, endpoint: str, tls: dict | None = None, low_latency: bool = False):
     """The zenoh configuration of a run's authenticating hub: a router listening on ``endpoint``
-    that checks every link against ``credentials`` and applies the run's access control."""
-    config = zenoh_config(BusSettings(run_id=credentials.run_id, connect=(), listen=(endpoint,)))
+    that checks every link against ``credentials`` and applies the run's access control
+    (``low_latency``: on zenoh's low-latency transport, :mod:`messages.bus`)."""
+    config = zenoh_config(BusSettings(run_id=credentials.run_id, connect=(), listen=(endpoint,),
+                                      low_latency=low_latency))
     config.insert_json5("mode", '"router"')
     for path, value in credentials.hub_settings().items():
         config.insert_json5(path, value)
