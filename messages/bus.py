@@ -52,6 +52,7 @@ DEFAULT_LISTEN = "tcp/127.0.0.1:0"
 SUPERVISOR_ENV = "MELTLOOP_SUPERVISOR_PID"
 REQUIRE_TIMEOUT_S = 60.0
 LOW_LATENCY_MAX_BYTES = 32 * 1024
+GREATER_ZID_ONLY = '{peer: {to_router: "always", to_peer: "greater-zid"}}'
 """Largest message a session on zenoh's low-latency transport publishes [bytes] (it does not
 fragment; 300 random sizes in 32-64 KiB lost 19 on loopback, 2 300 up to 32 KiB none)."""
 _NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
@@ -152,7 +153,8 @@ def zenoh_config(settings: BusSettings, credentials: tuple[str, str] | None = No
     - ``credentials`` (user, password), as ``launch.py`` hands them to its nodes: a client of the
       run's authenticating hub (``settings.connect``), multicast off, listening nowhere;
     - neither: an unauthenticated peer on loopback with multicast off;
-    - ``settings.low_latency``: zenoh's low-latency unicast transport on top (QoS off).
+    - ``settings.low_latency``: zenoh's low-latency unicast transport on top (QoS off), and of
+      two peers only the one with the greater zenoh id opens their link.
     """
     if settings.zenoh_config is not None:
         try:
@@ -166,6 +168,9 @@ def zenoh_config(settings: BusSettings, credentials: tuple[str, str] | None = No
     if settings.low_latency:
         config.insert_json5("transport/unicast/lowlatency", "true")
         config.insert_json5("transport/unicast/qos/enabled", "false")
+        # of two peers that learn of each other by gossip, only one opens the link: with both
+        # opening at once, 5 of 28 low-latency trials left a peer that never saw the other's token
+        config.insert_json5("scouting/gossip/autoconnect_strategy", GREATER_ZID_ONLY)
     if credentials is not None:
         user, password = credentials
         config.insert_json5("transport/auth/usrpwd", json.dumps({"user": user, "password": password}))

@@ -3,6 +3,7 @@ that keeps zenoh from losing a message it cannot carry on it (never a silent los
 
 from __future__ import annotations
 
+import json
 import threading
 
 import pytest
@@ -29,6 +30,8 @@ def test_the_flag_selects_zenohs_low_latency_transport_with_qos_off():
     assert settings.low_latency
     config = zenoh_config(settings)
     assert low_latency(config) and config.get_json("transport/unicast/qos/enabled") == "false"
+    # one peer of each pair opens the link (two at once lost the other's token on this transport)
+    assert json.loads(config.get_json("scouting/gossip/autoconnect_strategy"))["peer"]["to_peer"] == "greater-zid"
     assert not low_latency(zenoh_config(bus_settings_from_args(build_parser().parse_args([]))))
 
 
