@@ -11,12 +11,11 @@ Three phases on one hub (the bench process), each pair of nodes a separate proce
    takes the controller update time from their ``solve_time_us``;
 3. the ping-pong again (both ping-pongs' round trips are pooled).
 
-``--transport default`` (default): zenoh's default transport (a transmit thread per session);
-``--transport low-latency``: every session of the run (hub, ping, pong, plant, controller) on
-zenoh's low-latency unicast transport, the nodes started with ``--low-latency`` (``messages.bus``:
-the publishing thread writes to the socket, no QoS, messages up to 32 KiB). Measured faster, but in
-the peer topology the plant sometimes never sees the controller's token (``docs/realtime.md``), so
-it is not the default. ``--topology peer`` (default): unauthenticated peers on loopback, as nodes started by hand (the
+``--transport low-latency`` (default): every session of the run (hub, ping, pong, plant,
+controller) on zenoh's low-latency unicast transport, the nodes started with ``--low-latency``
+(``messages.bus``: the publishing thread writes to the socket, no QoS, messages up to 32 KiB), as
+a sensor loop is best deployed (``docs/realtime.md``); ``--transport default``: zenoh's default
+transport (a transmit thread per session), what nodes use without ``--low-latency``. ``--topology peer`` (default): unauthenticated peers on loopback, as nodes started by hand (the
 plant and the controller connect to each other directly). ``--topology router``: what
 ``launch.py`` runs, an authenticating zenoh router with per-node access control in the bench
 process (:class:`messages.auth.RunCredentials`) and every node its client (each message crosses
@@ -219,7 +218,7 @@ def main() -> int:
     parser.add_argument("--topology", choices=("peer", "router"), default="peer",
                         help="peer: open peers on loopback (nodes started by hand); router: launch.py's "
                              "authenticating router, nodes its clients (default: %(default)s)")
-    parser.add_argument("--transport", choices=("low-latency", "default"), default="default",
+    parser.add_argument("--transport", choices=("low-latency", "default"), default="low-latency",
                         help="zenoh transport of every session: low-latency (the nodes' --low-latency) or zenoh's "
                              "default (default: %(default)s)")
     parser.add_argument("--pingpong-s", type=float, default=2.0,
