@@ -15,7 +15,9 @@ Three phases on one hub (the bench process), each pair of nodes a separate proce
 controller) on zenoh's low-latency unicast transport, the nodes started with ``--low-latency``
 (``messages.bus``: the publishing thread writes to the socket, no QoS, messages up to 32 KiB), as
 a sensor loop is best deployed (``docs/realtime.md``); ``--transport default``: zenoh's default
-transport (a transmit thread per session), what nodes use without ``--low-latency``. ``--topology peer`` (default): unauthenticated peers on loopback, as nodes started by hand (the
+transport (a transmit thread per session), what nodes use without ``--low-latency``.
+
+``--topology peer`` (default): unauthenticated peers on loopback, as nodes started by hand (the
 plant and the controller connect to each other directly). ``--topology router``: what
 ``launch.py`` runs, an authenticating zenoh router with per-node access control in the bench
 process (:class:`messages.auth.RunCredentials`) and every node its client (each message crosses
