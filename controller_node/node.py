@@ -175,7 +175,13 @@ after its command: what it touches is then still in the caches when the next sta
 ``launch.py`` layer the FE step takes ~25 ms; ``docs/controller.md``, Real-time iteration)."""
 PREPARE_WINDOW = 8
 PREPARE_LATE_MIN_S = 2e-3
-"""States closer than this (a free-running sensor): the preparation runs right after the command."""
+"""States closer than this (a free-running sensor): the preparation runs right after the command,
+and the answering thread polls for the next state from :data:`POLL_AT` of the shortest recent
+interval after the last arrival (no wake-up on the state's path, a fraction of a core spent)."""
+POLL_AT = 0.6
+POLL_SPAN = 3.0
+"""Polling for the next state ends this many shortest intervals after the last arrival; the thread
+then sleeps in zenoh until a state comes."""
 
 
 @dataclass
@@ -213,7 +219,7 @@ class AnswerLoop:
         try:
             while not self.done():
                 # free-running plant: answer the newest state only
-                state, skipped = self.states.newest(busy=self.busy_wait)
+                state, skipped = self.states.newest(busy=self.busy_wait, poll=self.poll_window())
                 self.n_skipped += skipped
                 if state is None:
                     if self._prepare_due and self._prepare_pending:   # woken by the preparation's timer
@@ -244,6 +250,15 @@ class AnswerLoop:
             self.state_interval_s = t - self._last_arrival
             self._intervals.append(self.state_interval_s)
         self._last_arrival = t
+
+    def poll_window(self) -> tuple[float, float] | None:
+        """When to poll for the next state (monotonic ``(start, end)`` [s]): only for states that come
+        steadily closer than :data:`PREPARE_LATE_MIN_S` (a free-running sensor), else ``None``
+        (sleep in zenoh until one arrives)."""
+        intervals = self._intervals
+        if self.busy_wait or len(intervals) < intervals.maxlen or (period := min(intervals)) >= PREPARE_LATE_MIN_S:
+            return None
+        return self._last_arrival + POLL_AT * period, self._last_arrival + POLL_SPAN * period
 
     def schedule_prepare(self) -> None:
         """Prepare the controller's next update (after a command): at :data:`PREPARE_AT` of the

@@ -442,18 +442,28 @@ class NewestInbox(Inbox):
         self._wake_payload = secrets.token_bytes(16)
         self.subscriber = session.declare_subscriber(self._key, zenoh.handlers.FifoChannel(self.CAPACITY))
 
-    def newest(self, block: bool = True, busy: bool = False) -> tuple[Any | None, int]:
+    def newest(self, block: bool = True, busy: bool = False,
+               poll: tuple[float, float] | None = None) -> tuple[Any | None, int]:
         """(newest valid message, older valid ones skipped) of what has arrived; ``block``: wait until
         something arrives (else return at once); ``busy``: wait by polling zenoh's channel instead of
-        sleeping in it (the thread keeps its core: no wake-up latency, a core spent).
+        sleeping in it (the thread keeps its core: no wake-up latency, a core spent); ``poll``
+        (monotonic times [s] ``(start, end)``, with ``block``): sleep until ``start``, poll until
+        ``end``, then sleep in zenoh (what arrives before ``start`` waits for it).
 
         The message is ``None`` after a :meth:`wake`, when everything that arrived was invalid, or
         when nothing had arrived and ``block`` is false.
         """
+        first = None
         if block and busy:
             while (first := self.subscriber.try_recv()) is None:
                 pass
-        else:
+        elif block and poll is not None:
+            start, end = poll
+            while (remaining := start - time.monotonic()) > 0:
+                time.sleep(remaining)
+            while (first := self.subscriber.try_recv()) is None and time.monotonic() < end:
+                pass
+        if first is None:
             first = self.subscriber.recv() if block else self.subscriber.try_recv()
         if first is None:
             return None, 0

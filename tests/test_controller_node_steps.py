@@ -23,7 +23,7 @@ class _Inbox:
     def __init__(self, states, stop):
         self.states, self.stop, self.n_invalid = list(states), stop, 0
 
-    def newest(self, block=True, busy=False):
+    def newest(self, block=True, busy=False, poll=None):
         if not self.states:
             self.stop.set()
             return None, 0

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from controller_node.node import AnswerLoop
+from controller_node.node import POLL_AT, POLL_SPAN, PREPARE_WINDOW, AnswerLoop
 from controller_node.registry import make_controller
 from controller_node.settings import ControllerSettings
 from fe_node.commands import CommandPolicy
@@ -91,6 +91,69 @@ def test_newest_inbox_busy_waiting_answers_and_wakes_like_the_blocking_read(hub,
         assert not reader.is_alive() and got[1] == (None, 0) and box.n_invalid == 0
 
 
+def test_newest_inbox_polls_in_its_window_then_sleeps_in_zenoh(hub, run_id):
+    """poll=(start, end): nothing is read before start; a state in the window is taken by polling
+    (no recv); after end the reader sleeps in zenoh's recv."""
+    with NodeBus("controller", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        box = bus.newest_inbox(PLANT_STATE)
+        channel = box.subscriber
+        recvs = []
+
+        class Counted:  # the channel, counting the sleeping reads
+            try_recv = channel.try_recv
+
+            def recv(self):
+                recvs.append(time.monotonic())
+                return channel.recv()
+
+        box.subscriber = Counted()
+        pub = bus.publisher(PLANT_STATE)
+        pub.put(state(run_id, 1))
+        time.sleep(0.3)  # arrived, queued
+        start = time.monotonic() + 0.3
+        assert box.newest(poll=(start, start + 1.0)) == (state(run_id, 1), 0)
+        assert time.monotonic() >= start and not recvs  # held until the window opened, then polled
+
+        got = []
+        now = time.monotonic()
+        reader = threading.Thread(target=lambda: got.append(box.newest(poll=(now, now + 0.5))), daemon=True)
+        reader.start()
+        time.sleep(0.2)
+        pub.put(state(run_id, 2))  # inside the window
+        wait_for(lambda: got)
+        assert got == [(state(run_id, 2), 0)] and not recvs
+
+        got.clear()
+        now = time.monotonic()
+        reader = threading.Thread(target=lambda: got.append(box.newest(poll=(now, now + 0.2))), daemon=True)
+        reader.start()
+        wait_for(lambda: recvs)  # the window closed with nothing: asleep in zenoh
+        assert recvs[0] >= now + 0.2 and not got
+        pub.put(state(run_id, 3))
+        wait_for(lambda: got)
+        assert got == [(state(run_id, 3), 0)]
+
+
+@pytest.mark.parametrize(("interval_s", "n", "busy", "polls"), [
+    (0.5e-3, 8, False, True),    # a 2 kHz sensor: poll ahead of the next state
+    (0.5e-3, 7, False, False),   # not yet known to be steady (fewer than PREPARE_WINDOW intervals)
+    (2.5e-3, 8, False, False),   # slower than PREPARE_LATE_MIN_S (e.g. lockstep FE): sleep in zenoh
+    (0.5e-3, 8, True, False),    # --busy-wait polls all the time anyway
+])
+def test_answer_loop_polls_only_for_a_steady_fast_sensor(interval_s, n, busy, polls):
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+    loop = AnswerLoop(_Bus(), None, settings, None, None, None, done=lambda: True, busy_wait=busy)
+    times = [10.0 + k * interval_s + (0.1 * interval_s if k % 2 else 0.0) for k in range(n + 1)]
+    for t in times:
+        loop._arrived(t)
+    window = loop.poll_window()
+    shortest = min(b - a for a, b in zip(times, times[1:]))
+    if polls:
+        assert window == pytest.approx((times[-1] + POLL_AT * shortest, times[-1] + POLL_SPAN * shortest))
+    else:
+        assert window is None
+
+
 def test_inbox_stamps_arrival_not_reading(hub, run_id):
     with NodeBus("plant", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         box = bus.inbox(LASER_COMMAND)
@@ -109,8 +172,10 @@ class _States:
 
     def __init__(self, states, stop, stop_with_last=False):
         self.states, self.stop, self.n_invalid, self.stop_with_last = list(states), stop, 0, stop_with_last
+        self.polls = []
 
-    def newest(self, block=True, busy=False):
+    def newest(self, block=True, busy=False, poll=None):
+        self.polls.append(poll)
         if not self.states:
             if block:
                 self.stop.set()
@@ -153,6 +218,20 @@ def test_answer_loop_publishes_each_command_then_its_diagnostics_before_the_next
     assert kinds == [(kind, step) for step in commands for kind in ("LaserCommand", "ControllerDiagnostics")]
 
 
+def test_answer_loop_reads_fast_states_in_its_poll_window():
+    """States that come fast (here: at once) are read with a poll window once the window of
+    intervals is full; before that the loop sleeps in zenoh."""
+    stop = threading.Event()
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+    states = _States([state("t", k) for k in range(12)], stop)
+    loop = AnswerLoop(_Bus(), make_controller("pid", settings), settings, states, _Publisher([]), _Publisher([]),
+                      done=stop.is_set)
+    loop.serve()
+    assert loop.error is None
+    assert states.polls[:PREPARE_WINDOW + 1] == [None] * (PREPARE_WINDOW + 1)
+    assert all(p is not None and p[0] < p[1] for p in states.polls[PREPARE_WINDOW + 1:])
+
+
 class _Preparing:
     """A controller that logs its updates and preparations into the publishers' log."""
 
@@ -191,7 +270,7 @@ class _PacedStates:
         self.release_s = release_s or [s.step * period_s for s in self.states]
         self.start, self.woken = time.monotonic(), threading.Event()
 
-    def newest(self, block=True, busy=False):
+    def newest(self, block=True, busy=False, poll=None):
         while self.states:
             due = self.start + self.release_s[len(self.release_s) - len(self.states)]
             if time.monotonic() >= due:
