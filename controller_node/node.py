@@ -121,8 +121,10 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
     """Answer plant states until the plant goes away or a stop is requested.
 
     The states are answered on a thread of their own that blocks in zenoh until a state arrives
-    (:class:`~messages.bus.NewestInbox`: no poll timeout, no queue hop; ``busy_wait``: it polls
-    instead and keeps its core) and publishes the command before anything else; this thread waits
+    (:class:`~messages.bus.NewestInbox`: no poll timeout, no queue hop; for a steady sensor faster
+    than :data:`PREPARE_LATE_MIN_S` it polls from :data:`POLL_AT` of the interval on
+    (:meth:`AnswerLoop.poll_window`); ``busy_wait``: it polls all the time and keeps its core) and
+    publishes the command before anything else; this thread waits
     for a stop request (signals are handled here) or the plant's departure, then wakes it.
     """
     states = bus.newest_inbox(PLANT_STATE)
