@@ -52,9 +52,11 @@ DEFAULT_LISTEN = "tcp/127.0.0.1:0"
 SUPERVISOR_ENV = "MELTLOOP_SUPERVISOR_PID"
 REQUIRE_TIMEOUT_S = 60.0
 LOW_LATENCY_MAX_BYTES = 32 * 1024
-GREATER_ZID_ONLY = '{peer: {to_router: "always", to_peer: "greater-zid"}}'
 """Largest message a session on zenoh's low-latency transport publishes [bytes] (it does not
 fragment; 300 random sizes in 32-64 KiB lost 19 on loopback, 2 300 up to 32 KiB none)."""
+GREATER_ZID_ONLY = '{peer: {to_router: "always", to_peer: "greater-zid"}}'
+"""Gossip autoconnect strategy of a low-latency session: of two peers, only the one with the
+greater zenoh id opens their link (:func:`zenoh_config`)."""
 _NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
 
 
@@ -186,9 +188,10 @@ def low_latency(config: zenoh.Config) -> bool:
     return json.loads(config.get_json("transport/unicast/lowlatency")) is True
 
 
-def open_session(settings: BusSettings, node: str) -> zenoh.Session:
+def open_session(settings: BusSettings, node: str, config: zenoh.Config | None = None) -> zenoh.Session:
     """Open ``node``'s zenoh session with the run credentials from the environment, if any
     (:mod:`messages.auth`); without them, say once that the session is unauthenticated.
+    ``config``: the session's configuration if already built (default: :func:`zenoh_config`).
 
     Raises
     ------
@@ -198,7 +201,8 @@ def open_session(settings: BusSettings, node: str) -> zenoh.Session:
         If the hub cannot be reached or refuses the credentials (one line, naming the endpoints).
     """
     credentials = node_credentials()
-    config = zenoh_config(settings, credentials)
+    if config is None:
+        config = zenoh_config(settings, credentials)
     if credentials is None and settings.zenoh_config is None:
         print(f"warning: {node}: no run credentials ({USER_ENV}/{PASSWORD_ENV}); this zenoh session is "
               "unauthenticated (start the run with launch.py for per-node access control)", flush=True)
@@ -512,9 +516,10 @@ class NodeBus:
 
     def __enter__(self) -> NodeBus:
         zenoh.try_init_log_from_env()
-        self.session = open_session(self.settings, self.node)
-        if low_latency(zenoh_config(self.settings, node_credentials())):
+        config = zenoh_config(self.settings, node_credentials())
+        if low_latency(config):
             self.max_payload_bytes = LOW_LATENCY_MAX_BYTES
+        self.session = open_session(self.settings, self.node, config)
         return self
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
