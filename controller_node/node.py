@@ -235,7 +235,7 @@ class AnswerLoop:
                     self.controller.prepare()
                     on_path_s = time.perf_counter() - t0
                 self._cancel_prepare()
-                self._arrived(arrived)
+                self._arrived(arrived, self.states.queued)
                 answered, diag = self.answer(state, on_path_s)
                 if diag is not None:
                     self.diagnostics.put(diag)
@@ -247,7 +247,13 @@ class AnswerLoop:
         finally:
             self._cancel_prepare()
 
-    def _arrived(self, t: float) -> None:
+    def _arrived(self, t: float, queued: bool = False) -> None:
+        """A state was taken at monotonic time ``t`` [s]. One found waiting when the poll window
+        opened (``queued``) came at some time before: it counts as arrived when expected (the last
+        arrival plus the shortest recent interval) if that is earlier, else a late wake-up would
+        open the next window later, and the next, until the windows lag a steady sensor."""
+        if queued and self._last_arrival is not None and self._intervals:
+            t = min(t, self._last_arrival + min(self._intervals))
         if self._last_arrival is not None:
             self.state_interval_s = t - self._last_arrival
             self._intervals.append(self.state_interval_s)

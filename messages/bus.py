@@ -438,6 +438,9 @@ class NewestInbox(Inbox):
     """
 
     CAPACITY = 4096  # samples zenoh queues before its network thread waits for the reader
+    queued: bool = False
+    """Whether the last :meth:`newest` with a poll window found a sample already waiting when the
+    window opened (its arrival time is then only known to be earlier than :attr:`received_t`)."""
 
     def __init__(self, topic: Topic, run_id: str, session: zenoh.Session) -> None:
         super().__init__(topic, run_id)
@@ -455,9 +458,10 @@ class NewestInbox(Inbox):
         ``end``, then sleep in zenoh (what arrives before ``start`` waits for it).
 
         The message is ``None`` after a :meth:`wake`, when everything that arrived was invalid, or
-        when nothing had arrived and ``block`` is false.
+        when nothing had arrived and ``block`` is false. :attr:`queued` tells whether a sample was
+        already waiting when the poll window opened (it arrived at some unknown time before).
         """
-        first = None
+        first, self.queued = None, False
         if block and busy:
             while (first := self.subscriber.try_recv()) is None:
                 pass
@@ -465,8 +469,9 @@ class NewestInbox(Inbox):
             start, end = poll
             while (remaining := start - time.monotonic()) > 0:
                 time.sleep(remaining)
-            while (first := self.subscriber.try_recv()) is None and time.monotonic() < end:
-                pass
+            self.queued = (first := self.subscriber.try_recv()) is not None
+            while first is None and time.monotonic() < end:
+                first = self.subscriber.try_recv()
         if first is None:
             first = self.subscriber.recv() if block else self.subscriber.try_recv()
         if first is None:

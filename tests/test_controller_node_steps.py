@@ -20,6 +20,8 @@ def test_inadmissible_steps():
 
 
 class _Inbox:
+    queued = False
+
     def __init__(self, states, stop):
         self.states, self.stop, self.n_invalid = list(states), stop, 0
 

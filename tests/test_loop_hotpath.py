@@ -113,6 +113,7 @@ def test_newest_inbox_polls_in_its_window_then_sleeps_in_zenoh(hub, run_id):
         start = time.monotonic() + 0.3
         assert box.newest(poll=(start, start + 1.0)) == (state(run_id, 1), 0)
         assert time.monotonic() >= start and not recvs  # held until the window opened, then polled
+        assert box.queued  # it was waiting when the window opened
 
         got = []
         now = time.monotonic()
@@ -121,7 +122,7 @@ def test_newest_inbox_polls_in_its_window_then_sleeps_in_zenoh(hub, run_id):
         time.sleep(0.2)
         pub.put(state(run_id, 2))  # inside the window
         wait_for(lambda: got)
-        assert got == [(state(run_id, 2), 0)] and not recvs
+        assert got == [(state(run_id, 2), 0)] and not recvs and not box.queued
 
         got.clear()
         now = time.monotonic()
@@ -131,7 +132,7 @@ def test_newest_inbox_polls_in_its_window_then_sleeps_in_zenoh(hub, run_id):
         assert recvs[0] >= now + 0.2 and not got
         pub.put(state(run_id, 3))
         wait_for(lambda: got)
-        assert got == [(state(run_id, 3), 0)]
+        assert got == [(state(run_id, 3), 0)] and not box.queued
 
 
 @pytest.mark.parametrize(("interval_s", "n", "busy", "polls"), [
@@ -154,6 +155,27 @@ def test_answer_loop_polls_only_for_a_steady_fast_sensor(interval_s, n, busy, po
         assert window is None
 
 
+@pytest.mark.parametrize("late", [0.3, 0.5, 0.9])
+def test_poll_windows_keep_to_a_steady_sensor_when_the_reader_wakes_late(late):
+    """A reader that wakes ``late`` periods after the window opened finds the state waiting; the
+    state counts as arriving on schedule, so the windows do not fall further and further behind."""
+    period = 0.5e-3
+    loop = AnswerLoop(_Bus(), None, ControllerSettings(set_point_m2=0.063e-6), None, None, None, done=lambda: True)
+    for k in range(PREPARE_WINDOW + 1):
+        loop._arrived(10.0 + k * period)
+    lags = []
+    for k in range(PREPARE_WINDOW + 1, PREPARE_WINDOW + 200):
+        arrival = 10.0 + k * period
+        start, end = loop.poll_window()
+        assert start < end
+        woken = start + late * period
+        queued = woken >= arrival
+        taken = woken if queued else arrival  # waiting at the window's opening, else caught polling
+        lags.append(taken - arrival)
+        loop._arrived(taken, queued)
+    assert max(lags) <= max(0.0, late - (1.0 - POLL_AT)) * period + 1e-12  # a steady lag, no drift
+
+
 def test_inbox_stamps_arrival_not_reading(hub, run_id):
     with NodeBus("plant", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         box = bus.inbox(LASER_COMMAND)
@@ -169,6 +191,8 @@ def test_inbox_stamps_arrival_not_reading(hub, run_id):
 
 class _States:
     """A NewestInbox stand-in: hands out scripted states, then sets ``stop``."""
+
+    queued = False
 
     def __init__(self, states, stop, stop_with_last=False):
         self.states, self.stop, self.n_invalid, self.stop_with_last = list(states), stop, 0, stop_with_last
@@ -264,6 +288,8 @@ def test_answer_loop_prepares_the_next_update_after_each_command():
 
 class _PacedStates:
     """A NewestInbox stand-in that releases one scripted state every ``period_s`` and can be woken."""
+
+    queued = False
 
     def __init__(self, states, period_s, stop, release_s=None):
         self.states, self.period_s, self.stop, self.n_invalid = list(states), period_s, stop, 0
