@@ -1,7 +1,7 @@
 """Benchmark of the closed loop over zenoh: free-running GP surrogate plant ↔ controller node,
 against the bare transport measured in the same run and topology.
 
-Three phases on one hub (the bench process), each pair of nodes a separate process:
+Four phases on one hub (the bench process), each pair of nodes a separate process:
 
 1. a bare zenoh ping-pong (``benchmarks/zenoh_pingpong.py``: a state-sized payload out on the
    run's ``plant/state`` key, echoed back on ``controller/command``; express publishers; no
@@ -9,7 +9,10 @@ Three phases on one hub (the bench process), each pair of nodes a separate proce
 2. the loop: ``python -m controller_node`` (default: GP-MPC) and ``python -m fe_node.surrogate
    --rate-hz R`` for ``--duration-s``; the bench subscribes to the controller's diagnostics and
    takes the controller update time from their ``solve_time_us``;
-3. the ping-pong again (both ping-pongs' round trips are pooled).
+3. the ping-pong again (both ping-pongs' round trips are pooled);
+4. the ping-pong once more, its pong keeping the CPU busy for the controller's median update
+   before each echo (``zenoh_pingpong.py pong --work-us``): a loop that is only transport and
+   computation, the yardstick of the misses.
 
 ``--transport low-latency`` (default): every session of the run (hub, ping, pong, plant,
 controller) on zenoh's low-latency unicast transport, the nodes started with ``--low-latency``
@@ -35,6 +38,9 @@ after the next state was published (``deadline_miss_pct``), the bare round trip
 ``overhead_ratio`` = loop round-trip median ÷ (bare median + update median),
 ``controller_update_p99_us``, ``transport_miss_pct`` (the misses a loop with no overhead of its
 own would have: random pairs of a bare round trip and an update whose sum exceeds the period),
+``worked_rtt_median_us``, ``worked_rtt_p99_us`` and ``worked_miss_pct`` (phase 4: the share of
+echoes later than a period, what this machine leaves a loop with this update and no code of its
+own),
 the topology and the transport, the
 load (1-minute load average at the start and end, the machine's CPU use during the loop, the
 busy loop if any) and context. The numbers depend on what else runs on the machine; the ratio,
@@ -111,6 +117,17 @@ def transport_miss_pct(bare_us: np.ndarray, updates_us: list[float], period_us: 
     return round(float(100.0 * np.mean(total > period_us)), 3)
 
 
+def worked_summary(rtt_us: list[float], period_us: float) -> dict[str, float | None]:
+    """The ping-pong whose pong computes for the update's median: its round trip's median and p99
+    [µs] and the share [%] of echoes later than a period (``worked_miss_pct``)."""
+    rtt = np.asarray(rtt_us, dtype=float)
+    if rtt.size == 0:
+        return {"worked_rtt_median_us": None, "worked_rtt_p99_us": None, "worked_miss_pct": None}
+    return {"worked_rtt_median_us": round(float(np.median(rtt)), 1),
+            "worked_rtt_p99_us": round(float(np.percentile(rtt, 99)), 1),
+            "worked_miss_pct": round(float(100.0 * np.mean(rtt > period_us)), 3)}
+
+
 def ratio(loop_us: float | None, bare_us: float | None, update_us: float | None) -> float | None:
     """Loop round trip ÷ (bare round trip + controller update), or ``None`` if one is missing."""
     if loop_us is None or bare_us is None or update_us is None or bare_us + update_us <= 0:
@@ -162,9 +179,10 @@ def finish(proc: subprocess.Popen[str], timeout: float, name: str) -> str:
     return out
 
 
-def pingpong(hub: Hub, rate_hz: float, duration_s: float) -> list[float]:
-    """Round trips [µs] of a bare ping-pong between two node processes through ``hub``."""
-    pong = spawn([PINGPONG, "pong", *hub.common()], hub.env("pong"), "controller")
+def pingpong(hub: Hub, rate_hz: float, duration_s: float, work_us: float = 0.0) -> list[float]:
+    """Round trips [µs] of a bare ping-pong between two node processes through ``hub``; the pong
+    keeps its CPU busy ``work_us`` [µs] before each echo."""
+    pong = spawn([PINGPONG, "pong", *hub.common(), "--work-us", repr(work_us)], hub.env("pong"), "controller")
     try:
         ping = spawn([PINGPONG, "ping", *hub.common(), "--rate-hz", repr(rate_hz), "--duration-s",
                       repr(duration_s), "--samples"], hub.env("ping"), "plant")
@@ -250,6 +268,7 @@ def main() -> int:
         stats, updates, output = loop(hub, args)
         cpu1 = cpu_times()
         bare += pingpong(hub, args.rate_hz, args.pingpong_s)
+        worked = pingpong(hub, args.rate_hz, args.pingpong_s, float(np.median(updates))) if updates else []
     except RuntimeError as err:
         print(json.dumps({"error": str(err).splitlines()[0], "target_rate_hz": args.rate_hz}))
         print(err, file=sys.stderr)
@@ -272,6 +291,7 @@ def main() -> int:
         "overhead_ratio": ratio(stats["rtt_median_us"], zenoh_median, update_median),
         "controller_update_p99_us": round(float(np.percentile(updates, 99)), 1) if updates else None,
         "transport_miss_pct": transport_miss_pct(bare_us, updates, 1e6 / args.rate_hz),
+        **worked_summary(worked, 1e6 / args.rate_hz),
         "topology": args.topology, "transport": args.transport,
         "steps": stats["steps"], "commands": stats["commands"], "late_commands": stats["late_commands"],
         "zenoh_pings": int(bare_us.size), "controller_updates": len(updates),

@@ -7,7 +7,8 @@ reliable, blocking publishers, the same keys, session settings, credentials and 
 as the loop's nodes (``messages.bus.open_session``), and receive as zenoh-python's ``z_ping`` /
 ``z_pong`` examples do, so that ``benchmarks/bench_loop.py`` can divide the loop's round trip by
 this one measured in the same run and topology. Nothing is decoded or validated: this is
-zenoh-python alone.
+zenoh-python alone. ``pong --work-us W`` keeps the CPU busy for W µs before each echo: a loop
+that is the transport plus a controller update and nothing else.
 
 Usage (``bench_loop.py`` runs both)::
 
@@ -46,14 +47,28 @@ def publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
                                       reliability=zenoh.Reliability.RELIABLE, express=True)
 
 
-def pong(settings: BusSettings, stop: StopFlag) -> int:
+def spin(seconds: float) -> None:
+    """Keep the CPU busy for ``seconds`` [s] (a stand-in for a controller update)."""
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        pass
+
+
+def pong(settings: BusSettings, stop: StopFlag, work_s: float = 0.0) -> int:
     """Echo every ping until stopped (its liveliness token ``pong`` says it is subscribed).
 
-    As zenoh-python's ``z_pong`` example: a plain callback that republishes the payload.
+    As zenoh-python's ``z_pong`` example: a plain callback that republishes the payload, after
+    ``work_s`` [s] of busy CPU when it is > 0 (a controller that only computes).
     """
+
+    def echo(sample: zenoh.Sample) -> None:
+        if work_s > 0.0:
+            spin(work_s)
+        pub.put(sample.payload)
+
     with open_session(settings, "pong") as session:
         pub = publisher(session, key_expr(settings.run_id, LASER_COMMAND))
-        session.declare_subscriber(key_expr(settings.run_id, PLANT_STATE), lambda s: pub.put(s.payload))
+        session.declare_subscriber(key_expr(settings.run_id, PLANT_STATE), echo)
         token = session.liveliness().declare_token(liveliness_key(settings.run_id, "pong"))
         while not stop.wait(0.2):
             pass
@@ -110,11 +125,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=int, default=STATE_SIZE, help="payload size [bytes] (default: a state's)")
     parser.add_argument("--samples", action="store_true", help="also print every round trip [µs] (rtt_us)")
     parser.add_argument("--low-latency", action="store_true", help="zenoh's low-latency transport (as the nodes')")
+    parser.add_argument("--work-us", type=float, default=0.0,
+                        help="pong: busy CPU before each echo [µs], e.g. a controller update's (default: 0)")
     args = parser.parse_args(argv)
+    if not 0.0 <= args.work_us <= 1e6:
+        parser.error(f"--work-us must be in [0, 1e6], got {args.work_us}")
     settings = BusSettings(run_id=args.run_id, connect=tuple(args.connect), low_latency=args.low_latency)
     stop = StopFlag()
     if args.role == "pong":
-        return pong(settings, stop)
+        return pong(settings, stop, args.work_us * 1e-6)
     print(json.dumps(ping(settings, stop, args.rate_hz, args.duration_s, args.size, args.samples)), flush=True)
     return 0
 
