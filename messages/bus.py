@@ -455,7 +455,9 @@ class NewestInbox(Inbox):
         something arrives (else return at once); ``busy``: wait by polling zenoh's channel instead of
         sleeping in it (the thread keeps its core: no wake-up latency, a core spent); ``poll``
         (monotonic times [s] ``(start, end)``, with ``block``): sleep until ``start``, poll until
-        ``end``, then sleep in zenoh (what arrives before ``start`` waits for it).
+        ``end``, then sleep in zenoh (what arrives before ``start`` waits for it). Polling yields the
+        core after each look (``sched_yield``): a thread waiting for it, e.g. the plant's when both
+        share it, runs at once instead of after the poller's time slice.
 
         The message is ``None`` after a :meth:`wake`, when everything that arrived was invalid, or
         when nothing had arrived and ``block`` is false. :attr:`queued` tells whether a sample was
@@ -464,13 +466,14 @@ class NewestInbox(Inbox):
         first, self.queued = None, False
         if block and busy:
             while (first := self.subscriber.try_recv()) is None:
-                pass
+                os.sched_yield()
         elif block and poll is not None:
             start, end = poll
             while (remaining := start - time.monotonic()) > 0:
                 time.sleep(remaining)
             self.queued = (first := self.subscriber.try_recv()) is not None
             while first is None and time.monotonic() < end:
+                os.sched_yield()
                 first = self.subscriber.try_recv()
         if first is None:
             first = self.subscriber.recv() if block else self.subscriber.try_recv()

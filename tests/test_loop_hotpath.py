@@ -135,6 +135,38 @@ def test_newest_inbox_polls_in_its_window_then_sleeps_in_zenoh(hub, run_id):
         assert got == [(state(run_id, 3), 0)] and not box.queued
 
 
+@pytest.mark.parametrize("wait", ["busy", "window"])
+def test_newest_inbox_gives_up_its_core_after_each_look(hub, run_id, monkeypatch, wait):
+    """Polling (``--busy-wait`` or in the window) yields the core between looks at the channel:
+    another thread on that core, e.g. the plant's, is not kept waiting for the poller's time slice."""
+    import messages.bus as bus_module
+
+    with NodeBus("controller", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        box = bus.newest_inbox(PLANT_STATE)
+        looks, yields = [], []
+        channel = box.subscriber
+
+        class Looked:
+            def try_recv(self):
+                looks.append(None)
+                return channel.try_recv()
+
+            def recv(self):
+                return channel.recv()
+
+        box.subscriber = Looked()
+        monkeypatch.setattr(bus_module.os, "sched_yield", lambda: yields.append(None))
+        now = time.monotonic()
+        poll = (now, now + 0.3) if wait == "window" else None
+        reader = threading.Thread(target=lambda: box.newest(busy=wait == "busy", poll=poll), daemon=True)
+        reader.start()
+        time.sleep(0.2)
+        bus.publisher(PLANT_STATE).put(state(run_id, 1))
+        reader.join(5)
+        assert not reader.is_alive()
+        assert len(looks) > 10 and len(yields) >= len(looks) - 2  # a yield between any two looks
+
+
 @pytest.mark.parametrize(("interval_s", "n", "busy", "polls"), [
     (0.5e-3, 8, False, True),    # a 2 kHz sensor: poll ahead of the next state
     (0.5e-3, 7, False, False),   # not yet known to be steady (fewer than PREPARE_WINDOW intervals)
