@@ -4,7 +4,11 @@ A free-running plant behaves like a camera or pyrometer: it publishes ``MeltPool
 fixed rate and never waits for the controller. Between two publishes it sleeps while whatever
 ``LaserCommand`` arrives is queued with its arrival time (no wake-up per command); at each tick
 it takes them, applies the newest applicable command and echoes the applied power in the state
-it publishes. A command is applicable (:class:`~fe_node.commands.CommandGate`)
+it publishes. A fast plant (period under :data:`POLL_MAX_PERIOD_S`) with its controller present
+instead polls zenoh's channel for the command answering its last state, from
+:data:`POLL_AT` of the period after that publish until the command is in or the tick comes
+(yielding its core between looks), then sleeps to the tick: the command then reaches the plant
+with no thread to wake on its way. A command is applicable (:class:`~fe_node.commands.CommandGate`)
 if its step is newer than the last applied one, at most one after the newest published state (no
 controller can answer a state not yet published) and not more than ``RING`` − 1 steps late, and
 its power and speed lie within the bounds; every other command is dropped and counted. The
@@ -23,6 +27,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -32,12 +37,18 @@ import numpy as np
 
 from fe_node.commands import FALLBACKS, CommandGate, CommandPolicy, Verdict
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
-from messages.bus import BusSettings, NodeBus, StopFlag, run_node
+from messages.bus import BusSettings, Inbox, NodeBus, StopFlag, run_node
 from messages.cli import UsageError
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
 
 RING = 1 << 14  # publish times kept for round-trip matching; older commands are stale (steps)
 FREE_RUN_TIMEOUT_S = 0.5  # default fallback timeout of a free-running plant [s]
+POLL_MAX_PERIOD_S = 2e-3
+"""A plant faster than this polls for its commands (:func:`await_command`); a slower one takes
+them at its ticks, stamped on arrival by a callback thread."""
+POLL_AT = 0.2
+"""A polling plant starts looking for the command this fraction of the period after its publish
+(no controller answers sooner; ``docs/realtime.md``, the plant's poll window)."""
 
 
 @dataclass(frozen=True)
@@ -237,6 +248,17 @@ def sleep_until(t: float) -> None:
         time.sleep(remaining)
 
 
+def await_command(inbox: Inbox, latch: CommandLatch, step: int, start: float, tick: float) -> None:
+    """Poll ``inbox`` from monotonic time ``start`` until the command answering state ``step`` is
+    in (offered to ``latch``) or ``tick`` [s] comes, yielding the core between looks."""
+    sleep_until(start)
+    while latch.on_time_step <= step and time.monotonic() < tick:
+        for cmd in inbox.drain():
+            latch.offer(cmd, inbox.received_t)
+        if latch.on_time_step <= step:
+            os.sched_yield()
+
+
 def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: FreeRunSettings, stop: StopFlag,
              source: str, controller_gone: threading.Event) -> FreeRunStats:
     """Publish states at ``settings.rate_hz`` until the step/time limit or a stop; apply the newest command.
@@ -244,18 +266,22 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     The node must have announced readiness (``bus.ready``) before; the loop never blocks on
     the controller. Ticks follow a fixed schedule; an overrun by more than one period restarts
     it from now (no burst to catch up). The achieved rate is reported. Each switch to the
-    fallback is logged once (``controller_gone``: the controller's liveliness token is gone).
+    fallback is logged once (``controller_gone``: the controller's liveliness token is gone). A
+    plant faster than :data:`POLL_MAX_PERIOD_S` polls for each command while the controller is
+    present (:func:`await_command`).
     """
     states = bus.publisher(PLANT_STATE)
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
-    inbox = bus.inbox(LASER_COMMAND)
     period, dt = 1.0 / settings.rate_hz, settings.step_s
+    polls = period < POLL_MAX_PERIOD_S
+    inbox = bus.polled_inbox(LASER_COMMAND) if polls else bus.inbox(LASER_COMMAND)
     sample = plant.initial()
     power, speed = latch.power_w, latch.speed_m_s
     step = misses = 0
     command_source = "open-loop"
     started = next_tick = time.monotonic()
-    latch.published(0, states.put(state_message(bus.run_id, 0, 0.0, sample, power, speed, source)))
+    published_t = states.put(state_message(bus.run_id, 0, 0.0, sample, power, speed, source))
+    latch.published(0, published_t)
     end_t = None if settings.duration_s is None else started + settings.duration_s
     gc.collect()
     gc.freeze()  # what exists now lives to the end: keep it out of the collections on the hot path
@@ -265,6 +291,8 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
             next_tick = time.monotonic()
         if end_t is not None and next_tick > end_t:
             break
+        if polls and not controller_gone.is_set():
+            await_command(inbox, latch, step, min(published_t + POLL_AT * period, next_tick), next_tick)
         sleep_until(next_tick)
         for cmd in inbox.drain():  # each stamped with its arrival time in the subscriber
             latch.offer(cmd, inbox.received_t)
@@ -280,7 +308,8 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
         command_source = new_source
         misses += latch.missed(step)
         sample = plant.step(power, speed, dt)
-        latch.published(step, states.put(state_message(bus.run_id, step, step * dt, sample, power, speed, source)))
+        published_t = states.put(state_message(bus.run_id, step, step * dt, sample, power, speed, source))
+        latch.published(step, published_t)
         if step % settings.diagnostics_every == 0:
             diagnostics.put(PlantDiagnostics(
                 run_id=bus.run_id, step=step, time_s=step * dt, step_wall_ms=(time.monotonic() - now) * 1e3,

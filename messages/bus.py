@@ -424,6 +424,32 @@ class Inbox:
             yield msg
 
 
+class PolledInbox(Inbox):
+    """Messages of one topic that the node's own loop polls for: zenoh queues them in its channel
+    (no callback thread, nothing to wake) and :meth:`get` takes what has arrived, validated like
+    :class:`Inbox`. :attr:`received_t` is when :meth:`get` took the message: its arrival while the
+    node was polling, an upper bound of it otherwise. Read it from one thread only.
+    """
+
+    CAPACITY = 4096  # samples zenoh queues before its network thread waits for the reader
+
+    def __init__(self, topic: Topic, run_id: str, session: zenoh.Session) -> None:
+        super().__init__(topic, run_id)
+        self.subscriber = session.declare_subscriber(key_expr(run_id, topic), zenoh.handlers.FifoChannel(self.CAPACITY))
+
+    def get(self, timeout: float | None = None) -> Any | None:
+        """Next valid message already arrived, or ``None``; ``timeout`` must be ``None`` (it never waits)."""
+        if timeout is not None:
+            raise TypeError("a PolledInbox never waits: poll get() from the node's loop")
+        while (sample := self.subscriber.try_recv()) is not None:
+            t = time.monotonic()
+            msg = self._valid(str(sample.key_expr), sample.payload.to_bytes())
+            if msg is not None:
+                self.received_t = t
+                return msg
+        return None
+
+
 class NewestInbox(Inbox):
     """Messages of one topic for a loop that answers only the newest one, without a callback.
 
@@ -567,6 +593,13 @@ class NodeBus:
     def inbox(self, topic: Topic) -> Inbox:
         """Subscribe to ``topic`` of this run; messages queue until the node reads them."""
         return self._subscribe(Inbox(topic, self.run_id))
+
+    def polled_inbox(self, topic: Topic) -> PolledInbox:
+        """Subscribe to ``topic`` of this run for a loop that polls for it (:class:`PolledInbox`)."""
+        assert self.session is not None
+        box = PolledInbox(topic, self.run_id, self.session)
+        self._declared.append(box.subscriber)
+        return box
 
     def newest_inbox(self, topic: Topic) -> NewestInbox:
         """Subscribe to ``topic`` of this run for a loop that answers only the newest message

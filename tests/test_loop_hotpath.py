@@ -4,6 +4,7 @@ assertions: timings live in benchmarks/bench_loop.py)."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -48,6 +49,26 @@ def test_newest_inbox_returns_the_newest_valid_state_and_counts_the_others(hub, 
         assert box.n_invalid == 2 and "does not match" in box.last_error
         assert box.newest(block=False) == (None, 0)  # nothing left; returns at once
         raw.undeclare()
+
+
+def test_polled_inbox_takes_what_arrived_in_order_and_counts_the_invalid(hub, run_id):
+    def command(step):
+        return LaserCommand(run_id=run_id, step=step, time_s=0.0, power_w=200.0, speed_mm_s=800.0, controller="t")
+
+    with NodeBus("plant", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        box = bus.polled_inbox(LASER_COMMAND)
+        assert box.get() is None  # nothing yet, and no wait
+        raw = bus.session.declare_publisher(key_expr(run_id, LASER_COMMAND))
+        pub = bus.publisher(LASER_COMMAND)
+        pub.put(command(1))
+        raw.put(b"garbage")
+        pub.put(command(2))
+        time.sleep(0.3)
+        before = time.monotonic()
+        assert list(box.drain()) == [command(1), command(2)]
+        assert box.n_invalid == 1 and box.received_t >= before  # stamped when taken
+        with pytest.raises(TypeError):
+            box.get(timeout=0.1)
 
 
 def test_newest_inbox_wakes_a_blocked_reader_without_counting_anything(hub, run_id):
@@ -433,6 +454,60 @@ def test_free_running_plant_times_commands_from_their_arrival_not_from_its_tick(
                      "surrogate", threading.Event())
     assert stats.steps == 20 and stats.misses == 0 and len(stats.rtt_s) == len(bus.published) == 21
     assert all(r == pytest.approx(100e-6, abs=1e-9) for r in stats.rtt_s)  # not up to the 5 ms tick period
+
+
+class _ArrivingCommands:
+    """A PolledInbox stand-in: the command answering each published state is in the channel
+    ``delay_s`` after the state's publish, and is stamped when taken."""
+
+    def __init__(self, published, delay_s):
+        self.published, self.delay_s, self.n_invalid, self.received_t, self._given = published, delay_s, 0, 0.0, 0
+        self.looks = 0
+
+    def drain(self):
+        self.looks += 1
+        while self._given < len(self.published) and time.monotonic() >= self.published[self._given][1] + self.delay_s:
+            step, _ = self.published[self._given]
+            self._given += 1
+            self.received_t = time.monotonic()
+            yield LaserCommand(run_id="t", step=step + 1, time_s=0.0, power_w=200.0, speed_mm_s=800.0,
+                               controller="t")
+
+
+@pytest.mark.parametrize("controller_gone", [False, True])
+def test_a_fast_plant_polls_for_its_command_while_its_controller_is_present(controller_gone, monkeypatch):
+    """Faster than POLL_MAX_PERIOD_S, the plant takes each command as it comes (round trip ~ the
+    command's delay, not the period) by polling from POLL_AT of the period; with its controller
+    gone it only looks at its ticks."""
+    from fe_node.freerun import POLL_AT, POLL_MAX_PERIOD_S
+
+    rate_hz, delay_s = 600.0, 0.5e-3
+    assert 1.0 / rate_hz < POLL_MAX_PERIOD_S and POLL_AT / rate_hz < delay_s
+
+    class Bus(_PlantBus):
+        def polled_inbox(self, topic):
+            assert topic is LASER_COMMAND
+            return self.commands
+
+        def inbox(self, topic):
+            raise AssertionError("a fast plant polls for its commands")
+
+    bus = Bus()
+    bus.commands = _ArrivingCommands(bus.published, delay_s)
+    gone = threading.Event()
+    if controller_gone:
+        gone.set()
+    yields = []
+    monkeypatch.setattr(os, "sched_yield", lambda: yields.append(None))
+    latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
+    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=rate_hz, max_steps=30), threading.Event(),
+                     "surrogate", gone)
+    rtt = sorted(stats.rtt_s)[len(stats.rtt_s) // 2]
+    if controller_gone:
+        assert rtt > 0.7 / rate_hz and bus.commands.looks <= stats.steps + 2 and not yields  # at the ticks only
+    else:
+        assert delay_s <= rtt < delay_s + 0.3 / rate_hz and bus.commands.looks > stats.steps
+        assert len(yields) >= bus.commands.looks - 2 * stats.steps - 2  # a yield after each look in vain
 
 
 def test_a_state_before_the_preparations_timer_is_prepared_for_on_its_path():
