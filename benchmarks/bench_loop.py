@@ -27,6 +27,7 @@ process (:class:`messages.auth.RunCredentials`) and every node its client (each 
 the router). ``--load`` starts a busy loop on one core (a ``stress``-like process) for the whole
 measurement; ``--fifo-priority N`` runs every node process under ``SCHED_FIFO`` (``chrt``);
 ``--busy-wait`` starts the controller node with ``--busy-wait`` (it polls for states);
+``--poll-commands`` starts the plant with ``--poll-commands`` (it polls for each command);
 ``--pin`` pins the plant side (surrogate, ping) to CPU 0 and the controller side (controller,
 pong) to CPU 1, as a real-time deployment would (the bench process and its hub are not pinned).
 ``docs/realtime.md`` has the measured figures.
@@ -204,9 +205,10 @@ def loop(hub: Hub, args: argparse.Namespace) -> tuple[dict, list[float], str]:
                        hub.env("controller"), "controller")
     try:
         wait_for_nodes(hub.session, hub.run_id, ["controller"], StopFlag(), timeout_s=60)
+        poll = ["--poll-commands"] if args.poll_commands else []
         plant = spawn(["-m", "fe_node.surrogate", "--rate-hz", repr(args.rate_hz), "--duration-s",
-                       repr(args.duration_s), "--require", "controller", "--json", *hub.common()], hub.env("plant"),
-                      "plant")
+                       repr(args.duration_s), "--require", "controller", "--json", *poll, *hub.common()],
+                      hub.env("plant"), "plant")
         plant_out = finish(plant, args.duration_s + 90, "plant")
         controller_out = finish(controller, 30, "controller")
     finally:
@@ -248,6 +250,8 @@ def main() -> int:
     parser.add_argument("--fifo-priority", type=int, metavar="N",
                         help="run every node process (ping, pong, plant, controller) under SCHED_FIFO priority N "
                              "(chrt; needs CAP_SYS_NICE): how a real-time deployment would run them")
+    parser.add_argument("--poll-commands", action="store_true",
+                        help="start the surrogate plant with --poll-commands (it polls for each command)")
     parser.add_argument("--pin", action="store_true",
                         help="pin the plant side (surrogate, ping) to CPU 0 and the controller side (controller, pong) "
                              "to CPU 1")
@@ -301,6 +305,7 @@ def main() -> int:
         "load": f"busy loop on cpu {args.load_cpu}" if args.load else "none added",
         "scheduling": f"SCHED_FIFO {args.fifo_priority}" if args.fifo_priority is not None else "default",
         "controller_busy_wait": args.busy_wait,
+        "plant_poll_commands": args.poll_commands,
         "pinning": "plant side cpu 0, controller side cpu 1" if args.pin else "none",
         "python": platform.python_version(),
     }

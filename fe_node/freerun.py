@@ -4,11 +4,16 @@ A free-running plant behaves like a camera or pyrometer: it publishes ``MeltPool
 fixed rate and never waits for the controller. Between two publishes it sleeps while whatever
 ``LaserCommand`` arrives is queued with its arrival time (no wake-up per command); at each tick
 it takes them, applies the newest applicable command and echoes the applied power in the state
-it publishes. A fast plant (period under :data:`POLL_MAX_PERIOD_S`) with its controller present
-instead polls zenoh's channel for the command answering its last state, from
-:data:`POLL_AT` of the period after that publish until the command is in or the tick comes
-(yielding its core between looks), then sleeps to the tick: the command then reaches the plant
-with no thread to wake on its way. A command is applicable (:class:`~fe_node.commands.CommandGate`)
+it publishes. With ``--poll-commands``, a fast plant (period under :data:`POLL_MAX_PERIOD_S`)
+takes its commands from zenoh's channel instead (no callback thread to wake on the command's way: a command counts as
+on time when it is in the process at the tick). While its controller is present and most recent
+commands came on time (:data:`POLL_MIN_ON_TIME`), it polls that channel for the command
+answering its last state, from :data:`POLL_AT` of the period after that publish until the
+command is in or the tick comes (yielding its core between looks), then sleeps to the tick;
+otherwise (a controller that cannot answer within the period, a loaded machine) it looks only at
+its ticks. A command's arrival time is when the plant took it: its arrival while polling, an
+upper bound otherwise (a late command, one that came while the plant did not poll). A command
+is applicable (:class:`~fe_node.commands.CommandGate`)
 if its step is newer than the last applied one, at most one after the newest published state (no
 controller can answer a state not yet published) and not more than ``RING`` − 1 steps late, and
 its power and speed lie within the bounds; every other command is dropped and counted. The
@@ -44,8 +49,14 @@ from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
 RING = 1 << 14  # publish times kept for round-trip matching; older commands are stale (steps)
 FREE_RUN_TIMEOUT_S = 0.5  # default fallback timeout of a free-running plant [s]
 POLL_MAX_PERIOD_S = 2e-3
-"""A plant faster than this polls for its commands (:func:`await_command`); a slower one takes
-them at its ticks, stamped on arrival by a callback thread."""
+"""With ``--poll-commands``, a plant faster than this reads its commands from zenoh's channel and
+polls for them (:func:`await_command`); otherwise it takes them at its ticks, stamped on arrival
+by a callback thread."""
+POLL_MIN_ON_TIME = 0.5
+ON_TIME_SMOOTHING = 0.05
+"""A fast plant polls while its recent share of on-time commands (weighted by
+``(1 − ON_TIME_SMOOTHING)^age``, ~20 steps) exceeds ``POLL_MIN_ON_TIME``: not for a controller
+that cannot answer within the period (e.g. a 10 kHz sensor), nor on a machine too loaded for it."""
 POLL_AT = 0.2
 """A polling plant starts looking for the command this fraction of the period after its publish
 (no controller answers sooner; ``docs/realtime.md``, the plant's poll window)."""
@@ -106,6 +117,10 @@ class FreeRunSettings:
         a model with its own time step, e.g. the GP surrogate, sets it).
     controller : str
         Node name of the controller whose liveliness the plant follows.
+    poll_commands : bool
+        Poll for each command (:func:`await_command`) when faster than :data:`POLL_MAX_PERIOD_S`
+        (``--poll-commands``; opt-in, ``docs/realtime.md``: fewer misses on a quiet machine, more
+        on a loaded one).
     """
 
     rate_hz: float = 1000.0
@@ -114,6 +129,7 @@ class FreeRunSettings:
     diagnostics_every: int = 100
     dt_s: float | None = None
     controller: str = "controller"
+    poll_commands: bool = False
 
     @property
     def step_s(self) -> float:
@@ -133,6 +149,8 @@ class FreeRunSettings:
             raise UsageError(f"process time step must be in (0, 1) s, got {self.dt_s}")
         if not self.controller:
             raise UsageError("--controller must name a node")
+        if not isinstance(self.poll_commands, bool):
+            raise UsageError("--poll-commands is a flag")
 
 
 @dataclass
@@ -266,14 +284,16 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     The node must have announced readiness (``bus.ready``) before; the loop never blocks on
     the controller. Ticks follow a fixed schedule; an overrun by more than one period restarts
     it from now (no burst to catch up). The achieved rate is reported. Each switch to the
-    fallback is logged once (``controller_gone``: the controller's liveliness token is gone). A
-    plant faster than :data:`POLL_MAX_PERIOD_S` polls for each command while the controller is
-    present (:func:`await_command`).
+    fallback is logged once (``controller_gone``: the controller's liveliness token is gone).
+    With ``settings.poll_commands``, a plant faster than :data:`POLL_MAX_PERIOD_S` reads zenoh's
+    channel, and polls it for each command while the controller is present and most recent
+    commands came on time (:func:`await_command`).
     """
     states = bus.publisher(PLANT_STATE)
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
     period, dt = 1.0 / settings.rate_hz, settings.step_s
-    polls = period < POLL_MAX_PERIOD_S
+    polls = settings.poll_commands and period < POLL_MAX_PERIOD_S
+    on_time_share = 1.0  # recent share of on-time commands (exponentially weighted)
     inbox = bus.polled_inbox(LASER_COMMAND) if polls else bus.inbox(LASER_COMMAND)
     sample = plant.initial()
     power, speed = latch.power_w, latch.speed_m_s
@@ -291,7 +311,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
             next_tick = time.monotonic()
         if end_t is not None and next_tick > end_t:
             break
-        if polls and not controller_gone.is_set():
+        if polls and on_time_share > POLL_MIN_ON_TIME and not controller_gone.is_set():
             await_command(inbox, latch, step, min(published_t + POLL_AT * period, next_tick), next_tick)
         sleep_until(next_tick)
         for cmd in inbox.drain():  # each stamped with its arrival time in the subscriber
@@ -306,7 +326,9 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
             bus.log(LogLevel.WARNING, f"{reason}: applying {new_source} {power:.1f} W from step {step} "
                     f"at wall {time.time():.6f} s", time_s=step * dt)
         command_source = new_source
-        misses += latch.missed(step)
+        missed = latch.missed(step)
+        misses += missed
+        on_time_share += ON_TIME_SMOOTHING * (float(not missed) - on_time_share)
         sample = plant.step(power, speed, dt)
         published_t = states.put(state_message(bus.run_id, step, step * dt, sample, power, speed, source))
         latch.published(step, published_t)
@@ -349,6 +371,9 @@ def add_free_run_arguments(parser: argparse.ArgumentParser, rate_hz: float) -> N
                         help="power of the 'safe' fallback [W] (default: %(default)s)")
     parser.add_argument("--controller", default=defaults.controller,
                         help="controller node whose liveliness the plant follows (default: %(default)s)")
+    parser.add_argument("--poll-commands", action="store_true",
+                        help="faster than 2 ms: poll for each command instead of sleeping to the tick (fewer misses on "
+                             "a quiet machine, more on a loaded one; docs/realtime.md)")
     parser.add_argument("--json", action="store_true", help="print the timing summary as JSON (last line)")
 
 
@@ -358,7 +383,7 @@ def settings_from_args(args: argparse.Namespace, dt_s: float | None = None) -> t
     Raises :class:`UsageError`.
     """
     settings = FreeRunSettings(args.rate_hz, args.max_steps, args.duration_s, args.diagnostics_every, dt_s,
-                               args.controller)
+                               args.controller, args.poll_commands)
     policy = CommandPolicy(args.power_min_w, args.power_max_w, timeout_s=args.command_timeout_s,
                            fallback=args.fallback, safe_power_w=args.safe_power_w)
     if not policy.within_bounds(args.power_w, args.speed_mm_s * 1e-3):

@@ -462,10 +462,11 @@ class _ArrivingCommands:
 
     def __init__(self, published, delay_s):
         self.published, self.delay_s, self.n_invalid, self.received_t, self._given = published, delay_s, 0, 0.0, 0
-        self.looks = 0
+        self.looks, self.look_times = 0, []
 
     def drain(self):
         self.looks += 1
+        self.look_times.append(time.monotonic())
         while self._given < len(self.published) and time.monotonic() >= self.published[self._given][1] + self.delay_s:
             step, _ = self.published[self._given]
             self._given += 1
@@ -474,15 +475,18 @@ class _ArrivingCommands:
                                controller="t")
 
 
-@pytest.mark.parametrize("controller_gone", [False, True])
-def test_a_fast_plant_polls_for_its_command_while_its_controller_is_present(controller_gone, monkeypatch):
+@pytest.mark.parametrize("case", ["on time", "controller gone", "late"])
+def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, monkeypatch):
     """Faster than POLL_MAX_PERIOD_S, the plant takes each command as it comes (round trip ~ the
     command's delay, not the period) by polling from POLL_AT of the period; with its controller
-    gone it only looks at its ticks."""
+    gone it only looks at its ticks, and with commands coming after the tick it stops polling
+    within ~20 steps."""
     from fe_node.freerun import POLL_AT, POLL_MAX_PERIOD_S
 
-    rate_hz, delay_s = 600.0, 0.5e-3
+    rate_hz = 600.0
+    delay_s = 1.3 / rate_hz if case == "late" else 0.5e-3
     assert 1.0 / rate_hz < POLL_MAX_PERIOD_S and POLL_AT / rate_hz < delay_s
+    controller_gone = case == "controller gone"
 
     class Bus(_PlantBus):
         def polled_inbox(self, topic):
@@ -500,14 +504,28 @@ def test_a_fast_plant_polls_for_its_command_while_its_controller_is_present(cont
     yields = []
     monkeypatch.setattr(os, "sched_yield", lambda: yields.append(None))
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
-    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=rate_hz, max_steps=30), threading.Event(),
-                     "surrogate", gone)
+    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=rate_hz, max_steps=60, poll_commands=True),
+                     threading.Event(), "surrogate", gone)
     rtt = sorted(stats.rtt_s)[len(stats.rtt_s) // 2]
-    if controller_gone:
+    if case == "controller gone":
         assert rtt > 0.7 / rate_hz and bus.commands.looks <= stats.steps + 2 and not yields  # at the ticks only
+    elif case == "late":
+        assert stats.misses == stats.steps
+        after = bus.published[30][1]
+        assert sum(t > after for t in bus.commands.look_times) <= stats.steps - 30 + 2  # at the ticks only
     else:
         assert delay_s <= rtt < delay_s + 0.3 / rate_hz and bus.commands.looks > stats.steps
         assert len(yields) >= bus.commands.looks - 2 * stats.steps - 2  # a yield after each look in vain
+
+
+def test_a_fast_plant_without_poll_commands_takes_its_commands_at_its_ticks():
+    """The default: the callback inbox (commands stamped on arrival), looked at once per tick."""
+    bus = _PlantBus()
+    latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
+    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=1000.0, max_steps=20), threading.Event(),
+                     "surrogate", threading.Event())
+    assert stats.steps == 20 and stats.misses == 0
+    assert all(r == pytest.approx(100e-6, abs=1e-9) for r in stats.rtt_s)
 
 
 def test_a_state_before_the_preparations_timer_is_prepared_for_on_its_path():
