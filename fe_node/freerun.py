@@ -5,23 +5,22 @@ fixed rate and never waits for the controller. Between two publishes it sleeps w
 ``LaserCommand`` arrives is queued with its arrival time (no wake-up per command); at each tick
 it takes them, applies the newest applicable command and echoes the applied power in the state
 it publishes. With ``--poll-commands``, a fast plant (period under :data:`POLL_MAX_PERIOD_S`)
-takes its commands from zenoh's channel instead (no callback thread to wake on the command's way: a command counts as
-on time when it is in the process at the tick). While its controller is present and most recent
-commands came on time (:data:`POLL_MIN_ON_TIME`), it polls that channel for the command
-answering its last state, from :data:`POLL_AT` of the period after that publish until the
-command is in or the tick comes (yielding its core between looks), then sleeps to the tick;
-otherwise (a controller that cannot answer within the period, a loaded machine) it looks only at
-its ticks. A command's arrival time is when the plant took it: its arrival while polling, an
-upper bound otherwise (a late command, one that came while the plant did not poll). A command
-is applicable (:class:`~fe_node.commands.CommandGate`)
-if its step is newer than the last applied one, at most one after the newest published state (no
-controller can answer a state not yet published) and not more than ``RING`` − 1 steps late, and
-its power and speed lie within the bounds; every other command is dropped and counted. The
-command answering state k (``step = k + 1``) is *on time* if it arrives before state k+1 is
-published; otherwise that step is a deadline miss. Round trips run from the moment a state is
-handed to zenoh to the command's arrival in this process, as a bare zenoh ping-pong is timed.
-The fallback (default: the safe power) applies as soon as the controller's liveliness token is
-gone, or when no command was applied for ``timeout_s``.
+takes its commands from zenoh's channel instead (no callback thread to wake on the command's
+way: a command counts as on time when it is in the process at the tick). While its controller is
+present and most recent commands came on time (:data:`POLL_MIN_ON_TIME`), it polls that channel
+for the command answering its last state, from :data:`POLL_AT` of the period after that publish
+until the command is in or the tick comes (yielding its core between looks), then sleeps to the
+tick; otherwise (a controller that cannot answer within the period, a loaded machine) it looks
+only at its ticks. A command's arrival time is then when the plant took it: its arrival while
+polling, an upper bound otherwise. A command is applicable
+(:class:`~fe_node.commands.CommandGate`) if its step is newer than the last applied one, at most
+one after the newest published state (no controller can answer a state not yet published) and
+not more than ``RING`` − 1 steps late, and its power and speed lie within the bounds; every
+other command is dropped and counted. The command answering state k (``step = k + 1``) is *on
+time* if it arrives before state k+1 is published; otherwise that step is a deadline miss. Round
+trips run from the moment a state is handed to zenoh to the command's arrival in this process,
+as a bare zenoh ping-pong is timed. The fallback (default: the safe power) applies as soon as
+the controller's liveliness token is gone, or when no command was applied for ``timeout_s``.
 
 Functional core: :class:`CommandLatch` (which command applies, deadline and round-trip
 bookkeeping; no I/O, time passed in). Thin shell: :func:`run_free` (zenoh, clock, loop).
@@ -314,7 +313,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
         if polls and on_time_share > POLL_MIN_ON_TIME and not controller_gone.is_set():
             await_command(inbox, latch, step, min(published_t + POLL_AT * period, next_tick), next_tick)
         sleep_until(next_tick)
-        for cmd in inbox.drain():  # each stamped with its arrival time in the subscriber
+        for cmd in inbox.drain():  # each stamped with its arrival (callback inbox) or when taken (polled)
             latch.offer(cmd, inbox.received_t)
         step += 1
         now = time.monotonic()
