@@ -56,6 +56,9 @@ ON_TIME_SMOOTHING = 0.05
 """A fast plant polls while its recent share of on-time commands (weighted by
 ``(1 − ON_TIME_SMOOTHING)^age``, ~20 steps) exceeds ``POLL_MIN_ON_TIME``: not for a controller
 that cannot answer within the period (e.g. a 10 kHz sensor), nor on a machine too loaded for it."""
+WARMUP_STEPS = 200
+"""Steps left out of :attr:`FreeRunStats` ``steady_miss_pct`` (the processes warm up; the bare
+ping-pong of ``benchmarks/zenoh_pingpong.py`` leaves out its first 200 round trips too)."""
 POLL_AT = 0.2
 """A polling plant starts looking for the command this fraction of the period after its publish
 (no controller answers sooner; ``docs/realtime.md``, the plant's poll window)."""
@@ -230,14 +233,19 @@ class FreeRunStats:
     invalid: int
     fallbacks: int
     rtt_s: tuple[float, ...]
+    warmup_misses: int = 0
+    """Misses among the first :data:`WARMUP_STEPS` steps (included in ``misses``)."""
 
-    def summary(self) -> dict[str, float | int]:
-        """JSON-able figures: achieved rate [Hz], deadline misses [%], round trip [µs], command counts."""
+    def summary(self) -> dict[str, float | int | None]:
+        """JSON-able figures: achieved rate [Hz], deadline misses [%] (all steps, and
+        ``steady_miss_pct`` after the first :data:`WARMUP_STEPS`), round trip [µs], command counts."""
         rtt = np.asarray(self.rtt_s) * 1e6
+        steady = self.steps - WARMUP_STEPS
         return {
             "steps": self.steps,
             "rate_hz": round(self.steps / self.wall_s, 1) if self.wall_s > 0 else 0.0,
             "deadline_miss_pct": round(100.0 * self.misses / self.steps, 3) if self.steps else 0.0,
+            "steady_miss_pct": round(100.0 * (self.misses - self.warmup_misses) / steady, 3) if steady > 0 else None,
             "rtt_median_us": round(float(np.median(rtt)), 1) if rtt.size else None,
             "rtt_p99_us": round(float(np.percentile(rtt, 99)), 1) if rtt.size else None,
             "commands": int(rtt.size),
@@ -296,7 +304,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     inbox = bus.polled_inbox(LASER_COMMAND) if polls else bus.inbox(LASER_COMMAND)
     sample = plant.initial()
     power, speed = latch.power_w, latch.speed_m_s
-    step = misses = 0
+    step = misses = warmup_misses = 0
     command_source = "open-loop"
     started = next_tick = time.monotonic()
     published_t = states.put(state_message(bus.run_id, 0, 0.0, sample, power, speed, source))
@@ -327,6 +335,8 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
         command_source = new_source
         missed = latch.missed(step)
         misses += missed
+        if step <= WARMUP_STEPS:
+            warmup_misses += missed
         on_time_share += ON_TIME_SMOOTHING * (float(not missed) - on_time_share)
         sample = plant.step(power, speed, dt)
         published_t = states.put(state_message(bus.run_id, step, step * dt, sample, power, speed, source))
@@ -342,7 +352,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
         latch.offer(cmd, inbox.received_t)
     stats = FreeRunStats(step, wall, misses, latch.n_late, latch.gate.n_dropped + inbox.n_invalid,
                          latch.gate.counts[Verdict.OUT_OF_BOUNDS], inbox.n_invalid, latch.n_fallbacks,
-                         tuple(latch.rtt_s))
+                         tuple(latch.rtt_s), warmup_misses)
     bus.log(LogLevel.INFO, f"{'stopped' if stop.is_set() else 'finished'} after {step} steps in {wall:.2f} s; "
             f"{misses} deadline misses, {stats.dropped} dropped commands ({latch.gate.n_stale} stale, "
             f"{latch.gate.counts[Verdict.AHEAD]} ahead, {stats.rejected} out of bounds, {stats.invalid} invalid), "

@@ -528,6 +528,25 @@ def test_a_fast_plant_without_poll_commands_takes_its_commands_at_its_ticks():
     assert all(r == pytest.approx(100e-6, abs=1e-9) for r in stats.rtt_s)
 
 
+def test_steady_misses_leave_out_the_first_warmup_steps():
+    """``steady_miss_pct`` counts the misses after the first WARMUP_STEPS; ``deadline_miss_pct`` all."""
+    from fe_node.freerun import WARMUP_STEPS, FreeRunStats
+
+    stats = FreeRunStats(WARMUP_STEPS + 800, 1.0, 30, 0, 0, 0, 0, 0, (1e-4,), warmup_misses=20)
+    summary = stats.summary()
+    assert summary["deadline_miss_pct"] == pytest.approx(100.0 * 30 / (WARMUP_STEPS + 800))
+    assert summary["steady_miss_pct"] == pytest.approx(100.0 * 10 / 800)
+    assert FreeRunStats(WARMUP_STEPS, 1.0, 3, 0, 0, 0, 0, 0, (), 3).summary()["steady_miss_pct"] is None
+
+    bus = _PlantBus()  # every command two periods late: every step misses, warm-up or not
+    bus.commands = _ArrivingCommands(bus.published, 2.0 / 2000.0)
+    latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
+    run = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=2000.0, max_steps=WARMUP_STEPS + 100),
+                   threading.Event(), "surrogate", threading.Event())
+    assert WARMUP_STEPS - 5 <= run.warmup_misses <= WARMUP_STEPS and run.misses >= WARMUP_STEPS + 95
+    assert run.summary()["steady_miss_pct"] >= 95.0
+
+
 def test_a_state_before_the_preparations_timer_is_prepared_for_on_its_path():
     """A state that comes before the timer gets the preparation first (so every state is answered
     as if prepared right after the command: the run does not depend on timing), and the time
