@@ -203,7 +203,6 @@ class AnswerLoop:
     last_time_s: float = 0.0
     status: int = 0
     error: BaseException | None = None
-    state_interval_s: float = 0.0
     busy_wait: bool = False
     _last_arrival: float | None = None
     _intervals: deque = field(default_factory=lambda: deque(maxlen=PREPARE_WINDOW))
@@ -255,8 +254,7 @@ class AnswerLoop:
         if queued and self._last_arrival is not None and self._intervals:
             t = min(t, self._last_arrival + min(self._intervals))
         if self._last_arrival is not None:
-            self.state_interval_s = t - self._last_arrival
-            self._intervals.append(self.state_interval_s)
+            self._intervals.append(t - self._last_arrival)
         self._last_arrival = t
 
     def poll_window(self) -> tuple[float, float] | None:

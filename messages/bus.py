@@ -450,7 +450,7 @@ class PolledInbox(Inbox):
         return None
 
 
-class NewestInbox(Inbox):
+class NewestInbox(PolledInbox):
     """Messages of one topic for a loop that answers only the newest one, without a callback.
 
     zenoh queues the samples in its own channel and :meth:`newest` blocks in zenoh (the GIL
@@ -463,17 +463,15 @@ class NewestInbox(Inbox):
     one thread only.
     """
 
-    CAPACITY = 4096  # samples zenoh queues before its network thread waits for the reader
     queued: bool = False
     """Whether the last :meth:`newest` with a poll window found a sample already waiting when the
     window opened (its arrival time is then only known to be earlier than :attr:`received_t`)."""
 
     def __init__(self, topic: Topic, run_id: str, session: zenoh.Session) -> None:
-        super().__init__(topic, run_id)
+        super().__init__(topic, run_id, session)
         self._session = session
         self._key = key_expr(run_id, topic)
         self._wake_payload = secrets.token_bytes(16)
-        self.subscriber = session.declare_subscriber(self._key, zenoh.handlers.FifoChannel(self.CAPACITY))
 
     def newest(self, block: bool = True, busy: bool = False,
                poll: tuple[float, float] | None = None) -> tuple[Any | None, int]:
@@ -596,16 +594,16 @@ class NodeBus:
 
     def polled_inbox(self, topic: Topic) -> PolledInbox:
         """Subscribe to ``topic`` of this run for a loop that polls for it (:class:`PolledInbox`)."""
-        assert self.session is not None
-        box = PolledInbox(topic, self.run_id, self.session)
-        self._declared.append(box.subscriber)
-        return box
+        return self._channel_inbox(PolledInbox, topic)
 
     def newest_inbox(self, topic: Topic) -> NewestInbox:
         """Subscribe to ``topic`` of this run for a loop that answers only the newest message
         (:class:`NewestInbox`: a blocking wait in zenoh, no callback, no queue hop)."""
+        return self._channel_inbox(NewestInbox, topic)
+
+    def _channel_inbox(self, kind: type[PolledInbox], topic: Topic) -> Any:
         assert self.session is not None
-        box = NewestInbox(topic, self.run_id, self.session)
+        box = kind(topic, self.run_id, self.session)
         self._declared.append(box.subscriber)
         return box
 
