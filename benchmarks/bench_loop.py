@@ -27,7 +27,8 @@ process (:class:`messages.auth.RunCredentials`) and every node its client (each 
 the router). ``--load`` starts a busy loop on one core (a ``stress``-like process) for the whole
 measurement; ``--fifo-priority N`` runs every node process under ``SCHED_FIFO`` (``chrt``);
 ``--busy-wait`` starts the controller node with ``--busy-wait`` (it polls for states);
-``--poll-commands`` starts the plant with ``--poll-commands`` (it polls for each command);
+``--no-poll-commands`` starts the plant with ``--no-poll-commands`` (it never polls for its
+commands; by default it polls while a core is to spare, ``fe_node.freerun.CommandInboxes``);
 ``--pin`` pins the plant side (surrogate, ping) to CPU 0 and the controller side (controller,
 pong) to CPU 1, as a real-time deployment would (the bench process and its hub are not pinned).
 ``docs/realtime.md`` has the measured figures.
@@ -42,9 +43,8 @@ first 200 steps, as the ping-pongs leave out their first 200 round trips), the b
 own would have: random pairs of a bare round trip and an update whose sum exceeds the period),
 ``worked_rtt_median_us``, ``worked_rtt_p99_us`` and ``worked_miss_pct`` (phase 4: the share of
 echoes later than a period, what this machine leaves a loop with this update and no code of its
-own),
-the topology and the transport, the
-load (1-minute load average at the start and end, the machine's CPU use during the loop, the
+own), the plant's steps for which it polled (``plant_polled_pct``), the topology and the
+transport, the load (1-minute load average at the start and end, the machine's CPU use during the loop, the
 busy loop if any) and context. The numbers depend on what else runs on the machine; the ratio,
 measured in the same run, much less.
 
@@ -71,6 +71,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 import zenoh  # noqa: E402
 
+from fe_node.spare_core import cpu_times, proc_stat_line  # noqa: E402
 from launch import free_loopback_endpoint  # noqa: E402
 from messages.auth import RunCredentials  # noqa: E402
 from messages.bus import SUPERVISOR_ENV, BusSettings, StopFlag, wait_for_nodes, zenoh_config  # noqa: E402
@@ -98,14 +99,6 @@ def spawn(argv: list[str], env: dict[str, str], side: str) -> subprocess.Popen[s
                             stderr=subprocess.STDOUT, text=True, start_new_session=True,
                             env={**os.environ, **env},
                             preexec_fn=None if cpu is None else lambda: os.sched_setaffinity(0, {cpu}))
-
-
-def cpu_times() -> tuple[int, int]:
-    """(busy, total) jiffies of the whole machine, from ``/proc/stat``."""
-    with open("/proc/stat") as f:
-        fields = [int(v) for v in f.readline().split()[1:]]
-    idle = fields[3] + fields[4]
-    return sum(fields) - idle, sum(fields)
 
 
 def transport_miss_pct(bare_us: np.ndarray, updates_us: list[float], period_us: float,
@@ -206,7 +199,7 @@ def loop(hub: Hub, args: argparse.Namespace) -> tuple[dict, list[float], str]:
                        hub.env("controller"), "controller")
     try:
         wait_for_nodes(hub.session, hub.run_id, ["controller"], StopFlag(), timeout_s=60)
-        poll = ["--poll-commands"] if args.poll_commands else []
+        poll = [] if args.poll_commands else ["--no-poll-commands"]
         plant = spawn(["-m", "fe_node.surrogate", "--rate-hz", repr(args.rate_hz), "--duration-s",
                        repr(args.duration_s), "--require", "controller", "--json", *poll, *hub.common()],
                       hub.env("plant"), "plant")
@@ -251,8 +244,9 @@ def main() -> int:
     parser.add_argument("--fifo-priority", type=int, metavar="N",
                         help="run every node process (ping, pong, plant, controller) under SCHED_FIFO priority N "
                              "(chrt; needs CAP_SYS_NICE): how a real-time deployment would run them")
-    parser.add_argument("--poll-commands", action="store_true",
-                        help="start the surrogate plant with --poll-commands (it polls for each command)")
+    parser.add_argument("--poll-commands", action=argparse.BooleanOptionalAction, default=True,
+                        help="the surrogate plant polls for each command while a core is to spare "
+                             "(default: %(default)s; --no-poll-commands: it takes them at its ticks)")
     parser.add_argument("--pin", action="store_true",
                         help="pin the plant side (surrogate, ping) to CPU 0 and the controller side (controller, pong) "
                              "to CPU 1")
@@ -269,9 +263,9 @@ def main() -> int:
         if busy is not None:
             time.sleep(1.0)  # let the busy loop settle on its core
         bare = pingpong(hub, args.rate_hz, args.pingpong_s)
-        cpu0 = cpu_times()
+        cpu0 = cpu_times(proc_stat_line())
         stats, updates, output = loop(hub, args)
-        cpu1 = cpu_times()
+        cpu1 = cpu_times(proc_stat_line())
         bare += pingpong(hub, args.rate_hz, args.pingpong_s)
         worked = pingpong(hub, args.rate_hz, args.pingpong_s, float(np.median(updates))) if updates else []
     except RuntimeError as err:
@@ -299,7 +293,8 @@ def main() -> int:
         "transport_miss_pct": transport_miss_pct(bare_us, updates, 1e6 / args.rate_hz),
         **worked_summary(worked, 1e6 / args.rate_hz),
         "topology": args.topology, "transport": args.transport,
-        "steps": stats["steps"], "commands": stats["commands"], "late_commands": stats["late_commands"],
+        "steps": stats["steps"], "plant_polled_pct": stats["polled_pct"], "commands": stats["commands"],
+        "late_commands": stats["late_commands"],
         "zenoh_pings": int(bare_us.size), "controller_updates": len(updates),
         "controller": args.controller, "duration_s": args.duration_s, "cpus": os.cpu_count(),
         "loadavg_1min_at_start": round(load_at_start, 2), "loadavg_1min_at_end": round(os.getloadavg()[0], 2),

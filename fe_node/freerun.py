@@ -4,15 +4,16 @@ A free-running plant behaves like a camera or pyrometer: it publishes ``MeltPool
 fixed rate and never waits for the controller. Between two publishes it sleeps while whatever
 ``LaserCommand`` arrives is queued with its arrival time (no wake-up per command); at each tick
 it takes them, applies the newest applicable command and echoes the applied power in the state
-it publishes. With ``--poll-commands``, a fast plant (period under :data:`POLL_MAX_PERIOD_S`)
-takes its commands from zenoh's channel instead (no callback thread to wake on the command's
-way: a command counts as on time when it is in the process at the tick). While its controller is
-present and most recent commands came on time (:data:`POLL_MIN_ON_TIME`), it polls that channel
-for the command answering its last state, from :data:`POLL_AT` of the period after that publish
-until the command is in or the tick comes (yielding its core between looks), then sleeps to the
-tick; otherwise (a controller that cannot answer within the period, a loaded machine) it looks
-only at its ticks. A command's arrival time is then when the plant took it: its arrival while
-polling, an upper bound otherwise. A command is applicable
+it publishes. A fast plant (period under :data:`POLL_MAX_PERIOD_S`, ``poll_commands`` on by
+default) polls zenoh's channel for the command answering its last state instead, from
+:data:`POLL_AT` of the period after that publish until the command is in or the tick comes
+(yielding its core between looks), then sleeps to the tick: no thread to wake on the command's
+way. It polls while its controller is present, most recent commands came on time
+(:data:`POLL_MIN_ON_TIME`) and the machine has a core to spare
+(:class:`~fe_node.spare_core.SpareCore`); otherwise (a controller that cannot answer within the
+period, a machine whose cores are all busy) it reads a callback inbox at its ticks
+(:class:`CommandInboxes`). A command's arrival time is when the polling plant took it, or when
+the callback thread stamped it. A command is applicable
 (:class:`~fe_node.commands.CommandGate`) if its step is newer than the last applied one, at most
 one after the newest published state (no controller can answer a state not yet published) and
 not more than ``RING`` − 1 steps late, and its power and speed lie within the bounds; every
@@ -40,6 +41,7 @@ from typing import Protocol
 import numpy as np
 
 from fe_node.commands import FALLBACKS, CommandGate, CommandPolicy, Verdict
+from fe_node.spare_core import SpareCore
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
 from messages.bus import BusSettings, Inbox, NodeBus, StopFlag, run_node
 from messages.cli import UsageError
@@ -48,9 +50,9 @@ from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
 RING = 1 << 14  # publish times kept for round-trip matching; older commands are stale (steps)
 FREE_RUN_TIMEOUT_S = 0.5  # default fallback timeout of a free-running plant [s]
 POLL_MAX_PERIOD_S = 2e-3
-"""With ``--poll-commands``, a plant faster than this reads its commands from zenoh's channel and
-polls for them (:func:`await_command`); otherwise it takes them at its ticks, stamped on arrival
-by a callback thread."""
+"""A plant faster than this polls zenoh's channel for its commands (:func:`await_command`) while it
+can (:class:`CommandInboxes`); otherwise it takes them at its ticks, stamped on arrival by a
+callback thread."""
 POLL_MIN_ON_TIME = 0.5
 ON_TIME_SMOOTHING = 0.05
 """A fast plant polls while its recent share of on-time commands (weighted by
@@ -120,9 +122,8 @@ class FreeRunSettings:
     controller : str
         Node name of the controller whose liveliness the plant follows.
     poll_commands : bool
-        Poll for each command (:func:`await_command`) when faster than :data:`POLL_MAX_PERIOD_S`
-        (``--poll-commands``; opt-in, ``docs/realtime.md``: fewer misses on a quiet machine, more
-        on a loaded one).
+        Poll for each command (:func:`await_command`) when faster than :data:`POLL_MAX_PERIOD_S`,
+        while a core is to spare (``--no-poll-commands``: never; ``docs/realtime.md``).
     """
 
     rate_hz: float = 1000.0
@@ -131,7 +132,7 @@ class FreeRunSettings:
     diagnostics_every: int = 100
     dt_s: float | None = None
     controller: str = "controller"
-    poll_commands: bool = False
+    poll_commands: bool = True
 
     @property
     def step_s(self) -> float:
@@ -179,6 +180,7 @@ class CommandLatch:
     rtt_s: list[float] = field(default_factory=list)
     _published_t: np.ndarray = field(default_factory=lambda: np.full(RING, np.nan))
     _published_step: int = -1
+    _applied: LaserCommand | None = None
 
     def __post_init__(self) -> None:
         self.gate = CommandGate(self.policy)
@@ -189,7 +191,13 @@ class CommandLatch:
         self._published_step = step
 
     def offer(self, cmd: LaserCommand, t: float) -> None:
-        """A decoded command received at monotonic time ``t`` [s]: applied if the gate admits it."""
+        """A decoded command received at monotonic time ``t`` [s]: applied if the gate admits it.
+
+        The command applied last, offered again, is ignored: the same message taken through the
+        plant's other inbox when it switches between them (:class:`CommandInboxes`).
+        """
+        if cmd == self._applied:
+            return
         first = max(self.newest_step + 1, self._published_step + 2 - RING)
         if self.gate.admit(cmd, first, self._published_step + 1) is not Verdict.APPLY:
             return
@@ -198,7 +206,7 @@ class CommandLatch:
             self.n_late += 1  # its state's successor is already out: too late for its step
         else:
             self.on_time_step = cmd.step
-        self.newest_step = cmd.step
+        self.newest_step, self._applied = cmd.step, cmd
         self.power_w, self.speed_m_s = cmd.power_w, cmd.speed_mm_s * 1e-3
         self.last_command_t = t
 
@@ -235,6 +243,8 @@ class FreeRunStats:
     rtt_s: tuple[float, ...]
     warmup_misses: int = 0
     """Misses among the first :data:`WARMUP_STEPS` steps (included in ``misses``)."""
+    polled: int = 0
+    """Steps for which the plant polled for its command (:class:`CommandInboxes`)."""
 
     def summary(self) -> dict[str, float | int | None]:
         """JSON-able figures: achieved rate [Hz], deadline misses [%] (all steps, and
@@ -248,6 +258,7 @@ class FreeRunStats:
             "steady_miss_pct": round(100.0 * (self.misses - self.warmup_misses) / steady, 3) if steady > 0 else None,
             "rtt_median_us": round(float(np.median(rtt)), 1) if rtt.size else None,
             "rtt_p99_us": round(float(np.percentile(rtt, 99)), 1) if rtt.size else None,
+            "polled_pct": round(100.0 * self.polled / self.steps, 1) if self.steps else 0.0,
             "commands": int(rtt.size),
             "late_commands": self.late,
             "dropped_commands": self.dropped,
@@ -284,6 +295,64 @@ def await_command(inbox: Inbox, latch: CommandLatch, step: int, start: float, ti
             os.sched_yield()
 
 
+class CommandInboxes:
+    """Where a free-running plant takes its commands from.
+
+    A slow plant (or one without ``poll_commands``) has one callback inbox: zenoh-python's callback
+    thread stamps each command on arrival. A fast one keeps zenoh's channel (:class:`PolledInbox`)
+    declared all along and reads it while it polls (no thread to wake on the command's way). While
+    it does not poll (its controller too slow or gone, or no core to spare) it declares a callback
+    inbox beside it and reads that instead (the faster path on a machine without an idle core,
+    ``docs/realtime.md``), dropping the channel's copies at each tick. At a switch, what the
+    closed callback inbox still holds is taken first; a copy of the command applied last, also in
+    the channel, is then ignored by :meth:`CommandLatch.offer`.
+    """
+
+    def __init__(self, bus: NodeBus, fast: bool) -> None:
+        self.bus = bus
+        self.channel = bus.polled_inbox(LASER_COMMAND) if fast else None
+        self.callback: Inbox | None = None if fast else bus.inbox(LASER_COMMAND)
+        self._n_invalid_closed = 0
+
+    def read(self, polling: bool, latch: CommandLatch) -> Inbox:
+        """The inbox to read this step: the channel if ``polling`` (a fast plant only), else the
+        callback inbox (declared again if closed)."""
+        if self.channel is None:
+            assert self.callback is not None
+            return self.callback
+        if polling and self.callback is not None:
+            closed, self.callback = self.callback, None
+            self.bus.close_inbox(closed)
+            offer_all(closed, latch)
+            self._n_invalid_closed += closed.n_invalid
+        elif not polling and self.callback is None:
+            self.callback = self.bus.inbox(LASER_COMMAND)
+        return self.channel if polling else self.callback  # type: ignore[return-value]
+
+    def take(self, latch: CommandLatch) -> None:
+        """At a tick: offer ``latch`` what arrived in the inbox being read (dropping the channel's
+        copies if that is the callback inbox)."""
+        if self.callback is None:
+            assert self.channel is not None
+            offer_all(self.channel, latch)
+            return
+        offer_all(self.callback, latch)
+        if self.channel is not None:
+            self.channel.discard()
+
+    @property
+    def n_invalid(self) -> int:
+        """Invalid commands dropped, each counted once (by the inbox read when it came)."""
+        boxes = [box for box in (self.channel, self.callback) if box is not None]
+        return self._n_invalid_closed + sum(box.n_invalid for box in boxes)
+
+
+def offer_all(inbox: Inbox, latch: CommandLatch) -> None:
+    """Offer ``latch`` every valid command in ``inbox``, oldest first, each with its arrival time."""
+    for cmd in inbox.drain():
+        latch.offer(cmd, inbox.received_t)
+
+
 def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: FreeRunSettings, stop: StopFlag,
              source: str, controller_gone: threading.Event) -> FreeRunStats:
     """Publish states at ``settings.rate_hz`` until the step/time limit or a stop; apply the newest command.
@@ -292,16 +361,17 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     the controller. Ticks follow a fixed schedule; an overrun by more than one period restarts
     it from now (no burst to catch up). The achieved rate is reported. Each switch to the
     fallback is logged once (``controller_gone``: the controller's liveliness token is gone).
-    With ``settings.poll_commands``, a plant faster than :data:`POLL_MAX_PERIOD_S` reads zenoh's
-    channel, and polls it for each command while the controller is present and most recent
-    commands came on time (:func:`await_command`).
+    With ``settings.poll_commands``, a plant faster than :data:`POLL_MAX_PERIOD_S` polls zenoh's
+    channel for each command while the controller is present, most recent commands came on time
+    and a core is to spare (:func:`await_command`, :class:`CommandInboxes`).
     """
     states = bus.publisher(PLANT_STATE)
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
     period, dt = 1.0 / settings.rate_hz, settings.step_s
-    polls = settings.poll_commands and period < POLL_MAX_PERIOD_S
+    fast = settings.poll_commands and period < POLL_MAX_PERIOD_S
     on_time_share = 1.0  # recent share of on-time commands (exponentially weighted)
-    inbox = bus.polled_inbox(LASER_COMMAND) if polls else bus.inbox(LASER_COMMAND)
+    inboxes, spare = CommandInboxes(bus, fast), SpareCore()
+    polled_steps = 0
     sample = plant.initial()
     power, speed = latch.power_w, latch.speed_m_s
     step = misses = warmup_misses = 0
@@ -318,11 +388,14 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
             next_tick = time.monotonic()
         if end_t is not None and next_tick > end_t:
             break
-        if polls and on_time_share > POLL_MIN_ON_TIME and not controller_gone.is_set():
+        polling = (fast and on_time_share > POLL_MIN_ON_TIME and not controller_gone.is_set()
+                   and spare.spare(time.monotonic()))
+        inbox = inboxes.read(polling, latch)
+        if polling:
+            polled_steps += 1
             await_command(inbox, latch, step, min(published_t + POLL_AT * period, next_tick), next_tick)
         sleep_until(next_tick)
-        for cmd in inbox.drain():  # each stamped with its arrival (callback inbox) or when taken (polled)
-            latch.offer(cmd, inbox.received_t)
+        inboxes.take(latch)  # each stamped with its arrival (callback inbox) or when taken (channel)
         step += 1
         now = time.monotonic()
         gone = controller_gone.is_set()
@@ -345,14 +418,13 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
             diagnostics.put(PlantDiagnostics(
                 run_id=bus.run_id, step=step, time_s=step * dt, step_wall_ms=(time.monotonic() - now) * 1e3,
                 n_fallbacks=latch.n_fallbacks, n_stale_commands=latch.gate.n_stale,
-                n_dropped=latch.gate.n_dropped + inbox.n_invalid, command_source=command_source,
+                n_dropped=latch.gate.n_dropped + inboxes.n_invalid, command_source=command_source,
             ))
     wall = time.monotonic() - started
-    for cmd in inbox.drain():  # count what is still queued
-        latch.offer(cmd, inbox.received_t)
-    stats = FreeRunStats(step, wall, misses, latch.n_late, latch.gate.n_dropped + inbox.n_invalid,
-                         latch.gate.counts[Verdict.OUT_OF_BOUNDS], inbox.n_invalid, latch.n_fallbacks,
-                         tuple(latch.rtt_s), warmup_misses)
+    inboxes.take(latch)  # count what is still queued
+    stats = FreeRunStats(step, wall, misses, latch.n_late, latch.gate.n_dropped + inboxes.n_invalid,
+                         latch.gate.counts[Verdict.OUT_OF_BOUNDS], inboxes.n_invalid, latch.n_fallbacks,
+                         tuple(latch.rtt_s), warmup_misses, polled_steps)
     bus.log(LogLevel.INFO, f"{'stopped' if stop.is_set() else 'finished'} after {step} steps in {wall:.2f} s; "
             f"{misses} deadline misses, {stats.dropped} dropped commands ({latch.gate.n_stale} stale, "
             f"{latch.gate.counts[Verdict.AHEAD]} ahead, {stats.rejected} out of bounds, {stats.invalid} invalid), "
@@ -380,9 +452,9 @@ def add_free_run_arguments(parser: argparse.ArgumentParser, rate_hz: float) -> N
                         help="power of the 'safe' fallback [W] (default: %(default)s)")
     parser.add_argument("--controller", default=defaults.controller,
                         help="controller node whose liveliness the plant follows (default: %(default)s)")
-    parser.add_argument("--poll-commands", action="store_true",
-                        help="faster than 2 ms: poll for each command instead of sleeping to the tick (fewer misses on "
-                             "a quiet machine, more on a loaded one; docs/realtime.md)")
+    parser.add_argument("--poll-commands", action=argparse.BooleanOptionalAction, default=defaults.poll_commands,
+                        help="faster than 2 ms: poll for each command while a core is to spare, instead of sleeping "
+                             "to the tick (default: %(default)s; docs/realtime.md)")
     parser.add_argument("--json", action="store_true", help="print the timing summary as JSON (last line)")
 
 

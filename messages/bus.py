@@ -371,6 +371,9 @@ class Inbox:
     message came in.
     """
 
+    subscriber: Any = None
+    """The zenoh subscriber feeding this inbox (set when a :class:`NodeBus` declares it)."""
+
     def __init__(self, topic: Topic, run_id: str | None = None) -> None:
         self.topic = topic
         self.run_id = run_id
@@ -436,6 +439,12 @@ class PolledInbox(Inbox):
     def __init__(self, topic: Topic, run_id: str, session: zenoh.Session) -> None:
         super().__init__(topic, run_id)
         self.subscriber = session.declare_subscriber(key_expr(run_id, topic), zenoh.handlers.FifoChannel(self.CAPACITY))
+
+    def discard(self) -> None:
+        """Drop what has arrived, undecoded and uncounted (e.g. copies of what another inbox of
+        the same topic is read for)."""
+        while self.subscriber.try_recv() is not None:
+            pass
 
     def get(self, timeout: float | None = None) -> Any | None:
         """Next valid message already arrived, or ``None``; ``timeout`` must be ``None`` (it never waits)."""
@@ -611,8 +620,14 @@ class NodeBus:
         # zenoh-python runs a plain callback on a Python thread of its own, not on the network thread:
         # measured faster here than indirect=False, whose network thread must take the GIL itself
         assert self.session is not None
-        self._declared.append(self.session.declare_subscriber(key_expr(self.run_id, box.topic), box._on_sample))
+        box.subscriber = self.session.declare_subscriber(key_expr(self.run_id, box.topic), box._on_sample)
+        self._declared.append(box.subscriber)
         return box
+
+    def close_inbox(self, box: Inbox) -> None:
+        """Undeclare ``box``'s subscriber: nothing more arrives in it (what has arrived stays)."""
+        self._declared.remove(box.subscriber)
+        box.subscriber.undeclare()
 
     def subscribe_raw(self, key: str, callback: Any) -> None:
         """Subscribe ``callback(sample)`` to any key expression (e.g. the recorder's ``meltloop/<run>/**``).

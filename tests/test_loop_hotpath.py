@@ -457,73 +457,141 @@ def test_free_running_plant_times_commands_from_their_arrival_not_from_its_tick(
 
 
 class _ArrivingCommands:
-    """A PolledInbox stand-in: the command answering each published state is in the channel
-    ``delay_s`` after the state's publish, and is stamped when taken."""
+    """zenoh's channel or a callback inbox, stand-in: the command answering each published state
+    arrives ``delay_s`` after the state's publish. The channel stamps a command when taken, a
+    callback inbox on arrival; a callback inbox holds only what arrived while it was declared."""
 
-    def __init__(self, published, delay_s):
-        self.published, self.delay_s, self.n_invalid, self.received_t, self._given = published, delay_s, 0, 0.0, 0
-        self.looks, self.look_times = 0, []
+    def __init__(self, published, delay_s, callback=False):
+        self.published, self.delay_s, self.callback = published, delay_s, callback
+        self.n_invalid, self.received_t, self._given = 0, 0.0, 0
+        self.looks, self.look_times, self.discards = 0, [], 0
+        self.declared_t, self.closed_t = (time.monotonic() if callback else -1.0), float("inf")
+
+    def _arrivals(self):
+        now = time.monotonic()
+        while self._given < len(self.published):
+            step, t = self.published[self._given]
+            arrival = t + self.delay_s
+            if arrival > min(now, self.closed_t):
+                return
+            self._given += 1
+            if arrival >= self.declared_t:
+                yield step, arrival
 
     def drain(self):
         self.looks += 1
         self.look_times.append(time.monotonic())
-        while self._given < len(self.published) and time.monotonic() >= self.published[self._given][1] + self.delay_s:
-            step, _ = self.published[self._given]
-            self._given += 1
-            self.received_t = time.monotonic()
+        for step, arrival in self._arrivals():
+            self.received_t = arrival if self.callback else time.monotonic()
             yield LaserCommand(run_id="t", step=step + 1, time_s=0.0, power_w=200.0, speed_mm_s=800.0,
                                controller="t")
 
+    def discard(self):
+        self.discards += 1
+        for _ in self._arrivals():
+            pass
 
-@pytest.mark.parametrize("case", ["on time", "controller gone", "late"])
+
+class _FastPlantBus(_PlantBus):
+    """Both of a fast plant's command inboxes: the channel, and callback inboxes declared and closed."""
+
+    def __init__(self, delay_s):
+        super().__init__()
+        self.delay_s, self.callbacks = delay_s, []
+        self.commands = _ArrivingCommands(self.published, delay_s)
+
+    def polled_inbox(self, topic):
+        assert topic is LASER_COMMAND
+        return self.commands
+
+    def inbox(self, topic):
+        assert topic is LASER_COMMAND
+        self.callbacks.append(_ArrivingCommands(self.published, self.delay_s, callback=True))
+        return self.callbacks[-1]
+
+    def close_inbox(self, box):
+        assert box in self.callbacks and box.closed_t == float("inf")
+        box.closed_t = time.monotonic()
+
+
+class _NoSpareCore:
+    """A machine whose cores are all busy."""
+
+    def spare(self, t):
+        return False
+
+
+@pytest.mark.parametrize("case", ["on time", "controller gone", "late", "no spare core"])
 def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, monkeypatch):
     """Faster than POLL_MAX_PERIOD_S, the plant takes each command as it comes (round trip ~ the
-    command's delay, not the period) by polling from POLL_AT of the period; with its controller
-    gone it only looks at its ticks, and with commands coming after the tick it stops polling
-    within ~20 steps."""
+    command's delay, not the period) by polling zenoh's channel from POLL_AT of the period. With its
+    controller gone, or no core to spare, it reads a callback inbox (stamped on arrival) at its
+    ticks only, dropping the channel's copies; with commands coming after the tick it switches to
+    that within ~20 steps."""
+    import fe_node.freerun as freerun
     from fe_node.freerun import POLL_AT, POLL_MAX_PERIOD_S
 
     rate_hz = 600.0
     delay_s = 1.3 / rate_hz if case == "late" else 0.5e-3
     assert 1.0 / rate_hz < POLL_MAX_PERIOD_S and POLL_AT / rate_hz < delay_s
-    controller_gone = case == "controller gone"
-
-    class Bus(_PlantBus):
-        def polled_inbox(self, topic):
-            assert topic is LASER_COMMAND
-            return self.commands
-
-        def inbox(self, topic):
-            raise AssertionError("a fast plant polls for its commands")
-
-    bus = Bus()
-    bus.commands = _ArrivingCommands(bus.published, delay_s)
+    bus = _FastPlantBus(delay_s)
     gone = threading.Event()
-    if controller_gone:
+    if case == "controller gone":
         gone.set()
+    if case == "no spare core":
+        monkeypatch.setattr(freerun, "SpareCore", _NoSpareCore)
     yields = []
     monkeypatch.setattr(os, "sched_yield", lambda: yields.append(None))
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
-    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=rate_hz, max_steps=60, poll_commands=True),
-                     threading.Event(), "surrogate", gone)
+    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=rate_hz, max_steps=60), threading.Event(),
+                     "surrogate", gone)
     rtt = sorted(stats.rtt_s)[len(stats.rtt_s) // 2]
-    if case == "controller gone":
-        assert rtt > 0.7 / rate_hz and bus.commands.looks <= stats.steps + 2 and not yields  # at the ticks only
+    channel = bus.commands
+    if case in ("controller gone", "no spare core"):
+        assert len(bus.callbacks) == 1 and bus.callbacks[0].looks <= stats.steps + 2 and not yields  # ticks only
+        assert channel.looks == 0 and channel.discards >= stats.steps  # its copies dropped
+        assert rtt == pytest.approx(delay_s, abs=1e-9) and stats.misses <= 2  # stamped on arrival
     elif case == "late":
         assert stats.misses >= stats.steps - 3  # (a tick late by 0.3 period would take one in time)
+        assert len(bus.callbacks) == 1 and bus.callbacks[0].declared_t < bus.published[30][1]
         after = bus.published[30][1]
-        assert sum(t > after for t in bus.commands.look_times) <= stats.steps - 30 + 5  # at the ticks only
+        assert sum(t > after for t in channel.look_times) == 0  # the callback inbox, at the ticks only
     else:
-        assert delay_s <= rtt < delay_s + 0.3 / rate_hz and bus.commands.looks > stats.steps
-        assert len(yields) >= bus.commands.looks - 2 * stats.steps - 2  # a yield after each look in vain
+        assert not bus.callbacks and delay_s <= rtt < delay_s + 0.3 / rate_hz and channel.looks > stats.steps
+        assert len(yields) >= channel.looks - 2 * stats.steps - 2  # a yield after each look in vain
+    assert len(stats.rtt_s) >= stats.steps - 2 and latch.gate.n_stale == 0  # each command taken once
 
 
-def test_a_fast_plant_without_poll_commands_takes_its_commands_at_its_ticks():
-    """The default: the callback inbox (commands stamped on arrival), looked at once per tick."""
+def test_a_fast_plant_switching_inboxes_takes_every_command_once(monkeypatch):
+    """A core to spare, then none, then one again (every 15 steps): the plant closes and declares its
+    callback inbox at each switch, and every command is applied exactly once (none lost at a
+    switch, no copy counted as stale)."""
+    import fe_node.freerun as freerun
+
+    class Alternating:
+        calls = 0
+
+        def spare(self, t):
+            Alternating.calls += 1
+            return (Alternating.calls - 1) // 15 % 2 == 0
+
+    monkeypatch.setattr(freerun, "SpareCore", Alternating)
+    bus = _FastPlantBus(0.5e-3)
+    latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
+    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=600.0, max_steps=75), threading.Event(),
+                     "surrogate", threading.Event())
+    assert len(bus.callbacks) == 2 and all(box.closed_t < float("inf") for box in bus.callbacks)
+    assert latch.gate.n_stale == 0 and latch.gate.n_dropped == 0
+    assert latch.newest_step >= stats.steps - 1 and len(stats.rtt_s) == latch.newest_step  # none lost, none twice
+    assert stats.misses <= 4
+
+
+def test_a_plant_without_poll_commands_takes_its_commands_at_its_ticks():
+    """``--no-poll-commands``: the callback inbox (commands stamped on arrival), looked at once per tick."""
     bus = _PlantBus()
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
-    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=1000.0, max_steps=20), threading.Event(),
-                     "surrogate", threading.Event())
+    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=1000.0, max_steps=20, poll_commands=False),
+                     threading.Event(), "surrogate", threading.Event())
     assert stats.steps == 20 and stats.misses == 0
     assert all(r == pytest.approx(100e-6, abs=1e-9) for r in stats.rtt_s)
 
@@ -541,7 +609,8 @@ def test_steady_misses_leave_out_the_first_warmup_steps():
     bus = _PlantBus()  # every command two periods late: every step misses, warm-up or not
     bus.commands = _ArrivingCommands(bus.published, 2.0 / 2000.0)
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
-    run = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=2000.0, max_steps=WARMUP_STEPS + 100),
+    run = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=2000.0, max_steps=WARMUP_STEPS + 100,
+                                                         poll_commands=False),
                    threading.Event(), "surrogate", threading.Event())
     assert WARMUP_STEPS - 5 <= run.warmup_misses <= WARMUP_STEPS and run.misses >= WARMUP_STEPS + 95
     assert run.summary()["steady_miss_pct"] >= 95.0
@@ -572,3 +641,58 @@ def test_a_state_before_the_preparations_timer_is_prepared_for_on_its_path():
     assert log[last - 2:last + 1] == [("update", n - 2), ("prepare", None), ("update", n - 1)]
     times = {d.step: d.solve_time_us for d in diagnostics}
     assert times[n] >= 3000.0 and times[n - 1] < 3000.0
+
+
+class _Queued:
+    """An inbox stand-in holding what was put in it (arrival times given)."""
+
+    def __init__(self):
+        self.queue, self.n_invalid, self.received_t, self.open = [], 0, 0.0, True
+
+    def drain(self):
+        while self.queue:
+            cmd, self.received_t = self.queue.pop(0)
+            yield cmd
+
+    def discard(self):
+        self.queue.clear()
+
+
+def test_a_command_in_both_inboxes_at_a_switch_is_taken_once():
+    """A command that came between the plant's last tick and its switch to the channel is in the
+    callback inbox being closed and in the channel: it is applied once (from the closed inbox, with
+    its arrival time), its copy ignored, not counted as stale; nothing is lost either way."""
+    from fe_node.freerun import CommandInboxes
+
+    class Bus:
+        def __init__(self):
+            self.channel, self.callbacks = _Queued(), []
+
+        def polled_inbox(self, topic):
+            return self.channel
+
+        def inbox(self, topic):
+            self.callbacks.append(_Queued())
+            return self.callbacks[-1]
+
+        def close_inbox(self, box):
+            box.open = False
+
+    bus = Bus()
+    latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
+    for step in range(3):
+        latch.published(step, 0.01 * step)
+    inboxes = CommandInboxes(bus, fast=True)
+    assert inboxes.read(False, latch) is bus.callbacks[0]
+    first, second = (LaserCommand(run_id="t", step=k, time_s=0.0, power_w=200.0 + k, speed_mm_s=800.0,
+                                  controller="t") for k in (1, 2))
+    for box, t in ((bus.callbacks[0], 0.001), (bus.channel, 0.002)):
+        box.queue.append((first, t))
+    inboxes.take(latch)                       # the callback inbox is read, the channel's copy dropped
+    assert latch.newest_step == 1 and not bus.channel.queue
+    for box, t in ((bus.callbacks[0], 0.011), (bus.channel, 0.012)):
+        box.queue.append((second, t))        # after the tick, before the switch
+    assert inboxes.read(True, latch) is bus.channel and not bus.callbacks[0].open
+    assert latch.newest_step == 2 and latch.rtt_s[-1] == pytest.approx(0.001)  # its arrival, 10 ms after state 1
+    inboxes.take(latch)                       # the copy in the channel
+    assert latch.newest_step == 2 and len(latch.rtt_s) == 2 and latch.gate.n_stale == 0

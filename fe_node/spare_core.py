@@ -1,0 +1,77 @@
+"""Whether the machine has a core to spare: the busy share of all its CPUs, from ``/proc/stat``.
+
+Polling for a message trades an otherwise idle core for latency (no wake-up on the message's
+path). When every core is busy (another job, a ``--load`` busy loop), the poller takes that time
+from the threads the loop itself needs, and sleeping until woken is faster. ``busy share`` =
+1 − (idle + iowait) / total over the last sampling interval, summed over all CPUs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+SPARE_BUSY_MAX = 0.9
+"""A core is to spare while the machine's CPUs were busy less than this share of the last interval."""
+SAMPLE_S = 0.1
+"""Sampling interval [s] of the busy share."""
+PROC_STAT = Path("/proc/stat")
+
+
+def proc_stat_line() -> str:
+    """The first line of ``/proc/stat``: the jiffies of all CPUs together."""
+    with PROC_STAT.open() as f:
+        return f.readline()
+
+
+def cpu_times(text: str) -> tuple[int, int]:
+    """(busy, total) jiffies of all CPUs from the text of ``/proc/stat`` (its first, ``cpu`` line)."""
+    fields = [int(v) for v in text.split("\n", 1)[0].split()[1:]]
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
+    total = sum(fields[:8])  # user nice system idle iowait irq softirq steal (guest is in user)
+    return total - idle, total
+
+
+@dataclass
+class SpareCore:
+    """Samples the machine's busy share every :data:`SAMPLE_S` and says whether a core is to spare.
+
+    Parameters
+    ----------
+    read : callable or None
+        Returns the text of ``/proc/stat`` (default: :func:`proc_stat_line`, or ``None`` where
+        there is no ``/proc/stat``: a core then always counts as spare).
+    busy_max : float
+        Busy share from which no core is to spare (:data:`SPARE_BUSY_MAX`).
+    sample_s : float
+        Sampling interval [s] (:data:`SAMPLE_S`).
+
+    Attributes
+    ----------
+    busy_share : float
+        Busy share of the machine's CPUs over the last complete interval (0 before the second sample).
+    """
+
+    read: Callable[[], str] | None = None
+    busy_max: float = SPARE_BUSY_MAX
+    sample_s: float = SAMPLE_S
+    busy_share: float = 0.0
+    _last: tuple[int, int] | None = None
+    _next_t: float = field(default=float("-inf"))
+
+    def __post_init__(self) -> None:
+        if self.read is None and PROC_STAT.exists():
+            self.read = proc_stat_line
+
+    def spare(self, t: float) -> bool:
+        """Whether a core is to spare at monotonic time ``t`` [s] (re-sampled every ``sample_s``)."""
+        if self.read is None:
+            return True
+        if t >= self._next_t:
+            self._next_t = t + self.sample_s
+            now = cpu_times(self.read())
+            if self._last is not None and now[1] > self._last[1]:
+                self.busy_share = (now[0] - self._last[0]) / (now[1] - self._last[1])
+            self._last = now
+        return self.busy_share < self.busy_max

@@ -1,0 +1,32 @@
+"""The machine's busy share, and whether a core is to spare (fe_node.spare_core)."""
+
+import pytest
+
+from fe_node.spare_core import SPARE_BUSY_MAX, SpareCore, cpu_times
+
+
+def stat(user, system, idle, iowait, steal=0):
+    return (f"cpu  {user} 0 {system} {idle} {iowait} 0 0 {steal} 0 0\n"
+            f"cpu0 {user} 0 {system} {idle} {iowait} 0 0 {steal} 0 0\nintr 1 2 3\n")
+
+
+def test_cpu_times_counts_iowait_as_idle_and_steal_as_busy():
+    assert cpu_times(stat(100, 50, 800, 20, steal=30)) == (180, 1000)
+
+
+def test_a_core_is_spare_until_the_machine_was_busy_most_of_the_last_interval():
+    texts = iter([stat(0, 0, 0, 0), stat(60, 10, 130, 0), stat(250, 50, 130, 0), stat(260, 50, 300, 10)])
+    reads = []
+    core = SpareCore(read=lambda: reads.append(None) or next(texts), sample_s=0.1)
+    assert core.spare(0.0)                       # nothing known yet
+    assert core.spare(0.05) and len(reads) == 1  # not re-read within the interval
+    assert core.spare(0.1) and core.busy_share == pytest.approx(70 / 200)
+    assert not core.spare(0.2) and core.busy_share == pytest.approx(1.0) and core.busy_share > SPARE_BUSY_MAX
+    assert core.spare(0.31) and core.busy_share == pytest.approx(10 / 190)
+
+
+def test_without_proc_stat_a_core_counts_as_spare(monkeypatch):
+    import fe_node.spare_core as spare_core
+
+    monkeypatch.setattr(spare_core, "PROC_STAT", spare_core.Path("/nonexistent/stat"))
+    assert SpareCore().spare(0.0) and SpareCore().read is None
