@@ -11,7 +11,7 @@ default) polls zenoh's channel for the command answering its last state instead,
 way. It polls while its controller is present, most recent commands came on time
 (:data:`POLL_MIN_ON_TIME`) and the machine has a core to spare
 (:class:`~fe_node.spare_core.SpareCore`); otherwise (a controller that cannot answer within the
-period, a machine whose cores are all busy) it reads a callback inbox at its ticks
+period, a machine whose cores are all busy) it switches to a callback inbox read at its ticks
 (:class:`CommandInboxes`). A command's arrival time is when the polling plant took it, or when
 the callback thread stamped it. A command is applicable
 (:class:`~fe_node.commands.CommandGate`) if its step is newer than the last applied one, at most
@@ -193,8 +193,8 @@ class CommandLatch:
     def offer(self, cmd: LaserCommand, t: float) -> None:
         """A decoded command received at monotonic time ``t`` [s]: applied if the gate admits it.
 
-        The command applied last, offered again, is ignored: the same message taken through the
-        plant's other inbox when it switches between them (:class:`CommandInboxes`).
+        The command applied last, offered again, is ignored: the same message received by both of
+        the plant's subscribers while it switches between them (:class:`CommandInboxes`).
         """
         if cmd == self._applied:
             return
@@ -289,62 +289,46 @@ def await_command(inbox: Inbox, latch: CommandLatch, step: int, start: float, ti
     in (offered to ``latch``) or ``tick`` [s] comes, yielding the core between looks."""
     sleep_until(start)
     while latch.on_time_step <= step and time.monotonic() < tick:
-        for cmd in inbox.drain():
-            latch.offer(cmd, inbox.received_t)
+        offer_all(inbox, latch)
         if latch.on_time_step <= step:
             os.sched_yield()
 
 
 class CommandInboxes:
-    """Where a free-running plant takes its commands from.
+    """Where a free-running plant takes its commands from: one subscriber at a time.
 
-    A slow plant (or one without ``poll_commands``) has one callback inbox: zenoh-python's callback
-    thread stamps each command on arrival. A fast one keeps zenoh's channel (:class:`PolledInbox`)
-    declared all along and reads it while it polls (no thread to wake on the command's way). While
-    it does not poll (its controller too slow or gone, or no core to spare) it declares a callback
-    inbox beside it and reads that instead (the faster path on a machine without an idle core,
-    ``docs/realtime.md``), dropping the channel's copies at each tick. At a switch, what the
-    closed callback inbox still holds is taken first; a copy of the command applied last, also in
-    the channel, is then ignored by :meth:`CommandLatch.offer`.
+    A slow plant (or one without ``poll_commands``) has a callback inbox: zenoh-python's callback
+    thread stamps each command on arrival. A fast one reads zenoh's channel
+    (:class:`~messages.bus.PolledInbox`) while it polls (no thread to wake on the command's way),
+    and switches to a callback inbox while it does not (its controller too slow or gone, or no
+    core to spare: a callback plant then, the one measured better under load, ``docs/realtime.md``).
+    A switch declares the new subscriber, then takes what the old one holds and closes it (a
+    channel cannot be read once closed), so that no command is lost; a copy of the command
+    applied last, received by both, is ignored by :meth:`CommandLatch.offer`.
     """
 
     def __init__(self, bus: NodeBus, fast: bool) -> None:
-        self.bus = bus
-        self.channel = bus.polled_inbox(LASER_COMMAND) if fast else None
-        self.callback: Inbox | None = None if fast else bus.inbox(LASER_COMMAND)
+        self.bus, self.fast, self.polling = bus, fast, fast
+        self.inbox: Inbox = bus.polled_inbox(LASER_COMMAND) if fast else bus.inbox(LASER_COMMAND)
         self._n_invalid_closed = 0
 
     def read(self, polling: bool, latch: CommandLatch) -> Inbox:
-        """The inbox to read this step: the channel if ``polling`` (a fast plant only), else the
-        callback inbox (declared again if closed)."""
-        if self.channel is None:
-            assert self.callback is not None
-            return self.callback
-        if polling and self.callback is not None:
-            closed, self.callback = self.callback, None
-            self.bus.close_inbox(closed)
-            offer_all(closed, latch)
-            self._n_invalid_closed += closed.n_invalid
-        elif not polling and self.callback is None:
-            self.callback = self.bus.inbox(LASER_COMMAND)
-        return self.channel if polling else self.callback  # type: ignore[return-value]
-
-    def take(self, latch: CommandLatch) -> None:
-        """At a tick: offer ``latch`` what arrived in the inbox being read (dropping the channel's
-        copies if that is the callback inbox)."""
-        if self.callback is None:
-            assert self.channel is not None
-            offer_all(self.channel, latch)
-            return
-        offer_all(self.callback, latch)
-        if self.channel is not None:
-            self.channel.discard()
+        """The inbox to read this step: zenoh's channel if ``polling`` (a fast plant only), else a
+        callback inbox; at a switch, what the old one holds is offered to ``latch`` first."""
+        if not self.fast or polling == self.polling:
+            return self.inbox
+        old = self.inbox
+        self.inbox = self.bus.polled_inbox(LASER_COMMAND) if polling else self.bus.inbox(LASER_COMMAND)
+        self.polling = polling
+        offer_all(old, latch)  # what comes from now on is in the new inbox too
+        self.bus.close_inbox(old)
+        self._n_invalid_closed += old.n_invalid
+        return self.inbox
 
     @property
     def n_invalid(self) -> int:
-        """Invalid commands dropped, each counted once (by the inbox read when it came)."""
-        boxes = [box for box in (self.channel, self.callback) if box is not None]
-        return self._n_invalid_closed + sum(box.n_invalid for box in boxes)
+        """Invalid commands dropped, by every inbox the plant read."""
+        return self._n_invalid_closed + self.inbox.n_invalid
 
 
 def offer_all(inbox: Inbox, latch: CommandLatch) -> None:
@@ -395,7 +379,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
             polled_steps += 1
             await_command(inbox, latch, step, min(published_t + POLL_AT * period, next_tick), next_tick)
         sleep_until(next_tick)
-        inboxes.take(latch)  # each stamped with its arrival (callback inbox) or when taken (channel)
+        offer_all(inbox, latch)  # each stamped with its arrival (callback inbox) or when taken (channel)
         step += 1
         now = time.monotonic()
         gone = controller_gone.is_set()
@@ -421,7 +405,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
                 n_dropped=latch.gate.n_dropped + inboxes.n_invalid, command_source=command_source,
             ))
     wall = time.monotonic() - started
-    inboxes.take(latch)  # count what is still queued
+    offer_all(inboxes.inbox, latch)  # count what is still queued
     stats = FreeRunStats(step, wall, misses, latch.n_late, latch.gate.n_dropped + inboxes.n_invalid,
                          latch.gate.counts[Verdict.OUT_OF_BOUNDS], inboxes.n_invalid, latch.n_fallbacks,
                          tuple(latch.rtt_s), warmup_misses, polled_steps)

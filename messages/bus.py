@@ -440,12 +440,6 @@ class PolledInbox(Inbox):
         super().__init__(topic, run_id)
         self.subscriber = session.declare_subscriber(key_expr(run_id, topic), zenoh.handlers.FifoChannel(self.CAPACITY))
 
-    def discard(self) -> None:
-        """Drop what has arrived, undecoded and uncounted (e.g. copies of what another inbox of
-        the same topic is read for)."""
-        while self.subscriber.try_recv() is not None:
-            pass
-
     def get(self, timeout: float | None = None) -> Any | None:
         """Next valid message already arrived, or ``None``; ``timeout`` must be ``None`` (it never waits)."""
         if timeout is not None:
@@ -625,7 +619,8 @@ class NodeBus:
         return box
 
     def close_inbox(self, box: Inbox) -> None:
-        """Undeclare ``box``'s subscriber: nothing more arrives in it (what has arrived stays)."""
+        """Undeclare ``box``'s subscriber: nothing more arrives in it. A callback :class:`Inbox`
+        can still be read for what had arrived; a :class:`PolledInbox` cannot (read it first)."""
         self._declared.remove(box.subscriber)
         box.subscriber.undeclare()
 

@@ -71,6 +71,25 @@ def test_polled_inbox_takes_what_arrived_in_order_and_counts_the_invalid(hub, ru
             box.get(timeout=0.1)
 
 
+def test_a_closed_inbox_keeps_what_arrived_and_receives_nothing_more(hub, run_id):
+    """NodeBus.close_inbox undeclares the subscriber: a callback inbox still holds what came before
+    (a plant switching inboxes reads it after), the session no longer lists it, nothing new arrives."""
+    def command(step):
+        return LaserCommand(run_id=run_id, step=step, time_s=0.0, power_w=200.0, speed_mm_s=800.0, controller="t")
+
+    with NodeBus("plant", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
+        box, channel = bus.inbox(LASER_COMMAND), bus.polled_inbox(LASER_COMMAND)
+        pub = bus.publisher(LASER_COMMAND)
+        pub.put(command(1))
+        time.sleep(0.3)
+        bus.close_inbox(box)
+        bus.close_inbox(channel)
+        assert box.subscriber not in bus._declared and channel.subscriber not in bus._declared
+        pub.put(command(2))
+        time.sleep(0.3)
+        assert list(box.drain()) == [command(1)]
+
+
 def test_newest_inbox_wakes_a_blocked_reader_without_counting_anything(hub, run_id):
     with NodeBus("controller", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         box = bus.newest_inbox(PLANT_STATE)
@@ -458,16 +477,19 @@ def test_free_running_plant_times_commands_from_their_arrival_not_from_its_tick(
 
 class _ArrivingCommands:
     """zenoh's channel or a callback inbox, stand-in: the command answering each published state
-    arrives ``delay_s`` after the state's publish. The channel stamps a command when taken, a
-    callback inbox on arrival; a callback inbox holds only what arrived while it was declared."""
+    arrives ``delay_s`` after the state's publish, in the inboxes declared then. The channel stamps
+    a command when taken, and cannot be read once closed; a callback inbox stamps on arrival."""
 
     def __init__(self, published, delay_s, callback=False):
         self.published, self.delay_s, self.callback = published, delay_s, callback
         self.n_invalid, self.received_t, self._given = 0, 0.0, 0
-        self.looks, self.look_times, self.discards = 0, [], 0
-        self.declared_t, self.closed_t = (time.monotonic() if callback else -1.0), float("inf")
+        self.looks, self.look_times = 0, []
+        self.declared_t, self.closed_t = time.monotonic(), float("inf")
 
-    def _arrivals(self):
+    def drain(self):
+        assert self.callback or self.closed_t == float("inf"), "a closed channel cannot be read"
+        self.looks += 1
+        self.look_times.append(time.monotonic())
         now = time.monotonic()
         while self._given < len(self.published):
             step, t = self.published[self._given]
@@ -476,33 +498,22 @@ class _ArrivingCommands:
                 return
             self._given += 1
             if arrival >= self.declared_t:
-                yield step, arrival
-
-    def drain(self):
-        self.looks += 1
-        self.look_times.append(time.monotonic())
-        for step, arrival in self._arrivals():
-            self.received_t = arrival if self.callback else time.monotonic()
-            yield LaserCommand(run_id="t", step=step + 1, time_s=0.0, power_w=200.0, speed_mm_s=800.0,
-                               controller="t")
-
-    def discard(self):
-        self.discards += 1
-        for _ in self._arrivals():
-            pass
+                self.received_t = arrival if self.callback else time.monotonic()
+                yield LaserCommand(run_id="t", step=step + 1, time_s=0.0, power_w=200.0, speed_mm_s=800.0,
+                                   controller="t")
 
 
 class _FastPlantBus(_PlantBus):
-    """Both of a fast plant's command inboxes: the channel, and callback inboxes declared and closed."""
+    """A fast plant's bus: the channels and callback inboxes it declared and closed."""
 
     def __init__(self, delay_s):
         super().__init__()
-        self.delay_s, self.callbacks = delay_s, []
-        self.commands = _ArrivingCommands(self.published, delay_s)
+        self.delay_s, self.channels, self.callbacks = delay_s, [], []
 
     def polled_inbox(self, topic):
         assert topic is LASER_COMMAND
-        return self.commands
+        self.channels.append(_ArrivingCommands(self.published, self.delay_s))
+        return self.channels[-1]
 
     def inbox(self, topic):
         assert topic is LASER_COMMAND
@@ -510,7 +521,7 @@ class _FastPlantBus(_PlantBus):
         return self.callbacks[-1]
 
     def close_inbox(self, box):
-        assert box in self.callbacks and box.closed_t == float("inf")
+        assert box.closed_t == float("inf")
         box.closed_t = time.monotonic()
 
 
@@ -525,9 +536,8 @@ class _NoSpareCore:
 def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, monkeypatch):
     """Faster than POLL_MAX_PERIOD_S, the plant takes each command as it comes (round trip ~ the
     command's delay, not the period) by polling zenoh's channel from POLL_AT of the period. With its
-    controller gone, or no core to spare, it reads a callback inbox (stamped on arrival) at its
-    ticks only, dropping the channel's copies; with commands coming after the tick it switches to
-    that within ~20 steps."""
+    controller gone, or no core to spare, it switches at once to a callback inbox (stamped on
+    arrival) read at its ticks only; with commands coming after the tick, within ~20 steps."""
     import fe_node.freerun as freerun
     from fe_node.freerun import POLL_AT, POLL_MAX_PERIOD_S
 
@@ -546,16 +556,15 @@ def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, 
     stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=rate_hz, max_steps=60), threading.Event(),
                      "surrogate", gone)
     rtt = sorted(stats.rtt_s)[len(stats.rtt_s) // 2]
-    channel = bus.commands
+    [channel] = bus.channels
     if case in ("controller gone", "no spare core"):
         assert len(bus.callbacks) == 1 and bus.callbacks[0].looks <= stats.steps + 2 and not yields  # ticks only
-        assert channel.looks == 0 and channel.discards >= stats.steps  # its copies dropped
+        assert channel.looks == 1 and channel.closed_t < bus.published[1][1]  # read once, closed at the start
         assert rtt == pytest.approx(delay_s, abs=1e-9) and stats.misses <= 2  # stamped on arrival
     elif case == "late":
         assert stats.misses >= stats.steps - 3  # (a tick late by 0.3 period would take one in time)
-        assert len(bus.callbacks) == 1 and bus.callbacks[0].declared_t < bus.published[30][1]
-        after = bus.published[30][1]
-        assert sum(t > after for t in channel.look_times) == 0  # the callback inbox, at the ticks only
+        assert len(bus.callbacks) == 1 and channel.closed_t < bus.published[30][1]
+        assert bus.callbacks[0].looks <= stats.steps + 2
     else:
         assert not bus.callbacks and delay_s <= rtt < delay_s + 0.3 / rate_hz and channel.looks > stats.steps
         assert len(yields) >= channel.looks - 2 * stats.steps - 2  # a yield after each look in vain
@@ -563,9 +572,9 @@ def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, 
 
 
 def test_a_fast_plant_switching_inboxes_takes_every_command_once(monkeypatch):
-    """A core to spare, then none, then one again (every 15 steps): the plant closes and declares its
-    callback inbox at each switch, and every command is applied exactly once (none lost at a
-    switch, no copy counted as stale)."""
+    """A core to spare, then none, then one again (every 15 steps): the plant declares a callback
+    inbox or a channel, then closes the other, at each switch, and every command is applied
+    exactly once (none lost at a switch, no copy counted as stale)."""
     import fe_node.freerun as freerun
 
     class Alternating:
@@ -580,7 +589,8 @@ def test_a_fast_plant_switching_inboxes_takes_every_command_once(monkeypatch):
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
     stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=600.0, max_steps=75), threading.Event(),
                      "surrogate", threading.Event())
-    assert len(bus.callbacks) == 2 and all(box.closed_t < float("inf") for box in bus.callbacks)
+    assert len(bus.callbacks) == 2 and len(bus.channels) == 3
+    assert [box.closed_t < float("inf") for box in bus.channels + bus.callbacks] == [True, True, False, True, True]
     assert latch.gate.n_stale == 0 and latch.gate.n_dropped == 0
     assert latch.newest_step >= stats.steps - 1 and len(stats.rtt_s) == latch.newest_step  # none lost, none twice
     assert stats.misses <= 4
@@ -644,55 +654,59 @@ def test_a_state_before_the_preparations_timer_is_prepared_for_on_its_path():
 
 
 class _Queued:
-    """An inbox stand-in holding what was put in it (arrival times given)."""
+    """An inbox stand-in holding what was put in it (arrival times given); a closed channel cannot be read."""
 
-    def __init__(self):
-        self.queue, self.n_invalid, self.received_t, self.open = [], 0, 0.0, True
+    def __init__(self, channel):
+        self.queue, self.n_invalid, self.received_t, self.channel, self.open = [], 0, 0.0, channel, True
 
     def drain(self):
+        assert self.open or not self.channel, "a closed channel cannot be read"
         while self.queue:
             cmd, self.received_t = self.queue.pop(0)
             yield cmd
 
-    def discard(self):
-        self.queue.clear()
-
 
 def test_a_command_in_both_inboxes_at_a_switch_is_taken_once():
-    """A command that came between the plant's last tick and its switch to the channel is in the
-    callback inbox being closed and in the channel: it is applied once (from the closed inbox, with
-    its arrival time), its copy ignored, not counted as stale; nothing is lost either way."""
+    """A command that came while the plant switched its inbox is in the old one and the new one:
+    it is applied once (from the old one, with its arrival time), its copy ignored, not counted as
+    stale; a channel is read before it is closed."""
     from fe_node.freerun import CommandInboxes
 
     class Bus:
         def __init__(self):
-            self.channel, self.callbacks = _Queued(), []
+            self.boxes = []
 
         def polled_inbox(self, topic):
-            return self.channel
+            self.boxes.append(_Queued(channel=True))
+            return self.boxes[-1]
 
         def inbox(self, topic):
-            self.callbacks.append(_Queued())
-            return self.callbacks[-1]
+            self.boxes.append(_Queued(channel=False))
+            return self.boxes[-1]
 
         def close_inbox(self, box):
             box.open = False
 
     bus = Bus()
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
-    for step in range(3):
+    for step in range(4):
         latch.published(step, 0.01 * step)
     inboxes = CommandInboxes(bus, fast=True)
-    assert inboxes.read(False, latch) is bus.callbacks[0]
-    first, second = (LaserCommand(run_id="t", step=k, time_s=0.0, power_w=200.0 + k, speed_mm_s=800.0,
-                                  controller="t") for k in (1, 2))
-    for box, t in ((bus.callbacks[0], 0.001), (bus.channel, 0.002)):
-        box.queue.append((first, t))
-    inboxes.take(latch)                       # the callback inbox is read, the channel's copy dropped
-    assert latch.newest_step == 1 and not bus.channel.queue
-    for box, t in ((bus.callbacks[0], 0.011), (bus.channel, 0.012)):
-        box.queue.append((second, t))        # after the tick, before the switch
-    assert inboxes.read(True, latch) is bus.channel and not bus.callbacks[0].open
-    assert latch.newest_step == 2 and latch.rtt_s[-1] == pytest.approx(0.001)  # its arrival, 10 ms after state 1
-    inboxes.take(latch)                       # the copy in the channel
-    assert latch.newest_step == 2 and len(latch.rtt_s) == 2 and latch.gate.n_stale == 0
+    commands = [LaserCommand(run_id="t", step=k, time_s=0.0, power_w=200.0 + k, speed_mm_s=800.0, controller="t")
+                for k in (1, 2, 3)]
+    [channel] = bus.boxes
+    channel.queue.append((commands[0], 0.001))
+    callback = inboxes.read(False, latch)   # to the callback inbox: the channel read, then closed
+    assert latch.newest_step == 1 and not channel.open and callback is bus.boxes[1]
+    for box, t in ((channel, 0.0115), (callback, 0.011)):
+        box.queue.append((commands[1], t))
+    for cmd in callback.drain():
+        latch.offer(cmd, callback.received_t)
+    assert latch.newest_step == 2
+    callback.queue.append((commands[2], 0.021))
+    channel2 = inboxes.read(True, latch)    # back to a channel: the callback inbox read, then closed
+    channel2.queue.append((commands[2], 0.0215))
+    assert not callback.open and latch.newest_step == 3 and latch.rtt_s[-1] == pytest.approx(0.001)
+    for cmd in channel2.drain():            # the copy
+        latch.offer(cmd, channel2.received_t)
+    assert latch.newest_step == 3 and len(latch.rtt_s) == 3 and latch.gate.n_stale == 0
