@@ -49,14 +49,15 @@ class SpareCore:
 
     Attributes
     ----------
-    busy_share : float
-        Busy share of the machine's CPUs over the last complete interval (0 before the second sample).
+    busy_share : float or None
+        Busy share of the machine's CPUs over the last complete interval (``None`` before the
+        second sample: no core counts as spare until one is measured).
     """
 
     read: Callable[[], str] | None = None
     busy_max: float = SPARE_BUSY_MAX
     sample_s: float = SAMPLE_S
-    busy_share: float = 0.0
+    busy_share: float | None = None
     _last: tuple[int, int] | None = None
     _next_t: float = field(default=float("-inf"))
 
@@ -74,4 +75,4 @@ class SpareCore:
             if self._last is not None and now[1] > self._last[1]:
                 self.busy_share = (now[0] - self._last[0]) / (now[1] - self._last[1])
             self._last = now
-        return self.busy_share < self.busy_max
+        return self.busy_share is not None and self.busy_share < self.busy_max

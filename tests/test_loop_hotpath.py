@@ -532,6 +532,13 @@ class _NoSpareCore:
         return False
 
 
+class _SpareCore:
+    """A machine with a core to spare."""
+
+    def spare(self, t):
+        return True
+
+
 @pytest.mark.parametrize("case", ["on time", "controller gone", "late", "no spare core"])
 def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, monkeypatch):
     """Faster than POLL_MAX_PERIOD_S, the plant takes each command as it comes (round trip ~ the
@@ -548,8 +555,7 @@ def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, 
     gone = threading.Event()
     if case == "controller gone":
         gone.set()
-    if case == "no spare core":
-        monkeypatch.setattr(freerun, "SpareCore", _NoSpareCore)
+    monkeypatch.setattr(freerun, "SpareCore", _NoSpareCore if case == "no spare core" else _SpareCore)
     yields = []
     monkeypatch.setattr(os, "sched_yield", lambda: yields.append(None))
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)

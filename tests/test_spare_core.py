@@ -18,8 +18,8 @@ def test_a_core_is_spare_until_the_machine_was_busy_most_of_the_last_interval():
     texts = iter([stat(0, 0, 0, 0), stat(60, 10, 130, 0), stat(250, 50, 130, 0), stat(260, 50, 300, 10)])
     reads = []
     core = SpareCore(read=lambda: reads.append(None) or next(texts), sample_s=0.1)
-    assert core.spare(0.0)                       # nothing known yet
-    assert core.spare(0.05) and len(reads) == 1  # not re-read within the interval
+    assert not core.spare(0.0)                       # nothing measured yet
+    assert not core.spare(0.05) and len(reads) == 1  # not re-read within the interval
     assert core.spare(0.1) and core.busy_share == pytest.approx(70 / 200)
     assert not core.spare(0.2) and core.busy_share == pytest.approx(1.0) and core.busy_share > SPARE_BUSY_MAX
     assert core.spare(0.31) and core.busy_share == pytest.approx(10 / 190)
