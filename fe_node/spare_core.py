@@ -3,7 +3,8 @@
 Polling for a message trades an otherwise idle core for latency (no wake-up on the message's
 path). When every core is busy (another job, a ``--load`` busy loop), the poller takes that time
 from the threads the loop itself needs, and sleeping until woken is faster. ``busy share`` =
-1 − (idle + iowait) / total over the last sampling interval, summed over all CPUs.
+1 − (idle + iowait) / total over the last sampling interval, summed over all CPUs; a core is
+spare from a share under :data:`SPARE_BUSY_RESUME` until one over :data:`SPARE_BUSY_MAX`.
 """
 
 from __future__ import annotations
@@ -13,7 +14,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 SPARE_BUSY_MAX = 0.9
-"""A core is to spare while the machine's CPUs were busy less than this share of the last interval."""
+"""A spare core is no longer spare once the machine's CPUs were busy more than this share of the
+last interval."""
+SPARE_BUSY_RESUME = 0.8
+"""A core becomes spare again once they were busy less than this share (a loaded machine hovers
+around :data:`SPARE_BUSY_MAX` without the poller)."""
 SAMPLE_S = 0.1
 """Sampling interval [s] of the busy share."""
 PROC_STAT = Path("/proc/stat")
@@ -43,7 +48,9 @@ class SpareCore:
         Returns the text of ``/proc/stat`` (default: :func:`proc_stat_line`, or ``None`` where
         there is no ``/proc/stat``: a core then always counts as spare).
     busy_max : float
-        Busy share from which no core is to spare (:data:`SPARE_BUSY_MAX`).
+        Busy share above which a spare core is no longer spare (:data:`SPARE_BUSY_MAX`).
+    busy_resume : float
+        Busy share under which a core becomes spare (:data:`SPARE_BUSY_RESUME`).
     sample_s : float
         Sampling interval [s] (:data:`SAMPLE_S`).
 
@@ -56,9 +63,11 @@ class SpareCore:
 
     read: Callable[[], str] | None = None
     busy_max: float = SPARE_BUSY_MAX
+    busy_resume: float = SPARE_BUSY_RESUME
     sample_s: float = SAMPLE_S
     busy_share: float | None = None
     _last: tuple[int, int] | None = None
+    _spare: bool = False
     _next_t: float = field(default=float("-inf"))
 
     def __post_init__(self) -> None:
@@ -66,13 +75,15 @@ class SpareCore:
             self.read = proc_stat_line
 
     def spare(self, t: float) -> bool:
-        """Whether a core is to spare at monotonic time ``t`` [s] (re-sampled every ``sample_s``)."""
+        """Whether a core is to spare at monotonic time ``t`` [s] (re-sampled every ``sample_s``;
+        none before the first interval is measured)."""
         if self.read is None:
             return True
         if t >= self._next_t:
             self._next_t = t + self.sample_s
             now = cpu_times(self.read())
             if self._last is not None and now[1] > self._last[1]:
-                self.busy_share = (now[0] - self._last[0]) / (now[1] - self._last[1])
+                self.busy_share = share = (now[0] - self._last[0]) / (now[1] - self._last[1])
+                self._spare = share < (self.busy_max if self._spare else self.busy_resume)
             self._last = now
-        return self.busy_share is not None and self.busy_share < self.busy_max
+        return self._spare

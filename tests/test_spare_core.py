@@ -2,7 +2,7 @@
 
 import pytest
 
-from fe_node.spare_core import SPARE_BUSY_MAX, SpareCore, cpu_times
+from fe_node.spare_core import SPARE_BUSY_MAX, SPARE_BUSY_RESUME, SpareCore, cpu_times
 
 
 def stat(user, system, idle, iowait, steal=0):
@@ -30,3 +30,12 @@ def test_without_proc_stat_a_core_counts_as_spare(monkeypatch):
 
     monkeypatch.setattr(spare_core, "PROC_STAT", spare_core.Path("/nonexistent/stat"))
     assert SpareCore().spare(0.0) and SpareCore().read is None
+
+
+def test_a_core_becomes_spare_under_the_resume_share_and_stays_so_up_to_the_max():
+    """Hysteresis: 85 % busy is not enough to start polling, nor to stop it."""
+    assert SPARE_BUSY_RESUME < 0.85 < SPARE_BUSY_MAX
+    totals = [(0, 0), (85, 100), (170, 200), (220, 300), (305, 400), (400, 500), (485, 600)]
+    texts = iter(stat(busy, 0, total - busy, 0) for busy, total in totals)
+    core = SpareCore(read=lambda: next(texts), sample_s=0.1)
+    assert [core.spare(0.1 * k) for k in range(len(totals))] == [False, False, False, True, True, False, False]
