@@ -3,8 +3,9 @@
 Polling for a message trades an otherwise idle core for latency (no wake-up on the message's
 path). When every core is busy (another job, a ``--load`` busy loop), the poller takes that time
 from the threads the loop itself needs, and sleeping until woken is faster. ``busy share`` =
-1 − (idle + iowait) / total over the last sampling interval, summed over all CPUs; a core is
-spare from a share under :data:`SPARE_BUSY_RESUME` until one over :data:`SPARE_BUSY_MAX`.
+1 − (idle + iowait) / total, summed over all CPUs, measured every :data:`SAMPLE_S` and averaged
+(:data:`SMOOTHING`); a core is spare from a share under :data:`SPARE_BUSY_RESUME` until one over
+:data:`SPARE_BUSY_MAX`.
 """
 
 from __future__ import annotations
@@ -21,6 +22,9 @@ SPARE_BUSY_RESUME = 0.8
 around :data:`SPARE_BUSY_MAX` without the poller)."""
 SAMPLE_S = 0.1
 """Sampling interval [s] of the busy share."""
+SMOOTHING = 0.3
+"""Weight of the newest interval in the busy share (an exponential average over ~0.3 s: one busy
+interval of another job does not stop the polling)."""
 PROC_STAT = Path("/proc/stat")
 
 
@@ -53,17 +57,22 @@ class SpareCore:
         Busy share under which a core becomes spare (:data:`SPARE_BUSY_RESUME`).
     sample_s : float
         Sampling interval [s] (:data:`SAMPLE_S`).
+    smoothing : float
+        Weight of the newest interval in :attr:`busy_share` (:data:`SMOOTHING`; 1: the last
+        interval alone).
 
     Attributes
     ----------
     busy_share : float or None
-        Busy share of the machine's CPUs over the last complete interval (``None`` before the
-        second sample: no core counts as spare until one is measured).
+        Busy share of the machine's CPUs, the first measured interval's, then an exponential
+        average of the intervals (``None`` before the first interval is measured: no core counts
+        as spare until then).
     """
 
     read: Callable[[], str] | None = None
     busy_max: float = SPARE_BUSY_MAX
     busy_resume: float = SPARE_BUSY_RESUME
+    smoothing: float = SMOOTHING
     sample_s: float = SAMPLE_S
     busy_share: float | None = None
     _last: tuple[int, int] | None = None
@@ -83,7 +92,10 @@ class SpareCore:
             self._next_t = t + self.sample_s
             now = cpu_times(self.read())
             if self._last is not None and now[1] > self._last[1]:
-                self.busy_share = share = (now[0] - self._last[0]) / (now[1] - self._last[1])
+                share = (now[0] - self._last[0]) / (now[1] - self._last[1])
+                if self.busy_share is not None:
+                    share = self.busy_share + self.smoothing * (share - self.busy_share)
+                self.busy_share = share
                 self._spare = share < (self.busy_max if self._spare else self.busy_resume)
             self._last = now
         return self._spare

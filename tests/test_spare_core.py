@@ -17,7 +17,7 @@ def test_cpu_times_counts_iowait_as_idle_and_steal_as_busy():
 def test_a_core_is_spare_until_the_machine_was_busy_most_of_the_last_interval():
     texts = iter([stat(0, 0, 0, 0), stat(60, 10, 130, 0), stat(250, 50, 130, 0), stat(260, 50, 300, 10)])
     reads = []
-    core = SpareCore(read=lambda: reads.append(None) or next(texts), sample_s=0.1)
+    core = SpareCore(read=lambda: reads.append(None) or next(texts), sample_s=0.1, smoothing=1.0)
     assert not core.spare(0.0)                       # nothing measured yet
     assert not core.spare(0.05) and len(reads) == 1  # not re-read within the interval
     assert core.spare(0.1) and core.busy_share == pytest.approx(70 / 200)
@@ -37,5 +37,17 @@ def test_a_core_becomes_spare_under_the_resume_share_and_stays_so_up_to_the_max(
     assert SPARE_BUSY_RESUME < 0.85 < SPARE_BUSY_MAX
     totals = [(0, 0), (85, 100), (170, 200), (220, 300), (305, 400), (400, 500), (485, 600)]
     texts = iter(stat(busy, 0, total - busy, 0) for busy, total in totals)
-    core = SpareCore(read=lambda: next(texts), sample_s=0.1)
+    core = SpareCore(read=lambda: next(texts), sample_s=0.1, smoothing=1.0)
     assert [core.spare(0.1 * k) for k in range(len(totals))] == [False, False, False, True, True, False, False]
+
+
+def test_one_busy_interval_of_another_job_does_not_stop_the_polling():
+    """The busy share is averaged: quiet at 60 %, one interval at 100 % (a burst of another job)
+    leaves a core spare, a sustained 100 % (a busy loop) does not."""
+    busy = [60, 60, 100, 60, 60, 100, 100, 100, 100]
+    totals = [(sum(busy[:k]), 100 * k) for k in range(len(busy) + 1)]
+    texts = iter(stat(b, 0, t - b, 0) for b, t in totals)
+    core = SpareCore(read=lambda: next(texts), sample_s=0.1)
+    spare = [core.spare(0.1 * k) for k in range(len(totals))]
+    assert spare[1:3] == [True, True] and spare[3] and spare[4]  # through the burst
+    assert spare[-1] is False and core.busy_share > SPARE_BUSY_MAX
