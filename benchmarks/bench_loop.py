@@ -71,6 +71,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 import zenoh  # noqa: E402
 
+from fe_node.freerun import FreeRunSettings  # noqa: E402
 from fe_node.spare_core import cpu_times, proc_stat_line  # noqa: E402
 from launch import free_loopback_endpoint  # noqa: E402
 from messages.auth import RunCredentials  # noqa: E402
@@ -244,7 +245,8 @@ def main() -> int:
     parser.add_argument("--fifo-priority", type=int, metavar="N",
                         help="run every node process (ping, pong, plant, controller) under SCHED_FIFO priority N "
                              "(chrt; needs CAP_SYS_NICE): how a real-time deployment would run them")
-    parser.add_argument("--poll-commands", action=argparse.BooleanOptionalAction, default=True,
+    parser.add_argument("--poll-commands", action=argparse.BooleanOptionalAction,
+                        default=FreeRunSettings().poll_commands,
                         help="the surrogate plant polls for each command while a core is to spare "
                              "(default: %(default)s; --no-poll-commands: it takes them at its ticks)")
     parser.add_argument("--pin", action="store_true",
