@@ -44,8 +44,8 @@ own would have: random pairs of a bare round trip and an update whose sum exceed
 ``worked_rtt_median_us``, ``worked_rtt_p99_us`` and ``worked_miss_pct`` (phase 4: the share of
 echoes later than a period, what this machine leaves a loop with this update and no code of its
 own), the plant's steps for which it polled (``plant_polled_pct``), the topology and the
-transport, the load (1-minute load average at the start and end, the machine's CPU use during the loop, the
-busy loop if any) and context. The numbers depend on what else runs on the machine; the ratio,
+transport, the load (1-minute load average at the start and end, the machine's CPU use during
+the loop, the busy loop if any) and context. The numbers depend on what else runs on the machine; the ratio,
 measured in the same run, much less.
 
 Usage: ``python benchmarks/bench_loop.py --rate-hz 2000 [--duration-s 5] [--topology router]

@@ -15,11 +15,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 SPARE_BUSY_MAX = 0.9
-"""A spare core is no longer spare once the machine's CPUs were busy more than this share of the
-last interval."""
+"""A spare core is no longer spare once the machine's busy share (averaged) exceeds this."""
 SPARE_BUSY_RESUME = 0.8
-"""A core becomes spare again once they were busy less than this share (a loaded machine hovers
-around :data:`SPARE_BUSY_MAX` without the poller)."""
+"""A core becomes spare again once the busy share is under this (a loaded machine hovers around
+:data:`SPARE_BUSY_MAX` without the poller)."""
 SAMPLE_S = 0.1
 """Sampling interval [s] of the busy share."""
 SMOOTHING = 0.3
@@ -80,6 +79,10 @@ class SpareCore:
     _next_t: float = field(default=float("-inf"))
 
     def __post_init__(self) -> None:
+        if not 0.0 < self.busy_resume <= self.busy_max <= 1.0:
+            raise ValueError(f"need 0 < busy_resume <= busy_max <= 1, got {self.busy_resume}, {self.busy_max}")
+        if not 0.0 < self.smoothing <= 1.0 or not self.sample_s > 0.0:
+            raise ValueError(f"need smoothing in (0, 1] and sample_s > 0, got {self.smoothing}, {self.sample_s}")
         if self.read is None and PROC_STAT.exists():
             self.read = proc_stat_line
 

@@ -51,3 +51,9 @@ def test_one_busy_interval_of_another_job_does_not_stop_the_polling():
     spare = [core.spare(0.1 * k) for k in range(len(totals))]
     assert spare[1:3] == [True, True] and spare[3] and spare[4]  # through the burst
     assert spare[-1] is False and core.busy_share > SPARE_BUSY_MAX
+
+
+@pytest.mark.parametrize("kwargs", [{"busy_resume": 0.95}, {"busy_max": 1.5}, {"smoothing": 0.0}, {"sample_s": 0.0}])
+def test_inconsistent_thresholds_are_refused(kwargs):
+    with pytest.raises(ValueError):
+        SpareCore(read=lambda: stat(0, 0, 0, 0), **kwargs)
