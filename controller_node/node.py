@@ -38,6 +38,7 @@ from messages.bus import (
     add_bus_arguments,
     bus_settings_from_args,
     run_node,
+    single_threaded_blas,
 )
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 from messages.config import as_dict, build, load_toml
@@ -386,6 +387,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m controller_node``."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    single_threaded_blas()
     try:
         bus_settings = bus_settings_from_args(args)
         settings = settings_from_args(args)

@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass
 
 from fe_node.freerun import PlantSample, add_free_run_arguments, serve, settings_from_args
-from messages.bus import add_bus_arguments, bus_settings_from_args
+from messages.bus import add_bus_arguments, bus_settings_from_args, single_threaded_blas
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 
 NODE_NAME = "plant"
@@ -97,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     add_free_run_arguments(parser, rate_hz=1000.0)
     add_bus_arguments(parser)
     args = parser.parse_args(argv)
+    single_threaded_blas()
     try:
         bus_settings = bus_settings_from_args(args)
         settings, policy = settings_from_args(args)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from fe_node.freerun import PlantSample, add_free_run_arguments, serve, settings_from_args
-from messages.bus import add_bus_arguments, bus_settings_from_args
+from messages.bus import add_bus_arguments, bus_settings_from_args, single_threaded_blas
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 
 NODE_NAME = "plant"
@@ -91,6 +91,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="GP model file (default: the shipped one)")
     add_bus_arguments(parser)
     args = parser.parse_args(argv)
+    single_threaded_blas()
     try:
         bus_settings = bus_settings_from_args(args)
         settings, policy = settings_from_args(args, dt_s=GP_STEP_S)

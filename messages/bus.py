@@ -708,6 +708,19 @@ class NodeBus:
         print(f"{level.name.lower()}: {text}", flush=True)
 
 
+def single_threaded_blas() -> None:
+    """Run every BLAS of this process on the calling thread (``threadpoolctl``), for the nodes of a
+    fast loop (a free-running plant, the controller): call it before any numerical work.
+
+    Their matrices are small, and with two or more threads OpenBLAS leaves its workers spinning for
+    a while after each call: they took about half a core for the first ~0.1 s of a 2 kHz loop and
+    slowed the plant's first steps to ~2 ms (``docs/realtime.md``, "The loop's first 200 steps").
+    """
+    import threadpoolctl
+
+    threadpoolctl.threadpool_limits(1, user_api="blas")
+
+
 def run_node(prog: str, node: str, settings: BusSettings, body: Callable[[NodeBus], int]) -> int:
     """Run ``body(bus)`` inside ``node``'s :class:`NodeBus`: the one place a node main turns a
     session failure into one line and an exit status.
