@@ -72,13 +72,13 @@ import numpy as np  # noqa: E402
 import zenoh  # noqa: E402
 
 from fe_node.freerun import FreeRunSettings  # noqa: E402
-from fe_node.spare_core import cpu_times, proc_stat_line  # noqa: E402
 from launch import free_loopback_endpoint  # noqa: E402
 from messages.auth import RunCredentials  # noqa: E402
 from messages.bus import SUPERVISOR_ENV, BusSettings, StopFlag, wait_for_nodes, zenoh_config  # noqa: E402
 from messages.cli import run_main  # noqa: E402
 from messages.codec import MessageError, decode  # noqa: E402
 from messages.hub import router_config  # noqa: E402
+from messages.spare_core import cpu_times, proc_stat_line  # noqa: E402
 from messages.topics import CONTROLLER_DIAGNOSTICS, key_expr  # noqa: E402
 
 PINGPONG = str(REPO / "benchmarks" / "zenoh_pingpong.py")

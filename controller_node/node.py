@@ -42,6 +42,7 @@ from messages.bus import (
 )
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 from messages.config import as_dict, build, load_toml
+from messages.spare_core import SpareCore
 from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE, RUN_EVENTS
 
 NODE_NAME = "controller"
@@ -123,8 +124,9 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
 
     The states are answered on a thread of their own that blocks in zenoh until a state arrives
     (:class:`~messages.bus.NewestInbox`: no poll timeout, no queue hop; for a steady sensor faster
-    than :data:`PREPARE_LATE_MIN_S` it polls from :data:`POLL_AT` of the interval on
-    (:meth:`AnswerLoop.poll_window`); ``busy_wait``: it polls all the time and keeps its core) and
+    than :data:`PREPARE_LATE_MIN_S` it polls from :data:`POLL_AT` of the interval on, or from its
+    answer on while the machine has a core to spare (:meth:`AnswerLoop.poll_window`);
+    ``busy_wait``: it polls all the time and keeps its core) and
     publishes the command before anything else; this thread waits
     for a stop request (signals are handled here) or the plant's departure, then wakes it.
     """
@@ -151,7 +153,8 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
     lost = not stop.is_set() and not ended(plant_events, plant, PLANT_END_WAIT_S)
     reason = "stopped" if stop.is_set() else f"plant '{plant}' " + ("lost (no end event)" if lost else "ended")
     summary = (f"{reason}; {controller.n_fallbacks} fallbacks, {states.n_invalid} invalid and "
-               f"{loop.n_impossible} impossible states dropped, {loop.n_skipped} skipped")
+               f"{loop.n_impossible} impossible states dropped, {loop.n_skipped} skipped; polled from the "
+               f"answer on (a core to spare) for {loop.n_kept_core} states")
     bus.log(LogLevel.ERROR if lost else LogLevel.INFO, summary, time_s=loop.last_time_s)
     bus.end_detail(summary)
     return 1 if lost else 0
@@ -180,7 +183,8 @@ PREPARE_WINDOW = 8
 PREPARE_LATE_MIN_S = 2e-3
 """States closer than this (a free-running sensor): the preparation runs right after the command,
 and the answering thread polls for the next state from :data:`POLL_AT` of the shortest recent
-interval after the last arrival (no wake-up on the state's path, a fraction of a core spent)."""
+interval after the last arrival (no wake-up on the state's path, a fraction of a core spent), or
+from its answer on while the machine has a core to spare (:meth:`AnswerLoop.poll_window`)."""
 POLL_AT = 0.6
 POLL_SPAN = 3.0
 """Polling for the next state ends this many shortest intervals after the last arrival; the thread
@@ -205,6 +209,8 @@ class AnswerLoop:
     status: int = 0
     error: BaseException | None = None
     busy_wait: bool = False
+    spare: SpareCore = field(default_factory=SpareCore)
+    n_kept_core: int = 0
     _last_arrival: float | None = None
     _intervals: deque = field(default_factory=lambda: deque(maxlen=PREPARE_WINDOW))
     _prepare_timer: threading.Timer | None = None
@@ -261,11 +267,18 @@ class AnswerLoop:
     def poll_window(self) -> tuple[float, float] | None:
         """When to poll for the next state (monotonic ``(start, end)`` [s]): only for states that come
         steadily closer than :data:`PREPARE_LATE_MIN_S` (a free-running sensor), else ``None``
-        (sleep in zenoh until one arrives)."""
+        (sleep in zenoh until one arrives). The window opens at :data:`POLL_AT` of the shortest
+        recent interval after the last arrival, or at once while the machine has a core to spare
+        (:class:`~messages.spare_core.SpareCore`): the thread then keeps its core between states and
+        its caches stay warm for the next update (counted in :attr:`n_kept_core`)."""
         intervals = self._intervals
         if self.busy_wait or len(intervals) < intervals.maxlen or (period := min(intervals)) >= PREPARE_LATE_MIN_S:
             return None
-        return self._last_arrival + POLL_AT * period, self._last_arrival + POLL_SPAN * period
+        end = self._last_arrival + POLL_SPAN * period
+        if self.spare.spare(time.monotonic()):
+            self.n_kept_core += 1
+            return self._last_arrival, end
+        return self._last_arrival + POLL_AT * period, end
 
     def schedule_prepare(self) -> None:
         """Prepare the controller's next update (after a command): at :data:`PREPARE_AT` of the

@@ -10,7 +10,7 @@ default) polls zenoh's channel for the command answering its last state instead,
 (yielding its core between looks), then sleeps to the tick: no thread to wake on the command's
 way. It polls while its controller is present, most recent commands came on time
 (:data:`POLL_MIN_ON_TIME`) and the machine has a core to spare
-(:class:`~fe_node.spare_core.SpareCore`); otherwise (a controller that cannot answer within the
+(:class:`~messages.spare_core.SpareCore`); otherwise (a controller that cannot answer within the
 period, a machine whose cores are all busy) it switches to a callback inbox read at its ticks
 (:class:`CommandInboxes`). A command's arrival time is when the polling plant took it, or when
 the callback thread stamped it. A command is applicable
@@ -41,10 +41,10 @@ from typing import Protocol
 import numpy as np
 
 from fe_node.commands import FALLBACKS, CommandGate, CommandPolicy, Verdict
-from fe_node.spare_core import SpareCore
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
 from messages.bus import BusSettings, Inbox, NodeBus, StopFlag, run_node
 from messages.cli import UsageError
+from messages.spare_core import SpareCore
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
 
 RING = 1 << 14  # publish times kept for round-trip matching; older commands are stale (steps)

@@ -207,24 +207,39 @@ def test_newest_inbox_gives_up_its_core_after_each_look(hub, run_id, monkeypatch
         assert len(looks) > 10 and len(yields) >= len(looks) - 2  # a yield between any two looks
 
 
-@pytest.mark.parametrize(("interval_s", "n", "busy", "polls"), [
-    (0.5e-3, 8, False, True),    # a 2 kHz sensor: poll ahead of the next state
-    (0.5e-3, 7, False, False),   # not yet known to be steady (fewer than PREPARE_WINDOW intervals)
-    (2.5e-3, 8, False, False),   # slower than PREPARE_LATE_MIN_S (e.g. lockstep FE): sleep in zenoh
-    (0.5e-3, 8, True, False),    # --busy-wait polls all the time anyway
+class _Spare:
+    """A :class:`~messages.spare_core.SpareCore` stand-in with a fixed answer."""
+
+    def __init__(self, spare: bool):
+        self.answer = spare
+
+    def spare(self, t: float) -> bool:
+        return self.answer
+
+
+@pytest.mark.parametrize(("interval_s", "n", "busy", "spare", "polls"), [
+    (0.5e-3, 8, False, False, "ahead"),   # a 2 kHz sensor, a busy machine: poll ahead of the next state
+    (0.5e-3, 8, False, True, "at once"),  # ... a core to spare: poll from the answer on (keep the core)
+    (0.5e-3, 7, False, True, None),       # not yet known to be steady (fewer than PREPARE_WINDOW intervals)
+    (2.5e-3, 8, False, True, None),       # slower than PREPARE_LATE_MIN_S (e.g. lockstep FE): sleep in zenoh
+    (0.5e-3, 8, True, True, None),        # --busy-wait polls all the time anyway
 ])
-def test_answer_loop_polls_only_for_a_steady_fast_sensor(interval_s, n, busy, polls):
+def test_answer_loop_polls_only_for_a_steady_fast_sensor(interval_s, n, busy, spare, polls):
     settings = ControllerSettings(set_point_m2=0.063e-6)
-    loop = AnswerLoop(_Bus(), None, settings, None, None, None, done=lambda: True, busy_wait=busy)
+    loop = AnswerLoop(_Bus(), None, settings, None, None, None, done=lambda: True, busy_wait=busy,
+                      spare=_Spare(spare))
     times = [10.0 + k * interval_s + (0.1 * interval_s if k % 2 else 0.0) for k in range(n + 1)]
     for t in times:
         loop._arrived(t)
     window = loop.poll_window()
     shortest = min(b - a for a, b in zip(times, times[1:]))
-    if polls:
+    if polls == "ahead":
         assert window == pytest.approx((times[-1] + POLL_AT * shortest, times[-1] + POLL_SPAN * shortest))
+    elif polls == "at once":
+        assert window == pytest.approx((times[-1], times[-1] + POLL_SPAN * shortest))
     else:
         assert window is None
+    assert loop.n_kept_core == (polls == "at once")
 
 
 @pytest.mark.parametrize("late", [0.3, 0.5, 0.9])
@@ -232,7 +247,8 @@ def test_poll_windows_keep_to_a_steady_sensor_when_the_reader_wakes_late(late):
     """A reader that wakes ``late`` periods after the window opened finds the state waiting; the
     state counts as arriving on schedule, so the windows do not fall further and further behind."""
     period = 0.5e-3
-    loop = AnswerLoop(_Bus(), None, ControllerSettings(set_point_m2=0.063e-6), None, None, None, done=lambda: True)
+    loop = AnswerLoop(_Bus(), None, ControllerSettings(set_point_m2=0.063e-6), None, None, None, done=lambda: True,
+                      spare=_Spare(False))
     for k in range(PREPARE_WINDOW + 1):
         loop._arrived(10.0 + k * period)
     lags = []

@@ -1,8 +1,8 @@
-"""The machine's busy share, and whether a core is to spare (fe_node.spare_core)."""
+"""The machine's busy share, and whether a core is to spare (messages.spare_core)."""
 
 import pytest
 
-from fe_node.spare_core import SPARE_BUSY_MAX, SPARE_BUSY_RESUME, SpareCore, cpu_times
+from messages.spare_core import SPARE_BUSY_MAX, SPARE_BUSY_RESUME, SpareCore, cpu_times
 
 
 def stat(user, system, idle, iowait, steal=0):
@@ -26,7 +26,7 @@ def test_a_core_is_spare_until_the_machine_was_busy_most_of_the_last_interval():
 
 
 def test_without_proc_stat_a_core_counts_as_spare(monkeypatch):
-    import fe_node.spare_core as spare_core
+    import messages.spare_core as spare_core
 
     monkeypatch.setattr(spare_core, "PROC_STAT", spare_core.Path("/nonexistent/stat"))
     assert SpareCore().spare(0.0) and SpareCore().read is None

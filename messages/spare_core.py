@@ -1,7 +1,9 @@
 """Whether the machine has a core to spare: the busy share of all its CPUs, from ``/proc/stat``.
 
 Polling for a message trades an otherwise idle core for latency (no wake-up on the message's
-path). When every core is busy (another job, a ``--load`` busy loop), the poller takes that time
+path): a fast free-running plant polls for its commands (``fe_node.freerun``) and the controller
+node keeps its core between states (``controller_node.node.AnswerLoop.poll_window``) while one is
+to spare. When every core is busy (another job, a ``--load`` busy loop), the poller takes that time
 from the threads the loop itself needs, and sleeping until woken is faster. ``busy share`` =
 1 − (idle + iowait) / total, summed over all CPUs, measured every :data:`SAMPLE_S` and averaged
 (:data:`SMOOTHING`); a core is spare from a share under :data:`SPARE_BUSY_RESUME` until one over
