@@ -153,8 +153,8 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
     lost = not stop.is_set() and not ended(plant_events, plant, PLANT_END_WAIT_S)
     reason = "stopped" if stop.is_set() else f"plant '{plant}' " + ("lost (no end event)" if lost else "ended")
     summary = (f"{reason}; {controller.n_fallbacks} fallbacks, {states.n_invalid} invalid and "
-               f"{loop.n_impossible} impossible states dropped, {loop.n_skipped} skipped; polled from the "
-               f"answer on (a core to spare) for {loop.n_kept_core} states")
+               f"{loop.n_impossible} impossible states dropped, {loop.n_skipped} skipped; kept its core "
+               f"between states {loop.n_kept_core} times (a core to spare)")
     bus.log(LogLevel.ERROR if lost else LogLevel.INFO, summary, time_s=loop.last_time_s)
     bus.end_detail(summary)
     return 1 if lost else 0
@@ -270,7 +270,7 @@ class AnswerLoop:
         (sleep in zenoh until one arrives). The window opens at :data:`POLL_AT` of the shortest
         recent interval after the last arrival, or at once while the machine has a core to spare
         (:class:`~messages.spare_core.SpareCore`): the thread then keeps its core between states and
-        its caches stay warm for the next update (counted in :attr:`n_kept_core`)."""
+        its caches stay warm for the next update (each such window counted in :attr:`n_kept_core`)."""
         intervals = self._intervals
         if self.busy_wait or len(intervals) < intervals.maxlen or (period := min(intervals)) >= PREPARE_LATE_MIN_S:
             return None
