@@ -42,7 +42,7 @@ import zenoh
 
 from messages.auth import PASSWORD_ENV, USER_ENV, node_credentials
 from messages.cli import UsageError
-from messages.codec import MessageError, decode, encode
+from messages.codec import MessageError, decode, encode, prepare
 from messages.foxglove import Log, LogLevel, Timestamp
 from messages.topics import LOG, RUN_EVENTS, Topic, key_expr, liveliness_key, message_node
 from messages.types import RunEvent
@@ -336,6 +336,7 @@ class TopicPublisher:
     """Publishes validated messages of one topic and counts them."""
 
     def __init__(self, bus: NodeBus, topic: Topic, publisher: zenoh.Publisher) -> None:
+        prepare(topic)
         self.topic = topic
         self._bus = bus
         self._publisher = publisher
@@ -375,6 +376,7 @@ class Inbox:
     """The zenoh subscriber feeding this inbox (set when a :class:`NodeBus` declares it)."""
 
     def __init__(self, topic: Topic, run_id: str | None = None) -> None:
+        prepare(topic)
         self.topic = topic
         self.run_id = run_id
         self._queue: queue.SimpleQueue[tuple[float, str, bytes]] = queue.SimpleQueue()

@@ -733,3 +733,21 @@ def test_a_command_in_both_inboxes_at_a_switch_is_taken_once():
     for cmd in channel2.drain():            # the copy
         latch.offer(cmd, channel2.received_t)
     assert latch.newest_step == 3 and len(latch.rtt_s) == 3 and latch.gate.n_stale == 0
+
+
+@pytest.mark.parametrize("declare", ["inbox", "publisher"])
+def test_declaring_a_publisher_or_an_inbox_builds_its_topics_decoder(declare):
+    """The validating decoder (~0.4 ms to build) is made when a node declares the topic, not by the
+    first message on the loop's hot path (the plant's first diagnostics once cost steps 101-103)."""
+    from messages import codec
+    from messages.bus import Inbox, TopicPublisher
+    from messages.topics import PLANT_DIAGNOSTICS
+
+    codec._decoder.cache_clear()
+    if declare == "inbox":
+        Inbox(PLANT_DIAGNOSTICS)
+    else:
+        TopicPublisher(None, PLANT_DIAGNOSTICS, None)
+    assert codec._decoder.cache_info().currsize == 1
+    codec._decoder(PLANT_DIAGNOSTICS.type)
+    assert codec._decoder.cache_info().hits == 1  # the one built at the declaration
