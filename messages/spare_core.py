@@ -7,7 +7,9 @@ to spare. When every core is busy (another job, a ``--load`` busy loop), the pol
 from the threads the loop itself needs, and sleeping until woken is faster. ``busy share`` =
 1 − (idle + iowait) / total, summed over all CPUs, measured every :data:`SAMPLE_S` and averaged
 (:data:`SMOOTHING`); a core is spare from a share under :data:`SPARE_BUSY_RESUME` until one over
-:data:`SPARE_BUSY_MAX`.
+:data:`SPARE_BUSY_MAX`. Before the first interval is measured a core counts as spare: the loop's
+first :data:`SAMPLE_S` (200 steps at 2 kHz) then runs as the rest of a quiet run does, and on a
+busy machine the first measurement ends it (``docs/realtime.md``, sixth session).
 """
 
 from __future__ import annotations
@@ -58,6 +60,9 @@ class SpareCore:
         Busy share under which a core becomes spare (:data:`SPARE_BUSY_RESUME`).
     sample_s : float
         Sampling interval [s] (:data:`SAMPLE_S`).
+    spare_until_measured : bool
+        Whether a core counts as spare before the first interval is measured (default); the first
+        measured share then keeps it spare up to ``busy_max``.
     smoothing : float
         Weight of the newest interval in :attr:`busy_share` (:data:`SMOOTHING`; 1: the last
         interval alone).
@@ -66,8 +71,7 @@ class SpareCore:
     ----------
     busy_share : float or None
         Busy share of the machine's CPUs, the first measured interval's, then an exponential
-        average of the intervals (``None`` before the first interval is measured: no core counts
-        as spare until then).
+        average of the intervals (``None`` before the first interval is measured).
     """
 
     read: Callable[[], str] | None = None
@@ -75,6 +79,7 @@ class SpareCore:
     busy_resume: float = SPARE_BUSY_RESUME
     smoothing: float = SMOOTHING
     sample_s: float = SAMPLE_S
+    spare_until_measured: bool = True
     busy_share: float | None = None
     _last: tuple[int, int] | None = None
     _spare: bool = False
@@ -87,10 +92,11 @@ class SpareCore:
             raise ValueError(f"need smoothing in (0, 1] and sample_s > 0, got {self.smoothing}, {self.sample_s}")
         if self.read is None and PROC_STAT.exists():
             self.read = proc_stat_line
+        self._spare = self.spare_until_measured
 
     def spare(self, t: float) -> bool:
         """Whether a core is to spare at monotonic time ``t`` [s] (re-sampled every ``sample_s``;
-        none before the first interval is measured)."""
+        before the first interval is measured: ``spare_until_measured``)."""
         if self.read is None:
             return True
         if t >= self._next_t:

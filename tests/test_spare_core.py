@@ -17,7 +17,8 @@ def test_cpu_times_counts_iowait_as_idle_and_steal_as_busy():
 def test_a_core_is_spare_until_the_machine_was_busy_most_of_the_last_interval():
     texts = iter([stat(0, 0, 0, 0), stat(60, 10, 130, 0), stat(250, 50, 130, 0), stat(260, 50, 300, 10)])
     reads = []
-    core = SpareCore(read=lambda: reads.append(None) or next(texts), sample_s=0.1, smoothing=1.0)
+    core = SpareCore(read=lambda: reads.append(None) or next(texts), sample_s=0.1, smoothing=1.0,
+                     spare_until_measured=False)
     assert not core.spare(0.0)                       # nothing measured yet
     assert not core.spare(0.05) and len(reads) == 1  # not re-read within the interval
     assert core.spare(0.1) and core.busy_share == pytest.approx(70 / 200)
@@ -37,8 +38,19 @@ def test_a_core_becomes_spare_under_the_resume_share_and_stays_so_up_to_the_max(
     assert SPARE_BUSY_RESUME < 0.85 < SPARE_BUSY_MAX
     totals = [(0, 0), (85, 100), (170, 200), (220, 300), (305, 400), (400, 500), (485, 600)]
     texts = iter(stat(busy, 0, total - busy, 0) for busy, total in totals)
-    core = SpareCore(read=lambda: next(texts), sample_s=0.1, smoothing=1.0)
+    core = SpareCore(read=lambda: next(texts), sample_s=0.1, smoothing=1.0, spare_until_measured=False)
     assert [core.spare(0.1 * k) for k in range(len(totals))] == [False, False, False, True, True, False, False]
+
+
+@pytest.mark.parametrize(("first_busy_pct", "spare_after"), [(85, True), (95, False)])
+def test_a_core_counts_as_spare_until_the_first_interval_is_measured(first_busy_pct, spare_after):
+    """By default a core is spare from the start (the loop's first 0.1 s runs as a quiet run does);
+    the first measured interval keeps it so up to the max share, and ends it above."""
+    texts = iter([stat(0, 0, 0, 0), stat(first_busy_pct, 0, 100 - first_busy_pct, 0)])
+    core = SpareCore(read=lambda: next(texts), sample_s=0.1)
+    assert core.spare(0.0) and core.busy_share is None
+    assert core.spare(0.05)
+    assert core.spare(0.1) is spare_after and core.busy_share == pytest.approx(first_busy_pct / 100)
 
 
 def test_one_busy_interval_of_another_job_does_not_stop_the_polling():
