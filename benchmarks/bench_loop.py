@@ -28,7 +28,8 @@ the router). ``--load`` starts a busy loop on one core (a ``stress``-like proces
 measurement; ``--fifo-priority N`` runs every node process under ``SCHED_FIFO`` (``chrt``);
 ``--busy-wait`` starts the controller node with ``--busy-wait`` (it polls for states);
 ``--no-poll-commands`` starts the plant with ``--no-poll-commands`` (it never polls for its
-commands; by default it polls while a core is to spare, ``fe_node.freerun.CommandInboxes``);
+commands; by default it polls while a core is to spare, ``fe_node.freerun.CommandInboxes``, but
+never as a client of the router of ``--topology router``);
 ``--pin`` pins the plant side (surrogate, ping) to CPU 0 and the controller side (controller,
 pong) to CPU 1, as a real-time deployment would (the bench process and its hub are not pinned).
 ``docs/realtime.md`` has the measured figures.

@@ -5,15 +5,17 @@ fixed rate and never waits for the controller. Between two publishes it sleeps w
 ``LaserCommand`` arrives is queued with its arrival time (no wake-up per command); at each tick
 it takes them, applies the newest applicable command and echoes the applied power in the state
 it publishes. A fast plant (period under :data:`POLL_MAX_PERIOD_S`, ``poll_commands`` on by
-default) polls zenoh's channel for the command answering its last state instead, from
-:data:`POLL_AT` of the period after that publish until the command is in or the tick comes
-(yielding its core between looks), then sleeps to the tick: no thread to wake on the command's
-way. It polls while its controller is present, most recent commands came on time
+default) that is a zenoh peer of its controller polls zenoh's channel for the command answering
+its last state instead, from :data:`POLL_AT` of the period after that publish until the command
+is in or the tick comes (yielding its core between looks), then sleeps to the tick: no thread to
+wake on the command's way. It polls while its controller is present, most recent commands came on time
 (:data:`POLL_MIN_ON_TIME`) and the machine has a core to spare
 (:class:`~messages.spare_core.SpareCore`); otherwise (a controller that cannot answer within the
 period, a machine whose cores are all busy) it switches to a callback inbox read at its ticks
-(:class:`CommandInboxes`). A command's arrival time is when the polling plant took it, or when
-the callback thread stamped it. A command is applicable
+(:class:`CommandInboxes`). A client of a router (``launch.py``'s nodes) never polls: the router
+forwards each state and each command, and the core a poller keeps is the one its threads need
+(``docs/realtime.md``, sixth session). A command's arrival time is when the polling plant took
+it, or when the callback thread stamped it. A command is applicable
 (:class:`~fe_node.commands.CommandGate`) if its step is newer than the last applied one, at most
 one after the newest published state (no controller can answer a state not yet published) and
 not more than ``RING`` − 1 steps late, and its power and speed lie within the bounds; every
@@ -123,7 +125,8 @@ class FreeRunSettings:
         Node name of the controller whose liveliness the plant follows.
     poll_commands : bool
         Poll for each command (:func:`await_command`) when faster than :data:`POLL_MAX_PERIOD_S`,
-        while a core is to spare (``--no-poll-commands``: never; ``docs/realtime.md``).
+        while a core is to spare, unless the bus is a client of a router (``--no-poll-commands``:
+        never; ``docs/realtime.md``).
     """
 
     rate_hz: float = 1000.0
@@ -345,14 +348,15 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     the controller. Ticks follow a fixed schedule; an overrun by more than one period restarts
     it from now (no burst to catch up). The achieved rate is reported. Each switch to the
     fallback is logged once (``controller_gone``: the controller's liveliness token is gone).
-    With ``settings.poll_commands``, a plant faster than :data:`POLL_MAX_PERIOD_S` polls zenoh's
+    With ``settings.poll_commands``, a plant faster than :data:`POLL_MAX_PERIOD_S` whose commands
+    come straight from its controller (``bus.routed`` false: no router on their way) polls zenoh's
     channel for each command while the controller is present, most recent commands came on time
     and a core is to spare (:func:`await_command`, :class:`CommandInboxes`).
     """
     states = bus.publisher(PLANT_STATE)
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
     period, dt = 1.0 / settings.rate_hz, settings.step_s
-    fast = settings.poll_commands and period < POLL_MAX_PERIOD_S
+    fast = settings.poll_commands and period < POLL_MAX_PERIOD_S and not bus.routed
     on_time_share = 1.0  # recent share of on-time commands (exponentially weighted)
     inboxes, spare = CommandInboxes(bus, fast), SpareCore()
     polled_steps = 0
@@ -438,7 +442,8 @@ def add_free_run_arguments(parser: argparse.ArgumentParser, rate_hz: float) -> N
                         help="controller node whose liveliness the plant follows (default: %(default)s)")
     parser.add_argument("--poll-commands", action=argparse.BooleanOptionalAction, default=defaults.poll_commands,
                         help="faster than 2 ms: poll for each command while a core is to spare, instead of sleeping "
-                             "to the tick (default: %(default)s; docs/realtime.md)")
+                             "to the tick; never as a client of a router, e.g. under launch.py (default: %(default)s; "
+                             "docs/realtime.md)")
     parser.add_argument("--json", action="store_true", help="print the timing summary as JSON (last line)")
 
 

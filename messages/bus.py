@@ -183,6 +183,12 @@ def zenoh_config(settings: BusSettings, credentials: tuple[str, str] | None = No
     return config
 
 
+def client_mode(config: zenoh.Config) -> bool:
+    """Whether ``config`` makes the session a zenoh client (``launch.py``'s nodes, or a file):
+    every message then crosses a router, a third process on its way."""
+    return json.loads(config.get_json("mode")) == "client"
+
+
 def low_latency(config: zenoh.Config) -> bool:
     """Whether ``config`` selects zenoh's low-latency unicast transport (by ``--low-latency`` or a file)."""
     return json.loads(config.get_json("transport/unicast/lowlatency")) is True
@@ -550,12 +556,15 @@ class NodeBus:
     max_payload_bytes: int | float = float("inf")
     """Largest message this session publishes [bytes]: :data:`LOW_LATENCY_MAX_BYTES` on the
     low-latency transport, else no limit of the bus's own (each topic still has its own)."""
+    routed: bool = False
+    """Whether every message of this session crosses a router (a zenoh client: :func:`client_mode`)."""
 
     def __enter__(self) -> NodeBus:
         zenoh.try_init_log_from_env()
         config = zenoh_config(self.settings, node_credentials())
         if low_latency(config):
             self.max_payload_bytes = LOW_LATENCY_MAX_BYTES
+        self.routed = client_mode(config)
         self.session = open_session(self.settings, self.node, config)
         return self
 

@@ -67,3 +67,23 @@ def test_inbox_drops_and_counts_invalid_payloads(hub, run_id):
         assert got == good
         assert box.n_invalid == 4 and "does not match" in box.last_error
         raw.undeclare()
+
+
+def test_a_session_is_routed_as_a_client_of_a_router(tmp_path):
+    """launch.py's nodes (run credentials) and a file's ``mode: "client"`` are clients, every message
+    crossing the router; a node started by hand is a peer (``NodeBus.routed``; a fast free-running
+    plant then never polls, fe_node.freerun)."""
+    from messages.bus import client_mode, zenoh_config
+
+    assert client_mode(zenoh_config(BusSettings(), ("plant", "secret")))
+    assert not client_mode(zenoh_config(BusSettings()))
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{ mode: "client" }')
+    assert client_mode(zenoh_config(BusSettings(zenoh_config=path)))
+    path.write_text("{ }")
+    assert not client_mode(zenoh_config(BusSettings(zenoh_config=path)))
+
+
+def test_a_peer_nodebus_is_not_routed(hub, run_id):
+    with NodeBus("plant", BusSettings(run_id=run_id, connect=(hub,))) as bus:
+        assert bus.routed is False

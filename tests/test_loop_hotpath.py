@@ -459,6 +459,7 @@ class _Commands:
 
 class _PlantBus:
     run_id = "t"
+    routed = False
 
     def __init__(self):
         self.published: list[tuple[int, float]] = []
@@ -592,6 +593,24 @@ def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, 
         assert not bus.callbacks and delay_s <= rtt < delay_s + 0.3 / rate_hz and channel.looks > stats.steps
         assert len(yields) >= channel.looks - 2 * stats.steps - 2  # a yield after each look in vain
     assert len(stats.rtt_s) >= stats.steps - 2 and latch.gate.n_stale == 0  # each command taken once
+
+
+def test_a_fast_plant_behind_a_router_never_polls(monkeypatch):
+    """A client of a router (launch.py's nodes): every command crosses the router, whose threads
+    need the core a poller would keep; the plant takes its commands at its ticks from a callback
+    inbox, a core to spare or not."""
+    import fe_node.freerun as freerun
+
+    monkeypatch.setattr(freerun, "SpareCore", _SpareCore)
+    yields = []
+    monkeypatch.setattr(os, "sched_yield", lambda: yields.append(None))
+    bus = _FastPlantBus(0.5e-3)
+    bus.routed = True
+    latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
+    stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=600.0, max_steps=30), threading.Event(),
+                     "surrogate", threading.Event())
+    assert not bus.channels and len(bus.callbacks) == 1 and not yields and stats.polled == 0
+    assert bus.callbacks[0].looks <= stats.steps + 2 and len(stats.rtt_s) >= stats.steps - 2
 
 
 def test_a_fast_plant_switching_inboxes_takes_every_command_once(monkeypatch):

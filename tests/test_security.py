@@ -98,6 +98,7 @@ def test_generated_access_control_lets_each_node_publish_only_its_own_keys(monke
                 _node(monkeypatch, creds, "recorder", hub) as rec:
             commands, events, logs = plant.inbox(LASER_COMMAND), plant.inbox(RUN_EVENTS), plant.inbox(LOG)
             states = ctl.inbox(PLANT_STATE)
+            assert plant.routed and ctl.routed  # clients: every message crosses the hub
             gone = plant.watch_presence("controller")
             time.sleep(0.5)
             command = LaserCommand(run_id=run_id, step=1, time_s=0.0, power_w=200.0, speed_mm_s=800.0, controller="pid")
