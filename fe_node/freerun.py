@@ -8,8 +8,8 @@ it publishes. A fast plant (period under :data:`POLL_MAX_PERIOD_S`, ``poll_comma
 default) that is a zenoh peer of its controller polls zenoh's channel for the command answering
 its last state instead, from :data:`POLL_AT` of the period after that publish until the command
 is in or the tick comes (yielding its core between looks), then sleeps to the tick: no thread to
-wake on the command's way. It polls while its controller is present, most recent commands came on time
-(:data:`POLL_MIN_ON_TIME`) and the machine has a core to spare
+wake on the command's way. It polls while its controller is present, most recent commands came
+on time (:data:`POLL_MIN_ON_TIME`) and the machine has a core to spare
 (:class:`~messages.spare_core.SpareCore`); otherwise (a controller that cannot answer within the
 period, a machine whose cores are all busy) it switches to a callback inbox read at its ticks
 (:class:`CommandInboxes`). A client of a router (``launch.py``'s nodes) never polls: the router
@@ -357,6 +357,9 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
     period, dt = 1.0 / settings.rate_hz, settings.step_s
     fast = settings.poll_commands and period < POLL_MAX_PERIOD_S and not bus.routed
+    if settings.poll_commands and period < POLL_MAX_PERIOD_S and bus.routed:
+        bus.log(LogLevel.INFO, "commands taken at the ticks, not polled for: this session is a client of a router "
+                "(docs/realtime.md)")
     on_time_share = 1.0  # recent share of on-time commands (exponentially weighted)
     inboxes, spare = CommandInboxes(bus, fast), SpareCore()
     polled_steps = 0

@@ -464,6 +464,7 @@ class _PlantBus:
     def __init__(self):
         self.published: list[tuple[int, float]] = []
         self.commands = _Commands(self.published)
+        self.logs: list[str] = []
 
     def publisher(self, topic):
         bus = self
@@ -481,7 +482,7 @@ class _PlantBus:
         return self.commands
 
     def log(self, level, text, time_s=0.0):
-        pass
+        self.logs.append(text)
 
 
 def test_free_running_plant_times_commands_from_their_arrival_not_from_its_tick():
@@ -611,6 +612,7 @@ def test_a_fast_plant_behind_a_router_never_polls(monkeypatch):
                      "surrogate", threading.Event())
     assert not bus.channels and len(bus.callbacks) == 1 and not yields and stats.polled == 0
     assert bus.callbacks[0].looks <= stats.steps + 2 and len(stats.rtt_s) >= stats.steps - 2
+    assert any("client of a router" in text for text in bus.logs)  # said, not silently ignored
 
 
 def test_a_fast_plant_switching_inboxes_takes_every_command_once(monkeypatch):
