@@ -44,10 +44,11 @@ first 200 steps, as the ping-pongs leave out their first 200 round trips), the b
 own would have: random pairs of a bare round trip and an update whose sum exceeds the period),
 ``worked_rtt_median_us``, ``worked_rtt_p99_us`` and ``worked_miss_pct`` (phase 4: the share of
 echoes later than a period, what this machine leaves a loop with this update and no code of its
-own), the plant's steps for which it polled (``plant_polled_pct``), the topology and the
-transport, the load (1-minute load average at the start and end, the machine's CPU use during
-the loop, the busy loop if any) and context. The numbers depend on what else runs on the machine; the ratio,
-measured in the same run, much less.
+own), the plant's steps for which it polled (``plant_polled_pct``), the runs of consecutive
+misses (``miss_bursts``, ``longest_miss_burst_steps``: a stall of the machine is one long run),
+the topology and the transport, the load (1-minute load average at the start and end, the
+machine's CPU use during the loop, the busy loop if any) and context. The numbers depend on
+what else runs on the machine; the ratio, measured in the same run, much less.
 
 Usage: ``python benchmarks/bench_loop.py --rate-hz 2000 [--duration-s 5] [--topology router]
 [--transport default] [--load]
@@ -297,7 +298,8 @@ def main() -> int:
         **worked_summary(worked, 1e6 / args.rate_hz),
         "topology": args.topology, "transport": args.transport,
         "steps": stats["steps"], "plant_polled_pct": stats["polled_pct"], "commands": stats["commands"],
-        "late_commands": stats["late_commands"],
+        "late_commands": stats["late_commands"], "miss_bursts": stats["miss_bursts"],
+        "longest_miss_burst_steps": stats["longest_miss_burst_steps"],
         "zenoh_pings": int(bare_us.size), "controller_updates": len(updates),
         "controller": args.controller, "duration_s": args.duration_s, "cpus": os.cpu_count(),
         "loadavg_1min_at_start": round(load_at_start, 2), "loadavg_1min_at_end": round(os.getloadavg()[0], 2),

@@ -231,6 +231,26 @@ class CommandLatch:
         return self.on_time_step < step
 
 
+@dataclass
+class MissBursts:
+    """Runs of consecutive deadline misses: how many, and the longest [steps]. A stall of the
+    machine shows as one long run; a controller slower than the period as one run of every step."""
+
+    count: int = 0
+    longest: int = 0
+    _current: int = 0
+
+    def add(self, missed: bool) -> None:
+        """Count one step, missed or not."""
+        if not missed:
+            self._current = 0
+            return
+        if self._current == 0:
+            self.count += 1
+        self._current += 1
+        self.longest = max(self.longest, self._current)
+
+
 @dataclass(frozen=True)
 class FreeRunStats:
     """Outcome of a free-running session (times in s; command counts by what became of them)."""
@@ -248,6 +268,10 @@ class FreeRunStats:
     """Misses among the first :data:`WARMUP_STEPS` steps (included in ``misses``)."""
     polled: int = 0
     """Steps for which the plant polled for its command (:class:`CommandInboxes`)."""
+    miss_bursts: int = 0
+    """Runs of consecutive misses (:class:`MissBursts`)."""
+    longest_miss_burst: int = 0
+    """The longest of them [steps]."""
 
     def summary(self) -> dict[str, float | int | None]:
         """JSON-able figures: achieved rate [Hz], deadline misses [%] (all steps, and
@@ -264,6 +288,8 @@ class FreeRunStats:
             "polled_pct": round(100.0 * self.polled / self.steps, 1) if self.steps else 0.0,
             "commands": int(rtt.size),
             "late_commands": self.late,
+            "miss_bursts": self.miss_bursts,
+            "longest_miss_burst_steps": self.longest_miss_burst,
             "dropped_commands": self.dropped,
             "rejected_commands": self.rejected,
             "invalid_commands": self.invalid,
@@ -366,6 +392,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     sample = plant.initial()
     power, speed = latch.power_w, latch.speed_m_s
     step = misses = warmup_misses = 0
+    bursts = MissBursts()
     command_source = "open-loop"
     started = next_tick = time.monotonic()
     published_t = states.put(state_message(bus.run_id, 0, 0.0, sample, power, speed, source))
@@ -399,6 +426,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
         command_source = new_source
         missed = latch.missed(step)
         misses += missed
+        bursts.add(missed)
         if step <= WARMUP_STEPS:
             warmup_misses += missed
         on_time_share += ON_TIME_SMOOTHING * (float(not missed) - on_time_share)
@@ -415,7 +443,7 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     offer_all(inboxes.inbox, latch)  # count what is still queued
     stats = FreeRunStats(step, wall, misses, latch.n_late, latch.gate.n_dropped + inboxes.n_invalid,
                          latch.gate.counts[Verdict.OUT_OF_BOUNDS], inboxes.n_invalid, latch.n_fallbacks,
-                         tuple(latch.rtt_s), warmup_misses, polled_steps)
+                         tuple(latch.rtt_s), warmup_misses, polled_steps, bursts.count, bursts.longest)
     bus.log(LogLevel.INFO, f"{'stopped' if stop.is_set() else 'finished'} after {step} steps in {wall:.2f} s; "
             f"{misses} deadline misses, {stats.dropped} dropped commands ({latch.gate.n_stale} stale, "
             f"{latch.gate.counts[Verdict.AHEAD]} ahead, {stats.rejected} out of bounds, {stats.invalid} invalid), "

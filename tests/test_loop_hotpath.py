@@ -772,3 +772,20 @@ def test_declaring_a_publisher_or_an_inbox_builds_its_topics_decoder(declare):
     assert codec._decoder.cache_info().currsize == 1
     codec._decoder(PLANT_DIAGNOSTICS.type)
     assert codec._decoder.cache_info().hits == 1  # the one built at the declaration
+
+
+def test_miss_bursts_count_runs_of_consecutive_misses():
+    """A run of misses counts once, however long; the longest is kept (a stall of the machine)."""
+    from fe_node.freerun import MissBursts
+
+    bursts = MissBursts()
+    for missed in [False, True, False, True, True, True, False, False, True, True]:
+        bursts.add(missed)
+    assert (bursts.count, bursts.longest) == (3, 3)
+
+    bus = _PlantBus()  # every command two periods late: one run of every step after the first
+    bus.commands = _ArrivingCommands(bus.published, 2.0 / 2000.0)
+    latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
+    summary = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=2000.0, max_steps=100, poll_commands=False),
+                       threading.Event(), "surrogate", threading.Event()).summary()
+    assert summary["miss_bursts"] <= 2 and summary["longest_miss_burst_steps"] >= 95
