@@ -382,10 +382,11 @@ def run_free(bus: NodeBus, plant: FreePlant, latch: CommandLatch, settings: Free
     states = bus.publisher(PLANT_STATE)
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
     period, dt = 1.0 / settings.rate_hz, settings.step_s
-    fast = settings.poll_commands and period < POLL_MAX_PERIOD_S and not bus.routed
-    if settings.poll_commands and period < POLL_MAX_PERIOD_S and bus.routed:
+    fast = settings.poll_commands and period < POLL_MAX_PERIOD_S
+    if fast and bus.routed:
         bus.log(LogLevel.INFO, "commands taken at the ticks, not polled for: this session is a client of a router "
                 "(docs/realtime.md)")
+        fast = False
     on_time_share = 1.0  # recent share of on-time commands (exponentially weighted)
     inboxes, spare = CommandInboxes(bus, fast), SpareCore()
     polled_steps = 0
