@@ -75,6 +75,8 @@ class Linearisation:
         ``∂f/∂T`` [m²/K].
     a_prev : float
         ``∂f/∂x[k−1]`` [-] (0 unless the model has the area-change input).
+    variance_m4 : float or None
+        The model's predictive variance of ``f(z0)`` [m⁴], when asked for (:func:`linearise`).
     """
 
     z0: np.ndarray
@@ -83,6 +85,7 @@ class Linearisation:
     b: float
     e: float
     a_prev: float = 0.0
+    variance_m4: float | None = None
 
     @property
     def previous_area_m2(self) -> float:
@@ -104,7 +107,7 @@ class Linearisation:
         return -self.e / self.b
 
 
-def linearise(model: DynamicsModel, z0: np.ndarray) -> Linearisation | None:
+def linearise(model: DynamicsModel, z0: np.ndarray, variance: bool = False) -> Linearisation | None:
     """Linearise the model mean at ``z0`` (eq. 8), keeping the affine term.
 
     Parameters
@@ -113,6 +116,10 @@ def linearise(model: DynamicsModel, z0: np.ndarray) -> Linearisation | None:
         One-step model.
     z0 : numpy.ndarray
         Operating point, shape (4,) or (5,) (:func:`operating_point`), SI units.
+    variance : bool
+        Also give the predictive variance at ``z0`` (``variance_m4``): from the same evaluation
+        when the model has ``mean_jacobian_and_variance`` (:class:`gp_trainer.model.GPModel`), else
+        from ``predict``.
 
     Returns
     -------
@@ -124,7 +131,14 @@ def linearise(model: DynamicsModel, z0: np.ndarray) -> Linearisation | None:
     For a history model ``f(x, T, p, v, Δ)`` with ``Δ = x − x⁻``: ``a = ∂f/∂x + ∂f/∂Δ`` and
     ``a_prev = −∂f/∂Δ``.
     """
-    f0, jac = model.mean_and_jacobian(z0)
+    var = None
+    if not variance:
+        f0, jac = model.mean_and_jacobian(z0)
+    elif hasattr(model, "mean_jacobian_and_variance"):
+        f0, jac, var = model.mean_jacobian_and_variance(z0)
+    else:
+        f0, jac = model.mean_and_jacobian(z0)
+        var = float(model.predict(z0)[1])
     f0 = float(f0)
     a, e, b = float(jac[0]), float(jac[1]), float(jac[2])
     a_prev = 0.0
@@ -132,7 +146,7 @@ def linearise(model: DynamicsModel, z0: np.ndarray) -> Linearisation | None:
         a, a_prev = a + float(jac[4]), -float(jac[4])
     if not all(math.isfinite(v) for v in (f0, a, b, e, a_prev)):
         return None
-    return Linearisation(z0=z0, f0=f0, a=a, b=b, e=e, a_prev=a_prev)
+    return Linearisation(z0=z0, f0=f0, a=a, b=b, e=e, a_prev=a_prev, variance_m4=var)
 
 
 def guard(lin: Linearisation, a_max: float, b_min: float) -> Linearisation:
@@ -159,4 +173,4 @@ def guard(lin: Linearisation, a_max: float, b_min: float) -> Linearisation:
     a, b = min(lin.a, a_max - lin.a_prev), max(lin.b, b_min)
     if a == lin.a and b == lin.b:
         return lin
-    return Linearisation(z0=lin.z0, f0=lin.f0, a=a, b=b, e=lin.e, a_prev=lin.a_prev)
+    return Linearisation(z0=lin.z0, f0=lin.f0, a=a, b=b, e=lin.e, a_prev=lin.a_prev, variance_m4=lin.variance_m4)

@@ -104,7 +104,7 @@ class MPCController(Controller):
             if gain is None:
                 raw = linearise(self.model, operating_point(
                     self.model, m.area_m2, m.t_ahead_k, min(max(planned_prev, s.power_min_w), s.power_max_w),
-                    m.speed_m_s, x_prev))
+                    m.speed_m_s, x_prev), mpc.report_model_std)
                 if raw is None:
                     return Proposal(math.nan, status="model_error")
                 gain = raw.temperature_gain_w_per_k()
@@ -113,7 +113,7 @@ class MPCController(Controller):
             t_lin = m.t_ahead_k - ff.direct_gain * (m.t_ahead_k - ff.reference_temperature_k)
         p0 = min(max(planned_prev, s.power_min_w), s.power_max_w)
         z0 = operating_point(self.model, m.area_m2, t_lin, p0, m.speed_m_s, x_prev)
-        lin = raw if raw is not None and t_lin == m.t_ahead_k else linearise(self.model, z0)
+        lin = raw if raw is not None and t_lin == m.t_ahead_k else linearise(self.model, z0, mpc.report_model_std)
         if lin is None or not lin.spectral_radius() <= _MAX_STATE_GAIN:
             return Proposal(math.nan, status="model_error")
         lin = guard(lin, mpc.state_gain_max, mpc.power_gain_min_m2_per_w)
@@ -138,10 +138,8 @@ class MPCController(Controller):
         self._feedforward_w = feedforward
         plan = data.p_ref_w + power_scale_w(s) * sol.u + feedforward
         areas = s.set_point_m2 * (1.0 + sol.e)
-        std = None
-        if mpc.report_model_std:
-            var = float(self.model.predict(z0)[1])
-            std = math.sqrt(var) if math.isfinite(var) and var >= 0.0 else None
+        var = lin.variance_m4
+        std = math.sqrt(var) if var is not None and math.isfinite(var) and var >= 0.0 else None
         return Proposal(
             power_w=float(plan[0]),
             plan_w=tuple(plan.tolist()),

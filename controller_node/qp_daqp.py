@@ -1,15 +1,9 @@
 """Condensed dense backend of the MPC QP (:mod:`controller_node.qp`) solved by DAQP.
 
-Condensing the prediction ``e[i+1] = a e[i] + a⁻ e[i−1] + β u[i] + g`` gives
-``e[1..H] = c + Γ u`` with ::
-
-    Γ[j, i] = β h[j−i]  (i <= j, 0-based rows j = 0..H−1 for e[j+1]),
-    h[0] = 1, h[1] = a, h[n] = a h[n−1] + a⁻ h[n−2]   (impulse response; a^n when a⁻ = 0),
-    c       = the free response from e[0], e[−1] with the constant input g,
-
-so the QP in ``u`` has Hessian ``2(ΓᵀWΓ + R_u)`` (``W = diag(Q, …, Q, Q_f)``,
-``R_u = R·I`` or ``R·DᵀD`` for moves) and gradient ``2ΓᵀWc`` (``− 2R u_prev`` on
-``u[0]`` for moves).  DAQP (dual active set, exact) solves it in two phases:
+The condensed terms ``e[1..H] = c + Γ u``, Hessian ``2(ΓᵀWΓ + R_u)`` and gradient ``2ΓᵀWc`` come
+from :func:`controller_node.qp_condensed.condense_into`, with the unconstrained optimum. When that
+optimum keeps every bound it is the solution and DAQP is not called (``iterations`` 0). Else DAQP
+(dual active set, exact) solves the QP in two phases:
 
 1. without the area rows and slacks (H variables, power bounds as simple bounds,
    rate rows) — a few µs;
@@ -25,30 +19,12 @@ import daqp
 import numpy as np
 
 from .qp import QPData, QPSolution, qp_constants
+from .qp_condensed import condense_into
 from .settings import ControllerSettings
 
 __all__ = ["DaqpBackend"]
 
 _INF = 1e30  # DAQP's infinity
-
-
-def _condense(h: int, data: QPData) -> tuple[np.ndarray, np.ndarray]:
-    """``β h[0..H−1]`` (scaled impulse response) and the free response ``c``, both shape (H,).
-
-    Plain float recursions: 20 steps cost ~3 µs, less than building them with array calls.
-    """
-    a, a_prev, g = data.a, data.a_prev, data.g
-    impulse = [data.beta] * h
-    free = [0.0] * h
-    older, old = data.e_prev, data.e0
-    for n in range(h):
-        if n == 1:
-            impulse[1] = a * impulse[0]
-        elif n >= 2:
-            impulse[n] = a * impulse[n - 1] + a_prev * impulse[n - 2]
-        older, old = old, a * old + a_prev * older + g
-        free[n] = old
-    return np.array(impulse), np.array(free)
 
 
 class DaqpBackend:
@@ -68,10 +44,9 @@ class DaqpBackend:
         self._du = (k["du_lo"], k["du_hi"])
         self._move = m.input_penalty == "move"
         self._r = m.r
-        rows = np.arange(h)[:, None]
-        cols = np.arange(h)[None, :]
-        self._lag = np.where(cols <= rows, rows - cols, 0)
-        self._lower = (cols <= rows).astype(float)
+        self._gamma, self._hess = np.zeros((h, h)), np.zeros((h, h))
+        self._c, self._grad = np.zeros(h), np.zeros(h)
+        self._bounds = np.array([0.0, 0.0, *self._du, self._e_lo, self._e_hi])
         self._w = np.full(h, m.q)
         self._w[-1] = m.q_f
         diff = np.eye(h) - np.eye(h, k=-1)  # rows: u[i] − u[i−1] (u[−1] in the bounds)
@@ -95,7 +70,7 @@ class DaqpBackend:
         self._sense2 = np.zeros(5 * h, dtype=np.int32)
 
     def solve(self, data: QPData) -> QPSolution:
-        """Condense one step's QP and solve it (phase 2 only if the area bounds bind).
+        """Condense one step's QP and solve it (DAQP only if a bound binds, phase 2 only if an area bound does).
 
         Parameters
         ----------
@@ -105,16 +80,16 @@ class DaqpBackend:
         Returns
         -------
         QPSolution
-            ``u`` shape (H,), ``e`` shape (H,); ``iterations`` sums both phases.
+            ``u`` shape (H,), ``e`` shape (H,); ``iterations`` sums both phases (0 when the
+            unconstrained optimum solves the QP).
         """
         h = self._h
-        gamma, c = _condense(h, data)
-        gamma = gamma[self._lag] * self._lower
-        wg = self._w[:, None] * gamma
-        hess = 2.0 * (gamma.T @ wg) + self._r_u
-        grad = 2.0 * (wg.T @ c)
-        if self._move:
-            grad[0] -= 2.0 * self._r * data.u_prev
+        gamma, c, hess, grad, bounds = self._gamma, self._c, self._hess, self._grad, self._bounds
+        bounds[0], bounds[1] = data.u_lo, data.u_hi
+        u, e = np.empty(h), np.empty(h)
+        if condense_into(data.a, data.a_prev, data.beta, data.g, data.e0, data.e_prev, data.u_prev, self._w,
+                         self._r_u, self._r if self._move else 0.0, bounds, gamma, c, hess, grad, u, e):
+            return QPSolution("solved", u, e, 0)
         bu, bl = self._bu1, self._bl1
         bu[:h] = data.u_hi
         bl[:h] = data.u_lo

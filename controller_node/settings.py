@@ -138,7 +138,8 @@ class MPCSettings:
     temperature_horizon : {"constant"}
         Temperature prediction over the horizon: held at ``T[k]``.
     report_model_std : bool
-        Also call ``model.predict`` to report the predictive std in the diagnostics.
+        Report the model's predictive std at the linearisation point in the diagnostics (from the
+        linearisation's own evaluation of the GP, :func:`controller_node.model.linearise`).
     state_gain_max : float
         Model guard (physical prior: the melt pool is open-loop stable): the
         linearised ``a = ∂f/∂x`` is clipped to ``<= state_gain_max`` (in (0, 1.5]).

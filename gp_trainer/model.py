@@ -45,6 +45,7 @@ import scipy.linalg
 
 from gp_trainer.atomic import atomic_write_bytes
 from gp_trainer.errors import ModelFormatError, ModelVersionError
+from gp_trainer.gp_eval import evaluate_into
 from gp_trainer.kernel import HyperBounds, fit_hyperparameters, gram, squared_differences
 
 FORMAT_NAME = "meltloop-gp-model"
@@ -220,11 +221,8 @@ class GPModel:
         tuple[float, float]
             Mean [m²] and latent variance [m⁴] (≥ 0, observation noise excluded).
         """
-        k, _ = self._kernel_row(z)
-        mean = self._intercept + float(self._slope @ z) + float(self._mean_weights @ k)
-        v = self._variance_factor @ k
-        variance = self._prior_variance - float(v @ v)
-        return mean, max(variance, 0.0)
+        out = self._evaluate(z, False, True)
+        return float(out[0]), float(out[-1])
 
     def mean_and_jacobian(self, z: np.ndarray) -> tuple[float, np.ndarray]:
         """Posterior mean and its gradient with respect to ``z``, both SI.
@@ -243,10 +241,36 @@ class GPModel:
         tuple[float, np.ndarray]
             Mean [m²] and ``J``, shape (d,): ``[-, m²/K, m²/W, m²/(m/s)[, -]]``.
         """
-        k, w = self._kernel_row(z)
-        weighted = self._mean_weights * k
-        mean = self._intercept + float(self._slope @ z) + float(weighted.sum())
-        return mean, self._slope + self._gradient(weighted, w)
+        out = self._evaluate(z, True, False)
+        return float(out[0]), out[1:-1]
+
+    def mean_jacobian_and_variance(self, z: np.ndarray) -> tuple[float, np.ndarray, float]:
+        """:meth:`mean_and_jacobian` and :meth:`predict`'s variance in one evaluation of the kernel row.
+
+        Parameters
+        ----------
+        z : np.ndarray, shape (d,)
+            As in :meth:`predict`.
+
+        Returns
+        -------
+        tuple[float, np.ndarray, float]
+            Mean [m²], ``J`` shape (d,) as in :meth:`mean_and_jacobian`, latent variance [m⁴] (≥ 0).
+        """
+        out = self._evaluate(z, True, True)
+        return float(out[0]), out[1:-1], float(out[-1])
+
+    def _evaluate(self, z: np.ndarray, jacobian: bool, variance: bool) -> np.ndarray:
+        """``[mean, J (d,), variance]`` at ``z`` (:func:`gp_trainer.gp_eval.evaluate_into`; the parts
+        not asked for are NaN)."""
+        z = np.asarray(z, dtype=float)
+        if z.shape != (self.n_inputs,):
+            raise ValueError(f"z must have shape ({self.n_inputs},), got {z.shape}")
+        out = np.full(self.n_inputs + 2, np.nan)
+        evaluate_into(z, self.input_mean, self._grad_scale, self._scaled_inputs_1,
+                      self._half_sq_norms, self._mean_weights, self._intercept, self._slope, self._variance_factor,
+                      self._prior_variance, jacobian, variance, out)
+        return out
 
     def variance_and_jacobian(self, z: np.ndarray) -> tuple[float, np.ndarray]:
         """Posterior latent variance and its gradient with respect to ``z``.

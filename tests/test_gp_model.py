@@ -67,6 +67,21 @@ def test_variance_jacobian_matches_finite_differences(model, samples):
         np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
 
 
+def test_one_evaluation_gives_mean_jacobian_and_variance(model, samples):
+    for z in _probe_points(samples):
+        mean, jac, var = model.mean_jacobian_and_variance(z)
+        mean_only, jac_only = model.mean_and_jacobian(z)
+        assert mean == pytest.approx(mean_only, rel=1e-13)
+        np.testing.assert_allclose(jac, jac_only, rtol=1e-13)
+        assert var == pytest.approx(model.predict(z)[1], rel=1e-13)
+
+
+@pytest.mark.parametrize("method", ["predict", "mean_and_jacobian", "mean_jacobian_and_variance"])
+def test_an_input_of_the_wrong_length_is_refused(model, method):
+    with pytest.raises(ValueError, match="z must have shape"):
+        getattr(model, method)(np.array([0.1e-6, 800.0, 200.0]))
+
+
 def test_lml_gradient_matches_finite_differences():
     rng = np.random.default_rng(0)
     U = rng.standard_normal((30, 4))
