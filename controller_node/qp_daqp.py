@@ -68,6 +68,8 @@ class DaqpBackend:
                                     np.zeros(h)])
         self._bl2 = np.concatenate([np.zeros(h), np.zeros(h), np.full(h, self._du[0]), np.zeros(h), np.full(h, -_INF)])
         self._sense2 = np.zeros(5 * h, dtype=np.int32)
+        self.solve(QPData(a=0.5, beta=1.0, g=0.0, e0=0.0, u_lo=-1.0, u_hi=1.0, u_prev=0.0, p_ref_w=0.0))
+        # (compiled or loaded from numba's cache now, not at the first state of a run)
 
     def solve(self, data: QPData) -> QPSolution:
         """Condense one step's QP and solve it (DAQP only if a bound binds, phase 2 only if an area bound does).

@@ -192,6 +192,7 @@ class GPModel:
         self._prior_variance = rs * rs * sf2
         self._variance_factor = np.ascontiguousarray(rs * sf2 * chol_inv)
         self._variance_factor_t = np.ascontiguousarray(self._variance_factor.T)
+        self._evaluate(self.input_mean.copy(), True, True)  # compiled (or loaded from numba's cache) now, not on the hot path
 
     # ------------------------------------------------------------------ prediction (hot path)
     def _kernel_row(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -263,7 +264,7 @@ class GPModel:
     def _evaluate(self, z: np.ndarray, jacobian: bool, variance: bool) -> np.ndarray:
         """``[mean, J (d,), variance]`` at ``z`` (:func:`gp_trainer.gp_eval.evaluate_into`; the parts
         not asked for are NaN)."""
-        z = np.asarray(z, dtype=float)
+        z = np.ascontiguousarray(z, dtype=float)
         if z.shape != (self.n_inputs,):
             raise ValueError(f"z must have shape ({self.n_inputs},), got {z.shape}")
         out = np.full(self.n_inputs + 2, np.nan)

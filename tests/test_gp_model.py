@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -74,6 +76,24 @@ def test_one_evaluation_gives_mean_jacobian_and_variance(model, samples):
         assert mean == pytest.approx(mean_only, rel=1e-13)
         np.testing.assert_allclose(jac, jac_only, rtol=1e-13)
         assert var == pytest.approx(model.predict(z)[1], rel=1e-13)
+
+
+def test_the_compiled_evaluation_is_ready_when_the_model_is():
+    """Loading the model compiles (or loads) the signature of every later call: none on a hot path.
+    In a fresh process, where no earlier call compiled it."""
+    code = (
+        "import numpy as np\n"
+        "from gp_trainer.gp_eval import evaluate_into\n"
+        "from gp_trainer.model import DEFAULT_MODEL_PATH, GPModel\n"
+        "model = GPModel.load(DEFAULT_MODEL_PATH)\n"
+        "known = len(evaluate_into.signatures)\n"
+        "z = np.array([0.07e-6, 600.0, 200.0, 0.8, 1e-9])\n"
+        "model.mean_jacobian_and_variance(z)\n"
+        "model.predict(list(z))\n"
+        "print(known, len(evaluate_into.signatures))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[0] == out[1]
 
 
 @pytest.mark.parametrize("method", ["predict", "mean_and_jacobian", "mean_jacobian_and_variance"])

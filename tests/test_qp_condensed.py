@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import daqp
 import numpy as np
 import pytest
@@ -101,6 +104,24 @@ def test_feasible_optimum_equals_daqp():
         x, _, flag, _ = daqp.solve(hess.copy(), grad.copy(), diff, bu, bl, np.zeros(2 * H, dtype=np.int32))
         assert flag == 1
         np.testing.assert_allclose(u, x, rtol=1e-9, atol=1e-12)
+
+
+def test_the_backend_is_compiled_when_built():
+    """Building the DAQP backend compiles (or loads) the condensing: no compilation at a run's first
+    state. In a fresh process, where no earlier call compiled it."""
+    code = (
+        "from controller_node import ControllerSettings\n"
+        "from controller_node.qp import QPData\n"
+        "from controller_node.qp_condensed import condense_into\n"
+        "from controller_node.qp_daqp import DaqpBackend\n"
+        "backend = DaqpBackend(ControllerSettings())\n"
+        "known = len(condense_into.signatures)\n"
+        "sol = backend.solve(QPData(a=0.8, beta=0.2, g=0.01, e0=0.1, u_lo=-5.0, u_hi=5.0, u_prev=0.3,\n"
+        "                           p_ref_w=200.0, a_prev=0.05, e_prev=0.12))\n"
+        "print(sol.status, sol.iterations, known, len(condense_into.signatures))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[:2] == ["solved", "0"] and out[2] == out[3]
 
 
 def test_indefinite_hessian_is_not_feasible():
