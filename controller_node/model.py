@@ -144,7 +144,8 @@ def linearise(model: DynamicsModel, z0: np.ndarray, variance: bool = False) -> L
     a_prev = 0.0
     if len(jac) == 5:
         a, a_prev = a + float(jac[4]), -float(jac[4])
-    if not all(math.isfinite(v) for v in (f0, a, b, e, a_prev)):
+    if not (math.isfinite(f0) and math.isfinite(a) and math.isfinite(b) and math.isfinite(e)
+            and math.isfinite(a_prev)):
         return None
     return Linearisation(z0=z0, f0=f0, a=a, b=b, e=e, a_prev=a_prev, variance_m4=var)
 

@@ -192,7 +192,8 @@ class GPModel:
         self._prior_variance = rs * rs * sf2
         self._variance_factor = np.ascontiguousarray(rs * sf2 * chol_inv)
         self._variance_factor_t = np.ascontiguousarray(self._variance_factor.T)
-        self._evaluate(self.input_mean.copy(), True, True)  # compiled (or loaded from numba's cache) now, not on the hot path
+        # the compiled evaluation is built (or loaded from numba's cache) now, not on the hot path
+        self._evaluate(self.input_mean.copy(), True, True)
 
     # ------------------------------------------------------------------ prediction (hot path)
     def _kernel_row(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -263,11 +264,11 @@ class GPModel:
 
     def _evaluate(self, z: np.ndarray, jacobian: bool, variance: bool) -> np.ndarray:
         """``[mean, J (d,), variance]`` at ``z`` (:func:`gp_trainer.gp_eval.evaluate_into`; the parts
-        not asked for are NaN)."""
+        not asked for are undefined)."""
         z = np.ascontiguousarray(z, dtype=float)
         if z.shape != (self.n_inputs,):
             raise ValueError(f"z must have shape ({self.n_inputs},), got {z.shape}")
-        out = np.full(self.n_inputs + 2, np.nan)
+        out = np.empty(self.n_inputs + 2)
         evaluate_into(z, self.input_mean, self._grad_scale, self._scaled_inputs_1,
                       self._half_sq_norms, self._mean_weights, self._intercept, self._slope, self._variance_factor,
                       self._prior_variance, jacobian, variance, out)
