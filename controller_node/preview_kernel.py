@@ -46,8 +46,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, typeof
+from numba import njit
 
+from gp_trainer.compiled import BoundOnFirstCall
 from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_into
 
 __all__ = ["Kernel", "correction_into", "exp_into", "feedback_into", "prepare_into", "push_history", "update_into"]
@@ -476,7 +477,7 @@ class Kernel:
         self.prepared = False
         self._workspaces = (self._named(self.work), self._named(np.zeros_like(self.work)))
         self.__dict__.update(self._workspaces[0])
-        self._update, self._prepare, self._feedback = (_BoundOnFirstCall(f) for f in (update_into, prepare_into,
+        self._update, self._prepare, self._feedback = (BoundOnFirstCall(f) for f in (update_into, prepare_into,
                                                                                      feedback_into))
 
     def _named(self, work: np.ndarray) -> dict:
@@ -526,22 +527,6 @@ class Kernel:
             self._workspaces = self._workspaces[::-1]
             self.__dict__.update(spare)
         return status
-
-
-class _BoundOnFirstCall:
-    """A compiled function whose ``call`` goes through numba's dispatcher once (compiling or loading),
-    then straight to the machine code of that call's argument types, skipping the dispatcher's type
-    resolution (about 9 µs of each cold call, ``docs/controller.md``, Speed). Pass the same argument
-    types every time."""
-
-    def __init__(self, dispatcher) -> None:
-        self._dispatcher = dispatcher
-        self.call = self._first
-
-    def _first(self, *args):  # noqa: ANN002, ANN202
-        result = self._dispatcher(*args)
-        self.call = self._dispatcher.overloads[tuple(typeof(a) for a in args)].entry_point
-        return result
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)

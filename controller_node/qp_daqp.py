@@ -18,6 +18,8 @@ from __future__ import annotations
 import daqp
 import numpy as np
 
+from gp_trainer.compiled import BoundOnFirstCall
+
 from .qp import QPData, QPSolution, qp_constants
 from .qp_condensed import condense_into
 from .settings import ControllerSettings
@@ -68,8 +70,9 @@ class DaqpBackend:
                                     np.zeros(h)])
         self._bl2 = np.concatenate([np.zeros(h), np.zeros(h), np.full(h, self._du[0]), np.zeros(h), np.full(h, -_INF)])
         self._sense2 = np.zeros(5 * h, dtype=np.int32)
+        # compiled (or loaded from numba's cache) and bound to its argument types now, not at a run's first state
+        self._condense = BoundOnFirstCall(condense_into)
         self.solve(QPData(a=0.5, beta=1.0, g=0.0, e0=0.0, u_lo=-1.0, u_hi=1.0, u_prev=0.0, p_ref_w=0.0))
-        # (compiled or loaded from numba's cache now, not at the first state of a run)
 
     def solve(self, data: QPData) -> QPSolution:
         """Condense one step's QP and solve it (DAQP only if a bound binds, phase 2 only if an area bound does).
@@ -89,7 +92,7 @@ class DaqpBackend:
         gamma, c, hess, grad, bounds = self._gamma, self._c, self._hess, self._grad, self._bounds
         bounds[0], bounds[1] = data.u_lo, data.u_hi
         u, e = np.empty(h), np.empty(h)
-        if condense_into(data.a, data.a_prev, data.beta, data.g, data.e0, data.e_prev, data.u_prev, self._w,
+        if self._condense.call(data.a, data.a_prev, data.beta, data.g, data.e0, data.e_prev, data.u_prev, self._w,
                          self._r_u, self._r if self._move else 0.0, bounds, gamma, c, hess, grad, u, e):
             return QPSolution("solved", u, e, 0)
         bu, bl = self._bu1, self._bl1

@@ -44,6 +44,7 @@ import numpy as np
 import scipy.linalg
 
 from gp_trainer.atomic import atomic_write_bytes
+from gp_trainer.compiled import BoundOnFirstCall
 from gp_trainer.errors import ModelFormatError, ModelVersionError
 from gp_trainer.gp_eval import evaluate_into
 from gp_trainer.kernel import HyperBounds, fit_hyperparameters, gram, squared_differences
@@ -192,7 +193,8 @@ class GPModel:
         self._prior_variance = rs * rs * sf2
         self._variance_factor = np.ascontiguousarray(rs * sf2 * chol_inv)
         self._variance_factor_t = np.ascontiguousarray(self._variance_factor.T)
-        # the compiled evaluation is built (or loaded from numba's cache) now, not on the hot path
+        # the compiled evaluation is built (or loaded from numba's cache) and bound now, not on the hot path
+        self._evaluate_compiled = BoundOnFirstCall(evaluate_into)
         self._evaluate(self.input_mean.copy(), True, True)
 
     # ------------------------------------------------------------------ prediction (hot path)
@@ -264,12 +266,13 @@ class GPModel:
 
     def _evaluate(self, z: np.ndarray, jacobian: bool, variance: bool) -> np.ndarray:
         """``[mean, J (d,), variance]`` at ``z`` (:func:`gp_trainer.gp_eval.evaluate_into`; the parts
-        not asked for are undefined)."""
+        not asked for are undefined). Every call passes the same argument types (``z`` made a
+        contiguous float64 vector of the model's length), so it skips numba's dispatcher."""
         z = np.ascontiguousarray(z, dtype=float)
         if z.shape != (self.n_inputs,):
             raise ValueError(f"z must have shape ({self.n_inputs},), got {z.shape}")
         out = np.empty(self.n_inputs + 2)
-        evaluate_into(z, self.input_mean, self._grad_scale, self._scaled_inputs_1,
+        self._evaluate_compiled.call(z, self.input_mean, self._grad_scale, self._scaled_inputs_1,
                       self._half_sq_norms, self._mean_weights, self._intercept, self._slope, self._variance_factor,
                       self._prior_variance, jacobian, variance, out)
         return out
