@@ -1,9 +1,10 @@
 """Condensed dense backend of the MPC QP (:mod:`controller_node.qp`) solved by DAQP.
 
 The condensed terms ``e[1..H] = c + Γ u``, Hessian ``2(ΓᵀWΓ + R_u)`` and gradient ``2ΓᵀWc`` come
-from :func:`controller_node.qp_condensed.condense_into`, with the unconstrained optimum. When that
-optimum keeps every bound it is the solution and DAQP is not called (``iterations`` 0). Else DAQP
-(dual active set, exact) solves the QP in two phases:
+from :func:`controller_node.qp_condensed.condense_into`, with the optimum within the power bounds
+(an active set in the same compiled call). When that optimum also keeps the rate and area bounds it
+is the solution and DAQP is not called (``iterations`` are then the active set's). Else DAQP (dual
+active set, exact) solves the QP in two phases:
 
 1. without the area rows and slacks (H variables, power bounds as simple bounds,
    rate rows) — a few µs;
@@ -75,7 +76,8 @@ class DaqpBackend:
         self.solve(QPData(a=0.5, beta=1.0, g=0.0, e0=0.0, u_lo=-1.0, u_hi=1.0, u_prev=0.0, p_ref_w=0.0))
 
     def solve(self, data: QPData) -> QPSolution:
-        """Condense one step's QP and solve it (DAQP only if a bound binds, phase 2 only if an area bound does).
+        """Condense one step's QP and solve it (DAQP only if a rate or area bound binds, phase 2 only if an
+        area bound does).
 
         Parameters
         ----------
@@ -85,16 +87,18 @@ class DaqpBackend:
         Returns
         -------
         QPSolution
-            ``u`` shape (H,), ``e`` shape (H,); ``iterations`` sums both phases (0 when the
-            unconstrained optimum solves the QP).
+            ``u`` shape (H,), ``e`` shape (H,); ``iterations``: the compiled active set's when it
+            solves the QP (0: the unconstrained optimum), else the sum of DAQP's two phases.
         """
         h = self._h
         gamma, c, hess, grad, bounds = self._gamma, self._c, self._hess, self._grad, self._bounds
         bounds[0], bounds[1] = data.u_lo, data.u_hi
         u, e = np.empty(h), np.empty(h)
-        if self._condense.call(data.a, data.a_prev, data.beta, data.g, data.e0, data.e_prev, data.u_prev, self._w,
-                         self._r_u, self._r if self._move else 0.0, bounds, gamma, c, hess, grad, u, e):
-            return QPSolution("solved", u, e, 0)
+        iterations = self._condense.call(data.a, data.a_prev, data.beta, data.g, data.e0, data.e_prev, data.u_prev,
+                                         self._w, self._r_u, self._r if self._move else 0.0, bounds, gamma, c, hess,
+                                         grad, u, e)
+        if iterations >= 0:
+            return QPSolution("solved", u, e, iterations)
         bu, bl = self._bu1, self._bl1
         bu[:h] = data.u_hi
         bl[:h] = data.u_lo
