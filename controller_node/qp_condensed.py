@@ -33,8 +33,8 @@ from numba import njit
 __all__ = ["condense_into"]
 
 MULTIPLIER_TOL = 1e-12
-"""A bound is freed only if its multiplier has the wrong sign by more than this, relative to the
-gradient's largest entry (rounding must not make the active set cycle)."""
+"""A bound is freed only if its multiplier has the wrong sign by more than this times (1 + the
+gradient's largest entry): rounding must not make the active set cycle."""
 
 
 @njit(cache=True, nogil=True)
@@ -111,12 +111,12 @@ def _box_qp(hess, grad, lo, hi, x):  # pragma: no cover (compiled)
             p = y[i] - x[i]
             if state[i] != 0 or p == 0.0:
                 continue
-            limit = (lo - x[i]) / p if p < 0.0 else (hi - x[i]) / p
+            limit = max((lo - x[i]) / p if p < 0.0 else (hi - x[i]) / p, 0.0)
             if limit < step:
                 step, blocking, side = limit, i, -1 if p < 0.0 else 1
         for i in range(h):
-            if state[i] == 0:
-                x[i] += step * (y[i] - x[i])
+            if state[i] == 0:                  # (rounding must not carry an input past a bound)
+                x[i] = min(max(x[i] + step * (y[i] - x[i]), lo), hi)
         if blocking >= 0:                      # a bound met on the way: it joins the working set
             x[blocking], state[blocking] = lo if side == -1 else hi, side
             continue
