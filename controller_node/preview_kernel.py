@@ -478,7 +478,7 @@ class Kernel:
         self._workspaces = (self._named(self.work), self._named(np.zeros_like(self.work)))
         self.__dict__.update(self._workspaces[0])
         self._update, self._prepare, self._feedback = (BoundOnFirstCall(f) for f in (update_into, prepare_into,
-                                                                                     feedback_into))
+                                                                                    feedback_into))
 
     def _named(self, work: np.ndarray) -> dict:
         """The named views of one workspace (the attributes that follow the workspace in use)."""

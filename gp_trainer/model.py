@@ -272,9 +272,9 @@ class GPModel:
         if z.shape != (self.n_inputs,):
             raise ValueError(f"z must have shape ({self.n_inputs},), got {z.shape}")
         out = np.empty(self.n_inputs + 2)
-        self._evaluate_compiled.call(z, self.input_mean, self._grad_scale, self._scaled_inputs_1,
-                      self._half_sq_norms, self._mean_weights, self._intercept, self._slope, self._variance_factor,
-                      self._prior_variance, jacobian, variance, out)
+        self._evaluate_compiled.call(z, self.input_mean, self._grad_scale, self._scaled_inputs_1, self._half_sq_norms,
+                                     self._mean_weights, self._intercept, self._slope, self._variance_factor,
+                                     self._prior_variance, jacobian, variance, out)
         return out
 
     def variance_and_jacobian(self, z: np.ndarray) -> tuple[float, np.ndarray]:
