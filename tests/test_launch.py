@@ -8,6 +8,9 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
+
+import pytest
 
 from messages.recording import is_complete, is_finished, metadata, read_messages
 from tests.conftest import REPO, finish
@@ -117,3 +120,35 @@ def test_verdict_of_a_run():
     assert verdict([("rec", 2, False), ("plant", None, True)], None, 1.0, 15.0) == (
         1, None, "node rec exited with status 2")
     assert verdict([("rec", None, False), ("aux", 0, False)], None, 1.0, 15.0) == (None, None, "")
+
+
+def running(pid: int) -> bool:
+    """Whether ``pid`` is a process that has not ended (an unreaped zombie has ended)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs Linux /proc")
+def test_stop_ends_the_children_of_a_wrapper_script_node(tmp_path):
+    """A node that is a shell script starting the real program: stopping the node stops both
+    (the background child ignores SIGINT, as a non-interactive shell's background jobs do)."""
+    from messages.launch.node import NodeProcess, NodeSpec
+
+    script = tmp_path / "wrapper.sh"
+    script.write_text('#!/bin/sh\nsleep 300 &\necho "child $!"\nwait\n')
+    script.chmod(0o755)
+    lines: list[str] = []
+    node = NodeProcess.spawn(NodeSpec("wrapped", command=(str(script),)), "r", "tcp/127.0.0.1:9", {},
+                             lines.append, lines.append)
+    node.sigint_timeout_s = node.sigterm_timeout_s = 1.0
+    deadline = time.monotonic() + 10
+    while not (found := [line for line in lines if line.startswith("[wrapped] child ")]):
+        assert time.monotonic() < deadline, lines
+        time.sleep(0.02)
+    child = int(found[0].split()[-1])
+    assert running(child)
+    node.stop()
+    assert node.poll() is not None
+    assert not running(child), lines

@@ -7,6 +7,7 @@ timeouts, with a log line on each escalation.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shlex
 import shutil
@@ -14,6 +15,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -173,22 +175,61 @@ class NodeProcess:
                                     "ready")
 
     def stop(self) -> None:
-        """Stop the node: SIGINT, then SIGTERM, then SIGKILL, each after its timeout."""
+        """Stop the node's process group (the node and anything it started, e.g. a wrapper script's
+        children): SIGINT, then SIGTERM, then SIGKILL, each after its timeout, while any of the
+        group is left."""
         escalation = ((signal.SIGINT, self.sigint_timeout_s), (signal.SIGTERM, self.sigterm_timeout_s),
                       (signal.SIGKILL, 5.0))
         for sig, wait_s in escalation:
-            if self.process.poll() is not None:
+            if not self._group_left():
                 break
             if sig != signal.SIGINT:
                 self.say(f"{self.name} did not stop within its timeout; sending {sig.name}")
             try:
-                self.process.send_signal(sig)
-                self.process.wait(timeout=wait_s)
+                os.killpg(self.process.pid, sig)  # its own session: the group id is its pid
             except ProcessLookupError:
                 break
-            except subprocess.TimeoutExpired:
-                continue
+            if self._wait_group(wait_s):
+                break
         self.relay.join(timeout=2.0)
+
+    def _group_left(self) -> bool:
+        """Whether any process of the node's group is still running (the node is reaped first)."""
+        self.process.poll()
+        return group_running(self.process.pid)
+
+    def _wait_group(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` [s] for the whole group to end; whether it did."""
+        deadline = time.monotonic() + timeout_s
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self.process.wait(timeout=timeout_s)
+        while self._group_left():
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.02)
+        return True
+
+
+def group_running(pgid: int) -> bool:
+    """Whether process group ``pgid`` has a process that is not a zombie (an orphan that has
+    ended but is not reaped yet counts as ended; without ``/proc``, any member counts)."""
+    proc = Path("/proc")
+    if not proc.is_dir():
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+    for entry in proc.iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rpartition(")")[2].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":  # fields after "(comm)": state, ppid, pgrp
+            return True
+    return False
 
 
 def _relay(name: str, stream, emit: Callable[[str], None]) -> None:
