@@ -248,6 +248,8 @@ def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None
     run_id = run_id or "".join(c if c.isalnum() or c in "_.-" else "_" for c in out.stem)[-64:].lstrip("_.-")
     specs = [replace(s, args=s.args + ("--out", str(out))) if s.module == "messages.recorder" and "--out" not in s.args
              else s for s in specs]
+    roles = tuple(f"--role={s.name}={','.join(s.roles)}" for s in specs if s.module != "messages.recorder")
+    specs = [replace(s, args=s.args + roles) if s.module == "messages.recorder" else s for s in specs]
     service = LaunchService(run_id, hub or free_loopback_endpoint(), zenoh_file, progress=progress)
     started = time.monotonic()
     try:

@@ -14,7 +14,10 @@ whose step is not newer than the last recorded one of its topic, or more than
 :data:`MAX_STEPS_AHEAD` ahead of it, is dropped and counted. An ``end`` event counts only for a
 node that sent a ``start`` and whose liveliness token disappears within the drain time of it
 (:class:`RunTracker`); a second ``end`` of a node is dropped. At the end, published and
-recorded counts are reconciled both ways (:func:`reconcile`).
+recorded counts are reconciled both ways, per publisher (:func:`reconcile`): a node answers for
+its own events and log and, by its roles, for its role's topics (``--role``; by default a node
+named like a role has that role); a count it claims for any other key is ignored and counted
+(``foreign_count``), so that a node without a role cannot touch another node's reconciliation.
 
 Crash safety: the MCAP chunk is closed and the file flushed every :data:`FLUSH_PERIOD_S`, so a
 killed recorder loses at most that much; ``python -m messages.recording recover`` makes such a
@@ -23,8 +26,8 @@ line, exit status 1, the file readable up to the fault.
 
 Run: ``python -m messages.recorder --run-id RUN --out recordings/run.mcap``. It finishes the
 file when every expected node has ended and every message it reported published has arrived
-(or the drain time has passed), and on SIGINT/SIGTERM. ``complete = "true"`` only when the run
-ended by its nodes' own end events with nothing missing or extra; exit status 1 if messages
+(or the drain time has passed), and on SIGINT/SIGTERM. ``complete = "true"`` only when every
+node that started (expected or not) ended by its own end event, with nothing missing or extra; exit status 1 if messages
 were missing or extra, or the file could not be written; 2 for a bad command line or an
 unwritable ``--out``.
 """
@@ -36,7 +39,7 @@ import queue
 import sys
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -45,6 +48,7 @@ from typing import Any, BinaryIO
 
 from mcap.writer import CompressionType, Writer
 
+from messages.auth import ROLES
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.codec import MessageError, decode, encode, json_schema
@@ -57,6 +61,7 @@ from messages.topics import (
     RUN_EVENTS,
     TOPICS,
     Topic,
+    key_suffix,
     message_node,
     run_prefix,
     split_key,
@@ -257,11 +262,15 @@ class RunTracker:
         Largest time [s] between an ``end`` event and its node's token disappearing.
     own_node : str
         The recorder's name: its own ``start`` is recorded once, it never ends through an event.
+    roles : dict of str to tuple of str
+        Roles of the run's nodes (:data:`messages.auth.ROLES`); a node not listed has the role
+        of its name, if that is a role, else none.
     """
 
     expected: tuple[str, ...]
     drain_s: float
     own_node: str = NODE_NAME
+    roles: dict[str, tuple[str, ...]] = field(default_factory=dict)
     started: set[str] = field(default_factory=set)
     ended: dict[str, RunEvent] = field(default_factory=dict)
     gone_at: dict[str, float] = field(default_factory=dict)
@@ -315,40 +324,76 @@ class RunTracker:
         return nodes - set(self.ended)
 
     def all_ended(self) -> bool:
-        """Whether the run ended by its nodes' own (confirmed) end events."""
+        """Whether the run ended by its nodes' own (confirmed) end events: the recording may finish."""
         return bool(self.expected or self.started - {self.own_node}) and not self.waiting_for()
 
-    def every_started_node_ended(self) -> bool:
-        """Whether every node that started (expected or not) has a confirmed end: only then can
-        recorded messages be matched against published counts."""
-        return self.started - {self.own_node} <= set(self.ended)
+    def not_ended(self) -> set[str]:
+        """Nodes that started (expected or not) without a confirmed end: while one is left, the run
+        is not complete."""
+        return self.started - {self.own_node} - set(self.ended) | self.waiting_for()
+
+    def roles_of(self, node: str) -> tuple[str, ...]:
+        """``node``'s roles: as given, else its name if that is a role, else none."""
+        return self.roles.get(node, (node,) if node in ROLES else ())
+
+    def owns(self, node: str, topic: Topic) -> bool:
+        """Whether ``node`` answers for messages of ``topic``: its own per-node key, or a topic of its role."""
+        return topic.per_node or topic.suffix.split("/")[0] in self.roles_of(node)
+
+    def foreign_claims(self, event: RunEvent) -> list[str]:
+        """The keys of an ``end`` event's counts that are not its node's own (ignored)."""
+        return [suffix for suffix in event.published
+                if suffix not in TOPICS or not self.owns(event.node, TOPICS[suffix])]
 
     def published(self) -> Counter[str]:
-        """Per topic, what the ended nodes reported published."""
+        """Per key suffix (:func:`messages.topics.key_suffix`), what the ended nodes reported
+        published of their own keys."""
         total: Counter[str] = Counter()
-        for event in self.ended.values():
-            total.update(event.published)
+        for node, event in self.ended.items():
+            for suffix, n in event.published.items():
+                if suffix in TOPICS and self.owns(node, TOPICS[suffix]):
+                    total[key_suffix(TOPICS[suffix], node)] += n
         return total
 
+    def settled(self, suffix: str) -> bool:
+        """Whether every started node that may publish under key suffix ``suffix`` has a confirmed
+        end (true when none started): only then can a recorded message be called extra."""
+        topic, node = TOPICS.get(suffix), None
+        if topic is None:
+            base, _, node = suffix.rpartition("/")
+            topic = TOPICS[base]
+        publishers = {node} if topic.per_node else {n for n in self.started if self.owns(n, topic)}
+        return not publishers & self.not_ended()
 
-def reconcile(published: Counter[str], recorded: Counter[str], every_node_reported: bool) -> tuple[dict, dict]:
-    """Per topic, messages published but not recorded (missing) and recorded but not published (extra).
+
+def reconcile(published: Counter[str], recorded: Counter[str], settled: Callable[[str], bool]) -> tuple[dict, dict]:
+    """Per key suffix, messages published but not recorded (missing) and recorded but not published (extra).
+
+    Keys are :func:`messages.topics.key_suffix` values: a role topic (``plant/state``) or a node's
+    own key (``log/plant``), so that one publisher's loss cannot hide behind another's messages.
 
     Parameters
     ----------
     published : Counter
-        What the ended nodes reported in their ``end`` events.
+        What the ended nodes reported in their ``end`` events, of their own keys.
     recorded : Counter
         Recorded messages of other nodes (not the recorder's own start event and logs), or a lost
         message could hide behind one of the recorder's.
-    every_node_reported : bool
-        Whether every node of the run ended; if not, the recorded messages of the others have no
-        published count to match and ``extra`` is not computed (the run is incomplete anyway).
+    settled : callable
+        Whether every node that may publish under a key has ended; if not, its recorded messages
+        have no complete published count to match and are not called extra (the run is
+        incomplete anyway).
     """
-    missing = {t: n - recorded[t] for t, n in sorted(published.items()) if recorded[t] < n}
-    if not every_node_reported:
-        return missing, {}
-    return missing, {t: n - published[t] for t, n in sorted(recorded.items()) if n > published[t]}
+    missing = {k: n - recorded[k] for k, n in sorted(published.items()) if recorded[k] < n}
+    return missing, {k: n - published[k] for k, n in sorted(recorded.items()) if n > published[k] and settled(k)}
+
+
+def by_topic(counts: Counter[str]) -> Counter[str]:
+    """Counts per key suffix summed per topic suffix (``log/plant`` and ``log/controller`` into ``log``)."""
+    total: Counter[str] = Counter()
+    for suffix, n in counts.items():
+        total[suffix if suffix in TOPICS else suffix.rpartition("/")[0]] += n
+    return total
 
 
 @dataclass
@@ -386,8 +431,9 @@ class Intake:
         return []
 
     def _accept(self, item: Accepted) -> list[Accepted]:
-        if message_node(item.msg) != self.tracker.own_node:
-            self.from_nodes[item.topic.suffix] += 1
+        node = message_node(item.msg)
+        if node != self.tracker.own_node:
+            self.from_nodes[key_suffix(item.topic, node)] += 1
         self.last_time_s = max(self.last_time_s, log_time_ns(item.msg) / 1e9)
         return [item]
 
@@ -424,18 +470,22 @@ class Intake:
         confirmed, dropped = self.tracker.poll(now_s)
         for reason in dropped:
             self._drop(reason, "end event not matched by its node's liveliness token disappearing")
+        for item in confirmed:
+            for suffix in self.tracker.foreign_claims(item.msg):
+                self._drop("foreign_count", f"end event of {item.msg.node!r} counts {suffix[:64]!r}, not a key of "
+                           "its own: ignored")
         return [accepted for item in confirmed for accepted in self._accept(item)]
 
     def summary(self, stopped_by: str | None) -> tuple[dict[str, str], str]:
         """The closing ``meltloop.counts`` metadata (without ``recorded``) and, if incomplete, why."""
-        ended = self.tracker.all_ended()
         published = self.tracker.published()
-        missing, extra = reconcile(published, self.from_nodes, ended and self.tracker.every_started_node_ended())
+        ended = self.tracker.all_ended()  # else the recording was stopped first: nothing is settled
+        missing, extra = reconcile(published, self.from_nodes, lambda key: ended and self.tracker.settled(key))
         reasons = []
         if stopped_by:
             reasons.append(f"stopped by {stopped_by}")
-        elif not ended:
-            reasons.append(f"no confirmed end of {', '.join(sorted(self.tracker.waiting_for()))}")
+        elif not_ended := self.tracker.not_ended():
+            reasons.append(f"no confirmed end of {', '.join(sorted(not_ended))}")
         if missing:
             reasons.append(f"messages published but not recorded: {missing}")
         if extra:
@@ -444,7 +494,7 @@ class Intake:
             "complete": "false" if reasons else "true",
             "incomplete_reason": "; ".join(reasons),
             "stopped_by": stopped_by or "run end",
-            "published": json.dumps(dict(published), sort_keys=True),
+            "published": json.dumps(dict(by_topic(published)), sort_keys=True),
             "missing": json.dumps(missing, sort_keys=True),
             "extra": json.dumps(extra, sort_keys=True),
             "dropped": json.dumps(dict(self.dropped), sort_keys=True),
@@ -525,7 +575,7 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
             if accepted or not tracker.all_ended():
                 continue
             end_since = end_since or time.monotonic()
-            missing, _ = reconcile(tracker.published(), intake.from_nodes, True)
+            missing, _ = reconcile(tracker.published(), intake.from_nodes, lambda _key: False)
             if not missing or time.monotonic() - end_since > drain_s:
                 break
         counts, problem = intake.summary(stop.signal_name if stop.is_set() else None)
@@ -560,6 +610,24 @@ def open_output(path: Path) -> BinaryIO:
         raise UsageError(f"--out {path}: cannot write: {err.strerror or err}") from None
 
 
+def parse_roles(items: list[str]) -> dict[str, tuple[str, ...]]:
+    """``--role NODE=ROLE[,ROLE]`` options as node -> roles (``NODE=``: none).
+
+    Raises
+    ------
+    UsageError
+        Naming the malformed option or unknown role.
+    """
+    roles = {}
+    for item in items:
+        node, sep, names = item.partition("=")
+        given = tuple(r for r in names.split(",") if r)
+        if not sep or not node or not set(given) <= set(ROLES):
+            raise UsageError(f"--role {item!r}: expected NODE=ROLE[,ROLE] with roles among {', '.join(ROLES)}")
+        roles[node] = given
+    return roles
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m messages.recorder``."""
     parser = ArgumentParser(prog="python -m messages.recorder", description=__doc__.split("\n\n")[0])
@@ -567,6 +635,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--expect", action="append", default=[], metavar="NODE",
         help="finish once these nodes have ended (default: once every node that started has ended)",
+    )
+    parser.add_argument(
+        "--role", action="append", default=[], metavar="NODE=ROLE[,ROLE]",
+        help="roles of a node, whose counts of those topics it answers for (default: a node named like a role "
+             f"has it: {', '.join(ROLES)})",
     )
     parser.add_argument("--drain-s", type=float, default=3.0,
                         help="how long to wait for late messages and for an ending node's liveliness token to go")
@@ -578,6 +651,7 @@ def main(argv: list[str] | None = None) -> int:
             raise UsageError(f"--drain-s must be >= 0 and at most 60 s, got {args.drain_s}")
         if args.out is not None and args.out.suffix != ".mcap":
             raise UsageError(f"--out must name a .mcap file, got {args.out}")
+        roles = parse_roles(args.role)
         path = args.out or default_path(settings.run_id)
         stream = open_output(path)
     except UsageError as err:
@@ -588,8 +662,8 @@ def main(argv: list[str] | None = None) -> int:
     except RecordingWriteError as err:
         print(f"error: {err}", file=sys.stderr, flush=True)
         return 1
-    config = {"out": str(path), "expect": args.expect, "drain_s": args.drain_s}
-    tracker = RunTracker(tuple(args.expect), args.drain_s)
+    config = {"out": str(path), "expect": args.expect, "drain_s": args.drain_s, "roles": roles}
+    tracker = RunTracker(tuple(args.expect), args.drain_s, roles=roles)
     try:
         return run_node(parser.prog, NODE_NAME, settings,
                         lambda bus: record(recorder, bus, stop, tracker, args.drain_s, config))

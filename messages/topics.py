@@ -82,6 +82,11 @@ def message_node(msg: object) -> str | None:
     return getattr(msg, "node", getattr(msg, "name", None))
 
 
+def key_suffix(topic: Topic, node: str | None) -> str:
+    """A message's key after ``meltloop/<run_id>/``: ``topic.suffix``, plus ``/<node>`` for a per-node topic."""
+    return f"{topic.suffix}/{node}" if topic.per_node else topic.suffix
+
+
 def run_prefix(run_id: str) -> str:
     """Key expression matching every topic of a run (what the recorder subscribes to)."""
     return f"{PREFIX}/{run_id}/**"

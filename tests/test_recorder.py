@@ -29,7 +29,8 @@ def validate_recording(path) -> Counter:
 
 def test_recorder_records_everything_published(tmp_path, hub, run_id):
     out = tmp_path / "run.mcap"
-    rec = spawn("messages.recorder", "--run-id", run_id, "--connect", hub, "--out", str(out), "--expect", "tester")
+    rec = spawn("messages.recorder", "--run-id", run_id, "--connect", hub, "--out", str(out), "--expect", "tester",
+                "--role", "tester=plant,controller")  # it publishes every topic
     stop = StopFlag()
     with NodeBus("tester", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         bus.wait_for_nodes(["recorder"], stop, timeout_s=20)
@@ -92,7 +93,7 @@ def test_recorder_reports_a_lost_event_even_with_its_own_in_the_file(tmp_path, h
         bus.published["run/events"] += 1  # as if a second event had been sent and lost on the way
     status, output = finish(rec, timeout=30)
     assert status == 1, output
-    assert "messages published but not recorded: {'run/events': 1}" in output
+    assert "messages published but not recorded: {'run/events/tester': 1}" in output
     assert json.loads(metadata(out)["meltloop.counts"]["published"])["run/events"] == 3
     assert metadata(out)["meltloop.counts"]["complete"] == "false"
 

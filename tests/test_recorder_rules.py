@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import msgspec
 import pytest
 
+from messages.cli import UsageError
 from messages.codec import encode
 from messages.recorder import (
     MAX_STEPS_AHEAD,
@@ -19,6 +20,7 @@ from messages.recorder import (
     Intake,
     McapRecorder,
     RunTracker,
+    parse_roles,
     reconcile,
     record,
 )
@@ -131,33 +133,62 @@ def test_end_of_a_node_gone_long_before_is_dropped():
     assert not tracker.all_ended()
 
 
-def test_reconcile_finds_missing_and_extra_per_topic():
-    published = Counter({"plant/state": 10, "run/events": 2})
-    recorded = Counter({"plant/state": 12, "run/events": 1, "controller/command": 3})
-    assert reconcile(published, recorded, True) == ({"run/events": 1}, {"controller/command": 3, "plant/state": 2})
-    assert reconcile(published, recorded, False) == ({"run/events": 1}, {})
+def test_reconcile_finds_missing_and_extra_per_key():
+    published = Counter({"plant/state": 10, "run/events/plant": 2})
+    recorded = Counter({"plant/state": 12, "run/events/plant": 1, "run/events/helper": 1, "controller/command": 3})
+    assert reconcile(published, recorded, lambda key: True) == (
+        {"run/events/plant": 1}, {"controller/command": 3, "plant/state": 2, "run/events/helper": 1})
+    assert reconcile(published, recorded, lambda key: key != "plant/state") == (
+        {"run/events/plant": 1}, {"controller/command": 3, "run/events/helper": 1})
 
 
-def test_no_extra_is_claimed_while_an_unexpected_node_has_not_reported():
+def test_no_extra_is_claimed_while_an_unexpected_node_has_not_reported_and_the_run_is_incomplete():
     tracker = RunTracker(("plant",), drain_s=1.0)
     intake = Intake(RUN, tracker)
     for node in ("plant", "helper"):  # "helper" started but is not expected and never ends
         tracker.on_event(event(node, "start"), 1.0)
-        intake.from_nodes["run/events"] += 1
+        intake.from_nodes[f"run/events/{node}"] += 1
     tracker.on_event(event("plant", "end", {"run/events": 2}), 2.0, "end")
-    intake.from_nodes["run/events"] += 1
+    intake.from_nodes["run/events/plant"] += 1
     tracker.gone("plant", 2.1)
     tracker.poll(2.1)
-    assert tracker.all_ended() and not tracker.every_started_node_ended()
+    assert tracker.all_ended() and tracker.not_ended() == {"helper"}
+    intake.from_nodes["log/helper"] += 1
     counts, reason = intake.summary(None)
-    assert json.loads(counts["extra"]) == {} and counts["complete"] == "true", (counts, reason)
-    tracker.on_event(event("helper", "end", {"run/events": 2}), 3.0, "end")
+    assert json.loads(counts["extra"]) == {} and counts["complete"] == "false", (counts, reason)
+    assert reason == "no confirmed end of helper"
+    tracker.on_event(event("helper", "end", {"run/events": 2, "log": 1}), 3.0, "end")
     tracker.gone("helper", 3.0)
     tracker.poll(3.0)
-    intake.from_nodes["run/events"] += 1
+    intake.from_nodes["run/events/helper"] += 1
+    counts, _ = intake.summary(None)
+    assert counts["complete"] == "true", counts
     intake.from_nodes["plant/state"] += 1  # now every node reported: a message nobody published is extra
     counts, _ = intake.summary(None)
     assert json.loads(counts["extra"]) == {"plant/state": 1} and counts["complete"] == "false"
+
+
+def test_roles_decide_whose_counts_a_node_answers_for():
+    tracker = RunTracker(("camera",), drain_s=1.0, roles={"camera": ("plant",), "plant": ()})
+    assert tracker.owns("camera", PLANT_STATE) and tracker.owns("camera", LOG)
+    assert not tracker.owns("plant", PLANT_STATE)  # given no role, whatever its name
+    assert tracker.owns("controller", LASER_COMMAND) and not tracker.owns("helper", LASER_COMMAND)  # by name
+    claims = event("camera", "end", {"plant/state": 4, "controller/command": 4, "run/events": 2, "nope": 1})
+    assert tracker.foreign_claims(claims) == ["controller/command", "nope"]
+    for node in ("camera", "plant"):
+        tracker.on_event(event(node, "start"), 0.0)
+    tracker.on_event(claims, 1.0, "end")
+    tracker.gone("camera", 1.0)
+    tracker.poll(1.0)
+    assert tracker.published() == Counter({"plant/state": 4, "run/events/camera": 2})
+    assert tracker.settled("plant/state")  # "plant" has not ended, but it cannot publish plant/state
+    assert tracker.settled("run/events/camera") and not tracker.settled("run/events/plant")
+
+
+@pytest.mark.parametrize("item", ["camera", "camera=laser", "=plant"])
+def test_a_bad_role_option_is_a_usage_error(item):
+    with pytest.raises(UsageError, match="--role"):
+        parse_roles([item])
 
 
 # --- the whole loop, with a fake bus ------------------------------------------------------------
@@ -213,11 +244,11 @@ class FakeBus:
         self.watch_presence(node).set()
 
 
-def run_recorder(tmp_path, script, stop=None, expect=("plant",), drain_s=0.3):
+def run_recorder(tmp_path, script, stop=None, expect=("plant",), drain_s=0.3, roles=None):
     out = tmp_path / "rec.mcap"
     recorder = McapRecorder(out, RUN, out.open("wb"))
     stop = stop or FakeStop()
-    status = record(recorder, FakeBus(script, stop), stop, RunTracker(expect, drain_s), drain_s, {})
+    status = record(recorder, FakeBus(script, stop), stop, RunTracker(expect, drain_s, roles=roles or {}), drain_s, {})
     return status, out
 
 
@@ -327,3 +358,50 @@ def test_a_stopped_run_is_never_complete(tmp_path, reason):
     counts = metadata(out)["meltloop.counts"]
     assert counts["complete"] == "false" and counts["stopped_by"] == reason
     assert counts["incomplete_reason"] == f"stopped by {reason}"
+
+
+# --- completeness by node -------------------------------------------------------------------------
+
+def log(node: str, text: str = "line"):
+    return msgspec.structs.replace(dict(sample_messages(RUN))[LOG], name=node, message=text)
+
+
+def test_a_roleless_node_that_never_ends_hides_no_loss_of_another_node(tmp_path, capsys):
+    """Its logs would make up for two the plant lost; per-node counts and its missing end show both."""
+
+    def script(bus):
+        bus.send(RUN_EVENTS, event("plant", "start"))
+        bus.send(RUN_EVENTS, event("helper", "start"))
+        for step in range(10):
+            bus.send(PLANT_STATE, state(step))
+        for i in range(3):
+            bus.send(LOG, log("plant", f"plant {i}"))
+        for i in range(2):
+            bus.send(LOG, log("helper", f"helper {i}"))
+        bus.send(RUN_EVENTS, event("plant", "end", {"plant/state": 10, "log": 5, "run/events": 2}))  # 2 logs lost
+        time.sleep(0.05)
+        bus.leave("plant")
+
+    status, out = run_recorder(tmp_path, script)
+    counts = metadata(out)["meltloop.counts"]
+    assert status == 1 and counts["complete"] == "false", counts
+    assert json.loads(counts["missing"]) == {"log/plant": 2}
+    assert "no confirmed end of helper" in counts["incomplete_reason"]
+    assert not is_complete(out)
+
+
+def test_a_node_cannot_claim_counts_of_keys_it_does_not_own(tmp_path, capsys):
+    def forge(bus, step):
+        if step == 0:
+            bus.send(RUN_EVENTS, event("helper", "start"))
+        if step == 5:
+            bus.send(RUN_EVENTS, event("helper", "end", {"plant/state": 10**9, "log/plant": 3, "run/events": 2}))
+            time.sleep(0.05)
+            bus.leave("helper")
+
+    status, out = run_recorder(tmp_path, plant_run(20, forge))
+    counts = metadata(out)["meltloop.counts"]
+    assert status == 0 and counts["complete"] == "true", counts
+    assert json.loads(counts["published"]) == {"plant/state": 20, "run/events": 4}
+    assert json.loads(counts["dropped"]) == {"foreign_count": 2}
+    assert "foreign_count 2" in capsys.readouterr().out
