@@ -13,10 +13,13 @@ constitutive law; energy bookkeeping is done in ``H`` and is exact regardless.
 
 Property set (IN625)
 --------------------
-Linear set of the Penn State group (the group of the paper's reference [WangAM2020]):
-rho = 8440 kg/m³, cp = 405 + 0.247 T[°C] J/(kg K), k = 9.5 + 0.0150 T[°C] W/(m K)
-capped at the solidus, latent heat L = 2.8e5 J/kg, solidus 1563 K, liquidus 1623 K
-(Special Metals datasheet melting range 1290-1350 °C).
+Linear set of the Penn State group, as used by Q. Wang, P. Michaleris, A. R. Nassar et al.,
+"Model-based feedforward control of laser powder bed fusion additive manufacturing",
+Additive Manufacturing 31 (2020) 100985 (the paper's reference [WangAM2020]):
+cp = 405 + 0.247 T[°C] J/(kg K), k = 9.5 + 0.0150 T[°C] W/(m K) capped at the solidus,
+latent heat L = 2.8e5 J/kg; rho = 8440 kg/m³ and the melting range 1290-1350 °C (solidus
+1563 K, liquidus 1623 K) from the Special Metals INCONEL alloy 625 datasheet
+(docs/fe.md, "Material data and sources").
 
 Liquid choices (documented assumptions; an effective, optionally anisotropic liquid
 conductivity for Marangoni flow is a plant option, see :meth:`Constitutive.mushy_integral`):

@@ -3,11 +3,13 @@
 Case: a 1.5 mm IN625 column at 300 K, insulated below, absorbs a uniform 4e8 W/m² on top for
 5 ms (surface 2814 K, liquidus 105 µm deep); no losses.  Two solutions of this case:
 
-* :func:`implicit_column` — the reference.  IN625 properties written out here from the data
-  sheet values of ``NOTES.md`` (Penn State linear set, independent of :mod:`fe_node.material`,
-  so a change there shows): ``rho = 8440 kg/m³``, ``cp = 405 + 0.247 T[°C]`` (held above the
-  liquidus), ``k = 9.5 + 0.015 T[°C]`` (held above the solidus), ``L = 2.8e5 J/kg`` released
-  linearly over 1563-1623 K.  Linear elements (``conduction`` and ``mass`` of
+* :func:`implicit_column` — the reference.  IN625 properties written out here from their
+  sources (the Penn State linear set as used by Wang et al., Additive Manufacturing 31 (2020)
+  100985, and the Special Metals INCONEL alloy 625 datasheet; docs/fe.md, "Material data and
+  sources"), independent of :mod:`fe_node.material`, so a change there shows:
+  ``rho = 8440 kg/m³``, ``cp = 405 + 0.247 T[°C]`` (held above the liquidus),
+  ``k = 9.5 + 0.015 T[°C]`` (held above the solidus), ``L = 2.8e5 J/kg`` released linearly over
+  1563-1623 K.  Linear elements (``conduction`` and ``mass`` of
   :mod:`fe_node.forms` assembled on a ``MeshLine`` of 2 µm), backward Euler with 2 µs steps,
   Newton on ``m (H(T) - H_n) / dt + K Psi(T) = f`` with ``Psi = int k dT`` (exact, no tables).
   Halving ``h`` and ``dt`` to 4 µm changes the nodal temperatures by 0.03 % of the rise.

@@ -1,17 +1,26 @@
-"""Delay-aware melt-pool model: a linear FIR part with the paper's SE-ARD GP on its residual.
+"""Delay-aware melt-pool model: a nonlinear lag regression with the paper's SE-ARD GP on its residual.
 
 The power→area response of the plant is a ramp over one pool length (10–15 steps) and the
 temperature ahead acts with lags of 5–13 steps, so a one-step model ``x[k+1] = f(x[k], ...)``
-cannot represent it (docs/gp.md). This model keeps the pool's memory in its regressor:
+cannot represent it (docs/gp.md, "Delay-aware model"). This model keeps the pool's memory in its
+regressor, in lagged powers and temperatures only (no lagged areas):
 
-    x[k+1] = c₀ + Σ_{i<n_p} b_i p[k+1−i] + Σ_{j<n_T} c_j T[k−j] + r(ψ_k),   r ~ GP(0, k_SE-ARD)
+    z[k+1] = c₀ + Σ_{i<n_p} (b_i p[k+1−i] + q_i p[k+1−i]²) + Σ_{j<n_T} c_j T[k−j]
+             + Σ_{j<n_Tq} d_j T[k−j]² + Σ_{i<n_x} e_i p[k+1−i] T[k−i] + r(ψ_k)
+    x[k+1] = exp(z[k+1])  (output "log"; "identity": x = z),   r ~ GP(0, k_SE-ARD)
 
 * ``p[j]`` [W] is the power applied during the step j−1 → j (``state[j].power_w``; 0 before
   laser-on), ``T[j]`` [K] the temperature ahead in state j (before the first state: ``T[0]``).
-* The linear FIR part (least squares) is the delay; the GP of eq. (1)–(5) (SE-ARD kernel,
-  hyper-parameters by maximum marginal likelihood, :mod:`gp_trainer.kernel`) learns the
-  residual on ``ψ_k = (T[k] [K], min(s_k, S) [steps], mean(p[k+2−n_p..k+1]) [W])`` with
-  ``s_k`` the steps since the current track started, and gives the predictive variance.
+* The lag part (least squares in z on scaled columns) is the delay. Its squared lags and the
+  log output carry the area's nonlinearity in power and temperature; the lag-matched
+  interactions ``p[k+1−i] T[k−i]`` give each past power the gain of the substrate it heated
+  (``quadratic=False`` and ``interaction=False`` in :meth:`NarxGPModel.fit` leave them out).
+* The GP of eq. (1)–(5) (SE-ARD kernel, hyper-parameters by maximum marginal likelihood on
+  seeded random samples, :mod:`gp_trainer.kernel`) learns the residual in z on
+  ``ψ_k = (T[k] [K], log(1 + min(s_k, 100)), mean(p[k+2−n_p..k+1]) [W])`` with ``s_k`` the states
+  since the current track started, and gives the predictive variance.
+* :func:`select_and_fit` chooses the lags, the output map, the squared lags, the interactions and
+  the GP's length-scale floor by the 40-step rollout error on held-out runs.
 * Over a horizon the temperature ahead is forecast from the scan plan
   (:func:`forecast_t_ahead`): after a turnaround it follows the learned turnaround profile
   (:attr:`NarxGPModel.turn_profile_k`), the rise of T ahead over the state before the turn.

@@ -18,7 +18,8 @@ def et_geometry():
 
 
 def test_eagar_tsai_matches_anchor_numbers(et_geometry):
-    # NOTES.md: area 0.0692 mm², length 626 µm, width 136 µm, depth 62 µm
+    # Eagar & Tsai, Welding J. 62 (1983) 346s, for this case, evaluated independently (docs/fe.md,
+    # "Material data and sources"): area 0.0692 mm², length 626 µm, width 136 µm, depth 62 µm
     g = et_geometry
     assert g["area_m2"] * 1e6 == pytest.approx(0.0692, rel=5e-3)
     assert g["length_m"] * 1e6 == pytest.approx(626, rel=5e-3)
