@@ -24,8 +24,8 @@ none --config <tmp>/<name>.toml`` whose ``[plant]`` table carries ``ident_seed``
 further launcher arguments.
 
 Jobs run on Dask distributed (:mod:`gp_trainer.distributed`): a ``LocalCluster`` of
-``workers`` worker processes by default, or an existing cluster (``scheduler``,
-``tcp://HOST:PORT``). A worker runs a job exactly as above, as a ``launch.py`` subprocess
+``workers`` worker processes (TLS) by default, or an existing TLS cluster (``scheduler``,
+``tls://HOST:PORT``). A worker runs a job exactly as above, as a ``launch.py`` subprocess
 (:func:`run_job`), so the plant, recorder and controller stay separate processes; the workers must
 see the repository, the interpreter and the output directory at the same paths as this process.
 The FE runs are lockstep and deterministic, run ids and paths depend only on the job, and results
@@ -88,7 +88,7 @@ class CampaignSettings:
     controller : str
         launch.py's ``--controller``; ``none`` plays the scenario's profiles (module docstring).
     scheduler : str or None
-        Address of an existing Dask scheduler (``tcp://HOST:PORT``); None: a ``LocalCluster`` of
+        Address of an existing Dask scheduler (``tls://HOST:PORT``); None: a ``LocalCluster`` of
         ``workers`` worker processes started for the campaign.
     sequential : bool
         No Dask: the cases run in this process, one after the other (the reference of the
@@ -506,7 +506,7 @@ def run_jobs(jobs: list[Job] | tuple[Job, ...], settings: RunnerSettings, *, pro
 
     Jobs run on a ``LocalCluster`` of ``settings.workers`` worker processes (one thread each, so
     one job per worker at a time), or on the cluster at ``settings.scheduler``
-    (``tcp://HOST:PORT``), or, with ``settings.sequential``, in this process one after the other
+    (``tls://HOST:PORT``), or, with ``settings.sequential``, in this process one after the other
     without Dask. Each job is one ``launch.py`` subprocess started by the worker
     (:func:`run_job`). A failed job is run again up to ``settings.retries`` times (default once);
     it is reported failed only if every attempt failed, and the other jobs are kept either way.

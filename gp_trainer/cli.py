@@ -3,7 +3,7 @@
 Typical use::
 
     python -m gp_trainer campaign --workers 2      # 9 Table 2 cases, Dask LocalCluster -> recordings/campaign/
-    python -m gp_trainer campaign --scheduler tcp://HOST:8786   # ... on an existing Dask cluster
+    python -m gp_trainer campaign --scheduler tls://HOST:8786   # ... on an existing Dask cluster (TLS)
     python -m gp_trainer identify --workers 2      # 13 identification runs -> recordings/identification/
     python -m gp_trainer dataset                   # -> out/gp/dataset.npz
     python -m gp_trainer train                     # -> gp_trainer/models/in625_gp.json
@@ -145,8 +145,9 @@ def _runner_options(p: argparse.ArgumentParser, unit: str) -> None:
     where.add_argument("--workers", type=int, default=argparse.SUPPRESS,
                        help=f"worker processes of the local Dask cluster, i.e. {unit}s run at the same time "
                        f"(default: {CampaignSettings.workers})")
-    where.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
-                       help="run on this existing Dask cluster instead (workers must see this repository "
+    where.add_argument("--scheduler", metavar="tls://HOST:PORT", default=None,
+                       help="run on this existing Dask cluster instead (TLS, credentials from Dask's configuration "
+                       "distributed.comm.tls.*; workers must see this repository "
                        "and --out-dir at the same paths)")
     where.add_argument("--sequential", action="store_true",
                        help=f"no Dask: the {unit}s one after the other in this process")

@@ -7,6 +7,7 @@ and a coarse mesh; the default test set takes about 30-50 s on 2 loaded cores.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -50,7 +51,7 @@ def _compare(tmp_path: Path, jobs: list[Job], launch_args: tuple[str, ...]) -> N
                     progress=False)
     assert [r.status for r in local] == [r.status for r in dask] == ["ok"] * len(jobs), [r.detail for r in dask]
     assert [r.name for r in dask] == [j.name for j in jobs]  # job order, whatever finished first
-    assert {r.worker for r in local} == {"local"} and all(r.worker.startswith("tcp://") for r in dask)
+    assert {r.worker for r in local} == {"local"} and all(r.worker.startswith("tls://") for r in dask)
     assert [r.states_sha256 for r in local] == [r.states_sha256 for r in dask]
     paths = {name: [Path(r.recording) for r in results] for name, results in (("local", local), ("dask", dask))}
     assert dataset_digest(paths["local"]) == dataset_digest(paths["dask"])
@@ -130,25 +131,59 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.mark.parametrize("address, message", [
-    ("localhost:8786", "--scheduler must be tcp://HOST:PORT"),
-    ("tcp://127.0.0.1", "--scheduler must be tcp://HOST:PORT"),
-    ("tcp://127.0.0.1:99999", "--scheduler must be tcp://HOST:PORT"),
-    (None, "no Dask scheduler reachable within 1.5 s"),
+@contextlib.contextmanager
+def client_credentials(security):
+    """Dask's configuration of a client's TLS credentials, as a user sets it for ``--scheduler``."""
+    import dask
+
+    with dask.config.set({"distributed.comm.tls.ca-file": security.tls_ca_file,
+                          "distributed.comm.tls.client.cert": security.tls_client_cert,
+                          "distributed.comm.tls.client.key": security.tls_client_key}):
+        yield
+
+
+@pytest.mark.parametrize("address, credentials, message", [
+    ("localhost:8786", True, "--scheduler must be tls://HOST:PORT"),
+    ("tls://127.0.0.1", True, "--scheduler must be tls://HOST:PORT"),
+    ("tls://127.0.0.1:99999", True, "--scheduler must be tls://HOST:PORT"),
+    ("tcp://127.0.0.1:8786", True, "refused, a Dask cluster must use TLS (tls://HOST:PORT)"),
+    (None, False, "no TLS credentials for the client; set distributed.comm.tls.ca-file"),
+    (None, True, "no Dask scheduler reachable within 1.5 s"),
 ])
-def test_bad_or_unreachable_scheduler_is_a_one_line_error_exit_2(tmp_path, monkeypatch, capsys, address, message):
+def test_bad_or_unreachable_scheduler_is_a_one_line_error_exit_2(tmp_path, monkeypatch, capsys, address, credentials,
+                                                                 message):
+    from distributed.security import Security
+
     monkeypatch.setattr(distributed, "CONNECT_TIMEOUT_S", 1.5)
-    address = address or f"tcp://127.0.0.1:{_free_port()}"
-    assert main(["campaign", "--cases", "1", "--scheduler", address, "--out-dir", str(tmp_path / "o")]) == 2
+    address = address or f"tls://127.0.0.1:{_free_port()}"
+    with client_credentials(Security.temporary() if credentials else Security()):
+        status = main(["campaign", "--cases", "1", "--scheduler", address, "--out-dir", str(tmp_path / "o")])
+    assert status == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("python -m gp_trainer campaign: error: --scheduler")
     assert message in err[0]
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
 
 
+def test_the_local_cluster_refuses_a_client_without_its_credentials():
+    """The campaign's cluster talks TLS with its own throw-away credentials: a client with none,
+    with other ones, or over plain TCP gets no connection to the scheduler (whose RPC runs pickled code)."""
+    from distributed import Client
+    from distributed.security import Security
+
+    with distributed.dask_client(None, 1) as client:
+        address = client.scheduler.address
+        assert address.startswith("tls://") and client.submit(int, "7").result() == 7
+        for attempt in (dict(address=address, security=Security.temporary()),
+                        dict(address=address.replace("tls://", "tcp://", 1)),
+                        dict(address=address)):
+            with pytest.raises((OSError, TypeError)), Client(**attempt, timeout="3s"):
+                pass
+
+
 def test_workers_and_scheduler_exclude_each_other(tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
-        main(["identify", "--workers", "2", "--scheduler", "tcp://127.0.0.1:8786", "--out-dir", str(tmp_path)])
+        main(["identify", "--workers", "2", "--scheduler", "tls://127.0.0.1:8786", "--out-dir", str(tmp_path)])
     assert info.value.code == 2 and "--scheduler: not allowed with argument --workers" in capsys.readouterr().err
 
 
@@ -161,7 +196,11 @@ def test_existing_cluster_via_scheduler_address(tmp_path):
     settings = CampaignSettings(cases=(2,), out_dir=tmp_path / "seq", sequential=True,
                                 launch_args=("--max-steps", "10", *SHORT))
     (reference,) = run_campaign(settings, progress=False)
-    with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None, silence_logs=logging.ERROR) as cluster:
+    from distributed.security import Security
+
+    security = Security.temporary()
+    with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None, silence_logs=logging.ERROR,
+                      security=security) as cluster, client_credentials(security):
         (result,) = run_campaign(dataclasses.replace(settings, out_dir=tmp_path / "dask", sequential=False,
                                                      scheduler=cluster.scheduler_address), progress=False)
         worker = next(iter(cluster.scheduler_info["workers"]))

@@ -213,7 +213,7 @@ def test_cli_user_errors_exit_2(tmp_path, capsys):
     assert main(["identify", "--scheduler", "http://x:1", "--out-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 5 and "unknown identification run(s) nope" in err[0] and "--workers" in err[1]
-    assert "--timeout" in err[2] and "--retries" in err[3] and "--scheduler must be tcp://HOST:PORT" in err[4]
+    assert "--timeout" in err[2] and "--retries" in err[3] and "--scheduler must be tls://HOST:PORT" in err[4]
     assert not any(tmp_path.iterdir())
 
 
