@@ -14,11 +14,11 @@ Four phases on one hub (the bench process), each pair of nodes a separate proces
    before each echo (``zenoh_pingpong.py pong --work-us``): a loop that is only transport and
    computation, the yardstick of the misses.
 
-``--transport low-latency`` (default): every session of the run (hub, ping, pong, plant,
+``--transport low-latency`` (default): every zenoh session of the run (hub, ping, pong, plant,
 controller) on zenoh's low-latency unicast transport, the nodes started with ``--low-latency``
 (``messages.bus``: the publishing thread writes to the socket, no QoS, messages up to 32 KiB), as
 a sensor loop is best deployed (``docs/realtime.md``); ``--transport default``: zenoh's default
-transport (a transmit thread per session), what nodes use without ``--low-latency``.
+transport (a transmit thread per zenoh session), what nodes use without ``--low-latency``.
 
 ``--topology peer`` (default): unauthenticated peers on loopback, as nodes started by hand (the
 plant and the controller connect to each other directly). ``--topology router``: what

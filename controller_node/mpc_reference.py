@@ -6,7 +6,8 @@ once.  It is solved with Clarabel (interior point, independent of OSQP and DAQP)
 at tight tolerances (1e-11): with active slacks the cost is ~1e4 and the plan's
 tail is nearly flat in the cost, so default tolerances move the plan by ~1 W.  Use it as
 the reference (tests, benchmark) or via ``MPCSettings(solver="cvxpy")``;
-it is ~2 ms per solve, too slow for the loop.
+cvxpy's per-solve overhead makes it far slower than the DAQP backend
+(``benchmarks/bench_controller.py`` prints the ratio), too slow for the loop.
 """
 
 from __future__ import annotations

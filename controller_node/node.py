@@ -178,7 +178,8 @@ PREPARE_AT = 0.9
 """The controller's preparation for the next state (:meth:`Controller.prepare`) runs this fraction
 of the shortest of the last :data:`PREPARE_WINDOW` state intervals after a state arrived, not right
 after its command: what it touches is then still in the caches when the next state comes (in a
-``launch.py`` layer the FE step takes ~25 ms; ``docs/controller.md``, Real-time iteration)."""
+``launch.py`` layer every state waits for an FE step, whose work evicts the controller's code and
+data; ``docs/controller.md``, Real-time iteration)."""
 PREPARE_WINDOW = 8
 PREPARE_LATE_MIN_S = 2e-3
 """States closer than this (a free-running sensor): the preparation runs right after the command,

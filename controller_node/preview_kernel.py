@@ -25,7 +25,7 @@ solution (the fast path, as :meth:`controller_node.preview_qp.PreviewQP.finish` 
 becomes the plan; else the caller hands Γ, c to :meth:`~controller_node.preview_qp.PreviewQP.finish`.
 
 Why one compiled call over flat arrays: between FE steps or plant frames the controller's caches
-are cold, and each call from Python into compiled code or numpy then costs about 10 µs of
+are cold, and each call from Python into compiled code or numpy then costs microseconds of
 dispatch, each argument more, each fresh allocation and each small BLAS call a cache miss
 (``docs/controller.md``, "Speed"). So the model's constants, the run's histories and plan, and
 every result live in three flat arrays allocated once (:class:`Kernel`, named views into them),
@@ -134,7 +134,7 @@ _LOG2E, _LN2_HI, _LN2_LO = 1.4426950408889634, 6.93147180369123816490e-01, 1.908
 @njit(cache=True, nogil=True, fastmath=_REORDER)
 def exp_into(a, bits):  # pragma: no cover (compiled)
     """``a ← exp(a)`` elementwise, in place, as loops the compiler vectorises (``math.exp`` in a
-    compiled loop is one scalar call per element, about 7× slower here).
+    compiled loop is one scalar call per element, which does not vectorise).
 
     ``exp(x) = 2ⁿ e^r`` with ``n = round(x / ln 2)``, ``r = x − n ln 2`` (Cody–Waite, ``|r| <= ln2/2``)
     and ``e^r`` by its Taylor polynomial to degree 13 (truncation < 2e-16 relative); ``2ⁿ`` is

@@ -19,8 +19,9 @@ it is the QP's solution (the QP is strictly convex and its feasible set lies ins
 
 Why compiled: the numpy formulation is about twenty small calls, and DAQP's one more, each costing
 microseconds of dispatch on the cold caches a controller has between plant frames
-(``docs/realtime.md``). ``tests/test_qp_condensed.py`` checks the terms against numpy and the
-solutions against DAQP; ``tests/test_controller_mpc.py`` the backend against OSQP and cvxpy.
+(``docs/controller.md``, "Speed of the one-step update"). ``tests/test_qp_condensed.py`` checks
+the terms against numpy and the solutions against DAQP; ``tests/test_controller_mpc.py`` the
+backend against OSQP and cvxpy.
 """
 
 from __future__ import annotations

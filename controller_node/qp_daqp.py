@@ -7,7 +7,7 @@ is the solution and DAQP is not called (``iterations`` are then the active set's
 active set, exact) solves the QP in two phases:
 
 1. without the area rows and slacks (H variables, power bounds as simple bounds,
-   rate rows) — a few µs;
+   rate rows);
 2. only if the resulting ``e`` leaves ``[e_l, e_u]``: the full problem with slacks
    ``s`` (2H variables).  When phase 1 satisfies the area bounds, ``s = 0`` is
    optimal for the full problem, so both phases return the same optimum as the

@@ -2,9 +2,9 @@
 
 Variables ``z = (e[1..H], u[0..H-1], s[1..H])``; each step only the ``a``/``a⁻``/``β``
 entries of the constraint matrix and the bound vectors change (OSQP ``update`` plus
-warm start, tolerances ``settings.mpc.eps_abs/eps_rel``).  Measured on the
-benchmark sequence: ~60 µs per solve; :class:`controller_node.qp_daqp.DaqpBackend`
-is faster and exact, so this is the alternative backend (``MPCSettings(solver="osqp")``).
+warm start, tolerances ``settings.mpc.eps_abs/eps_rel``).
+:class:`controller_node.qp_daqp.DaqpBackend` is faster (``benchmarks/bench_controller.py``)
+and exact, so this is the alternative backend (``MPCSettings(solver="osqp")``).
 Known weakness (ADMM): when soft area bounds and binding rate limits are active
 together (e.g. area bounds close to the set point and rate limits of ±20 W/step)
 OSQP needs thousands of iterations and may stop at ``max_iter`` (then the

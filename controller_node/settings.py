@@ -127,7 +127,7 @@ class MPCSettings:
         ``d̂ += integral_gain · (1 − a) · (x[k] − x_sp)``, which moves the model's steady
         state by ``integral_gain`` of the error. Conditional integration: frozen while
         ``|x[k] − x_sp| > integral_band · x_sp`` (hot track starts), so it does not wind up.
-        Defaults 0.05 and 0.1 (tuned on the FE layer, docs/controller.md).
+        Defaults 0.03 and 0.1 (tuned on the FE layer, docs/controller.md, "FE tuning").
     solver : {"daqp", "osqp", "cvxpy"}
         QP backend: condensed DAQP (exact, fastest), sparse OSQP, or the cvxpy
         reference (ms per solve).
@@ -404,7 +404,7 @@ PLANT_PRESETS: dict[str, dict] = {
 table (which wins). ``part`` (``launch.py --scenario part`` passes ``--preset part``): short hatch
 vectors of different lengths, so what one turnaround teaches does not carry to the next (κ = 0, no
 learned turn profile), and a part model whose error moves fast along a hatch (observer gain 1).
-Chosen by the sweep in docs/controller.md ("Parts"), at the move weight r = 1 it was made with."""
+Chosen by the sweep in CHANGELOG.md ("Parts: the preset sweep"), at the move weight r = 1 it was made with."""
 
 
 def with_preset(table: dict, preset: str | None) -> dict:

@@ -14,7 +14,7 @@ on time (:data:`POLL_MIN_ON_TIME`) and the machine has a core to spare
 period, a machine whose cores are all busy) it switches to a callback inbox read at its ticks
 (:class:`CommandInboxes`). A client of a router (``launch.py``'s nodes) never polls: the router
 forwards each state and each command, and the core a poller keeps is the one its threads need
-(``docs/realtime.md``, sixth session). A command's arrival time is when the polling plant took
+(``docs/realtime.md``, "The plant's poll window"). A command's arrival time is when the polling plant took
 it, or when the callback thread stamped it. A command is applicable
 (:class:`~fe_node.commands.CommandGate`) if its step is newer than the last applied one, at most
 one after the newest published state (no controller can answer a state not yet published) and
@@ -253,7 +253,7 @@ class MissBursts:
 
 @dataclass(frozen=True)
 class FreeRunStats:
-    """Outcome of a free-running session (times in s; command counts by what became of them)."""
+    """Outcome of a free-running run (times in s; command counts by what became of them)."""
 
     steps: int
     wall_s: float

@@ -85,7 +85,7 @@ IDENT_DEFAULTS = {"ident_seed": 0, "ident_mean_w": 250.0, "ident_amplitude_w": 6
 PART_POWER_W = 100.0
 """Open-loop power of the ``part`` scenario [W]; ``launch.py`` starts every controller from it on a part.
 On a 50 µm powder layer over the small part, 250 W (the bare plate's) gives 3-4× the bare plate's
-area and PID settles near 75 W for 0.063 mm² (docs/fe.md)."""
+area and PID settles near 75 W for 0.063 mm² (docs/controller.md, "Parts")."""
 IDENT_HOLD_STEPS = (3, 30)  # each power level holds this many steps (inclusive, uniform)
 
 

@@ -10,7 +10,8 @@ __all__ = ["BoundOnFirstCall"]
 class BoundOnFirstCall:
     """A compiled function whose ``call`` goes through numba's dispatcher once (compiling or loading),
     then straight to the machine code of that call's argument types, skipping the dispatcher's type
-    resolution (about 9 µs of each cold call, ``docs/controller.md``, Speed).
+    resolution, a large part of a cold call's cost that grows with the number of arguments
+    (``docs/controller.md``, Speed).
 
     The caller must pass the same argument types every time (dtype, dimensions and layout of each
     array, kind of each scalar): the machine code does not check them.

@@ -10,7 +10,8 @@ with the constants :class:`gp_trainer.model.GPModel` precomputes: with ``w = (z 
     var      = v₀ − |M k̃|²,   M = s_r σ_f² L⁻¹  (L the Cholesky factor of K_y; M lower triangular)
 
 Why compiled: the numpy formulation is ten small calls, and between plant frames a controller's
-caches are cold, so each call costs microseconds of dispatch (``docs/realtime.md``). Checked
+caches are cold, so each call costs microseconds of dispatch (``docs/controller.md``, "Speed of the
+one-step update"). Checked
 against scikit-learn's GP and finite differences in ``tests/test_gp_model.py``.
 """
 

@@ -25,7 +25,7 @@ def code_version() -> dict[str, Any]:
     """Revision of the source tree and versions of the numerical libraries.
 
     ``gp_trainer_modified`` tells whether ``gp_trainer/`` (excluding the shipped model files)
-    differs from the revision; other engineers' work in progress elsewhere does not count, and
+    differs from the revision; uncommitted changes elsewhere in the tree do not count, and
     re-training does not change it, so a fixed seed gives a byte-identical model file.
     """
     status = _git("status", "--porcelain", "--", "gp_trainer", ":(exclude)gp_trainer/models")

@@ -10,7 +10,7 @@ Default procedure (``selection="variance"``), deterministic given the seed:
 3. *Model*: GP fitted on the design points only; all other samples validate it.
 
 ``selection="maximin"`` skips 1-2 and trains on the maximin points (the earlier default).
-Both use :data:`TRAIN_BOUNDS`. Why (measured on the FE campaign, see docs/gp.md): maximin
+Both use :data:`TRAIN_BOUNDS`. Why (measured on the FE campaign; docs/gp.md, "Training points"): maximin
 puts one of 100 points on the nominal steady state that a quarter of the samples sit on, and
 its fits are seed-sensitive; the variance design follows the data density and gave the same
 R² (± 0.0002) and MAPE within 1.44-1.62 % for seeds 0-4.

@@ -5,11 +5,11 @@ multicast scouting off, connecting to the run's hub endpoint (``launch.py`` open
 hand, start one node with ``--listen tcp/127.0.0.1:7447``). Peers discover each other through
 the hub by gossip and then talk directly.
 
-``--low-latency`` switches a session to zenoh's low-latency unicast transport
+``--low-latency`` switches a zenoh session to zenoh's low-latency unicast transport
 (``transport/unicast/lowlatency``, which needs ``transport/unicast/qos/enabled = false``): the
 thread that publishes writes the message to the socket itself instead of handing it to zenoh's
 transmit thread, one thread wake-up less on each leg of the loop. It has no QoS priorities and no
-fragmentation, and zenoh loses some messages above 32 KiB on it (measured, ``docs/realtime.md``):
+fragmentation, and zenoh loses some messages above 32 KiB on it (measured, ``docs/node-contract.md``):
 a node on it refuses to publish a message larger than :data:`LOW_LATENCY_MAX_BYTES` with a
 :class:`~messages.codec.MessageError` instead. Both ends of a link must enable it, else zenoh
 uses its default transport on that link. It suits a sensor ↔ controller loop; the FE node's
@@ -724,8 +724,9 @@ def single_threaded_blas() -> None:
     fast loop (a free-running plant, the controller): call it before any numerical work.
 
     Their matrices are small, and with two or more threads OpenBLAS leaves its workers spinning for
-    a while after each call: they took about half a core for the first ~0.1 s of a 2 kHz loop and
-    slowed the plant's first steps to ~2 ms (``docs/realtime.md``, "The loop's first 200 steps").
+    a while after each call: at the start of a fast loop they take the core the loop's own threads
+    need, and its first steps miss their deadlines (``docs/realtime.md``, "The loop's first 200
+    steps").
     """
     import threadpoolctl
 

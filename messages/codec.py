@@ -50,9 +50,9 @@ def encode(msg: Any) -> bytes:
 def prepare(topic: Topic) -> None:
     """Build ``topic``'s validating decoder now, when a node declares a publisher or an inbox.
 
-    Its construction takes ~0.4 ms (msgspec compiles the message type), which the first message
-    encoded (validated by round trip) or decoded would otherwise pay on the loop's hot path: at
-    2 kHz, the deadline of a step or two.
+    Its construction compiles the message type (msgspec), many times the cost of a decode, which
+    the first message encoded (validated by round trip) or decoded would otherwise pay on the
+    loop's hot path: in a fast loop, the deadline of a step or more.
     """
     _decoder(topic.type)
 

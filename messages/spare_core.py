@@ -9,7 +9,7 @@ from the threads the loop itself needs, and sleeping until woken is faster. ``bu
 (:data:`SMOOTHING`); a core is spare from a share under :data:`SPARE_BUSY_RESUME` until one over
 :data:`SPARE_BUSY_MAX`. Before the first interval is measured a core counts as spare: the loop's
 first :data:`SAMPLE_S` (200 steps at 2 kHz) then runs as the rest of a quiet run does, and on a
-busy machine the first measurement ends it (``docs/realtime.md``, sixth session).
+busy machine the first measurement ends it (``docs/realtime.md``, "A core to spare").
 """
 
 from __future__ import annotations

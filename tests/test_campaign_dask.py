@@ -2,7 +2,7 @@
 retries and failure reports; --scheduler errors.
 
 Every case is a real ``launch.py`` run (FE plant, recorder, hub) kept short with ``--max-steps``
-and a coarse mesh; the default test set takes about 30-50 s on 2 loaded cores.
+and a coarse mesh, so that the default test set stays short.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def test_two_worker_cluster_gives_the_sequential_dataset_bit_for_bit(tmp_path):
 
 @pytest.mark.slow
 def test_full_campaign_on_two_workers_gives_the_sequential_dataset_bit_for_bit(tmp_path):
-    """The nine Table 2 cases at full length and the default mesh (measured 102 s on 2 loaded cores)."""
+    """The nine Table 2 cases at full length and the default mesh (nine full FE runs: slow)."""
     sequential = run_campaign(CampaignSettings(out_dir=tmp_path / "sequential", sequential=True), progress=False)
     dask = run_campaign(CampaignSettings(out_dir=tmp_path / "dask", workers=2), progress=False)
     assert [r.status for r in sequential] == [r.status for r in dask] == ["ok"] * 9

@@ -15,9 +15,9 @@ from tests.conftest import REPO
 
 SENSOR = REPO / "tests" / "nodes" / "plain_sensor.py"
 STEPS = 400
-# The PID controller answers in ~10 µs, so at 1 kHz most commands arrive before the sensor's next tick
-# even on a loaded CI machine; the preview MPC (~0.5 ms per update) left only 6 of 400 in time there.
-# This test is about the contract, not the controller's speed (benchmarks/bench_loop.py is).
+# The PID controller's update is a few arithmetic operations, so at 1 kHz most commands arrive before
+# the sensor's next tick even on a loaded CI machine, where the preview MPC's far longer update left
+# most of them late. This test is about the contract, not the controller's speed (bench_loop.py is).
 NODES = """
 [[node]]
 name = "recorder"

@@ -758,8 +758,8 @@ def test_a_command_in_both_inboxes_at_a_switch_is_taken_once():
 
 @pytest.mark.parametrize("declare", ["inbox", "publisher"])
 def test_declaring_a_publisher_or_an_inbox_builds_its_topics_decoder(declare):
-    """The validating decoder (~0.4 ms to build) is made when a node declares the topic, not by the
-    first message on the loop's hot path (the plant's first diagnostics once cost steps 101-103)."""
+    """The validating decoder (slow to build: msgspec compiles the type) is made when a node declares
+    the topic, not by the first message on the loop's hot path (e.g. the plant's first diagnostics)."""
     from messages import codec
     from messages.bus import Inbox, TopicPublisher
     from messages.topics import PLANT_DIAGNOSTICS
