@@ -193,9 +193,11 @@ class McapRecorder:
             self.flush()
 
     def finish(self, summary: dict[str, str]) -> None:
-        """Write the closing metadata and the MCAP summary; close the file.
+        """Close the last chunk, then write the closing metadata and the MCAP summary; close the file.
 
-        After a write error only closes the stream (what reached the file stays recoverable).
+        The ``meltloop.counts`` record comes after every message, so a file cut anywhere before
+        its footer never holds a completeness record with messages missing behind it. After a
+        write error only closes the stream (what reached the file stays recoverable).
         """
         if self.finished:
             return
@@ -205,6 +207,7 @@ class McapRecorder:
                 self._stream.close()
             return
         with self._writing():
+            self._writer.flush()  # the chunk in progress goes before the completeness record
             self._writer.add_metadata("meltloop.counts", summary)
             self._writer.finish()
             self._stream.close()

@@ -263,9 +263,10 @@ def attachments(path: str | Path) -> dict[str, bytes]:
 
 
 def is_complete(path: str | Path) -> bool:
-    """True if the recorder finished the file and found no message missing or extra."""
+    """True if the recorder finished the file (footer present) and found no message missing or
+    extra; ``False`` for a truncated, missing or unreadable file, whatever metadata it holds."""
     try:
-        return metadata(path).get("meltloop.counts", {}).get("complete") == "true"
+        return is_finished(path) and metadata(path).get("meltloop.counts", {}).get("complete") == "true"
     except RecordingError:
         return False
 

@@ -12,6 +12,7 @@ import sys
 import time
 
 import pytest
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
@@ -19,7 +20,16 @@ from messages import recorder as recorder_module
 from messages.bus import BusSettings, NodeBus, StopFlag
 from messages.codec import encode
 from messages.recorder import FLUSH_PERIOD_S, McapRecorder, RunTracker, record
-from messages.recording import attachments, metadata, read_messages, read_recording, recover
+from messages.recording import (
+    _RECORD_HEAD,
+    MAGIC,
+    attachments,
+    is_complete,
+    metadata,
+    read_messages,
+    read_recording,
+    recover,
+)
 from messages.topics import PLANT_STATE, RUN_EVENTS
 from tests.conftest import REPO, finish, spawn
 from tests.test_recorder_rules import RUN, FakeBus, FakeStop, event, plant_run, state
@@ -239,3 +249,27 @@ def test_runs_started_in_the_same_second_get_their_own_recording(tmp_path, monke
     monkeypatch.chdir(tmp_path)
     names = {recorder_module.default_path("r").name for _ in range(3)}
     assert len(names) == 3
+
+
+def test_completeness_is_written_after_the_last_message_and_a_cut_file_is_never_complete(tmp_path):
+    out = tmp_path / "cut.mcap"
+    recorder = McapRecorder(out, RUN, out.open("wb"))
+    for step in range(2000):
+        recorder.write(PLANT_STATE, encode(state(step)), state(step), time.time_ns())
+    recorder.finish({"complete": "true"})
+    data = out.read_bytes()
+    records, offset = [], len(MAGIC)
+    while offset < len(data) - len(MAGIC):
+        opcode, length = _RECORD_HEAD.unpack_from(data, offset)
+        offset += _RECORD_HEAD.size + length
+        records.append((Opcode(opcode), offset))
+    counts_end = next(end for opcode, end in records
+                      if opcode == Opcode.METADATA and b"meltloop.counts" in data[end - 200:end])
+    assert max(end for opcode, end in records if opcode == Opcode.CHUNK) < counts_end
+    assert is_complete(out)
+    out.write_bytes(data[:counts_end])  # cut right after the completeness record
+    assert len(list(read_messages(out, PLANT_STATE))) == 2000 and not is_complete(out)
+    for opcode, end in records:  # and anywhere before it
+        if opcode == Opcode.CHUNK:
+            out.write_bytes(data[:end])
+            assert not is_complete(out)
