@@ -21,12 +21,16 @@ import json
 import os
 import secrets
 import shutil
+import stat
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from messages.topics import PREFIX, TOPICS, liveliness_key
 
+FOLDER_PREFIX = "meltloop-auth-"
+"""A run's credentials live in ``<temp dir>/meltloop-auth-<pid>-<random>``, ``pid`` the process
+that made them (so that a later run can remove those of a run that was killed)."""
 USER_ENV = "MELTLOOP_ZENOH_USER"
 PASSWORD_ENV = "MELTLOOP_ZENOH_PASSWORD"
 ROLES = ("plant", "controller")
@@ -80,11 +84,40 @@ def access_control(run_id: str, roles: dict[str, tuple[str, ...]]) -> dict:
             "policies": policies}
 
 
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale_credentials(temp_dir: Path | None = None) -> list[Path]:
+    """Remove this user's credential folders (:data:`FOLDER_PREFIX`) whose making process is gone,
+    e.g. after a SIGKILL of ``launch.py`` or the hub; returns them. ``temp_dir``: default the
+    system's temporary folder."""
+    removed = []
+    for folder in Path(temp_dir or tempfile.gettempdir()).glob(f"{FOLDER_PREFIX}*-*"):
+        pid = folder.name[len(FOLDER_PREFIX):].partition("-")[0]
+        try:
+            info = folder.lstat()
+        except OSError:
+            continue
+        if (pid.isdigit() and stat.S_ISDIR(info.st_mode) and info.st_uid == os.getuid()
+                and not _running(int(pid))):
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+    return removed
+
+
 @dataclass
 class RunCredentials:
     """Fresh credentials of one run: a random password per node, kept in a private folder.
 
-    Use as a context manager; the folder (dictionary file) is removed on exit.
+    Use as a context manager; the folder (dictionary file) is removed on exit, and on entry the
+    folders of earlier runs whose process is gone (:func:`remove_stale_credentials`).
 
     Attributes
     ----------
@@ -100,7 +133,8 @@ class RunCredentials:
     folder: Path | None = None
 
     def __enter__(self) -> RunCredentials:
-        self.folder = Path(tempfile.mkdtemp(prefix="meltloop-auth-"))  # mode 0700
+        remove_stale_credentials()
+        self.folder = Path(tempfile.mkdtemp(prefix=f"{FOLDER_PREFIX}{os.getpid()}-"))  # mode 0700
         self.passwords = {node: secrets.token_urlsafe(24) for node in self.roles}
         self.dictionary_file.touch(mode=0o600)
         self.dictionary_file.write_text("".join(f"{n}:{p}\n" for n, p in self.passwords.items()))

@@ -13,12 +13,17 @@ to its host and start the node with ``--zenoh-config FILE --run-id RUN``:
 The access control is :func:`messages.auth.access_control` (the same as ``launch.py``'s):
 each node publishes only its own keys; ``--node NAME:ROLE`` gives a node another name than its
 role (e.g. ``camera:plant``). Stop with Ctrl-C.
+
+A ``--listen`` endpoint other machines can reach must be ``tls/`` (a plain one is refused, exit
+status 2). ``--out-dir`` must not exist: the hub creates it (mode 0700) and removes the node
+configurations and the folder whenever it ends, also when it cannot start.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ipaddress
 import json
-import os
 from pathlib import Path
 
 from messages.auth import ROLES, RunCredentials
@@ -38,6 +43,18 @@ def parse_nodes(items: list[str]) -> dict[str, tuple[str, ...]]:
     if not roles:
         raise UsageError("--node: give at least one node")
     return roles
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether zenoh ``endpoint`` (``proto/host:port``) listens on this machine only."""
+    address = endpoint.partition("/")[2].split("?")[0].split("#")[0]
+    host = address.rpartition(":")[0].removeprefix("[").removesuffix("]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: it may resolve to anything
+        return False
 
 
 def tls_settings(ca: Path, cert: Path | None = None, key: Path | None = None) -> dict:
@@ -98,11 +115,17 @@ def main(argv: list[str] | None = None) -> int:
         tls = [args.tls_ca, args.tls_cert, args.tls_key]
         if args.listen.startswith("tls/") != all(tls) or (any(tls) and not all(tls)):
             raise UsageError("--tls-ca, --tls-cert and --tls-key go together, and with a tls/ --listen endpoint")
+        if not all(tls) and not is_loopback(args.listen):
+            raise UsageError(f"--listen {args.listen}: other machines can reach it, so it needs TLS "
+                             "(tls/HOST:PORT with --tls-ca, --tls-cert and --tls-key)")
         for path in filter(None, tls):
             if not path.is_file():
                 raise UsageError(f"--tls-*: file not found: {path}")
         try:
-            args.out_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
+            args.out_dir.mkdir(mode=0o700, parents=True)
+        except FileExistsError:
+            raise UsageError(f"--out-dir {args.out_dir}: exists; give a new folder (the hub creates it, "
+                             "mode 0700, and removes it when it ends)") from None
         except OSError as err:
             raise UsageError(f"--out-dir {args.out_dir}: {err.strerror or err}") from None
     except UsageError as err:
@@ -112,25 +135,31 @@ def main(argv: list[str] | None = None) -> int:
 
 def serve(run_id: str, endpoint: str, roles: dict[str, tuple[str, ...]], out_dir: Path,
           ca: Path | None, cert: Path | None, key: Path | None) -> int:
-    """Write the node configurations, then run the hub until SIGINT/SIGTERM."""
+    """Write the node configurations into the new folder ``out_dir``, then run the hub until
+    SIGINT/SIGTERM; the configurations and ``out_dir`` are removed however it ends."""
     import zenoh
 
     stop = StopFlag()
-    with RunCredentials(run_id, roles) as credentials:
-        write_node_configs(credentials, endpoint, out_dir, ca)
-        config = router_config(credentials, endpoint, tls_settings(ca, cert, key) if ca is not None else None)
-        try:
-            session = zenoh.open(config)
-        except zenoh.ZError as err:
-            return exit_error("python -m messages.hub", f"cannot listen on {endpoint}: {str(err).split(' at ')[0]}")
-        with session:
-            print(f"hub of run {run_id} on {endpoint}; node configurations in {out_dir}/ "
-                  f"({', '.join(f'{n}.json5' for n in roles)})", flush=True)
-            while not stop.wait(0.2):
-                pass
-    for node in roles:
-        os.unlink(out_dir / f"{node}.json5")  # the passwords die with the hub
-    return 0
+    try:
+        with RunCredentials(run_id, roles) as credentials:
+            write_node_configs(credentials, endpoint, out_dir, ca)
+            config = router_config(credentials, endpoint, tls_settings(ca, cert, key) if ca is not None else None)
+            try:
+                session = zenoh.open(config)
+            except zenoh.ZError as err:
+                return exit_error("python -m messages.hub",
+                                  f"cannot listen on {endpoint}: {str(err).split(' at ')[0]}")
+            with session:
+                print(f"hub of run {run_id} on {endpoint}; node configurations in {out_dir}/ "
+                      f"({', '.join(f'{n}.json5' for n in roles)})", flush=True)
+                while not stop.wait(0.2):
+                    pass
+        return 0
+    finally:  # the passwords die with the hub
+        for node in roles:
+            (out_dir / f"{node}.json5").unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            out_dir.rmdir()  # unless something else was put there
 
 
 if __name__ == "__main__":

@@ -6,8 +6,10 @@ The nodes are started the documented way: each with its own generated configurat
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import signal
+import socket
 import subprocess
 import time
 
@@ -93,3 +95,52 @@ def test_the_tls_hub_refuses_wrong_credentials(tmp_path, certificates, run_id):
     finally:
         hub.send_signal(signal.SIGINT)
         assert finish(hub)[0] == 0
+
+
+def hub_main(*args: str) -> int:
+    from messages.hub import main
+
+    return main(["--run-id", "r1", "--node", "plant", "--node", "controller", *args])
+
+
+@contextlib.contextmanager
+def taken_endpoint():
+    """A loopback endpoint whose port another socket holds: a hub cannot listen there."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        yield f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+
+
+def test_a_listen_other_machines_can_reach_needs_tls(tmp_path, capsys):
+    for endpoint in ("tcp/0.0.0.0:7447", "tcp/192.0.2.1:7447", "tcp/hub.example:7447"):
+        assert hub_main("--listen", endpoint, "--out-dir", str(tmp_path / "hub")) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"--listen {endpoint}: other machines can reach it, so it needs TLS" in err[0]
+        assert not (tmp_path / "hub").exists()
+
+
+def test_an_existing_out_dir_is_refused(tmp_path, capsys):
+    out_dir = tmp_path / "hub"
+    out_dir.mkdir(mode=0o777)
+    out_dir.chmod(0o777)
+    with taken_endpoint() as endpoint:
+        assert hub_main("--listen", endpoint, "--out-dir", str(out_dir)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--out-dir {out_dir}: exists; give a new folder" in err[0]
+    assert list(out_dir.iterdir()) == []
+
+
+def test_a_hub_that_cannot_listen_leaves_no_credentials(tmp_path, capsys, monkeypatch):
+    """The port is taken: exit status 1, and neither the node configurations (with their passwords)
+    nor the credentials folder stay behind."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    out_dir = tmp_path / "hub"
+    with taken_endpoint() as endpoint:
+        assert hub_main("--listen", endpoint, "--out-dir", str(out_dir)) == 1
+    assert "cannot listen on" in capsys.readouterr().err
+    assert not out_dir.exists()
+    assert list((tmp_path / "tmp").iterdir()) == []

@@ -154,3 +154,25 @@ def test_launch_gives_credentials_by_environment_never_argv(tmp_path):
     argv = " ".join(node.process.args)
     node.stop()
     assert "s3cret" not in argv and "s3cret" not in " ".join(lines)
+
+
+def test_the_credentials_of_a_killed_run_are_removed_at_the_next_start(tmp_path, monkeypatch):
+    """A run killed with SIGKILL leaves its folder; the next run removes it, but not a running run's."""
+    import subprocess
+    import sys
+    import tempfile
+
+    from messages.auth import FOLDER_PREFIX
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = tmp_path / f"{FOLDER_PREFIX}{int(dead.stdout)}-abc123"
+    alive = tmp_path / f"{FOLDER_PREFIX}{os.getppid()}-def456"
+    for folder in (stale, alive):
+        folder.mkdir(mode=0o700)
+        (folder / "credentials.txt").write_text("plant:secret\n")
+    with RunCredentials("r", ROLES) as creds:
+        assert creds.folder.parent == tmp_path and creds.folder.name.startswith(f"{FOLDER_PREFIX}{os.getpid()}-")
+        assert not stale.exists()
+        assert (alive / "credentials.txt").exists()
+    assert sorted(tmp_path.iterdir()) == [alive]
