@@ -23,7 +23,14 @@ from fe_node.scenarios import PART_NAMES
 from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 from messages.launch.node import NodeSpec, load_node_list
-from messages.launch.service import LaunchService, RunFailed, free_loopback_endpoint, new_recording, writable_recording
+from messages.launch.service import (
+    LaunchService,
+    RunFailed,
+    free_loopback_endpoint,
+    new_recording,
+    reserve_recording,
+    writable_recording,
+)
 from messages.live import DEFAULT_PORT, check_port
 
 DEFAULT_CONTROLLER = "preview-mpc"
@@ -182,7 +189,7 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
     """The declarative node list of a run: recorder, controller (unless ``none``), plant."""
     common = ["--config", str(opts.config)] if opts.config else []
     plant = ["--scenario", opts.scenario, "--require", "recorder", *common]
-    recorder = ["--out", str(out), "--expect", "plant"]
+    recorder = ["--out", str(out), "--overwrite", "--expect", "plant"]  # out: reserved or checked by main
     nodes = []
     if opts.closed_loop:
         recorder += ["--expect", "controller"]
@@ -228,7 +235,8 @@ def build_parser() -> argparse.ArgumentParser:
     add("--h-um", type=float, help="fine FE element size [µm]")
     add("--fallback", help="what the plant applies when the controller is gone or late: safe (default) or hold")
     add("--command-timeout-s", type=float, help="the plant falls back after this long without a command [s]")
-    add("--out", type=Path, help="MCAP recording to write (with --compare: the output folder)")
+    add("--out", type=Path, help="MCAP recording to write (with --compare: the output folder); refused if it exists")
+    add("--overwrite", action="store_true", help="replace the --out recording(s) if they exist")
     add("--json", action="store_true", help="print a JSON summary as the last line")
     add("--compare", action="store_true", help=f"run {', '.join(COMPARED)} on the same plant; table and figure")
     add("--report", type=Path, metavar="RECORDING", help="only the Table 4 metrics and figure of a recording")
@@ -246,8 +254,8 @@ def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None
            zenoh_file: Path | None = None) -> tuple[int, float]:
     """Run one list of nodes to its end; returns (exit status, wall time [s])."""
     run_id = run_id or "".join(c if c.isalnum() or c in "_.-" else "_" for c in out.stem)[-64:].lstrip("_.-")
-    specs = [replace(s, args=s.args + ("--out", str(out))) if s.module == "messages.recorder" and "--out" not in s.args
-             else s for s in specs]
+    specs = [replace(s, args=s.args + ("--out", str(out), "--overwrite"))  # out: reserved or checked by main
+             if s.module == "messages.recorder" and "--out" not in s.args else s for s in specs]
     roles = tuple(f"--role={s.name}={','.join(s.roles)}" for s in specs if s.module != "messages.recorder")
     specs = [replace(s, args=s.args + roles) if s.module == "messages.recorder" else s for s in specs]
     service = LaunchService(run_id, hub or free_loopback_endpoint(), zenoh_file, progress=progress)
@@ -313,6 +321,9 @@ def main(argv: list[str] | None = None) -> int:
             if args.out:
                 folder = args.out
                 writable_recording(folder / "comparison.md")
+                taken = [p for name in COMPARED if (p := folder / f"{opts.scenario}-{name}.mcap").exists()]
+                if taken and not args.overwrite:
+                    raise UsageError(f"--out {taken[0]}: exists; give --overwrite to replace it")
             else:
                 folder = new_recording(Path("recordings") / f"{stamp}-compare-{opts.scenario}")
         else:
@@ -320,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
             default = Path("recordings") / f"{stamp}-{name}.mcap"
             if args.out is not None and (args.out.suffix != ".mcap" or args.out.is_dir()):
                 raise UsageError(f"--out {args.out}: must name a .mcap file (a folder only with --compare)")
-            out = writable_recording(args.out) if args.out else new_recording(default)
+            out = reserve_recording(args.out, args.overwrite) if args.out else new_recording(default)
     except UsageError as err:
         return exit_usage(parser.prog, err)
     progress = not args.no_progress and sys.stderr.isatty()  # a bar only on a terminal, not in logs

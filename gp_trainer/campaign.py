@@ -262,12 +262,14 @@ def recording_complete(path: Path) -> bool:
 
 def job_command(settings: RunnerSettings | RunSpec, job: Job, out: Path, config: Path | None = None) -> list[str]:
     """Command line that records ``job`` to ``out``, with ``--config config`` if given (the job's
-    ``[plant]`` table as TOML), then the job's and the settings' further arguments. The launcher
-    runs in the repository root: the runner passes absolute paths."""
+    ``[plant]`` table as TOML), then the job's and the settings' further arguments; ``out`` (the
+    job's partial recording, left by an earlier attempt) is overwritten. The launcher runs in the
+    repository root: the runner passes absolute paths."""
     return [settings.python, str(settings.launcher), "--scenario", job.scenario,
             "--controller", job.controller or settings.controller,
             *(("--config", str(config)) if config is not None else ()), *job.args,
-            *getattr(settings, "launch_args", ()), "--no-progress", "--json", "--out", str(out), "--run-id", job.name]
+            *getattr(settings, "launch_args", ()), "--no-progress", "--json", "--out", str(out), "--overwrite",
+            "--run-id", job.name]
 
 
 def case_command(settings: CampaignSettings, case: int, out: Path) -> list[str]:

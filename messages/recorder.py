@@ -19,10 +19,15 @@ its own events and log and, by its roles, for its role's topics (``--role``; by 
 named like a role has that role); a count it claims for any other key is ignored and counted
 (``foreign_count``), so that a node without a role cannot touch another node's reconciliation.
 
-Crash safety: the MCAP chunk is closed and the file flushed every :data:`FLUSH_PERIOD_S`, so a
-killed recorder loses at most that much; ``python -m messages.recording recover`` makes such a
-file whole again. A write error (full disk, read-only file system) ends the recorder with one
-line, exit status 1, the file readable up to the fault.
+Crash safety: every :data:`FLUSH_PERIOD_S` the MCAP chunk is closed, the file flushed and
+``fsync``-ed (never per message), so a killed recorder or a power cut loses at most that much;
+``python -m messages.recording recover`` makes such a file whole again. A write error (full
+disk, read-only file system) ends the recorder with one line, exit status 1, the file readable
+up to the fault.
+
+The file is created with mode 0600 (whatever the umask,
+:data:`messages.recording.RECORDING_MODE`): a recording holds every node's configuration.
+``--out`` refuses an existing file unless ``--overwrite`` is given.
 
 Run: ``python -m messages.recorder --run-id RUN --out recordings/run.mcap``. It finishes the
 file when every expected node has ended and every message it reported published has arrived
@@ -34,7 +39,9 @@ unwritable ``--out``.
 
 from __future__ import annotations
 
+import io
 import json
+import os
 import queue
 import sys
 import time
@@ -54,6 +61,7 @@ from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.codec import MessageError, decode, encode, json_schema
 from messages.foxglove import Log, LogLevel, Timestamp
 from messages.provenance import git_revision, package_versions
+from messages.recording import create_recording
 from messages.topics import (
     LASER_COMMAND,
     LOG,
@@ -178,14 +186,23 @@ class McapRecorder:
         self.write(LOG, encode(msg), msg, time.time_ns())
 
     def flush(self) -> None:
-        """Close the current chunk and flush the stream, so that everything so far is on disk.
+        """Close the current chunk, flush the stream and ``fsync`` it, so that everything so far is on disk.
 
         ``mcap.writer.Writer.flush`` (public since mcap 1.2) finishes the chunk in progress and
         flushes the output stream; ``tests/test_recorder_crash.py`` fails if it stops doing so.
         """
         with self._writing():
             self._writer.flush()
+            self._sync()
         self._last_flush = time.monotonic()
+
+    def _sync(self) -> None:
+        """``fsync`` the stream if it is a file (an in-memory stream in tests has no descriptor)."""
+        try:
+            fd = self._stream.fileno()
+        except (AttributeError, io.UnsupportedOperation):
+            return
+        os.fsync(fd)
 
     def flush_due(self, now: float) -> None:
         """:meth:`flush` if :data:`FLUSH_PERIOD_S` has passed since the last one (``now``: monotonic s)."""
@@ -210,6 +227,8 @@ class McapRecorder:
             self._writer.flush()  # the chunk in progress goes before the completeness record
             self._writer.add_metadata("meltloop.counts", summary)
             self._writer.finish()
+            self._stream.flush()
+            self._sync()
             self._stream.close()
 
 
@@ -604,11 +623,23 @@ def default_path(run_id: str) -> Path:
     return new_recording(Path("recordings") / f"{stamp}-{run_id}.mcap")
 
 
-def open_output(path: Path) -> BinaryIO:
-    """Create ``path``'s folder and open it for writing (:class:`UsageError` naming ``--out`` if impossible)."""
+def open_output(path: Path, overwrite: bool) -> BinaryIO:
+    """Create ``path``'s folder and the file (:func:`messages.recording.create_recording`: mode
+    0600); an existing file only with ``overwrite``.
+
+    Raises
+    ------
+    UsageError
+        Naming ``--out``: the file exists (without ``overwrite``) or cannot be written.
+    """
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        return path.open("wb")
+    except OSError as err:
+        raise UsageError(f"--out {path}: cannot write: {err.strerror or err}") from None
+    try:
+        return create_recording(path, overwrite)
+    except FileExistsError:
+        raise UsageError(f"--out {path}: exists; give --overwrite to replace it") from None
     except OSError as err:
         raise UsageError(f"--out {path}: cannot write: {err.strerror or err}") from None
 
@@ -635,6 +666,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m messages.recorder``."""
     parser = ArgumentParser(prog="python -m messages.recorder", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, help="MCAP file to write (default: recordings/<date>-<run id>.mcap)")
+    parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists (else refused)")
     parser.add_argument(
         "--expect", action="append", default=[], metavar="NODE",
         help="finish once these nodes have ended (default: once every node that started has ended)",
@@ -656,7 +688,7 @@ def main(argv: list[str] | None = None) -> int:
             raise UsageError(f"--out must name a .mcap file, got {args.out}")
         roles = parse_roles(args.role)
         path = args.out or default_path(settings.run_id)
-        stream = open_output(path)
+        stream = open_output(path, overwrite=args.overwrite or args.out is None)  # the default is reserved, ours
     except UsageError as err:
         return exit_usage(parser.prog, err)
     stop = StopFlag()

@@ -10,9 +10,12 @@ complete chunks hold, and :func:`read_recording` says so (``truncated``, ``detai
 
 ``python -m messages.recording recover FILE --out FIXED.mcap`` writes such a file's schemas,
 channels, metadata, attachments and every message of its complete chunks into a finished MCAP,
-with ``meltloop.counts`` saying ``complete = "false"``, ``stopped_by = "recovered"``. Exit
-status 2 for a bad command line, a missing file or one that is not MCAP; 1 if nothing is
-recoverable or the output cannot be written.
+with ``meltloop.counts`` saying ``complete = "false"``, ``stopped_by = "recovered"``; an
+existing ``--out`` only with ``--overwrite``. Exit status 2 for a bad command line, a missing
+file or one that is not MCAP; 1 if nothing is recoverable or the output cannot be written.
+
+Recordings are created with mode :data:`RECORDING_MODE` (0600, whatever the umask): they hold
+every node's configuration.
 """
 
 from __future__ import annotations
@@ -40,11 +43,29 @@ from messages.codec import MessageError, decode
 from messages.topics import TOPICS, Topic
 
 MAGIC = b"\x89MCAP0\r\n"
+RECORDING_MODE = 0o600
+"""File mode of a recording: owner read/write only, whatever the umask."""
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, record length
 
 
 class RecordingError(ValueError):
     """A recording that is missing, empty, truncated or not a meltloop MCAP (one-line reason)."""
+
+
+def create_recording(path: str | Path, overwrite: bool) -> BinaryIO:
+    """Open ``path`` for writing a recording, created with mode :data:`RECORDING_MODE`; an
+    existing file only with ``overwrite`` (truncated, its mode set to :data:`RECORDING_MODE`).
+
+    Raises
+    ------
+    FileExistsError
+        ``path`` exists and ``overwrite`` is false.
+    OSError
+        It cannot be created.
+    """
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL), RECORDING_MODE)
+    os.fchmod(fd, RECORDING_MODE)
+    return os.fdopen(fd, "wb")
 
 
 def _topic(channel_or_topic: str | Topic) -> Topic:
@@ -281,7 +302,7 @@ def run_config(path: str | Path) -> dict[str, Any]:
 
 
 def recover(path: str | Path, out: str | Path) -> Recording:
-    """Write what is readable of ``path`` into a finished MCAP ``out``; returns what was read.
+    """Write what is readable of ``path`` into a finished MCAP ``out`` (replaced if it exists); returns what was read.
 
     Schemas, channels, metadata (but the source's ``meltloop.counts``), attachments and every
     message with its original times and sequence; then ``meltloop.counts`` with
@@ -299,7 +320,7 @@ def recover(path: str | Path, out: str | Path) -> Recording:
     if not source.messages:
         raise RecordingError(f"nothing recoverable in {path}: no complete chunk with messages"
                              + (f" ({source.detail})" if source.detail else ""))
-    with Path(out).open("wb") as stream:
+    with create_recording(out, overwrite=True) as stream:
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile="", library="meltloop recover")
         schema_ids = {i: writer.register_schema(name=s.name, encoding=s.encoding, data=s.data)
@@ -334,11 +355,14 @@ def main(argv: list[str] | None = None) -> int:
     rec = commands.add_parser("recover", help="write what is readable of an unfinished recording into a valid MCAP")
     rec.add_argument("file", type=Path, help="recording to recover (e.g. of a killed recorder)")
     rec.add_argument("--out", type=Path, required=True, help="finished MCAP to write")
+    rec.add_argument("--overwrite", action="store_true", help="replace --out if it exists (else refused)")
     args = parser.parse_args(argv)
     prog = f"{parser.prog} {args.command}"
     try:
         if args.out.resolve() == args.file.resolve():
             raise UsageError("--out must differ from FILE")
+        if args.out.exists() and not args.overwrite:
+            raise UsageError(f"--out {args.out}: exists; give --overwrite to replace it")
         with _open(args.file):
             pass
     except (UsageError, RecordingError) as err:

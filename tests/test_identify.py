@@ -134,7 +134,7 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
         assert job_recording(settings, job) == tmp_path / f"{run.name}.mcap"
         assert job_command(settings, job, out, config) == [
             "PY", "/repo/launch.py", "--scenario", run.scenario, "--controller", "none", "--config", str(config),
-            "--no-progress", "--json", "--out", str(out), "--run-id", run.name]
+            "--no-progress", "--json", "--out", str(out), "--overwrite", "--run-id", run.name]
         assert dict(job.plant) == {"ident_seed": run.seed, "ident_mean_w": run.mean_w, "ident_amplitude_w": 60.0}
         assert tomllib.loads(plant_toml(job.plant)) == {"plant": dict(job.plant)}
     for run, job in zip(feedback[:7], jobs[6:]):
@@ -152,6 +152,7 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
             "--json",
             "--out",
             str(out),
+            "--overwrite",
             "--run-id",
             run.name,
         ]

@@ -6,7 +6,9 @@ from __future__ import annotations
 import errno
 import io
 import json
+import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -273,3 +275,59 @@ def test_completeness_is_written_after_the_last_message_and_a_cut_file_is_never_
         if opcode == Opcode.CHUNK:
             out.write_bytes(data[:end])
             assert not is_complete(out)
+
+
+def test_the_periodic_flush_fsyncs_the_file_and_no_message_does(tmp_path, monkeypatch):
+    synced = []
+    monkeypatch.setattr(recorder_module.os, "fsync", synced.append)
+    out = tmp_path / "sync.mcap"
+    stream = out.open("wb")
+    recorder = McapRecorder(out, RUN, stream)
+    for step in range(100):
+        recorder.write(PLANT_STATE, encode(state(step)), state(step), time.time_ns())
+    assert synced == []
+    recorder.flush_due(time.monotonic() + FLUSH_PERIOD_S)
+    assert synced == [stream.fileno()]
+    recorder.finish({"complete": "true"})
+    assert len(synced) == 2  # and once when finished
+    memory = McapRecorder(out, RUN, io.BytesIO())  # a stream without a file descriptor is only flushed
+    memory.flush()
+    assert len(synced) == 2
+
+
+def test_recordings_are_created_0600_whatever_the_umask(tmp_path):
+    from messages.launch.service import new_recording, reserve_recording
+
+    old = os.umask(0)
+    try:
+        made = [recorder_module.open_output(tmp_path / "a.mcap", overwrite=False), new_recording(tmp_path / "b.mcap"),
+                reserve_recording(tmp_path / "c.mcap", overwrite=False)]
+        (tmp_path / "d.mcap").write_bytes(b"old")
+        os.chmod(tmp_path / "d.mcap", 0o666)
+        made.append(recorder_module.open_output(tmp_path / "d.mcap", overwrite=True))
+        path, _ = truncated_recording(tmp_path)
+        recover(path, tmp_path / "e.mcap")
+    finally:
+        os.umask(old)
+    for name in "abcde":
+        assert stat.S_IMODE((tmp_path / f"{name}.mcap").stat().st_mode) == 0o600, name
+    assert (tmp_path / "d.mcap").stat().st_size == 0
+
+
+@pytest.mark.parametrize("command", [
+    ["-m", "messages.recorder", "--out", "{out}"],
+    ["launch.py", "--out", "{out}"],
+    ["launch.py", "--compare", "--out", "{folder}"],
+    ["-m", "messages.recording", "recover", "{other}", "--out", "{out}"],
+])
+def test_out_refuses_an_existing_recording_without_overwrite(tmp_path, command):
+    out = tmp_path / "layer-pid.mcap"
+    out.write_bytes(b"a recording")
+    other = tmp_path / "other.mcap"
+    other.write_bytes(MAGIC)
+    args = [a.format(out=out, folder=tmp_path, other=other) for a in command]
+    done = subprocess.run([sys.executable, *args], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert f"--out {out}: exists; give --overwrite to replace it" in done.stderr
+    assert done.stderr.count("\n") == 1 and out.read_bytes() == b"a recording"
+

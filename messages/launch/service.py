@@ -46,7 +46,7 @@ def new_recording(path: Path) -> Path:
     while True:
         try:
             if path.suffix:
-                os.close(os.open(candidate, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+                os.close(os.open(candidate, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
             else:
                 candidate.mkdir()
             return candidate
@@ -55,6 +55,19 @@ def new_recording(path: Path) -> Path:
             candidate = path.with_name(f"{path.stem}-{n}{path.suffix}")
         except OSError as err:
             raise UsageError(f"--out {candidate}: cannot create it: {err.strerror or err}") from None
+
+
+def reserve_recording(path: Path, overwrite: bool) -> Path:
+    """``path``, created empty (mode 0600) unless it exists; an existing file only with
+    ``overwrite`` (the recorder then replaces it). Usage error naming ``--out`` otherwise."""
+    writable_recording(path)
+    try:
+        os.close(os.open(path, os.O_CREAT | os.O_WRONLY | (0 if overwrite else os.O_EXCL), 0o600))
+    except FileExistsError:
+        raise UsageError(f"--out {path}: exists; give --overwrite to replace it") from None
+    except OSError as err:
+        raise UsageError(f"--out {path}: cannot create it: {err.strerror or err}") from None
+    return path
 
 
 def writable_recording(path: Path) -> Path:
