@@ -567,6 +567,10 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
            config: dict[str, Any]) -> int:
     """Receive everything under the run's prefix until the run ends; returns the exit status.
 
+    The run ends when the expected nodes (else every node that started) have ended; then the
+    recorder waits up to ``drain_s`` more for messages still missing and for the end of any
+    other node that started.
+
     zenoh's callback only enqueues; the loop takes all that has arrived at each wake-up
     (:func:`arrived`) and, after writing it, waits :data:`BATCH_S` before it looks again.
 
@@ -598,7 +602,7 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
                 continue
             end_since = end_since or time.monotonic()
             missing, _ = reconcile(tracker.published(), intake.from_nodes, lambda _key: False)
-            if not missing or time.monotonic() - end_since > drain_s:
+            if not (missing or tracker.not_ended()) or time.monotonic() - end_since > drain_s:
                 break
         counts, problem = intake.summary(stop.signal_name if stop.is_set() else None)
         if problem:

@@ -405,3 +405,18 @@ def test_a_node_cannot_claim_counts_of_keys_it_does_not_own(tmp_path, capsys):
     assert json.loads(counts["published"]) == {"plant/state": 20, "run/events": 4}
     assert json.loads(counts["dropped"]) == {"foreign_count": 2}
     assert "foreign_count 2" in capsys.readouterr().out
+
+
+def test_the_recorder_waits_for_a_node_that_started_and_ends_after_the_expected_ones(tmp_path):
+    def script(bus):
+        bus.send(RUN_EVENTS, event("helper", "start"))
+        plant_run(5)(bus)
+        time.sleep(0.2)  # the helper ends after the plant, within the drain time
+        bus.send(RUN_EVENTS, event("helper", "end", {"run/events": 2}))
+        time.sleep(0.05)
+        bus.leave("helper")
+
+    status, out = run_recorder(tmp_path, script, drain_s=1.0)
+    counts = metadata(out)["meltloop.counts"]
+    assert status == 0 and counts["complete"] == "true", counts
+    assert [e.node for e in read_messages(out, RUN_EVENTS)][-1] == "helper"
