@@ -118,7 +118,7 @@ def check_config(opts: RunOptions) -> None:
         raise UsageError(f"{opts.config}: unknown table(s) {', '.join(sorted(unknown))}; expected [plant], "
                          "[controller]")
     try:
-        scenario(opts.scenario, **{**data.get("plant", {}), **opts.plant_overrides})
+        plant = scenario(opts.scenario, **{**data.get("plant", {}), **opts.plant_overrides})
     except (ValueError, TypeError) as err:
         raise UsageError(f"{opts.config} [plant]: {err}" if opts.config else str(err)) from None
     table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
@@ -126,6 +126,8 @@ def check_config(opts: RunOptions) -> None:
     model = load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
     if opts.closed_loop:
         check_within_plant(settings, f"{opts.config} [controller]")
+    if opts.controller == "preview-mpc":
+        check_process(model, plant, settings, opts.config)
     if opts.learning_state is not None and opts.learning_state.is_file():
         check_learning_state(opts.learning_state, model, settings)
 
@@ -142,6 +144,23 @@ def check_learning_state(path: Path, model, settings: ControllerSettings) -> Non
         raise UsageError(f"--learning-state {path}: not JSON ({err})") from None
     except (OSError, ValueError) as err:
         raise UsageError(f"--learning-state {path}: {' '.join(str(err).split())}") from None
+
+
+def check_process(model, plant, settings: ControllerSettings, config: Path | None) -> None:
+    """:class:`UsageError` naming the setting unless the plant is the process the preview MPC's
+    ``model`` was identified on (:func:`controller_node.preview.process_mismatch`): the speed of its
+    first state (the scenario's), the speed the controller commands after it, its sample period and
+    its material."""
+    from controller_node.preview import process_mismatch
+
+    file = f"{config} " if config else ""
+    checks = ((f"{file}[plant] speed_m_s", {"speed_m_s": plant.profile.command(0)[1]}),
+              (f"{file}[controller] nominal_speed_m_s", {"speed_m_s": settings.nominal_speed_m_s}),
+              (f"{file}[plant] dt_s", {"sample_period_s": plant.settings.dt_s}),
+              (f"{file}[plant] material", {"material": plant.settings.material.name}))
+    for where, value in checks:
+        if (reason := process_mismatch(model, **value)) is not None:
+            raise UsageError(f"{where}: {reason}")
 
 
 def check_within_plant(settings: ControllerSettings, where: str) -> None:

@@ -32,8 +32,10 @@ Learning over turnarounds (iterative learning control on the model's one-step er
 turn, :meth:`PreviewMPC._learn_turn_correction`): within a layer each turn starts from the latest
 learned correction; in the next layer (of the same build, or through :meth:`learning_state`)
 turn j starts from what turn j learned, since a later turn of a layer is on a hotter plate.
-A plant whose sample
-period differs from the model's is refused (:class:`~controller_node.types.ConfigurationError`).
+
+A state whose sample period or scan speed differs from the model's by more than 1 % is refused
+(:class:`~controller_node.types.ConfigurationError` with :func:`process_mismatch`'s line: the node
+logs it and ends with exit status 2); ``launch.py`` refuses them, and another material, before a run.
 """
 
 from __future__ import annotations
@@ -48,11 +50,29 @@ from .preview_qp import PreviewQP
 from .settings import ControllerSettings
 from .types import ConfigurationError, Measurement
 
-__all__ = ["PreviewMPC", "parse_learning_state"]
+__all__ = ["PreviewMPC", "parse_learning_state", "process_mismatch"]
 
 LEARNING_FORMAT = "meltloop-preview-learning-2"
 PERIOD_TOLERANCE = 0.01
 """Relative difference between the plant's and the model's sample period that is refused."""
+SPEED_TOLERANCE = 0.01
+"""Relative difference between the plant's and the model's scan speed that is refused."""
+
+
+def process_mismatch(model, speed_m_s: float | None = None, sample_period_s: float | None = None,
+                     material: str | None = None) -> str | None:
+    """Why a plant scanning at ``speed_m_s`` [m/s] with the sample period ``sample_period_s`` [s] and
+    ``material`` is not the process ``model`` was identified on (one line), or None. A value not given,
+    or a material the model does not record, is not compared."""
+    if speed_m_s is not None and not abs(speed_m_s / model.speed_m_s - 1.0) <= SPEED_TOLERANCE:
+        return (f"the plant scans at {speed_m_s * 1e3:.4g} mm/s but the model was identified at "
+                f"{model.speed_m_s * 1e3:.4g} mm/s; retrain at the plant's speed")
+    if sample_period_s is not None and not abs(sample_period_s / model.sample_period_s - 1.0) <= PERIOD_TOLERANCE:
+        return (f"the plant's sample period is {sample_period_s * 1e6:.4g} µs but the model was identified at "
+                f"{model.sample_period_s * 1e6:.4g} µs; retrain at the plant's period")
+    if material is not None and model.material is not None and material != model.material:
+        return f"the plant's material is {material} but the model was identified on {model.material}"
+    return None
 
 
 def parse_learning_state(doc: object, sample_period_s: float, n_correction: int, n_profile: int
@@ -167,11 +187,9 @@ class PreviewMPC(Controller):
         first = self._first
         if first is None or m.step == first.step:
             return
-        period = (m.time_s - first.time_s) / (m.step - first.step)
-        expected = self.model.sample_period_s
-        if not abs(period / expected - 1.0) <= PERIOD_TOLERANCE:
-            raise ConfigurationError(f"the plant's sample period is {period * 1e6:.4g} µs but the model was "
-                                     f"identified at {expected * 1e6:.4g} µs; retrain at the plant's period")
+        reason = process_mismatch(self.model, sample_period_s=(m.time_s - first.time_s) / (m.step - first.step))
+        if reason is not None:
+            raise ConfigurationError(reason)
 
     def _observe(self, m: Measurement) -> None:
         """Count the copies of ``p[k]``, ``T[k]`` the update pushes into the histories (one per step
@@ -327,6 +345,8 @@ class PreviewMPC(Controller):
         if self._first is None:
             self._first = m
         self._check_period(m)
+        if not abs(m.speed_m_s / self.model.speed_m_s - 1.0) <= SPEED_TOLERANCE:   # a state at another speed
+            raise ConfigurationError(process_mismatch(self.model, speed_m_s=m.speed_m_s))
         consecutive = self._prev is not None and m.step == self._prev.step + 1
         self._observe(m)
         built_up = m.step - self._layer_start_step >= ps.observer_start_steps

@@ -373,6 +373,22 @@ def _identify(args: argparse.Namespace) -> int:
     return 1 if any(r.status == "failed" for r in results) else 0
 
 
+def _material(paths: Sequence[Path]) -> str | None:
+    """The material of the FE plant that recorded ``paths`` (its recorded configuration; ``None`` if no
+    recording names one); :class:`DatasetError` if they name different ones."""
+    from gp_trainer.dataset import recording_info
+
+    names = set()
+    for path in paths:
+        plant = recording_info(path)["config"].get("plant") or {}
+        material = (plant.get("settings") or {}).get("material") if isinstance(plant, dict) else None
+        names.add(material.get("name") if isinstance(material, dict) else None)
+    names.discard(None)
+    if len(names) > 1:
+        raise DatasetError(f"the recordings are of different materials: {', '.join(sorted(names))}")
+    return names.pop() if names else None
+
+
 def _narx(args: argparse.Namespace) -> int:
     from gp_trainer.dataset import read_states
     from gp_trainer.narx import ROLLOUT_HORIZON, select_and_fit, series_from_states
@@ -391,7 +407,8 @@ def _narx(args: argparse.Namespace) -> int:
     if not held or not train:
         raise DatasetError("need both training and held-out runs; "
                            f"held out {[r.name for r in held]} of {[r.name for r in runs]}")
-    model, best, table = select_and_fit(train, held, seed=args.seed)
+    process = {"material": _material(paths), "plant": ident.name}
+    model, best, table = select_and_fit(train, held, seed=args.seed, provenance={"process": process})
     out = model.save(args.out or ident.model_path)
     for row in table:
         print(f"lags p {row['n_power_lags']:2d}, T {row['n_temperature_lags']:2d}, output {row['output']:8s}, "

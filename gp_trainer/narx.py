@@ -58,6 +58,9 @@ OUTPUTS = ("log", "identity")
 _LOG_AREA_MAX = 700.0  # exp overflows beyond ~709
 RESIDUAL_INPUTS = ("t_ahead_k", "log1p_steps_since_track_start", "mean_power_w")
 STEPS_SINCE_START_CAP = 100
+SPEED_TOLERANCE = 0.01
+"""Relative difference of two scan speeds that makes them different processes (runs of one model, a
+plant and its model)."""
 
 
 def steps_since_start_feature(steps: np.ndarray) -> np.ndarray:
@@ -99,6 +102,8 @@ class RunSeries:
     layer : numpy.ndarray of int, shape (n,), optional
         Layer of each state (a multi-layer build; ``None``: one layer). Every layer starts a new
         pool on fresh powder, so its first track follows no turnaround.
+    speed_m_s : float, optional
+        The run's constant scan speed [m/s] (``None``: not recorded).
     """
 
     name: str
@@ -108,6 +113,7 @@ class RunSeries:
     track: np.ndarray
     sample_period_s: float
     layer: np.ndarray | None = None
+    speed_m_s: float | None = None
 
     def __len__(self) -> int:
         return int(self.area_m2.shape[0])
@@ -167,7 +173,7 @@ def series_from_states(states: Sequence[Any], name: str) -> RunSeries:
     Raises
     ------
     DatasetError
-        Fewer than 2 states, missing steps, or an inconsistent sample period.
+        Fewer than 2 states, missing steps, an inconsistent sample period or a scan speed that varies.
     """
     states = sorted(states, key=lambda s: s.step)
     if len(states) < 2:
@@ -180,13 +186,33 @@ def series_from_states(states: Sequence[Any], name: str) -> RunSeries:
     period = float(np.median(periods))
     if not period > 0 or np.max(np.abs(periods - period)) > 0.01 * period:
         raise DatasetError(f"{name}: the sample period varies ({periods.min():.3g}-{periods.max():.3g} s)")
+    speeds = np.array([s.speed_mm_s for s in states]) * 1e-3
+    speed = float(np.median(speeds))
+    if np.max(np.abs(speeds - speed)) > SPEED_TOLERANCE * speed:
+        raise DatasetError(f"{name}: the scan speed varies ({speeds.min():.4g}-{speeds.max():.4g} m/s); "
+                           "the model holds one speed")
     power = np.array([s.power_w for s in states], dtype=float)
     if steps[0] == 0:
         power[0] = 0.0
     return RunSeries(name=name, area_m2=np.array([s.area_mm2 for s in states]) * 1e-6,
                      t_ahead_k=np.array([s.t_ahead_k for s in states], dtype=float), power_w=power,
                      track=np.array([s.track for s in states], dtype=int), sample_period_s=period,
-                     layer=np.array([s.layer or 0 for s in states], dtype=int))
+                     layer=np.array([s.layer or 0 for s in states], dtype=int), speed_m_s=speed)
+
+
+def _common_speed(runs: Sequence[RunSeries], speed_m_s: float | None) -> float:
+    """The one scan speed [m/s] of ``runs`` and ``speed_m_s`` (``DatasetError`` naming the runs if
+    they differ by more than :data:`SPEED_TOLERANCE`, or if none is known)."""
+    known = [(r.name, r.speed_m_s) for r in runs if r.speed_m_s is not None]
+    if speed_m_s is not None:
+        known.append(("speed_m_s", float(speed_m_s)))
+    if not known:
+        raise DatasetError("the runs record no scan speed: give speed_m_s")
+    speed = known[0][1]
+    other = [f"{name} {v:.4g} m/s" for name, v in known if abs(v - speed) > SPEED_TOLERANCE * speed]
+    if other:
+        raise DatasetError(f"runs at different scan speeds: {known[0][0]} {speed:.4g} m/s, {', '.join(other)}")
+    return speed
 
 
 def turn_profile(runs: Iterable[RunSeries], length: int) -> np.ndarray:
@@ -425,6 +451,13 @@ class NarxGPModel:
     speed_m_s : float
         The constant scan speed of the data [m/s] (power-only control).
     provenance : Mapping, optional
+        How the model was made; its ``"process"`` entry, if any, names the ``"material"`` and the
+        ``"plant"`` (``plate``, ``part``) of the identification runs.
+
+    Attributes
+    ----------
+    material : str or None
+        The material of the identification runs (``None``: not recorded).
     """
 
     def __init__(self, *, sample_period_s: float, intercept: float, power_coefficients: np.ndarray,
@@ -447,6 +480,10 @@ class NarxGPModel:
         self.forecast_persistence = float(forecast_persistence)
         self.speed_m_s = float(speed_m_s)
         self.provenance = dict(provenance or {})
+        process = self.provenance.get("process", {})
+        self.material = process.get("material") if isinstance(process, dict) else None
+        if not isinstance(process, dict) or not (self.material is None or isinstance(self.material, str)):
+            raise ModelFormatError("NARX model: provenance.process must be an object whose material is a string")
         arrays = (self.power_coefficients, self.power_square_coefficients, self.temperature_coefficients,
                   self.temperature_square_coefficients, self.turn_profile_k, self.power_temperature_coefficients)
         if output not in OUTPUTS:
@@ -555,18 +592,20 @@ class NarxGPModel:
             n_temperature_square_lags: int | None = None, quadratic: bool = True, interaction: bool = False,
             output: str = "log",
             n_train: int = 150, bounds: HyperBounds = DEFAULT_BOUNDS, seed: int = 0, n_restarts: int = 4,
-            profile_length: int = 200, provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
+            profile_length: int = 200, speed_m_s: float | None = None,
+            provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
         """Least squares in z for the lag part, then the residual GP on ``n_train`` seeded random samples.
 
         Samples whose target is in the first :data:`BUILD_UP_STEPS` states of a run or of a layer, or has no
         pool (area 0), are not fitted (the lags still see their powers). ``quadratic=False``
         leaves out the squared lags (a plain FIR part); ``interaction`` adds the lag-matched
-        p × T terms.
+        p × T terms. The model's scan speed is the runs' (:attr:`RunSeries.speed_m_s`), or ``speed_m_s``
+        [m/s] for runs that record none.
 
         Raises
         ------
         DatasetError
-            No runs, mixed sample periods, or too few samples.
+            No runs, mixed sample periods or speeds, no speed, or too few samples.
         """
         if not runs:
             raise DatasetError("no runs to fit")
@@ -575,6 +614,7 @@ class NarxGPModel:
         periods = {round(r.sample_period_s, 12) for r in runs}
         if len(periods) != 1:
             raise DatasetError(f"runs have different sample periods: {sorted(periods)} s")
+        speed = _common_speed(runs, speed_m_s)
         if not quadratic:
             n_tq = 0
         elif n_temperature_square_lags is None:
@@ -612,7 +652,7 @@ class NarxGPModel:
                    temperature_coefficients=theta[1 + 2 * n_p:1 + 2 * n_p + n_t],
                    temperature_square_coefficients=theta[1 + 2 * n_p + n_t:1 + 2 * n_p + n_t + n_tq],
                    power_temperature_coefficients=theta[1 + 2 * n_p + n_t + n_tq:], output=output, residual=gp,
-                   turn_profile_k=profile, forecast_persistence=fit_persistence(runs, profile), speed_m_s=0.8,
+                   turn_profile_k=profile, forecast_persistence=fit_persistence(runs, profile), speed_m_s=speed,
                    provenance=record)
 
     @classmethod
@@ -755,15 +795,16 @@ def select_and_fit(
     *,
     seed: int = 0,
     n_train: int = 150,
+    provenance: Mapping[str, Any] | None = None,
 ) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
     """Fit every candidate (lags, output map, squared lags, interactions, length-scale floor) on ``train``; keep the
     one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
-    Returns it, its row and the whole table."""
+    Returns it, its row and the whole table; ``provenance`` goes into every candidate's."""
     table, best = [], None
     for (n_p, n_t), (output, quadratic, with_x), floor in itertools.product(STRUCTURES, FORMS, LENGTH_SCALE_FLOORS):
             model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
                                     output=output, quadratic=quadratic, interaction=with_x,
-                                    bounds=HyperBounds(length_scale=(floor, 100.0)))
+                                    bounds=HyperBounds(length_scale=(floor, 100.0)), provenance=provenance)
             scores = evaluate_model(model, held_out)
             row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
                    "interaction": with_x,

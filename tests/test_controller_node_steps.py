@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import threading
 
+from msgspec.structs import replace
+
 from controller_node.node import MAX_STEP, MAX_STEPS_AHEAD, inadmissible, run
 from controller_node.registry import make_controller
 from controller_node.settings import ControllerSettings
@@ -91,3 +93,21 @@ def test_node_drops_impossible_and_duplicate_states_and_keeps_answering():
     assert [c.step for c in commands] == [1, 2, 3, 4]
     assert any("no next step" in line for line in bus.logs)
     assert "3 impossible states dropped" in bus.logs[-1]  # the duplicate of state 2 gets no second command
+
+
+def test_node_ends_with_a_logged_fault_on_a_state_at_another_speed_than_its_models(capsys):
+    """The preview MPC's model was identified at 800 mm/s: a state at 1000 mm/s gets no command; the node
+    logs the one-line reason, ends its run with it and returns exit status 2."""
+    from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel
+
+    stop = threading.Event()
+    states = [_state(0), _state(1), replace(_state(2), speed_mm_s=1000.0), _state(3)]
+    bus = _Bus(states, stop)
+    settings = ControllerSettings(set_point_m2=0.063e-6)
+    controller = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
+    assert run(bus, controller, settings, stop, "plant", {}) == 2
+    commands = [m for p in bus.pubs.values() for m in p.sent if type(m).__name__ == "LaserCommand"]
+    assert [c.step for c in commands] == [1, 2]
+    reason = "the plant scans at 1000 mm/s but the model was identified at 800 mm/s; retrain at the plant's speed"
+    assert bus.logs == [reason, f"refused: {reason}"]
+    assert capsys.readouterr().err.strip() == f"python -m controller_node: error: {reason}"

@@ -23,7 +23,7 @@ def _delay_model():
     from tests.test_preview import synthetic_run
 
     return NarxGPModel.fit([synthetic_run(s) for s in range(2)], n_power_lags=8, n_temperature_lags=5,
-                           n_train=40, n_restarts=1, profile_length=20)
+                           n_train=40, n_restarts=1, profile_length=20, speed_m_s=0.8)
 
 
 DELAY_MODEL = _delay_model()

@@ -206,3 +206,24 @@ def test_campaign_runs_cases_in_parallel_and_skips_complete_ones(tmp_path):
         run_campaign(dataclasses.replace(settings, cases=(0, 10)), progress=False)
     with pytest.raises(CampaignError, match="launcher not found"):
         run_campaign(dataclasses.replace(settings, launcher=tmp_path / "nope.py"), progress=False)
+
+
+def test_the_delay_aware_model_records_the_material_of_its_recordings(tmp_path):
+    """``narx`` writes the material of the FE plant's recorded configuration into the model's process."""
+    from gp_trainer.cli import _material
+
+    def recording(name, material):
+        from messages.recorder import McapRecorder
+
+        path = tmp_path / f"{name}.mcap"
+        recorder = McapRecorder(path, "gp-test", path.open("wb"))
+        if material is not None:
+            recorder.attach("config/plant.json", json.dumps({"settings": {"material": {"name": material}}}).encode())
+        recorder.finish({"complete": "true"})
+        return path
+
+    a, b = recording("a", "IN625"), recording("b", "IN625")
+    assert _material([a, b]) == "IN625"
+    assert _material([recording("sensor", None)]) is None          # a plant that records none
+    with pytest.raises(DatasetError, match="different materials: IN625, IN718"):
+        _material([a, recording("c", "IN718")])

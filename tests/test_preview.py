@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -17,6 +18,7 @@ from fe_node.scan import ScanPlan
 from gp_trainer.narx import NarxGPModel, RunSeries, forecast_t_ahead
 
 DT = 50e-6
+SPEED_M_S = 0.8  # the synthetic runs' scan speed, as the measurements'
 B_TRUE = 1e-12 * np.array([5.0, 10.0, 20.0, 30.0, 30.0, 20.0, 10.0, 5.0])   # m²/W, a ramp over 8 steps
 C_TRUE = 1e-12 * np.array([2.0, 4.0, 6.0, 4.0, 2.0])                          # m²/K
 C0 = 1.0e-8
@@ -44,7 +46,8 @@ def synthetic_run(seed: int, n: int = 400, tracks: int = 2) -> RunSeries:
 @pytest.fixture(scope="module")
 def model() -> NarxGPModel:
     return NarxGPModel.fit([synthetic_run(s) for s in range(3)], n_power_lags=8, n_temperature_lags=5,
-                           quadratic=False, output="identity", n_train=60, n_restarts=2, profile_length=50)
+                           quadratic=False, output="identity", n_train=60, n_restarts=2, profile_length=50,
+                           speed_m_s=SPEED_M_S)
 
 
 def test_fit_recovers_the_fir_plant(model):
@@ -88,12 +91,13 @@ def test_log_output_with_squared_lags_fits_a_multiplicative_plant():
         area = np.exp(np.log(1e-8) + (run.area_m2 - C0) / 2e-8) * (run.area_m2 > 0)
         runs.append(RunSeries(run.name, area, run.t_ahead_k, run.power_w, run.track, DT))
     model = NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, n_temperature_square_lags=2,
-                            output="log", n_train=60, n_restarts=1, profile_length=50, seed=int(rng.integers(9)))
+                            output="log", n_train=60, n_restarts=1, profile_length=50, seed=int(rng.integers(9)),
+                            speed_m_s=SPEED_M_S)
     mean, _ = model.predict_run(runs[0])
     truth = runs[0].area_m2[1:]
     assert np.max(np.abs(mean / truth - 1.0)[20:]) < 1e-3
     linear = NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity",
-                             n_train=60, n_restarts=1, profile_length=50)
+                             n_train=60, n_restarts=1, profile_length=50, speed_m_s=SPEED_M_S)
     assert np.max(np.abs(linear.predict_run(runs[0])[0] / truth - 1.0)[20:]) > 1e-2
 
 
@@ -170,10 +174,11 @@ def test_trainer_builds_a_model_at_the_period_of_its_runs():
     runs = [synthetic_run(s) for s in range(2)]
     slow = [RunSeries(r.name, r.area_m2, r.t_ahead_k, r.power_w, r.track, 100e-6) for r in runs]
     model = NarxGPModel.fit(slow, n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity",
-                            n_train=40, n_restarts=1, profile_length=20)
+                            n_train=40, n_restarts=1, profile_length=20, speed_m_s=SPEED_M_S)
     assert model.sample_period_s == 100e-6
     with pytest.raises(Exception, match="different sample periods"):
-        NarxGPModel.fit(runs + slow, n_power_lags=8, n_temperature_lags=5, n_train=40, n_restarts=1)
+        NarxGPModel.fit(runs + slow, n_power_lags=8, n_temperature_lags=5, n_train=40, n_restarts=1,
+                        speed_m_s=SPEED_M_S)
 
 
 @pytest.mark.parametrize("turn_at", [None, 33])
@@ -186,7 +191,8 @@ def test_prediction_matches_the_model_along_the_previous_plan(turn_at):
         area = np.exp(np.log(1e-8) + (run.area_m2 - C0) / 2e-8) * (run.area_m2 > 0)
         runs.append(RunSeries(run.name, area, run.t_ahead_k, run.power_w, run.track, DT))
     fitted = NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, n_temperature_square_lags=2,
-                             interaction=True, output="log", n_train=40, n_restarts=1, profile_length=50)
+                             interaction=True, output="log", n_train=40, n_restarts=1, profile_length=50,
+                             speed_m_s=SPEED_M_S)
     model = NarxGPModel(  # every term made visible: squares and interactions of a size that matters
         sample_period_s=DT, intercept=fitted.intercept, power_coefficients=fitted.power_coefficients,
         power_square_coefficients=np.full(8, 2e-6), temperature_coefficients=fitted.temperature_coefficients + 1e-3,
@@ -225,7 +231,7 @@ def test_jacobian_is_the_models_own_including_the_gp_residual():
         runs.append(RunSeries(run.name, run.area_m2 + 2e-12 * (mean_p - 225.0) ** 2, run.t_ahead_k, run.power_w,
                               run.track, DT))
     model = NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity",
-                            n_train=60, n_restarts=1, profile_length=50)
+                            n_train=60, n_restarts=1, profile_length=50, speed_m_s=SPEED_M_S)
     settings = ControllerSettings(set_point_m2=C0, preview=PreviewSettings(horizon=12, r=1.0, turn_learning_gain=0.0))
     ctrl = PreviewMPC(settings, model)
     run = runs[0]
@@ -252,7 +258,8 @@ def test_jacobian_of_lag_matched_interactions_uses_each_powers_own_temperature()
     """p[k+1−i] T[k−i]: the derivative by a planned power carries the temperature of its own lag in
     every predicted row (T varies strongly over the last states, so the lag matters)."""
     fitted = NarxGPModel.fit([synthetic_run(s) for s in range(3)], n_power_lags=8, n_temperature_lags=5,
-                             interaction=True, output="identity", n_train=40, n_restarts=1, profile_length=50)
+                             interaction=True, output="identity", n_train=40, n_restarts=1, profile_length=50,
+                             speed_m_s=SPEED_M_S)
     assert fitted.power_temperature_coefficients.size == 5
     model = NarxGPModel(
         sample_period_s=DT, intercept=fitted.intercept, power_coefficients=fitted.power_coefficients,
@@ -283,23 +290,96 @@ def test_jacobian_of_lag_matched_interactions_uses_each_powers_own_temperature()
     assert np.allclose(jac, fd, rtol=0.0, atol=1e-4 * np.abs(fd).max())
 
 
-def test_launch_refuses_a_plant_of_another_sample_period(tmp_path):
-    """End to end: the FE plant at 100 µs against the 50 µs shipped model ends the run with the
-    controller's one-line reason (exit 2 of the node, run failure 1 of the launcher)."""
+@pytest.mark.parametrize("table, message", [
+    ("[plant]\ndt_s = 1e-4", "[plant] dt_s: the plant's sample period is 100 µs but the model was identified at 50 µs"),
+    ("[plant]\nspeed_m_s = 1.0", "[plant] speed_m_s: the plant scans at 1000 mm/s but the model was identified at 800"),
+    ("[controller]\nnominal_speed_m_s = 0.6", "[controller] nominal_speed_m_s: the plant scans at 600 mm/s"),
+])
+def test_launch_refuses_a_plant_of_another_process(tmp_path, table, message):
+    """The FE plant at another sample period or speed than the shipped model's is refused before any
+    node starts, in one line naming the setting (exit 2)."""
     import subprocess
     import sys
     from pathlib import Path
 
-    config = tmp_path / "dt.toml"
-    config.write_text("[plant]\ndt_s = 1e-4\n")
+    config = tmp_path / "process.toml"
+    config.write_text(table + "\n")
     root = Path(__file__).resolve().parent.parent
     proc = subprocess.run([sys.executable, "launch.py", "--scenario", "single-track", "--config", str(config),
                            "--no-progress", "--out", str(tmp_path / "run.mcap")], cwd=root, capture_output=True,
-                          text=True, timeout=300, check=False)
+                          text=True, timeout=120, check=False)
     output = proc.stdout + proc.stderr
-    assert proc.returncode == 1
-    assert "sample period is 100 µs but the model was identified at 50 µs" in output
-    assert "Traceback" not in output
+    assert proc.returncode == 2 and output.strip().count("\n") == 0, output
+    assert message in output and str(config) in output
+
+
+def test_the_process_is_the_models(tmp_path):
+    """The shipped model records its process; :func:`process_mismatch` names each difference."""
+    from dataclasses import replace
+
+    from controller_node.preview import process_mismatch
+    from fe_node.material import Material
+    from fe_node.scenarios import scenario
+    from gp_trainer.narx import DEFAULT_MODEL_PATH
+    from launch import check_process
+    from messages.cli import UsageError
+
+    shipped = NarxGPModel.load(DEFAULT_MODEL_PATH)
+    assert (shipped.speed_m_s, round(shipped.sample_period_s, 12), shipped.material) == (0.8, 50e-6, "IN625")
+    assert shipped.provenance["process"]["plant"] == "plate"
+    assert process_mismatch(shipped, speed_m_s=0.805, sample_period_s=50.4e-6, material="IN625") is None
+    assert "scans at 820 mm/s" in process_mismatch(shipped, speed_m_s=0.82)
+    assert "sample period is 51 µs" in process_mismatch(shipped, sample_period_s=51e-6)
+    assert process_mismatch(shipped, material="IN718") == ("the plant's material is IN718 but the model was "
+                                                           "identified on IN625")
+    plate = scenario("layer")
+    check_process(shipped, plate, ControllerSettings(), None)
+    other = replace(plate, settings=replace(plate.settings, material=Material.constant(20.0, 8000.0, 500.0)))
+    with pytest.raises(UsageError, match=r"^\[plant\] material: the plant's material is constant but"):
+        check_process(shipped, other, ControllerSettings(), None)
+    unrecorded = json.loads(DEFAULT_MODEL_PATH.read_text())
+    del unrecorded["provenance"]["process"]
+    (tmp_path / "m.json").write_text(json.dumps(unrecorded))
+    assert NarxGPModel.load(tmp_path / "m.json").material is None      # not recorded: not compared
+    check_process(NarxGPModel.load(tmp_path / "m.json"), other, ControllerSettings(), None)
+
+
+def test_a_state_at_another_speed_is_refused(model):
+    ctrl = PreviewMPC(ControllerSettings(set_point_m2=1.5e-8), model)
+    ctrl.update(_measurement(0, 0.0, power=0.0))
+    ctrl.update(dataclasses.replace(_measurement(1, 1e-8), speed_m_s=0.805))      # within 1 %
+    with pytest.raises(ConfigurationError, match="the plant scans at 1000 mm/s but the model was identified at 800"):
+        ctrl.update(dataclasses.replace(_measurement(2, 1e-8), speed_m_s=1.0))
+
+
+def test_the_model_takes_the_speed_of_its_runs():
+    from gp_trainer.errors import DatasetError
+
+    runs = [dataclasses.replace(synthetic_run(s), speed_m_s=0.6) for s in range(2)]
+    fit = dict(n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity", n_train=40, n_restarts=1,
+               profile_length=20)
+    assert NarxGPModel.fit(runs, **fit).speed_m_s == 0.6
+    with pytest.raises(DatasetError, match="runs at different scan speeds: synthetic-0 0.6 m/s, synthetic-1 1 m/s"):
+        NarxGPModel.fit([runs[0], dataclasses.replace(runs[1], speed_m_s=1.0)], **fit)
+    with pytest.raises(DatasetError, match="speed_m_s 0.8 m/s"):
+        NarxGPModel.fit(runs, **fit, speed_m_s=0.8)
+    with pytest.raises(DatasetError, match="the runs record no scan speed"):
+        NarxGPModel.fit([synthetic_run(0)], **fit)
+
+
+def test_a_recorded_run_carries_its_speed():
+    from types import SimpleNamespace
+
+    from gp_trainer.errors import DatasetError
+    from gp_trainer.narx import series_from_states
+
+    def state(k, speed_mm_s=800.0):
+        return SimpleNamespace(step=k, time_s=k * DT, track=0, area_mm2=0.05, t_ahead_k=500.0, power_w=250.0,
+                               speed_mm_s=speed_mm_s, layer=None)
+
+    assert series_from_states([state(k) for k in range(5)], "run").speed_m_s == pytest.approx(0.8)
+    with pytest.raises(DatasetError, match="run: the scan speed varies"):
+        series_from_states([state(k, 1000.0 if k == 3 else 800.0) for k in range(5)], "run")
 
 
 def test_evaluate_of_the_delay_aware_model_names_the_command_when_data_are_missing(tmp_path, capsys):
@@ -403,7 +483,7 @@ def test_a_layer_start_is_neither_a_turnaround_nor_fitted_build_up():
     assert (base[40:80] == run.t_ahead_k[39]).all() and (base[120:] == run.t_ahead_k[119]).all()
     one = RunSeries(run.name, run.area_m2, run.t_ahead_k, run.power_w, run.track, DT)
     fit = dict(n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity", n_train=40, n_restarts=1,
-               profile_length=20)
+               profile_length=20, speed_m_s=SPEED_M_S)
     assert NarxGPModel.fit([run], **fit).provenance["n_samples"] == 159 - 2 * BUILD_UP_STEPS + 1
     assert NarxGPModel.fit([one], **fit).provenance["n_samples"] == 159 - BUILD_UP_STEPS + 1
 
@@ -442,7 +522,8 @@ def test_evaluate_splits_error_and_coverage_between_turnarounds_and_tracks():
         return RunSeries(run.name, area, run.t_ahead_k, run.power_w, run.track, DT)
 
     model = NarxGPModel.fit([noisy(synthetic_run(s)) for s in range(3)], n_power_lags=8, n_temperature_lags=5,
-                            quadratic=False, output="identity", n_train=60, n_restarts=1, profile_length=50)
+                            quadratic=False, output="identity", n_train=60, n_restarts=1, profile_length=50,
+                            speed_m_s=SPEED_M_S)
     result = evaluate_model(model, [noisy(synthetic_run(11), bump=0.2 * C0)])
     assert result["n_turnaround"] == 50
     assert result["coverage_95_along_pct"] > 85.0 and result["coverage_95_turnaround_pct"] < 10.0
