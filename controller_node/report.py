@@ -55,8 +55,8 @@ from pathlib import Path
 
 import numpy as np
 
-from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
-from messages.recording import RecordingError, is_complete, read_messages
+from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
+from messages.recording import RecordingError, RecordingLimitError, is_complete, read_messages
 
 WINDOW_START_S = 1.0e-3  # the evaluation window opens this long after laser-on (first state) [s]
 TURNAROUND_STEPS = 50  # states at the start of every track but the first counted as turnaround
@@ -368,7 +368,8 @@ def report(path: Path, setpoint_mm2: float | None = None, figure: Path | None = 
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m controller_node.report`` (exit status 1 for an incomplete run)."""
+    """Entry point of ``python -m controller_node.report`` (exit status 1 for an incomplete run or
+    a recording beyond the reader's bounds, 2 for a bad command line or an unreadable recording)."""
     parser = ArgumentParser(prog="python -m controller_node.report", description=__doc__.split("\n\n")[0])
     parser.add_argument("recording", type=Path, help="MCAP recording of a run")
     parser.add_argument("--setpoint-mm2", type=float, help="set point [mm²] (default: the one the controller recorded)")
@@ -379,6 +380,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.setpoint_mm2 is not None and not args.setpoint_mm2 > 0:
             raise UsageError("--setpoint-mm2 must be > 0")
         result = report(args.recording, args.setpoint_mm2, args.figure)
+    except RecordingLimitError as err:  # a hostile file: a failure, not a bad command line
+        return exit_error(parser.prog, err)
     except (UsageError, RecordingError, ValueError) as err:
         return exit_usage(parser.prog, err)
     print(f"{table4_line(result)} (figure {result['figure']})")

@@ -4,6 +4,12 @@ Encoding validates by round trip, so an out-of-range or non-finite value is neve
 Decoding rejects oversized payloads before parsing, then malformed JSON, wrong types, missing
 or unknown fields, out-of-range and non-finite values, each with :class:`MessageError` carrying
 a one-line reason. Callers count and drop such messages; they never crash on them.
+
+Limits: a payload's size by its topic (``Topic.max_bytes``), its nesting by its type (no message
+field holds untyped JSON, so a nested array or object where the type has none is a type error at
+once); :func:`loads` parses free-form JSON (a node's configuration, recording metadata) with a
+:data:`MAX_TEXT_BYTES` size limit and refuses nesting deeper than the interpreter's recursion
+limit with a :class:`MessageError`, as :func:`decode` does should a type ever allow it.
 """
 
 from __future__ import annotations
@@ -29,6 +35,8 @@ def _decoder(cls: type) -> msgspec.json.Decoder:
 
 
 _ENCODER = msgspec.json.Encoder()
+MAX_TEXT_BYTES = 1024 * 1024
+"""Largest free-form JSON text :func:`loads` parses [bytes]."""
 
 
 def encode(msg: Any) -> bytes:
@@ -84,6 +92,26 @@ def decode(topic: Topic, payload: bytes | bytearray | memoryview) -> Any:
     except (msgspec.ValidationError, msgspec.DecodeError) as err:
         reason = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise MessageError(f"{topic.channel}: {reason}") from None
+    except RecursionError:
+        raise MessageError(f"{topic.channel}: nested too deeply") from None
+
+
+def loads(text: str | bytes, what: str) -> Any:
+    """Parse free-form JSON ``text`` (``what`` names it in errors) within the module's limits.
+
+    Raises
+    ------
+    MessageError
+        One line: larger than :data:`MAX_TEXT_BYTES`, malformed, or nested too deeply.
+    """
+    if len(text) > MAX_TEXT_BYTES:
+        raise MessageError(f"{what}: {len(text)} bytes of JSON exceed the {MAX_TEXT_BYTES}-byte limit")
+    try:
+        return msgspec.json.decode(text)
+    except msgspec.DecodeError as err:
+        raise MessageError(f"{what}: {str(err).splitlines()[0]}") from None
+    except RecursionError:
+        raise MessageError(f"{what}: JSON nested too deeply") from None
 
 
 def _inline_refs(node: Any, defs: dict[str, Any]) -> Any:

@@ -30,7 +30,8 @@ like the role. ``--node NAME`` reports only that node's violations.
 
 Prints one line per violated rule (how many violations, the first offending step or message)
 and a verdict line; ``--json`` prints one JSON object instead. Exit status 0 conforming,
-1 violations, 2 bad command line, missing file or not an MCAP.
+1 violations or a file beyond the reader's bounds (:class:`~messages.recording.RecordingLimitError`),
+2 bad command line, missing file or not an MCAP.
 """
 
 from __future__ import annotations
@@ -42,9 +43,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
-from messages.codec import MessageError, decode
-from messages.recording import Recording, RecordingError, read_recording
+from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
+from messages.codec import MessageError, decode, loads
+from messages.recording import Recording, RecordingError, RecordingLimitError, read_recording
 from messages.topics import LASER_COMMAND, LOG, PLANT_STATE, RUN_EVENTS, TOPICS, Topic, message_node
 
 RULES = ("finished", "schema", "run_id", "state_steps", "state_time", "command_answers", "power_bounds",
@@ -146,8 +147,8 @@ class Report:
 
 def _config(event: Any) -> dict[str, Any]:
     try:
-        config = json.loads(event.config_json) if event.config_json else {}
-    except ValueError:
+        config = loads(event.config_json, f"configuration of {event.node}") if event.config_json else {}
+    except MessageError:
         return {}
     return config if isinstance(config, dict) else {}
 
@@ -344,7 +345,7 @@ class Checker:
                         self.report.add("counts", node, f"{node} recorded {n} {suffix}, published none")
         for key, expected in (("published", published), ("recorded", recorded)):
             try:
-                stated = Counter(json.loads(counts.get(key, "")))
+                stated = Counter(loads(counts.get(key, ""), f"meltloop.counts {key}"))
             except (ValueError, TypeError):
                 stated = None
             if stated != expected:
@@ -376,6 +377,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.node is not None and args.node not in report.nodes:
             raise UsageError(f"--node {args.node}: not a node of {args.recording} "
                              f"(nodes: {', '.join(sorted(report.nodes))})")
+    except RecordingLimitError as err:  # a hostile file: a failure, not a bad command line
+        return exit_error(parser.prog, err)
     except (RecordingError, UsageError) as err:
         return exit_usage(parser.prog, err)
     if args.node is not None:

@@ -174,9 +174,14 @@ class ModelPrimitive(Message, frozen=True, kw_only=True):
     data: bytes = b""
 
 
-Unused = Annotated[list[dict], msgspec.Meta(max_length=0, description="Always empty in meltloop.")]
+class Nothing(Message, frozen=True, kw_only=True):
+    """Never present: the item type of an always empty list."""
+
+
+Unused = Annotated[list[Nothing], msgspec.Meta(max_length=0, description="Always empty in meltloop.")]
 """A field of a Foxglove schema that meltloop does not use: present (Foxglove's JSON schema lists
-every field) and empty."""
+every field) and empty. Its items are typed (an empty object), so a hostile payload nested
+thousands deep in it is a type error at the first level, not a recursion."""
 
 
 class SceneEntity(Message, frozen=True, kw_only=True):

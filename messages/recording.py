@@ -16,6 +16,12 @@ file or one that is not MCAP; 1 if nothing is recoverable or the output cannot b
 
 Recordings are created with mode :data:`RECORDING_MODE` (0600, whatever the umask): they hold
 every node's configuration.
+
+Any file is read within bounds: no record may extend past the end of the file, no read
+allocates more than the file holds, a chunk may declare at most :data:`MAX_CHUNK_BYTES`
+uncompressed (zstd or none), and the indexes of a finished file must point at records of their
+kind. A file that breaks a bound raises :class:`RecordingLimitError` (one line), which the
+command-line tools report with exit status 1.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from io import BytesIO
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import zstandard
 from mcap.exceptions import EndOfFile, McapError
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
@@ -39,10 +46,14 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
-from messages.codec import MessageError, decode
+from messages.codec import MessageError, decode, loads
 from messages.topics import TOPICS, Topic
 
 MAGIC = b"\x89MCAP0\r\n"
+MAX_CHUNK_BYTES = 64 * 1024 * 1024
+"""Largest uncompressed chunk a recording may declare [bytes], the reader's allocation bound (the
+recorder's chunks hold about 1 MiB and at most one message more, which is at most 4 MiB)."""
+_CHUNK_HEAD = struct.Struct("<QQQII")  # message start and end time, uncompressed size and CRC, compression length
 RECORDING_MODE = 0o600
 """File mode of a recording: owner read/write only, whatever the umask."""
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, record length
@@ -50,6 +61,92 @@ _RECORD_HEAD = struct.Struct("<BQ")  # opcode, record length
 
 class RecordingError(ValueError):
     """A recording that is missing, empty, truncated or not a meltloop MCAP (one-line reason)."""
+
+
+class RecordingLimitError(RecordingError):
+    """A recording that declares more than the reader allocates, or whose indexes point elsewhere
+    than at records of their kind: hostile or corrupt (one-line reason)."""
+
+
+class _Bounded:
+    """A file whose reads never ask for more than it holds (a hostile length field would otherwise
+    make ``read(n)`` allocate ``n`` bytes first)."""
+
+    def __init__(self, stream: BinaryIO) -> None:
+        self._stream = stream
+        self._size = stream.seek(0, os.SEEK_END)
+        stream.seek(0)
+
+    def read(self, n: int | None = -1) -> bytes:
+        left = max(0, self._size - self._stream.tell())
+        return self._stream.read(left if n is None or n < 0 else min(n, left))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+def _chunk_problem(body: bytes) -> str | None:
+    """Why decompressing a chunk record (its body, or at least the first 64 bytes of it) would
+    allocate beyond :data:`MAX_CHUNK_BYTES`, or ``None``."""
+    if len(body) < _CHUNK_HEAD.size:
+        return None  # too short to decompress anything: the parser finds it corrupt
+    *_, uncompressed, _crc, n = _CHUNK_HEAD.unpack_from(body)
+    compression = body[_CHUNK_HEAD.size:_CHUNK_HEAD.size + min(n, 16)]
+    if n > 16 or compression not in (b"", b"zstd"):
+        return f"compression {compression.decode(errors='replace')!r} is not read (zstd or none)"
+    if uncompressed > MAX_CHUNK_BYTES:
+        return f"declares {uncompressed} bytes uncompressed, more than the {MAX_CHUNK_BYTES}-byte limit"
+    frame = body[_CHUNK_HEAD.size + n + 8:]
+    if compression == b"zstd" and frame:
+        try:
+            declared = zstandard.frame_content_size(frame)
+        except zstandard.ZstdError:
+            return None  # not a zstd frame: the parser finds it corrupt
+        if declared > uncompressed:
+            return f"holds a zstd frame of {declared} bytes, more than the {uncompressed} it declares"
+    return None
+
+
+_INDEX_TARGETS = {Opcode.CHUNK_INDEX: (16, Opcode.CHUNK), Opcode.ATTACHMENT_INDEX: (0, Opcode.ATTACHMENT),
+                  Opcode.METADATA_INDEX: (0, Opcode.METADATA)}
+"""Index record -> (byte position of the target offset in its body, opcode of the target)."""
+
+
+def _check_structure(stream: BinaryIO, path: Path) -> None:
+    """Walk a finished file's records by their headers (no payload is read): each must end inside
+    the file, each chunk within :func:`_chunk_problem`'s bounds, each index and the footer must
+    point at a record of their kind. Raises :class:`RecordingLimitError`."""
+    size = stream.seek(0, os.SEEK_END)
+    starts: dict[int, int] = {}
+    targets: list[tuple[int, int, int]] = []  # (index record offset, target offset, target opcode)
+    offset, end = len(MAGIC), size - len(MAGIC)
+    while True:
+        stream.seek(offset)
+        head = stream.read(_RECORD_HEAD.size)
+        if len(head) < _RECORD_HEAD.size:
+            raise RecordingLimitError(f"{path}: record header past the end of the file at byte {offset}")
+        opcode, length = _RECORD_HEAD.unpack(head)
+        if length > end - offset - _RECORD_HEAD.size:
+            raise RecordingLimitError(f"{path}: {_opcode_name(opcode)} record at byte {offset} declares {length} "
+                                      "bytes, past the end of the file")
+        starts[offset] = opcode
+        if opcode == Opcode.CHUNK and (problem := _chunk_problem(stream.read(min(length, 64)))):
+            raise RecordingLimitError(f"{path}: CHUNK record at byte {offset} {problem}")
+        if opcode in _INDEX_TARGETS:
+            at, kind = _INDEX_TARGETS[opcode]
+            body = stream.read(min(length, at + 8))
+            targets.append((offset, struct.unpack_from("<Q", body, at)[0] if len(body) == at + 8 else -1, kind))
+        offset += _RECORD_HEAD.size + length
+        if opcode == Opcode.FOOTER:
+            summary_start, summary_offsets = struct.unpack_from("<QQ", stream.read(16) + bytes(16))
+            targets += [(offset, o, -1) for o in (summary_start, summary_offsets) if o]
+            break
+    if offset != end:
+        raise RecordingLimitError(f"{path}: the footer is not the last record")
+    for at, target, kind in targets:
+        if target not in starts or kind not in (-1, starts[target]):
+            raise RecordingLimitError(f"{path}: the index record at byte {at} points at byte {target}, "
+                                      f"not at a {_opcode_name(kind) if kind >= 0 else 'record'}")
 
 
 def create_recording(path: str | Path, overwrite: bool) -> BinaryIO:
@@ -200,7 +297,10 @@ def read_recording(path: str | Path) -> Recording:
             if length > size - stream.tell():
                 stop = f"ends inside a {_opcode_name(opcode)} record at byte {offset}"
                 break
-            records = _parse_record(head + stream.read(length))
+            body = stream.read(length)
+            if opcode == Opcode.CHUNK and (problem := _chunk_problem(body)):
+                raise RecordingLimitError(f"{path}: CHUNK record at byte {offset} {problem}")
+            records = _parse_record(head + body)
             if records is None:
                 stop = f"corrupt {_opcode_name(opcode)} record at byte {offset}"
                 break
@@ -224,9 +324,19 @@ def _parse_record(data: bytes) -> list[Any] | None:
     except EndOfFile:  # the reader asks for the next record (or the closing magic) past our one
         if records and buffer.tell() == len(data):
             return records
-    except (McapError, ValueError, struct.error):
+    except (McapError, ValueError, struct.error, zstandard.ZstdError):
         pass
     return None
+
+
+def _reader(stream: BinaryIO, path: str | Path) -> Any:
+    """``mcap``'s seeking reader of a finished file, after :func:`_check_structure`, on reads bounded by the file."""
+    _check_structure(stream, Path(path))
+    return make_reader(_Bounded(stream))
+
+
+_READ_ERRORS = (McapError, EOFError, ValueError, KeyError, AssertionError, struct.error, zstandard.ZstdError)
+"""What ``mcap``'s reader raises on a malformed file that passed :func:`_check_structure`."""
 
 
 def _opcode_name(opcode: int) -> str:
@@ -252,10 +362,11 @@ def read_messages(path: str | Path, channel: str | Topic) -> Iterator[Any]:
         if not _finished(stream):
             yield from read_recording(path).decoded(topic)
             return
+        reader = _reader(stream, path)
         try:
-            for _schema, _channel, message in make_reader(stream).iter_messages(topics=[topic.channel]):
+            for _schema, _channel, message in reader.iter_messages(topics=[topic.channel]):
                 yield decode(topic, message.data)
-        except (McapError, EOFError, ValueError, KeyError, AssertionError) as err:
+        except _READ_ERRORS as err:
             if isinstance(err, MessageError):
                 raise RecordingError(f"{path}: invalid message: {err}") from None
             raise RecordingError(f"{path}: unreadable MCAP ({type(err).__name__}: {err})") from None
@@ -266,9 +377,10 @@ def metadata(path: str | Path) -> dict[str, dict[str, str]]:
     with _open(Path(path)) as stream:
         if not _finished(stream):
             return read_recording(path).metadata
+        reader = _reader(stream, path)
         try:
-            return {m.name: dict(m.metadata) for m in make_reader(stream).iter_metadata()}
-        except (McapError, EOFError, ValueError, AssertionError) as err:
+            return {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        except _READ_ERRORS as err:
             raise RecordingError(f"{path}: unreadable MCAP ({type(err).__name__})") from None
 
 
@@ -277,9 +389,10 @@ def attachments(path: str | Path) -> dict[str, bytes]:
     with _open(Path(path)) as stream:
         if not _finished(stream):
             return {a.name: a.data for a in read_recording(path).attachments}
+        reader = _reader(stream, path)
         try:
-            return {a.name: a.data for a in make_reader(stream).iter_attachments()}
-        except (McapError, EOFError, ValueError, AssertionError) as err:
+            return {a.name: a.data for a in reader.iter_attachments()}
+        except _READ_ERRORS as err:
             raise RecordingError(f"{path}: unreadable MCAP ({type(err).__name__})") from None
 
 
@@ -293,12 +406,21 @@ def is_complete(path: str | Path) -> bool:
 
 
 def run_config(path: str | Path) -> dict[str, Any]:
-    """Each node's resolved configuration recorded in the file, by node name."""
-    return {
-        name.removeprefix("config/").removesuffix(".json"): json.loads(data)
-        for name, data in attachments(path).items()
-        if name.startswith("config/")
-    }
+    """Each node's resolved configuration recorded in the file, by node name.
+
+    Raises
+    ------
+    RecordingError
+        As :func:`attachments`, or a configuration that is not JSON within :func:`messages.codec.loads`' limits.
+    """
+    try:
+        return {
+            name.removeprefix("config/").removesuffix(".json"): loads(data, f"{path}: attachment {name}")
+            for name, data in attachments(path).items()
+            if name.startswith("config/")
+        }
+    except MessageError as err:
+        raise RecordingError(str(err)) from None
 
 
 def recover(path: str | Path, out: str | Path) -> Recording:
