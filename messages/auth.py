@@ -1,4 +1,4 @@
-"""Per-run credentials and access control: who may publish what in one run.
+"""Per-run credentials and access control: who may publish and read what in one run.
 
 ``launch.py`` makes fresh credentials for every run (:class:`RunCredentials`): one user per node
 (the node's name) with a random password, a dictionary file readable only by the current user,
@@ -8,7 +8,11 @@ and a zenoh **router** configuration for the run's hub that
   without them cannot open a link), and
 - lets each node publish only its own keys (zenoh access control, checked on what the hub
   receives): ``plant`` the ``plant/*`` topics, ``controller`` the ``controller/*`` topics,
-  every node only its own run events, log and liveliness token.
+  every node only its own run events, log and liveliness token;
+- lets each node read only what its roles need (checked on what the hub sends, :data:`READS`):
+  the plant the commands, the controller the plant state and the run events, the recorder and
+  the live view everything; every node sees the liveliness tokens (readiness and presence);
+- serves no queries: no node may declare a queryable.
 
 Nodes get their user and password from the environment (:data:`USER_ENV`, :data:`PASSWORD_ENV`),
 never from argv, and then run as zenoh clients of the hub (:func:`messages.bus.zenoh_config`).
@@ -26,19 +30,35 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from messages.topics import PREFIX, TOPICS, liveliness_key
+from messages.topics import (
+    LASER_COMMAND,
+    PLANT_STATE,
+    PREFIX,
+    RUN_EVENTS,
+    TOPICS,
+    Topic,
+    key_expr,
+    liveliness_key,
+    run_prefix,
+)
 
 FOLDER_PREFIX = "meltloop-auth-"
 """A run's credentials live in ``<temp dir>/meltloop-auth-<pid>-<random>``, ``pid`` the process
 that made them (so that a later run can remove those of a run that was killed)."""
 USER_ENV = "MELTLOOP_ZENOH_USER"
 PASSWORD_ENV = "MELTLOOP_ZENOH_PASSWORD"
-ROLES = ("plant", "controller")
-"""Roles: a node of role ``plant`` may publish the ``plant/...`` topics, and so on. A node's role
-is its name unless its spec names another (e.g. a camera node ``camera`` with role ``plant``)."""
-
-_SESSION_MESSAGES = ["declare_subscriber", "declare_queryable", "query", "reply",
-                     "declare_liveliness_subscriber", "liveliness_query"]
+ROLES = ("plant", "controller", "recorder", "live")
+"""Roles: a node of role ``plant`` may publish the ``plant/...`` topics, and so on (``recorder``
+and ``live`` publish none); what each role reads is :data:`READS`. A node's role is its name if
+that is a role, unless its spec names others (e.g. a camera node ``camera`` with role ``plant``);
+a node without a role publishes only its own events and log and reads no topic."""
+READS: dict[str, tuple[Topic, ...]] = {
+    "plant": (LASER_COMMAND,),
+    "controller": (PLANT_STATE, RUN_EVENTS),
+    "recorder": tuple(TOPICS.values()),
+    "live": tuple(TOPICS.values()),
+}
+"""The topics a node of each role receives (subscribes to) besides the liveliness tokens."""
 
 
 def node_credentials() -> tuple[str, str] | None:
@@ -54,23 +74,34 @@ def publish_keys(run_id: str, node: str, roles: tuple[str, ...]) -> list[str]:
     return keys
 
 
+def read_keys(run_id: str, roles: tuple[str, ...]) -> list[str]:
+    """Key expressions a node with ``roles`` may subscribe to and receive in run ``run_id`` (:data:`READS`)."""
+    topics = {t.suffix: t for role in roles for t in READS[role]}
+    if len(topics) == len(TOPICS):
+        return [run_prefix(run_id)]
+    return [key_expr(run_id, t) for t in topics.values()]
+
+
 def access_control(run_id: str, roles: dict[str, tuple[str, ...]]) -> dict:
     """The hub's zenoh ``access_control`` section for a run with these nodes.
 
-    Default deny. Every authenticated node may subscribe, query liveliness and receive anything
-    of the run; it may put only :func:`publish_keys` and declare only its own liveliness token.
-    ``roles`` maps each node name (its zenoh user) to its roles.
+    Default deny. Every authenticated node may watch and query the run's liveliness tokens and
+    learn of the subscribers (so that its publishers send); it may subscribe to and receive only
+    :func:`read_keys`, put only :func:`publish_keys` and declare only its own liveliness token.
+    No queryable, query or reply passes. ``roles`` maps each node name (its zenoh user) to its roles.
     """
     nodes = list(roles)
-    run_keys = [f"{PREFIX}/{run_id}/**"]
+    alive = [liveliness_key(run_id)]
     rules = [
-        {"id": "session", "permission": "allow", "flows": ["ingress", "egress"], "messages": _SESSION_MESSAGES,
-         "key_exprs": run_keys},
-        {"id": "receive", "permission": "allow", "flows": ["egress"], "messages": ["put", "liveliness_token"],
-         "key_exprs": run_keys},
+        {"id": "liveliness", "permission": "allow", "flows": ["ingress"],
+         "messages": ["declare_liveliness_subscriber", "liveliness_query"], "key_exprs": alive},
+        {"id": "presence", "permission": "allow", "flows": ["egress"], "messages": ["liveliness_token"],
+         "key_exprs": alive},
+        {"id": "subscribers", "permission": "allow", "flows": ["egress"], "messages": ["declare_subscriber"],
+         "key_exprs": [run_prefix(run_id)]},
     ]
     subjects = [{"id": "nodes", "usernames": list(nodes)}]
-    policies = [{"rules": ["session", "receive"], "subjects": ["nodes"]}]
+    policies = [{"rules": ["liveliness", "presence", "subscribers"], "subjects": ["nodes"]}]
     for node in nodes:
         rules += [
             {"id": f"put-{node}", "permission": "allow", "flows": ["ingress"], "messages": ["put"],
@@ -78,8 +109,17 @@ def access_control(run_id: str, roles: dict[str, tuple[str, ...]]) -> dict:
             {"id": f"alive-{node}", "permission": "allow", "flows": ["ingress"], "messages": ["liveliness_token"],
              "key_exprs": [liveliness_key(run_id, node)]},
         ]
+        own = [f"put-{node}", f"alive-{node}"]
+        if reads := read_keys(run_id, roles[node]):
+            rules += [
+                {"id": f"subscribe-{node}", "permission": "allow", "flows": ["ingress"],
+                 "messages": ["declare_subscriber"], "key_exprs": reads},
+                {"id": f"receive-{node}", "permission": "allow", "flows": ["egress"], "messages": ["put"],
+                 "key_exprs": reads},
+            ]
+            own += [f"subscribe-{node}", f"receive-{node}"]
         subjects.append({"id": f"user-{node}", "usernames": [node]})
-        policies.append({"rules": [f"put-{node}", f"alive-{node}"], "subjects": [f"user-{node}"]})
+        policies.append({"rules": own, "subjects": [f"user-{node}"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 

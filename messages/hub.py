@@ -11,8 +11,8 @@ to its host and start the node with ``--zenoh-config FILE --run-id RUN``:
     python -m fe_node --run-id R1 --zenoh-config hub-R1/plant.json5 --require recorder --require controller
 
 The access control is :func:`messages.auth.access_control` (the same as ``launch.py``'s):
-each node publishes only its own keys; ``--node NAME:ROLE`` gives a node another name than its
-role (e.g. ``camera:plant``). Stop with Ctrl-C.
+each node publishes only its own keys and reads only what its role needs; ``--node NAME:ROLE``
+gives a node another name than its role (e.g. ``camera:plant``). Stop with Ctrl-C.
 
 A ``--listen`` endpoint other machines can reach must be ``tls/`` (a plain one is refused, exit
 status 2). ``--out-dir`` must not exist: the hub creates it (mode 0700) and removes the node
@@ -45,16 +45,20 @@ def parse_nodes(items: list[str]) -> dict[str, tuple[str, ...]]:
     return roles
 
 
-def is_loopback(endpoint: str) -> bool:
-    """Whether zenoh ``endpoint`` (``proto/host:port``) listens on this machine only."""
-    address = endpoint.partition("/")[2].split("?")[0].split("#")[0]
-    host = address.rpartition(":")[0].removeprefix("[").removesuffix("]")
+def is_loopback_host(host: str) -> bool:
+    """Whether ``host`` (an address or ``localhost``) is reachable from this machine only."""
     if host == "localhost":
         return True
     try:
-        return ipaddress.ip_address(host).is_loopback
+        return ipaddress.ip_address(host.removeprefix("[").removesuffix("]")).is_loopback
     except ValueError:  # a host name: it may resolve to anything
         return False
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether zenoh ``endpoint`` (``proto/host:port``) listens on this machine only."""
+    address = endpoint.partition("/")[2].split("?")[0].split("#")[0]
+    return is_loopback_host(address.rpartition(":")[0])
 
 
 def tls_settings(ca: Path, cert: Path | None = None, key: Path | None = None) -> dict:

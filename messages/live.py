@@ -29,23 +29,35 @@ on SIGINT/SIGTERM, with exit status 0; 2 for a bad command line or a port it can
 
 Run: ``python -m messages.live --run-id RUN --connect HUB [--port 8765]``, or
 ``python launch.py --live``; then open ``ws://127.0.0.1:8765`` in Foxglove (``docs/live.md``).
+
+Access: the view serves on loopback by default. With a token in the environment
+(:data:`TOKEN_ENV`, never on the command line, where other users could read it) a client must
+put it in the URL it opens, ``ws://HOST:PORT/?token=TOKEN`` (Foxglove keeps the query when it
+connects); others get HTTP 401. A ``--host`` other machines can reach needs the token. The token
+is checked by a small TCP front (:class:`TokenGate`) of the Foxglove server, which then listens
+on a loopback port of its own: it keeps other machines out, not other users of this one.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import hmac
 import json
 import os
+import socket
 import threading
 import time
 from collections import Counter, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
+from urllib.parse import parse_qs, urlsplit
 
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.codec import MessageError, decode, json_schema
 from messages.foxglove import LogLevel
+from messages.hub import is_loopback_host
 from messages.recorder import log_time_ns
 from messages.topics import PLANT_TEMPERATURE, TOPICS, Topic, key_expr, message_node
 
@@ -60,6 +72,11 @@ POLL_S = 0.1
 BATCH_S = 0.02
 """Least time between two batches of the loop: at most 50 wake-ups a second, whatever the message rate."""
 DEFAULT_NICE = 10
+TOKEN_ENV = "MELTLOOP_LIVE_TOKEN"
+"""Environment variable with the token a client must give (``?token=``); unset or empty: none."""
+HEAD_TIMEOUT_S = 5.0
+"""How long a client may take to send its HTTP upgrade request to the token gate."""
+MAX_HEAD_BYTES = 16 * 1024
 
 
 @dataclass(frozen=True)
@@ -73,6 +90,7 @@ class LiveSettings:
     plant: str = "plant"
     drain_s: float = 0.05
     nice: int = DEFAULT_NICE
+    token: str = field(default="", repr=False)
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
@@ -87,6 +105,9 @@ class LiveSettings:
             raise UsageError("--host must not be empty")
         if not 0 <= self.nice <= 19:
             raise UsageError(f"--nice must be in 0..19, got {self.nice}")
+        if not self.token and not is_loopback_host(self.host):
+            raise UsageError(f"--host {self.host}: other machines can reach the view, so it needs a token: set "
+                             f"{TOKEN_ENV} (clients then open ws://HOST:PORT/?token=TOKEN)")
 
 
 def check_port(port: int, host: str = "127.0.0.1") -> None:
@@ -171,8 +192,104 @@ class RateGate:
         return True
 
 
+def _port_error(settings: LiveSettings, reason: str) -> UsageError:
+    if "in use" in reason.lower():
+        reason = "address already in use (another live view? choose another --port, 0 for any free one)"
+    return UsageError(f"--port {settings.port}: cannot serve on {settings.host}:{settings.port}: {reason}")
+
+
+class TokenGate:
+    """A TCP front of a WebSocket server: admits a client whose HTTP upgrade request targets a URL
+    with ``token=<token>`` in its query, then relays the bytes both ways unchanged; any other
+    client gets ``401 Unauthorized``.
+
+    Raises
+    ------
+    OSError
+        If it cannot listen on ``host:port``.
+    """
+
+    def __init__(self, host: str, port: int, token: str, inner_port: int) -> None:
+        self._token = token.encode()
+        self._inner_port = inner_port
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        self._listener = socket.create_server((host.strip("[]"), port), family=family)
+        self.port: int = self._listener.getsockname()[1]
+        self._open: set[socket.socket] = set()
+        self._lock = threading.Lock()
+        threading.Thread(target=self._accept, name="token-gate", daemon=True).start()
+
+    def admits(self, head: bytes) -> bool:
+        """Whether the request ``head`` (request line and headers) carries the token."""
+        parts = head.split(b"\r\n", 1)[0].decode("latin-1").split(" ")
+        target = parts[1] if len(parts) == 3 else ""
+        given = parse_qs(urlsplit(target).query).get("token", [""])[0]
+        return hmac.compare_digest(given.encode(), self._token)
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self._listener.accept()
+            except OSError:  # closed by stop()
+                return
+            threading.Thread(target=self._serve, args=(client,), daemon=True).start()
+
+    def _serve(self, client: socket.socket) -> None:
+        with self._lock:
+            self._open.add(client)
+        inner: socket.socket | None = None
+        try:
+            client.settimeout(HEAD_TIMEOUT_S)
+            head = b""
+            while b"\r\n\r\n" not in head and len(head) <= MAX_HEAD_BYTES:
+                chunk = client.recv(4096)
+                if not chunk:
+                    return
+                head += chunk
+            if not self.admits(head):
+                client.sendall(b"HTTP/1.1 401 Unauthorized\r\nContent-Length: 0\r\nConnection: close\r\n\r\n")
+                return
+            client.settimeout(None)
+            inner = socket.create_connection(("127.0.0.1", self._inner_port))
+            with self._lock:
+                self._open.add(inner)
+            inner.sendall(head)
+            threading.Thread(target=_relay_bytes, args=(inner, client), daemon=True).start()
+            _relay_bytes(client, inner)
+        except OSError:
+            pass
+        finally:
+            for sock in (client, inner):
+                if sock is not None:
+                    with self._lock:
+                        self._open.discard(sock)
+                    sock.close()
+
+    def stop(self) -> None:
+        """Stop listening and close every relayed connection."""
+        self._listener.close()
+        with self._lock:
+            for sock in self._open:
+                with contextlib.suppress(OSError):
+                    sock.shutdown(socket.SHUT_RDWR)
+
+
+def _relay_bytes(source: socket.socket, target: socket.socket) -> None:
+    """Copy ``source`` to ``target`` until either closes; then shut both down."""
+    try:
+        while chunk := source.recv(65536):
+            target.sendall(chunk)
+    except OSError:
+        pass
+    finally:
+        for sock in (source, target):
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
+
+
 class LiveServer:
-    """The Foxglove WebSocket server and one channel per contract topic, in a context of its own.
+    """The Foxglove WebSocket server and one channel per contract topic, in a context of its own;
+    with a token, behind a :class:`TokenGate` (the server itself then on a free loopback port).
 
     Raises
     ------
@@ -184,15 +301,19 @@ class LiveServer:
         import foxglove
 
         self._context = foxglove.Context()
+        host, port = ("127.0.0.1", 0) if settings.token else (settings.host, settings.port)
         try:
-            self.server = foxglove.start_server(name=name, host=settings.host, port=settings.port,
+            self.server = foxglove.start_server(name=name, host=host, port=port,
                                                 context=self._context, message_backlog_size=CLIENT_BACKLOG)
         except RuntimeError as err:
-            reason = str(err).removeprefix("FoxgloveError: ")
-            if "in use" in reason.lower():
-                reason = "address already in use (another live view? choose another --port, 0 for any free one)"
-            raise UsageError(f"--port {settings.port}: cannot serve on {settings.host}:{settings.port}: "
-                             f"{reason}") from None
+            raise _port_error(settings, str(err).removeprefix("FoxgloveError: ")) from None
+        self.gate: TokenGate | None = None
+        if settings.token:
+            try:
+                self.gate = TokenGate(settings.host, settings.port, settings.token, self.server.port)
+            except OSError as err:
+                self.server.stop()
+                raise _port_error(settings, err.strerror or str(err)) from None
         self.channels: dict[str, Any] = {
             topic.suffix: foxglove.Channel(
                 topic.channel,
@@ -205,8 +326,8 @@ class LiveServer:
 
     @property
     def port(self) -> int:
-        """The port it listens on (the chosen one when ``--port 0``)."""
-        return self.server.port
+        """The port clients connect to (the chosen one when ``--port 0``)."""
+        return self.gate.port if self.gate is not None else self.server.port
 
     def watched(self, topic: Topic) -> bool:
         """Whether a client is subscribed to ``topic``'s channel."""
@@ -220,6 +341,8 @@ class LiveServer:
         """Close the channels and stop the server (clients are disconnected)."""
         for channel in self.channels.values():
             channel.close()
+        if self.gate is not None:
+            self.gate.stop()
         self.server.stop()
 
 
@@ -286,9 +409,10 @@ def serve(bus: NodeBus, server: LiveServer, settings: LiveSettings, stop: StopFl
     threading.Thread(target=lambda: (plant_gone.wait(), forwarder.queue.wake()), daemon=True).start()
     config = {"host": settings.host, "port": server.port, "image_max_hz": settings.image_max_hz,
               "queue_size": settings.queue_size, "plant": settings.plant, "drain_s": settings.drain_s,
-              "nice": settings.nice, "client_backlog": CLIENT_BACKLOG}
+              "nice": settings.nice, "client_backlog": CLIENT_BACKLOG, "token_required": bool(settings.token)}
     bus.ready(config=config, stop=stop)
-    print(f"serving run {bus.run_id} on ws://{settings.host}:{server.port} (Foxglove WebSocket; "
+    query = f"/?token=${TOKEN_ENV}" if settings.token else ""
+    print(f"serving run {bus.run_id} on ws://{settings.host}:{server.port}{query} (Foxglove WebSocket; "
           f"images <= {settings.image_max_hz:g} Hz)", flush=True)
     last_time_ns = 0
     gone_at: float | None = None
@@ -325,8 +449,8 @@ def build_parser() -> argparse.ArgumentParser:
     """Command line of ``python -m messages.live``."""
     parser = ArgumentParser(prog="python -m messages.live", description=__doc__.split("\n\n")[0])
     parser.add_argument("--host", default=DEFAULT_HOST,
-                        help="address to serve on (default: %(default)s, this machine only; the view is "
-                             "unauthenticated)")
+                        help="address to serve on (default: %(default)s, this machine only; another one needs "
+                             f"a token in {TOKEN_ENV}, which clients give as ws://HOST:PORT/?token=TOKEN)")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT,
                         help="WebSocket port (default: %(default)s; 0: any free port, printed)")
     parser.add_argument("--image-max-hz", type=float, default=DEFAULT_IMAGE_MAX_HZ,
@@ -353,7 +477,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         bus_settings = bus_settings_from_args(args)
         settings = LiveSettings(args.host, args.port, args.image_max_hz, args.queue_size, args.plant, args.drain_s,
-                                args.nice)
+                                args.nice, os.environ.get(TOKEN_ENV, ""))
         os.nice(settings.nice)  # before any thread starts: zenoh's and the server's threads inherit it
         server = LiveServer(settings, f"meltloop {bus_settings.run_id}")
     except UsageError as err:

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import jsonschema
+import pytest
 from mcap.reader import make_reader
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
@@ -235,3 +236,34 @@ def test_launch_live_serves_the_default_nodes_run(tmp_path):
         status, output = finish(proc, timeout=120)
     assert status == 0, output
     assert steps and steps == sorted(steps) and steps[-1] == 60, (steps[:5], steps[-5:])
+
+
+def test_with_a_token_only_a_client_that_gives_it_is_served(monkeypatch):
+    """``MELTLOOP_LIVE_TOKEN``: a client must open ``ws://HOST:PORT/?token=TOKEN``; without it, or
+    with another one, the upgrade is refused (HTTP 401) before any byte of the run is sent."""
+    from websockets.exceptions import InvalidStatus
+
+    from messages.live import LiveServer, LiveSettings
+
+    server = LiveServer(LiveSettings(port=0, token="s3cret"), "token test")
+    try:
+        for url in (f"ws://127.0.0.1:{server.port}", f"ws://127.0.0.1:{server.port}/?token=guess"):
+            with pytest.raises(InvalidStatus) as refused:
+                connect(url, subprotocols=SUBPROTOCOLS, open_timeout=10)
+            assert refused.value.response.status_code == 401
+        with connect(f"ws://127.0.0.1:{server.port}/?token=s3cret", subprotocols=SUBPROTOCOLS,
+                     open_timeout=10) as ws:
+            assert json.loads(ws.recv(timeout=5))["op"] == "serverInfo"
+    finally:
+        server.stop()
+
+
+def test_a_host_other_machines_can_reach_needs_a_token():
+    from messages.cli import UsageError
+    from messages.live import LiveSettings
+
+    for host in ("0.0.0.0", "192.0.2.1", "viewer.example"):
+        with pytest.raises(UsageError, match=f"--host {host}: other machines can reach the view, so it needs a token"):
+            LiveSettings(host=host)
+    assert LiveSettings(host="0.0.0.0", token="s3cret").host == "0.0.0.0"
+    assert LiveSettings(host="::1").host == "::1"

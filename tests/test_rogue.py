@@ -1,8 +1,9 @@
 """A rogue process in a run under launch.py's default access control (issue 13 acceptance).
 
-Two lockstep runs with the same nodes, side by side: a clean one, and one where a node
-without a role forges 10 000 schema-valid messages of the plant and the controller (states,
-commands, end events, logs, liveliness tokens) and first tries the hub without credentials.
+Two lockstep runs with the same nodes, side by side: a clean one, and one where a node that
+may read everything but publish no topic (role ``recorder``) forges 10 000 schema-valid messages
+of the plant and the controller (states, commands, end events, logs, liveliness tokens) and first
+tries the hub without credentials.
 Nothing forged may be applied or recorded: both runs exit 0 with identical plant traces,
 commands and Table-4 figures.
 """
@@ -28,6 +29,7 @@ def start_run(tmp_path, name: str, count: int) -> tuple[subprocess.Popen[str], o
 [[node]]
 name = "rogue"
 module = "tests.nodes.rogue"
+roles = ["recorder"]  # it times its forgeries by the plant states
 args = ["--count", "{count}", "--require", "recorder"]
 
 [[node]]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -14,7 +15,7 @@ import pytest
 from messages import LaserCommand, LogLevel, RunEvent, encode
 from messages.auth import PASSWORD_ENV, USER_ENV, RunCredentials
 from messages.bus import DEFAULT_HUB, BusSettings, NodeBus, StopFlag, zenoh_config
-from messages.topics import LASER_COMMAND, LOG, PLANT_STATE, RUN_EVENTS, key_expr, liveliness_key
+from messages.topics import LASER_COMMAND, LOG, PLANT_STATE, RUN_EVENTS, key_expr, liveliness_key, run_prefix
 from tests.conftest import finish, spawn
 from tests.test_controller_node import state
 
@@ -89,37 +90,85 @@ def _node(monkeypatch, credentials: RunCredentials, name: str, endpoint: str, pa
     return NodeBus(name, BusSettings(run_id=credentials.run_id, connect=(endpoint,)))
 
 
-ROLES = {"plant": ("plant",), "controller": ("controller",), "recorder": ()}
+ROLES = {"plant": ("plant",), "controller": ("controller",), "recorder": ("recorder",), "probe": ()}
 
 
 def test_generated_access_control_lets_each_node_publish_only_its_own_keys(monkeypatch, hub, run_id):
     with RunCredentials(run_id, ROLES) as creds, _hub(creds, hub):
         with _node(monkeypatch, creds, "plant", hub) as plant, _node(monkeypatch, creds, "controller", hub) as ctl, \
-                _node(monkeypatch, creds, "recorder", hub) as rec:
-            commands, events, logs = plant.inbox(LASER_COMMAND), plant.inbox(RUN_EVENTS), plant.inbox(LOG)
-            states = ctl.inbox(PLANT_STATE)
+                _node(monkeypatch, creds, "recorder", hub) as rec, _node(monkeypatch, creds, "probe", hub) as probe:
+            commands, events, logs, states = rec.inbox(LASER_COMMAND), rec.inbox(RUN_EVENTS), rec.inbox(LOG), \
+                rec.inbox(PLANT_STATE)
+            plant_commands = plant.inbox(LASER_COMMAND)
             assert plant.routed and ctl.routed  # clients: every message crosses the hub
             gone = plant.watch_presence("controller")
             time.sleep(0.5)
             command = LaserCommand(run_id=run_id, step=1, time_s=0.0, power_w=200.0, speed_mm_s=800.0, controller="pid")
             ctl.publisher(LASER_COMMAND).put(command)
-            rec.publisher(LASER_COMMAND).put(msgspec.structs.replace(command, power_w=123.0))  # no role
-            rec.publisher(PLANT_STATE).put(state(run_id, 0))  # no role
-            rec.log(LogLevel.INFO, "recorder connected")  # its own log: allowed
+            probe.publisher(LASER_COMMAND).put(msgspec.structs.replace(command, power_w=123.0))  # no role
+            probe.publisher(PLANT_STATE).put(state(run_id, 0))  # no role
+            rec.publisher(PLANT_STATE).put(state(run_id, 1))  # reads everything, publishes no topic
+            probe.log(LogLevel.INFO, "probe connected")  # its own log: allowed
             forged_end = RunEvent(run_id=run_id, node="plant", event="end", time_s=0.0)
-            rec.session.put(key_expr(run_id, RUN_EVENTS, "plant"), encode(forged_end))  # another node's key
-            token = rec.session.liveliness().declare_token(liveliness_key(run_id, "controller"))
+            probe.session.put(key_expr(run_id, RUN_EVENTS, "plant"), encode(forged_end))  # another node's key
+            token = probe.session.liveliness().declare_token(liveliness_key(run_id, "controller"))
             time.sleep(1.0)
             received = [c.power_w for c in commands.drain()]
+            applied = [c.power_w for c in plant_commands.drain()]
             seen_events = [(e.node, e.event) for e in events.drain()]
             seen_logs = [(m.name, m.message) for m in logs.drain()]
-            seen_states = list(states.drain())
+            seen_states = [s.step for s in states.drain()]
             token.undeclare()
-    assert received == [200.0]
+    assert received == applied == [200.0]
     assert ("plant", "end") not in seen_events
-    assert ("recorder", "recorder connected") in seen_logs  # connected: only the forgeries were filtered
-    assert seen_states == []
+    assert ("probe", "probe connected") in seen_logs  # connected: only the forgeries were filtered
+    assert seen_states == [1]  # the recorder's own, delivered in its session; nothing crossed the hub
     assert not gone.is_set()
+
+
+def test_each_node_receives_only_what_its_role_reads(monkeypatch, hub, run_id):
+    """The plant receives the commands, the controller the plant state and run events, the
+    recorder everything, a node without a role nothing but liveliness; no queryable is served."""
+    topics = (PLANT_STATE, LASER_COMMAND, RUN_EVENTS, LOG)
+    with RunCredentials(run_id, ROLES) as creds, _hub(creds, hub):
+        with contextlib.ExitStack() as stack:
+            buses = {name: stack.enter_context(_node(monkeypatch, creds, name, hub)) for name in ROLES}
+            boxes = {name: {t.suffix: bus.inbox(t) for t in topics} for name, bus in buses.items()}
+            everything: dict[str, list[str]] = {name: [] for name in buses}
+            for name, bus in buses.items():
+                bus.subscribe_raw(run_prefix(run_id), lambda s, seen=everything[name]: seen.append(str(s.key_expr)))
+            queryable = buses["probe"].session.declare_queryable(
+                key_expr(run_id, PLANT_STATE), lambda query: query.reply(query.key_expr, b"forged"))
+            presence = buses["probe"].watch_presence("plant")
+            buses["plant"].ready()
+            buses["probe"].wait_for_nodes(["plant"], StopFlag(), timeout_s=10)  # liveliness: everyone
+            time.sleep(0.5)
+            buses["plant"].publisher(PLANT_STATE).put(state(run_id, 0))
+            buses["plant"].log(LogLevel.INFO, "plant log")
+            buses["controller"].publisher(LASER_COMMAND).put(
+                LaserCommand(run_id=run_id, step=1, time_s=0.0, power_w=200.0, speed_mm_s=800.0, controller="pid"))
+            time.sleep(1.0)
+            replies = list(buses["controller"].session.get(key_expr(run_id, PLANT_STATE), timeout=1.0))
+            from_others = {
+                name: sorted(suffix for suffix, box in named.items() for msg in box.drain()
+                             if getattr(msg, "node", getattr(msg, "name", None)) != name
+                             and not (suffix == PLANT_STATE.suffix and name == "plant")
+                             and not (suffix == LASER_COMMAND.suffix and name == "controller"))
+                for name, named in boxes.items()}
+            queryable.undeclare()
+            buses["plant"].__exit__(None, None, None)
+            time.sleep(0.5)
+            assert presence.is_set()
+    assert from_others == {
+        "plant": ["controller/command"],
+        "controller": ["plant/state", "run/events"],
+        "recorder": ["controller/command", "log", "plant/state", "run/events"],
+        "probe": [],
+    }
+    assert not [key for key in everything["probe"] if not key.endswith("/probe")]  # only its own
+    suffixes = {key.removeprefix(f"meltloop/{run_id}/") for key in everything["recorder"]}
+    assert {"plant/state", "controller/command", "log/plant", "run/events/plant"} <= suffixes
+    assert replies == []
 
 
 def test_wrong_or_missing_credentials_get_no_session(monkeypatch, hub, run_id, capsys):
@@ -140,7 +189,7 @@ def test_run_credentials_are_private_and_removed():
         folder = creds.folder
         assert oct(folder.stat().st_mode & 0o777) == "0o700"
         assert oct(creds.dictionary_file.stat().st_mode & 0o777) == "0o600"
-        assert len({*creds.passwords.values()}) == 3
+        assert len({*creds.passwords.values()}) == len(ROLES)
         assert creds.env("plant") == {USER_ENV: "plant", PASSWORD_ENV: creds.passwords["plant"]}
     assert not folder.exists()
 

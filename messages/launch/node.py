@@ -44,9 +44,12 @@ class NodeSpec:
     main : bool
         The run is over when a main node exits 0 (the others then get time to end by themselves).
     roles : tuple of str
-        What it may publish besides its own events and log (:data:`messages.auth.ROLES`):
-        ``plant`` the ``plant/...`` topics, ``controller`` the ``controller/...`` topics.
-        Default: the name, if it is a role.
+        What it may publish besides its own events and log, and what it may read
+        (:data:`messages.auth.ROLES`, :data:`messages.auth.READS`): ``plant`` publishes the
+        ``plant/...`` topics and reads the commands, ``controller`` publishes the
+        ``controller/...`` topics and reads the plant state and run events, ``recorder`` and
+        ``live`` read everything. Default: the name, if it is a role; without a role a node
+        reads no topic.
     command : tuple of str
         Any executable and its first arguments, instead of ``module``: a name is looked up on
         ``PATH``, a path with a ``/`` is taken relative to the working directory.
