@@ -7,13 +7,16 @@ plant and replays the next ``--horizon`` commands twice from that copy: as appli
 temperature ahead is set beside the change the controller's own linearisation at that state
 predicts (``Γ Δv`` of the QP it solved, :mod:`controller_node.preview_qp`).
 
-Prints a table, then, as the last line, JSON with ``state`` (states after the snapshot, 1..H),
-``states_after_turn``, ``plant_darea_pct``, ``model_darea_pct`` (change of the area, % of the set
-point), ``plant_dt_ahead_k``, and the mean changes over the states 15–30 after the turn
-(``plant_darea_pct_turn_15_30``, ``model_darea_pct_turn_15_30``).
+Prints a table and the ratio of the model's to the plant's mean change of the area over the states
+15–30 after the turn; with ``--json``, then, as the last line, JSON with ``state`` (states after the
+snapshot, 1..H), ``states_after_turn``, ``plant_darea_pct``, ``model_darea_pct`` (change of the area,
+% of the set point), ``plant_dt_ahead_k``, the mean changes over the states 15–30 after the turn
+(``plant_darea_pct_turn_15_30``, ``model_darea_pct_turn_15_30``) and ``model_to_plant_ratio``,
+the second over the first (1: the model sees the pre-turn power change as the plant does; null
+without a change of the plant's).
 
 Usage: ``python benchmarks/turn_sensitivity.py [--scenario layer] [--turn 2] [--before 12]
-[--steps 10] [--delta-w -20]``
+[--steps 10] [--delta-w -20] [--json]``
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ def main() -> None:
     parser.add_argument("--before", type=int, default=12, help="states between the snapshot and the turn")
     parser.add_argument("--steps", type=int, default=10, help="commands changed after the snapshot")
     parser.add_argument("--delta-w", type=float, default=-20.0, help="change of those commands [W]")
+    parser.add_argument("--json", action="store_true", help="print the JSON record as the last line")
     args = parser.parse_args()
     sc = scenario(args.scenario)
     plant = ThermalModel(sc.settings, sc.plan)
@@ -88,19 +92,26 @@ def main() -> None:
     dt = changed[:, 1] - base[:, 1]
     after = np.arange(1, n + 1) - args.before       # 0: the first state of the next track
     band = (after >= 15) & (after <= 30)
+    plant_band = float(plant_da[band].mean()) if band.any() else None
+    model_band = float(model_da[band].mean()) if band.any() else None
+    ratio = model_band / plant_band if plant_band else None
     result = {
         "scenario": args.scenario, "turn": args.turn, "before": args.before, "steps": args.steps,
         "delta_w": args.delta_w, "state": list(range(1, n + 1)), "states_after_turn": after.tolist(),
         "plant_darea_pct": np.round(plant_da, 3).tolist(), "model_darea_pct": np.round(model_da, 3).tolist(),
         "plant_dt_ahead_k": np.round(dt, 2).tolist(),
-        "plant_darea_pct_turn_15_30": round(float(plant_da[band].mean()), 3) if band.any() else None,
-        "model_darea_pct_turn_15_30": round(float(model_da[band].mean()), 3) if band.any() else None,
+        "plant_darea_pct_turn_15_30": None if plant_band is None else round(plant_band, 3),
+        "model_darea_pct_turn_15_30": None if model_band is None else round(model_band, 3),
+        "model_to_plant_ratio": None if ratio is None else round(ratio, 3),
     }
     print("states after the turn:", " ".join(f"{a:6d}" for a in after[::2]))
     print("plant Δarea [% sp]:   ", " ".join(f"{x:6.2f}" for x in plant_da[::2]))
     print("model Δarea [% sp]:   ", " ".join(f"{x:6.2f}" for x in model_da[::2]))
     print("plant ΔT ahead [K]:   ", " ".join(f"{x:6.1f}" for x in dt[::2]))
-    print(json.dumps(result))
+    print("model / plant, mean Δarea over the states 15-30 after the turn:",
+          "n/a" if ratio is None else f"{ratio:.3f}")
+    if args.json:
+        print(json.dumps(result))
 
 
 if __name__ == "__main__":

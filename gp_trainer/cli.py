@@ -95,6 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plots-dir", type=Path, default=DEFAULT_PLOTS, help="where the PNG figures go")
     p.add_argument("--rollout-source", default="table2-case2", help="case of the multi-step forward simulation")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON (last line)")
+    p.add_argument("--no-identify", action="store_true",
+                   help="a delay-aware model's held-out runs missing in --recordings-dir are an error (exit 2) "
+                        "instead of being recorded first, as `identify --runs` would")
 
     p = sub.add_parser("narx", formatter_class=fmt,
                        help="select, fit and evaluate the delay-aware model (FIR + residual GP) of the preview MPC")
@@ -269,10 +272,13 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
     model = NarxGPModel.load(args.model)
     recordings_dir = args.recordings_dir or ident.out_dir
     paths = [recordings_dir / f"{name}.mcap" for name in ident.held_out]
-    missing = [p.name for p in paths if not p.is_file()]
-    if missing:
+    missing = [p.stem for p in paths if not p.is_file()]
+    command = f"{PROG} identify --plant {ident.name} --runs {' '.join(missing)} --out-dir {recordings_dir}"
+    if missing and args.no_identify:
         raise DatasetError(f"held-out identification recordings missing in {recordings_dir} "
-                           f"({', '.join(missing)}): run `{PROG} identify --plant {ident.name}`")
+                           f"({', '.join(missing)}): run `{command}`")
+    if missing and (status := _identify_held_out(ident, missing, recordings_dir, command)) != 0:
+        return status
     result = evaluate_model(model, [series_from_states(read_states(p), p.stem) for p in paths])
     case2 = DEFAULT_RECORDINGS / f"{args.rollout_source}.mcap"
     result["rollout_case2_mape_pct"] = None
@@ -297,6 +303,21 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
                   f"coverage {result['coverage_95_turnaround_pct']:.1f} %; along the tracks: MAPE "
                   f"{result['mape_along_pct']:.2f} %, coverage {result['coverage_95_along_pct']:.1f} %")
     return 0
+
+
+def _identify_held_out(ident, names: list[str], out_dir: Path, command: str) -> int:
+    """Record the held-out identification runs ``names`` of ``ident`` into ``out_dir`` (what ``command``
+    does, on a local Dask cluster); 0 when all are complete, else the status to exit with."""
+    from gp_trainer.campaign import IdentifySettings, run_identification, select_ident_runs
+
+    print(f"{PROG} evaluate: recording the held-out runs first ({', '.join(names)}): {command}", file=sys.stderr)
+    settings = IdentifySettings(runs=select_ident_runs(names, ident.runs), out_dir=out_dir)
+    try:
+        results = run_identification(settings)
+    except KeyboardInterrupt:
+        return _interrupted("evaluate", out_dir)
+    _report_failures(results, lambda r: r.name)
+    return 1 if any(r.status == "failed" for r in results) else 0
 
 
 def _evaluate(args: argparse.Namespace) -> int:

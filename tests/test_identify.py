@@ -241,3 +241,39 @@ def test_identify_records_one_double_track_end_to_end(tmp_path):
     assert len(np.unique(power)) >= 8 and np.ptp(power) > 40.0 and np.std(power) > 10.0  # it varies
     again = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=60)  # complete: skipped
     assert again.returncode == 0 and json.loads(again.stdout.strip().splitlines()[-1])["skipped"] == 1
+
+
+def test_evaluate_records_the_missing_held_out_runs_first(tmp_path, monkeypatch, capsys):
+    """On a fresh clone ``evaluate`` records the held-out runs it lacks (as ``identify --runs`` would,
+    here a stand-in that writes synthetic recordings), then evaluates on them."""
+    import gp_trainer.campaign
+    from gp_trainer import synthetic
+    from tests.test_gp_pipeline import _record
+
+    held_out = ("ident-layer-p250-s2", "ident-double-track-p250-s5", "ident-mpc-double-track-a0.063")
+    _record(tmp_path / f"{held_out[0]}.mcap", synthetic.table2_case(2, seed=1))
+    asked = []
+
+    def identify(settings, progress=True):
+        asked.append(([r.name for r in settings.runs], settings.out_dir))
+        for i, run in enumerate(settings.runs):
+            _record(settings.out_dir / f"{run.name}.mcap", synthetic.table2_case(2, seed=2 + i))
+        return []
+
+    monkeypatch.setattr(gp_trainer.campaign, "run_identification", identify)
+    assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json"]) == 0
+    assert asked == [(list(held_out[1:]), tmp_path)]
+    out, err = capsys.readouterr()
+    assert json.loads(out.strip().splitlines()[-1])["held_out"] == list(held_out)
+    assert f"identify --plant plate --runs {' '.join(held_out[1:])} --out-dir {tmp_path}" in err.splitlines()[0]
+
+
+@pytest.mark.slow
+def test_evaluate_on_a_fresh_clone_records_what_it_needs(tmp_path):
+    """``python -m gp_trainer evaluate --json`` with no identification recordings: it records the 3
+    held-out runs (a layer and two double tracks on the FE plant, 2 Dask workers), then evaluates."""
+    proc = subprocess.run([sys.executable, "-m", "gp_trainer", "evaluate", "--recordings-dir", str(tmp_path),
+                           "--json"], cwd=REPO, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["rollout_h40_mape_pct"] < 2.0 and result["r2"] > 0.98

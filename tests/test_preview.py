@@ -387,9 +387,11 @@ def test_evaluate_of_the_delay_aware_model_names_the_command_when_data_are_missi
     from gp_trainer.narx import DEFAULT_MODEL_PATH, is_model_file
 
     assert is_model_file(DEFAULT_MODEL_PATH) and not is_model_file(tmp_path / "none.json")
-    assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json"]) == 2
+    assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json", "--no-identify"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "run `python -m gp_trainer identify --plant plate`" in err[0]
+    command = ("python -m gp_trainer identify --plant plate --runs ident-layer-p250-s2 ident-double-track-p250-s5 "
+               f"ident-mpc-double-track-a0.063 --out-dir {tmp_path}")
+    assert len(err) == 1 and f"run `{command}`" in err[0]
 
 
 def test_learning_state_round_trip_and_refusal(model):
