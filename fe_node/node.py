@@ -102,7 +102,8 @@ def state_message(run_id: str, obs: Observation) -> MeltPoolState:
         scan_dir_x=obs.direction[0], scan_dir_y=obs.direction[1], track=obs.track, area_mm2=obs.area_m2 * 1e6,
         t_ahead_k=obs.t_ahead_k, power_w=obs.power_w, speed_mm_s=obs.speed_m_s * 1e3, width_um=obs.width_m * 1e6,
         length_um=obs.length_m * 1e6, depth_um=obs.depth_m * 1e6, cross_section_mm2=obs.cross_section_m2 * 1e6,
-        t_peak_k=obs.t_peak_k, layer=obs.layer, source="fe", **preview_fields(obs),
+        t_peak_k=obs.t_peak_k, cooling_rate_k_s=obs.cooling_rate_k_s, thermal_gradient_k_m=obs.thermal_gradient_k_m,
+        solidification_rate_mm_s=obs.solidification_rate_m_s * 1e3, layer=obs.layer, source="fe", **preview_fields(obs),
     )
 
 

@@ -54,6 +54,14 @@ class Observation:
         Layer of the build (0 first).
     z_top_m : float
         Height of the current top surface above the plate's top [m].
+    thermal_gradient_k_m : float
+        Temperature gradient G [K/m] at the pool's trailing edge on the scan line (top surface,
+        liquidus; :func:`trailing_edge`); 0 without a pool.
+    solidification_rate_m_s : float
+        Solidification rate R [m/s] there: the boundary's speed along its normal, the scan speed
+        in the quasi-steady pool (the normal is the scan direction on the scan line).
+    cooling_rate_k_s : float
+        Cooling rate G R [K/s] there.
     """
 
     step: int
@@ -80,6 +88,9 @@ class Observation:
     next_track: bool = False
     layer: int = 0
     z_top_m: float = 0.0
+    thermal_gradient_k_m: float = 0.0
+    solidification_rate_m_s: float = 0.0
+    cooling_rate_k_s: float = 0.0
 
 
 def interp_matrix(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -213,3 +224,35 @@ def bilinear(field: np.ndarray, xs: np.ndarray, ys: np.ndarray, x: float, y: flo
     wx = interp_matrix(xs, np.array([x]))[0]
     wy = interp_matrix(ys, np.array([y]))[0]
     return float(wx @ field @ wy)
+
+
+def trailing_edge(t_top: np.ndarray, xs: np.ndarray, ys: np.ndarray, position: np.ndarray, direction: np.ndarray,
+                  level: float, reach_m: float, step_m: float) -> float:
+    """Temperature gradient [K/m] at the pool's trailing edge on the scan line.
+
+    Samples the bilinear top-surface field behind the laser, ``position - s * direction`` for
+    ``0 <= s <= reach_m`` every ``step_m``, finds the first point where it falls below ``level``
+    and returns ``-dT/ds`` there (one-sided difference over the crossing interval); 0 if the
+    surface under the laser is not above ``level`` or the edge is not reached.
+
+    Parameters
+    ----------
+    t_top : ndarray, shape (nx, ny)
+        Top-surface nodal temperatures [K].
+    xs, ys : ndarray
+        Node coordinates [m].
+    position, direction : ndarray, shape (2,)
+        Laser position [m] and scan direction (unit vector).
+    level : float
+        Isotherm [K] (the liquidus).
+    reach_m, step_m : float
+        Length of the sampled line and its spacing [m].
+    """
+    s = np.arange(0.0, reach_m + 0.5 * step_m, step_m)
+    px, py = position[0] - s * direction[0], position[1] - s * direction[1]
+    t = np.einsum("pi,ij,pj->p", interp_matrix(xs, px), t_top, interp_matrix(ys, py))
+    below = np.nonzero(t <= level)[0]
+    if t[0] <= level or not len(below):
+        return 0.0
+    k = below[0]
+    return float((t[k - 1] - t[k]) / step_m)

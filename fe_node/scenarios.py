@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fe_node.presets import preset
 from fe_node.scan import Profile, ScanPlan, Signal
 from fe_node.settings import Settings, check_type
 from fe_node.solver import check_grid_size
@@ -165,7 +166,8 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
     name : str
         One of :data:`NAMES`.
     **overrides
-        Any :class:`~fe_node.settings.Settings` field; ``n_tracks``, ``track_length_m``,
+        ``preset`` (:mod:`fe_node.presets`) and any :class:`~fe_node.settings.Settings` field,
+        which overrides the preset's; ``n_tracks``, ``track_length_m``,
         ``hatch_m``, ``bidirectional`` for the plan; ``power_w`` and/or ``speed_m_s``
         replace the open-loop signal by a constant. ``ident_seed`` (int >= 0),
         ``ident_mean_w`` and ``ident_amplitude_w`` [W] shape the random power staircase of
@@ -176,6 +178,8 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
     ValueError
         Unknown name or override, or invalid values.
     """
+    if "preset" in overrides:
+        overrides = {**preset(overrides.pop("preset")), **overrides}
     if name in PART_NAMES:
         return _part(name, **overrides)
     if name not in _TABLE:

@@ -25,11 +25,12 @@ import numpy as np
 
 from fe_node.boundary import evaporate, loss_flux, loss_flux_slope
 from fe_node.dwell import implicit_step
+from fe_node.keyhole import drill, keyhole_temperature_k
 from fe_node.material import Constitutive
 from fe_node.mesh import Grid, graded_axis, graded_axis_size
-from fe_node.observe import Observation, bilinear, interp_matrix, pool_geometry
+from fe_node.observe import Observation, bilinear, interp_matrix, pool_geometry, trailing_edge
 from fe_node.operators import CsrOperator, TensorOperator
-from fe_node.powder import PowderBed
+from fe_node.powder import KW_DENSE, RHO_W, PowderBed
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.source import surface_load
@@ -213,6 +214,11 @@ class ThermalModel:
         self._work: StepWork | None = None
         self._set_time_step()
         self._e0 = self._energy()
+        self.t_keyhole_k = (keyhole_temperature_k(settings.beam_radius_m, settings.material.t_boil)
+                            if settings.keyhole else math.inf)
+        self._h_keyhole = float(self.law.enthalpy(self.t_keyhole_k)) if settings.keyhole else None
+        self._keyhole = np.zeros(self._a_top.shape, dtype=bool)
+        """Top nodes in the keyhole's opening after the last sub-step (:func:`fe_node.keyhole.drill`)."""
         self._s = 0.0
         self.step_index = 0
         self._absorbed = 0.0
@@ -288,7 +294,7 @@ class ThermalModel:
         self.grid = Grid(g.xs, g.ys, np.concatenate([g.zs, g.zs[-1] + np.linspace(0.0, s.powder_layer_m, n + 1)[1:]]))
         old, new = (ny - 1, nz - 1, nx - 1), (ny - 1, n, nx - 1)
         kw = np.concatenate([kw.reshape(old), np.full(new, self.powder.kw_powder)], axis=1).ravel()
-        rho_w = np.concatenate([rho_w.reshape(old), np.full(new, self.powder.packing)], axis=1).ravel()
+        rho_w = np.concatenate([rho_w.reshape(old), np.full(new, RHO_W)], axis=1).ravel()
         self.powder.grow(n)
         if self._lattice is not None:
             self._lattice.grow(n)
@@ -366,7 +372,7 @@ class ThermalModel:
             j, k, i = np.unravel_index(melted, (len(self.grid.ys) - 1, len(self.grid.zs) - 1, len(self.grid.xs) - 1))
             self._lattice.mark(self.grid.xs, self.grid.ys, (j, k - self.powder.k0, i))
         if len(melted):
-            self.reweight(melted, self.powder.packing, self.powder.packing)
+            self.reweight(melted, KW_DENSE, RHO_W)
 
     def _set_time_step(self) -> None:
         """Sub-steps and update factors from the current weights (stability limit, module docstring)."""
@@ -423,20 +429,31 @@ class ThermalModel:
         ds = speed_m_s * self._dt_sub
         n_pos = max(1, math.ceil(ds / (s.beam_radius_m / 20)))
         total = self.plan.total_length
+        absorptivity = self.absorptivity_map()
         for _ in range(self.n_substeps):
             s_pos = self._s + (np.arange(n_pos) + 0.5) / n_pos * ds
             on = s_pos < total
             load = np.zeros((1, 1))
             if np.any(on) and power_w > 0:
                 _, xy, _ = self.plan.locate(s_pos[on])
-                load = surface_load(self.grid.xs, self.grid.ys, xy, power_w * on.mean(),
-                                    s.absorptivity, s.beam_radius_m)
+                load = surface_load(self.grid.xs, self.grid.ys, xy, power_w * on.mean(), 1.0, s.beam_radius_m)
+                load *= np.where(self._keyhole, s.keyhole_absorptivity, absorptivity).T
             self._substep(load)
             self._s = min(self._s + ds, total)
         if self.powder is not None:
             self._consolidate()
         self.step_index += 1
         return self._observe(power_w, speed_m_s)
+
+    def absorptivity_map(self) -> np.ndarray:
+        """Absorptivity [-] of each top node, shape (ny, nx): ``absorptivity`` on dense metal,
+        ``powder_absorptivity`` on powder, weighted by the consolidated share of the top elements
+        around the node (:meth:`fe_node.powder.PowderBed.surface_fraction`)."""
+        s = self.settings
+        if self.powder is None:
+            return np.full(self._a_top.shape, s.absorptivity)
+        dense = self.powder.surface_fraction()
+        return s.powder_absorptivity + (s.absorptivity - s.powder_absorptivity) * dense
 
     def _follow(self, travel_m: float) -> None:
         """Move the fine window ahead of the laser if this step would take it near the edge."""
@@ -460,12 +477,13 @@ class ThermalModel:
             pb, k0 = self.powder, self.powder.k0
             share = self._lattice.fraction(new.xs, new.ys)
             pb.consolidated = share >= 1.0 - 1e-9
-            kw[:, k0:, :] = pb.kw_powder + share * (pb.packing - pb.kw_powder)
-            rho_w[:, k0:, :] = pb.packing
+            kw[:, k0:, :] = pb.kw_powder + share * (KW_DENSE - pb.kw_powder)
+            rho_w[:, k0:, :] = RHO_W
         kw, rho_w = kw.ravel(), rho_w.ravel()
         self.grid = new
         self.operator = self._build_operator(kw, rho_w)
         self._a_top, self._a_bottom = self._face_areas()
+        self._keyhole = np.zeros(self._a_top.shape, dtype=bool)
         self._set_time_step()
         tol = 1e-6 * self.settings.h_fine_m
         interpolated = ~(kept(old.ys, new.ys, tol)[:, None, None] & kept(old.xs, new.xs, tol)[None, None, :])
@@ -485,6 +503,8 @@ class ThermalModel:
                         self._work)
         self._absorbed += float(np.sum(load)) * self._dt_sub
         self._lost += float(q.sum()) * self._dt_sub
+        if self._h_keyhole is not None:
+            self._keyhole = drill(self._h, self._m, self._h_keyhole)
         if self.settings.evaporation:
             self._evaporate()
 
@@ -502,6 +522,23 @@ class ThermalModel:
         top[hot] -= dh
         self._lost += float(np.sum(dh * self._m[:, -1, :][hot]))
 
+    def pool(self, level_k: float, t_top: np.ndarray | None = None) -> dict:
+        """Geometry of the region above ``level_k`` [K] (:func:`fe_node.observe.pool_geometry`).
+
+        ``t_top`` (nx, ny): the top-surface temperatures [K], if already at hand.
+        """
+        g, h = self.grid, self._h
+        if t_top is None:
+            t_top = self.law.temperature(h[:, -1, :]).T
+        hot = np.argwhere(t_top > level_k)
+        if not len(hot):
+            return pool_geometry(t_top[:1, :1, None], g.xs[:1], g.ys[:1], g.zs[-1:], level_k)
+        (i0, j0), (i1, j1) = hot.min(axis=0), hot.max(axis=0)
+        i0, j0 = max(i0 - 1, 0), max(j0 - 1, 0)
+        i1, j1 = min(i1 + 2, g.shape[0]), min(j1 + 2, g.shape[1])
+        t3 = g.to_xyz(self.law.temperature(h[j0:j1, :, i0:i1]))
+        return pool_geometry(t3, g.xs[i0:i1], g.ys[j0:j1], g.zs, level_k)
+
     def initial_observation(self) -> Observation:
         """Observation of the initial state (step 0, laser at the plan start, off)."""
         return self._observe(0.0, 0.0)
@@ -510,16 +547,10 @@ class ThermalModel:
         s, g, h = self.settings, self.grid, self._h
         track, xy, d = self.plan.locate(self._s)
         t_top = self.law.temperature(h[:, -1, :]).T       # (nx, ny)
-        tl = s.material.t_liquidus
-        liquid = np.argwhere(t_top > tl)
-        if len(liquid):
-            (i0, j0), (i1, j1) = liquid.min(axis=0), liquid.max(axis=0)
-            i0, j0 = max(i0 - 1, 0), max(j0 - 1, 0)
-            i1, j1 = min(i1 + 2, g.shape[0]), min(j1 + 2, g.shape[1])
-            t3 = self.grid.to_xyz(self.law.temperature(h[j0:j1, :, i0:i1]))
-            geo = pool_geometry(t3, g.xs[i0:i1], g.ys[j0:j1], g.zs, tl)
-        else:
-            geo = pool_geometry(t_top[:1, :1, None], g.xs[:1], g.ys[:1], g.zs[-1:], tl)
+        geo = self.pool(s.material.t_liquidus, t_top)
+        gradient = trailing_edge(t_top, g.xs, g.ys, xy, d, s.material.t_liquidus,
+                                 reach_m=geo["length_m"] + 2 * s.h_fine_m, step_m=0.25 * s.h_fine_m) if geo["area_m2"] else 0.0
+        rate = speed_m_s if gradient > 0 else 0.0
         ahead = xy + (speed_m_s * s.dt_s + s.beam_radius_m) * d
         stored = self._energy() - self._e0
         err = (100.0 * (self._absorbed - stored - self._lost) / self._absorbed
@@ -534,7 +565,8 @@ class ThermalModel:
             t_ahead_k=bilinear(t_top, g.xs, g.ys, ahead[0], ahead[1]),
             t_peak_k=float(self.law.temperature(h.max())),
             energy_absorbed_j=self._absorbed, energy_stored_j=stored,
-            energy_lost_j=self._lost, energy_error_pct=err)
+            energy_lost_j=self._lost, energy_error_pct=err, thermal_gradient_k_m=gradient,
+            solidification_rate_m_s=rate, cooling_rate_k_s=gradient * rate)
 
     def temperature_image(self, half_length_m: float = 0.6e-3, half_width_m: float = 0.3e-3,
                           pixel_m: float = 10e-6):

@@ -73,6 +73,12 @@ class MeltPoolState(Message, frozen=True, kw_only=True):
     depth_um: LengthUm | None = None
     cross_section_mm2: AreaMm2 | None = None
     t_peak_k: TempK | None = None
+    cooling_rate_k_s: Annotated[float, msgspec.Meta(ge=0.0, le=1.0e12, description=(
+        "Cooling rate G R at the pool's trailing edge on the scan line, top surface [K/s]."))] | None = None
+    thermal_gradient_k_m: Annotated[float, msgspec.Meta(ge=0.0, le=1.0e12, description=(
+        "Temperature gradient G at the pool's trailing edge on the scan line, top surface [K/m]."))] | None = None
+    solidification_rate_mm_s: Annotated[float, msgspec.Meta(ge=0.0, le=1.0e5, description=(
+        "Solidification rate R (boundary speed along its normal) at that point [mm/s]."))] | None = None
     track_elapsed_s: Annotated[float, msgspec.Meta(ge=0.0, le=1.0e6, description=(
         "Scan-plan preview: time since the current track started [s]."))] | None = None
     track_remaining_s: Annotated[float, msgspec.Meta(ge=0.0, le=1.0e6, description=(

@@ -1,0 +1,85 @@
+"""Calibration of the plant against the AM-Bench single tracks (``python -m fe_node calibrate``).
+
+Fits the dense-metal ``absorptivity``, the ``keyhole_absorptivity`` and the liquid conductivity
+factors ``liquid_k_factor_xy`` and ``liquid_k_factor_z`` (Marangoni flow) of
+:class:`~fe_node.settings.Settings` to the measured widths and depths of
+:data:`fe_node.am_bench.CASES`: Nelder-Mead on the sum of squared relative errors, each
+evaluation the six tracks on the bare plate with evaporation and keyhole onset on.  The record it
+writes (:data:`CALIBRATION_PATH`) holds the fitted values, the data source, the per-case
+residuals and the command; :class:`~fe_node.settings.Settings` takes its defaults from it.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+
+from fe_node.am_bench import CASES, TrackCase, track_geometry
+from fe_node.settings import Settings
+
+CALIBRATION_PATH = Path(__file__).with_name("calibration.json")
+"""The shipped calibration record."""
+FIT_BOUNDS = {"absorptivity": (0.15, 0.7), "keyhole_absorptivity": (0.3, 0.95),
+              "liquid_k_factor_xy": (1.0, 6.0), "liquid_k_factor_z": (1.0, 6.0)}
+"""Fitted settings and their bounds."""
+SOURCE = ("AM-Bench 2018 AMB2018-02, IN625 bare-plate single tracks: Lane et al., Integr. Mater. Manuf. "
+          "Innov. 9 (2020) 16-30, doi:10.1007/s40192-020-00169-1 (Tables 1, 3, 4); NIST CHAL-AMB2018-02-AMMT-MP "
+          "results, Table 2")
+
+
+def case_errors(settings: Settings, cases: tuple[TrackCase, ...] = CASES) -> list[dict]:
+    """Simulated against measured width and depth of each case, errors in % of the measurement."""
+    rows = []
+    for case in cases:
+        g = track_geometry(settings, case)
+        rows.append(dict(case=case.name, power_w=case.power_w, speed_mm_s=case.speed_m_s * 1e3,
+                         d4sigma_um=round(case.d4sigma_m * 1e6, 3),
+                         width_um=g["width_m"] * 1e6, measured_width_um=case.width_m * 1e6,
+                         width_error_pct=100 * (g["width_m"] - case.width_m) / case.width_m,
+                         depth_um=g["depth_m"] * 1e6, measured_depth_um=case.depth_m * 1e6,
+                         depth_error_pct=100 * (g["depth_m"] - case.depth_m) / case.depth_m,
+                         t_peak_k=g["t_peak_k"]))
+    return rows
+
+
+def _with(base: Settings, x: np.ndarray) -> Settings:
+    return replace(base, **{k: float(v) for k, v in zip(FIT_BOUNDS, x)})
+
+
+def calibrate(base: Settings, max_evaluations: int = 40, log=print) -> dict:
+    """Fit :data:`FIT_BOUNDS`'s settings on ``base`` (module docstring); returns the record."""
+    lo, hi = (np.array(b) for b in zip(*FIT_BOUNDS.values()))
+    x0 = np.array([getattr(base, k) for k in FIT_BOUNDS])
+
+    def cost(x):
+        if np.any(x < lo) or np.any(x > hi):
+            return 1e3 + float(np.sum(np.maximum(lo - x, 0) + np.maximum(x - hi, 0)))
+        rows = case_errors(_with(base, x))
+        c = float(sum(r["width_error_pct"] ** 2 + r["depth_error_pct"] ** 2 for r in rows))
+        log(" ".join(f"{k}={v:.4f}" for k, v in zip(FIT_BOUNDS, x)) + f"  cost {c:.1f}")
+        return c
+
+    simplex = np.array([x0] + [x0 + np.eye(len(x0))[i] * 0.2 * np.maximum(x0[i], 0.5) for i in range(len(x0))])
+    res = minimize(cost, x0, method="Nelder-Mead",
+                   options=dict(maxfev=max_evaluations, initial_simplex=np.clip(simplex, lo, hi), xatol=1e-3))
+    fitted = {k: round(float(v), 4) for k, v in zip(FIT_BOUNDS, res.x)}
+    rows = case_errors(replace(base, **fitted))
+    return dict(source=SOURCE, command="python -m fe_node calibrate", fitted=fitted,
+                fixed={k: v for k, v in (("evaporation", base.evaporation), ("keyhole", base.keyhole),
+                                         ("h_fine_m", base.h_fine_m), ("t0_k", 300.0))},
+                evaluations=int(res.nfev), rms_error_pct=math.sqrt(np.mean(
+                    [r[e] ** 2 for r in rows for e in ("width_error_pct", "depth_error_pct")])),
+                max_width_error_pct=max(abs(r["width_error_pct"]) for r in rows),
+                max_depth_error_pct=max(abs(r["depth_error_pct"]) for r in rows), cases=rows)
+
+
+if __name__ == "__main__":
+    base = Settings(keyhole=True, evaporation=True, absorptivity=0.3, keyhole_absorptivity=0.7,
+                    liquid_k_factor_xy=1.5, liquid_k_factor_z=2.0)
+    rec = calibrate(base, max_evaluations=45, log=lambda m: print(m, flush=True))
+    print(json.dumps(rec, indent=1))
+    Path("/tmp/calib_first.json").write_text(json.dumps(rec, indent=1))

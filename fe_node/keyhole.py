@@ -1,0 +1,80 @@
+"""Keyhole onset: the surface temperature limit of the plant and where the beam's excess energy goes.
+
+Above the boiling point the vapour's recoil pressure, ``p_r = 0.54 p_sat(T)`` (Anisimov, Sov.
+Phys. JETP 27 (1968) 182), pushes the melt surface down once it beats the ambient pressure plus
+the capillary pressure of a depression of the beam's size:
+
+    0.54 p_sat(T_kh) = p_amb + 2 gamma / w,
+
+``p_sat`` the Clausius-Clapeyron vapour pressure of :mod:`fe_node.boundary`, ``gamma`` the
+surface tension of the melt and ``w`` the beam's 1/e² radius.  A hotter surface is no longer
+where the beam is absorbed: the keyhole opens and the beam drills down.  The plant models this
+without moving its surface: the enthalpy that would heat a top node above ``T_kh`` is carried
+down its vertical column and deposited in the first nodes below ``T_kh`` (the keyhole's
+bottom), so the absorbed energy is conserved and the surface never exceeds ``T_kh``.  Inside the
+keyhole's opening the beam is reflected several times before it leaves, so it is absorbed with
+the higher ``keyhole_absorptivity`` of :class:`~fe_node.settings.Settings` (the rise of
+absorptance at keyhole onset measured by Trapp et al., "In situ absorptivity measurements of
+metallic powders and substrates exposed to a laser beam", Appl. Mater. Today 9 (2017) 341).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fe_node.boundary import L_VAP_J_KG, MOLAR_MASS_KG_MOL, P_AMBIENT_PA, R_GAS
+
+RECOIL_FRACTION = 0.54
+"""Recoil pressure over saturation pressure of strong evaporation [-] (Anisimov 1968)."""
+SURFACE_TENSION_N_M = 1.78
+"""Surface tension of the melt [N/m]: nickel at its melting point (Keene, Int. Mater. Rev. 38
+(1993) 157), for the Ni-base IN625."""
+
+
+def beam_1e2_radius_m(beam_radius_m: float) -> float:
+    """1/e² radius [m] of the eq. 6 Gaussian ``exp(-3 rho² / r_s²)``: ``w = 2 r_s / sqrt(6)``."""
+    return 2.0 * beam_radius_m / math.sqrt(6.0)
+
+
+def keyhole_temperature_k(beam_radius_m: float, t_boil_k: float,
+                          surface_tension_n_m: float = SURFACE_TENSION_N_M) -> float:
+    """Keyhole-onset surface temperature [K] (module docstring) for a beam of eq. 6 radius
+    ``beam_radius_m`` [m] and a melt boiling at ``t_boil_k`` [K] at ambient pressure."""
+    p = (P_AMBIENT_PA + 2.0 * surface_tension_n_m / beam_1e2_radius_m(beam_radius_m)) / RECOIL_FRACTION
+    b = L_VAP_J_KG * MOLAR_MASS_KG_MOL / R_GAS
+    return 1.0 / (1.0 / t_boil_k - math.log(p / P_AMBIENT_PA) / b)
+
+
+def drill(h: np.ndarray, m: np.ndarray, h_cap: float) -> np.ndarray:
+    """Carry the enthalpy of top nodes above ``h_cap`` down their columns, in place.
+
+    Parameters
+    ----------
+    h : ndarray, shape (ny, nz, nx)
+        Nodal enthalpy [J/m³]; ``h[:, -1, :]`` is the top surface.
+    m : ndarray, shape (ny, nz, nx)
+        Lumped nodal volumes [m³].
+    h_cap : float
+        Enthalpy at the keyhole-onset temperature [J/m³].
+
+    Returns
+    -------
+    ndarray of bool, shape (ny, nx)
+        The columns drilled (the keyhole's opening).  The sum of ``m * h`` is unchanged.
+    """
+    opening = h[:, -1, :] > h_cap
+    j, i = np.nonzero(opening)
+    if len(j) == 0:
+        return opening
+    excess = (h[j, -1, i] - h_cap) * m[j, -1, i]
+    h[j, -1, i] = h_cap
+    for k in range(h.shape[1] - 2, -1, -1):
+        mk = m[j, k, i]
+        put = np.minimum(excess, np.maximum(h_cap - h[j, k, i], 0.0) * mk)
+        h[j, k, i] += put / mk
+        excess -= put
+        if not np.any(excess > 0):
+            break
+    h[j, 0, i] += excess / m[j, 0, i]
+    return opening

@@ -1,0 +1,35 @@
+"""Named plant configurations, chosen with the ``preset`` key of ``[plant]`` (or ``preset=`` of
+:func:`fe_node.scenarios.scenario`); the table's other keys override the preset's values.
+
+* ``bare-plate`` (the default): a dense IN625 plate, conduction only, the paper's Table 1
+  (absorptivity 0.4): the plant the shipped GP models were trained on.
+* ``physical``: a 40 µm powder layer that consolidates to dense metal, evaporative cooling,
+  keyhole onset (:mod:`fe_node.keyhole`), absorptivity by surface (powder, dense, keyhole) and an
+  anisotropic effective liquid conductivity for Marangoni flow, with the absorptivities and
+  conductivity factors fitted to the AM-Bench tracks by ``python -m fe_node calibrate``
+  (:data:`fe_node.calibrate.CALIBRATION_PATH`).
+"""
+from __future__ import annotations
+
+import json
+
+from fe_node.calibrate import CALIBRATION_PATH
+
+PHYSICAL = {"powder_layer_m": 40e-6, "evaporation": True, "keyhole": True}
+"""The physics of the ``physical`` preset besides the calibrated values: a typical IN625 layer
+thickness of 40 µm (the platform's drop per layer)."""
+NAMES = ("bare-plate", "physical")
+
+
+def calibrated() -> dict:
+    """The fitted settings of the shipped calibration record."""
+    return dict(json.loads(CALIBRATION_PATH.read_text())["fitted"])
+
+
+def preset(name: object) -> dict:
+    """The :class:`~fe_node.settings.Settings` overrides of preset ``name`` (ValueError naming the choices)."""
+    if name == "bare-plate":
+        return {}
+    if name == "physical":
+        return {**PHYSICAL, **calibrated()}
+    raise ValueError(f"preset must be one of {', '.join(NAMES)}, got {name!r}")

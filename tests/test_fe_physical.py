@@ -1,0 +1,112 @@
+"""The physical plant's models: consolidation in mass coordinates, keyhole onset, absorptivity by
+surface, thermal-history outputs, the AM-Bench cases and the presets."""
+import math
+
+import numpy as np
+import pytest
+
+from fe_node.am_bench import CASES
+from fe_node.keyhole import beam_1e2_radius_m, drill, keyhole_temperature_k
+from fe_node.observe import trailing_edge
+from fe_node.presets import PHYSICAL, calibrated, preset
+from fe_node.scan import ScanPlan
+from fe_node.scenarios import scenario
+from fe_node.settings import Settings
+from fe_node.solver import ThermalModel
+
+COARSE = dict(h_fine_m=40e-6, margin_m=0.5e-3, depth_m=0.6e-3, fine_pad_m=120e-6,
+              fine_depth_m=160e-6, h_max_m=0.2e-3)
+
+
+def run(n_steps=30, power_w=250.0, **kw):
+    model = ThermalModel(Settings(**COARSE, **kw), ScanPlan.single(1.2e-3))
+    return model, [model.step(power_w, 0.8) for _ in range(n_steps)]
+
+
+@pytest.fixture(scope="module")
+def keyhole_run():
+    return run(keyhole=True)
+
+
+def test_keyhole_temperature_from_the_recoil_balance():
+    # 0.54 p_sat(T) = p_amb + 2 gamma / w, with w the 1/e² radius of the eq. 6 beam
+    assert beam_1e2_radius_m(50e-6) == pytest.approx(40.82e-6, rel=1e-3)
+    t = keyhole_temperature_k(50e-6, 3190.0)
+    assert 3400 < t < 3500
+    assert keyhole_temperature_k(100e-6, 3190.0) < t          # a wider depression needs less recoil
+
+
+def test_drill_conserves_energy_and_caps_the_surface():
+    rng = np.random.default_rng(0)
+    h = rng.uniform(1e9, 5e9, (4, 6, 5))
+    h[:, -1, :] = rng.uniform(1e9, 2e10, (4, 5))
+    m = rng.uniform(0.5, 2.0, h.shape)
+    e0 = float(np.sum(m * h))
+    opening = drill(h, m, 6e9)
+    assert float(np.sum(m * h)) == pytest.approx(e0, rel=1e-13)
+    assert np.all(h[:, -1, :] <= 6e9) and opening.any() and np.all(h[:, 1:, :] <= 6e9 * (1 + 1e-12))
+
+
+def test_keyhole_caps_the_surface_and_drills_deeper(keyhole_run):
+    model, obs = keyhole_run
+    _, bare = run()
+    assert max(o.t_peak_k for o in bare) > 1e4
+    assert max(o.t_peak_k for o in obs) <= model.t_keyhole_k * (1 + 1e-9)
+    assert obs[-1].depth_m > 1.2 * bare[-1].depth_m
+    assert max(abs(o.energy_error_pct) for o in obs) < 1e-6
+
+
+def test_evaporation_is_a_counted_loss(keyhole_run):
+    _, dry = keyhole_run
+    _, wet = run(keyhole=True, evaporation=True)
+    assert wet[-1].energy_lost_j > 1.5 * dry[-1].energy_lost_j
+    assert max(abs(o.energy_error_pct) for o in wet) < 1e-6
+
+
+def test_consolidation_to_dense_metal_in_mass_coordinates():
+    model, obs = run(powder_layer_m=40e-6, keyhole=True)
+    assert model.grid.zs[-1] == pytest.approx(40e-6)          # the layer's dense height
+    pb = model.powder
+    assert pb.consolidated.sum() > 20
+    kw = model.operator.kw.reshape(pb.consolidated.shape[0], -1, pb.consolidated.shape[2])[:, pb.k0:, :]
+    assert np.all(kw[pb.consolidated] == 1.0) and np.all(kw[~pb.consolidated] == pytest.approx(pb.kw_powder))
+    assert np.all(model.operator.rho_w == 1.0)                # powder holds the dense mass
+    assert max(abs(o.energy_error_pct) for o in obs) < 1e-6
+    # the track is dense behind the laser, powder elsewhere: absorptivity by surface
+    a = model.absorptivity_map()
+    s = model.settings
+    assert sorted((a.min(), a.max())) == pytest.approx(sorted((s.absorptivity, s.powder_absorptivity)))
+    ny, nx = a.shape
+    assert a[ny // 2, nx // 2] == pytest.approx(s.absorptivity)             # on the track, behind the laser
+
+
+def test_thermal_history_outputs(keyhole_run):
+    _, obs = keyhole_run
+    o = obs[-1]
+    assert 1e5 < o.thermal_gradient_k_m < 1e8
+    assert o.solidification_rate_m_s == pytest.approx(0.8)
+    assert o.cooling_rate_k_s == pytest.approx(o.thermal_gradient_k_m * 0.8)
+    # the edge of a linear field along the scan line: its slope
+    xs, ys = np.linspace(-1e-3, 1e-3, 41), np.linspace(-0.2e-3, 0.2e-3, 9)
+    t = 2000.0 + 1e6 * xs[:, None] + 0 * ys[None, :]        # 1e6 K/m, liquidus 1623 K at x = -0.377 mm
+    g = trailing_edge(t, xs, ys, np.array([0.0, 0.0]), np.array([1.0, 0.0]), 1623.0, 0.6e-3, 5e-6)
+    assert g == pytest.approx(1e6, rel=1e-9)
+
+
+def test_am_bench_beams_and_cases():
+    assert len(CASES) == 6
+    ammt = CASES[0]
+    # eq. 6 radius of a 170 µm D4σ spot: exp(-3 r²/r_s²) = exp(-2 r²/w²), w = 85 µm
+    assert math.exp(-3 * 85e-6 ** 2 / ammt.beam_radius_m ** 2) == pytest.approx(math.exp(-2))
+
+
+def test_presets():
+    assert preset("bare-plate") == {}
+    phys = preset("physical")
+    assert phys == {**PHYSICAL, **calibrated()}
+    s = scenario("single-track", preset="physical", n_tracks=1).settings
+    assert s.keyhole and s.evaporation and s.powder_layer_m == 40e-6
+    assert s.liquid_k_factor_xy == calibrated()["liquid_k_factor_xy"]
+    assert scenario("single-track", preset="physical", evaporation=False).settings.evaporation is False
+    with pytest.raises(ValueError, match="preset must be one of"):
+        scenario("single-track", preset="rough")
