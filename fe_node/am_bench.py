@@ -23,7 +23,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from fe_node.observe import pool_geometry
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.solver import ThermalModel

@@ -88,8 +88,8 @@ def evaporate(t_star: np.ndarray, k: np.ndarray, heat_capacity: float, t_boil: f
         hi = np.where(f > 0, t, hi)
         lo = np.where(f <= 0, t, lo)
         new = t - f / (heat_capacity + k * q * (b / t**2 - 0.5 / t))
-        new = np.where((new > lo) & (new < hi), new, 0.5 * (lo + hi))
-        done = np.abs(new - t) < 1e-13 * t
+        new = np.where((new >= lo) & (new <= hi), new, 0.5 * (lo + hi))
+        done = np.abs(new - t) < 1e-10 * t
         t = new
         if np.all(done):
             break

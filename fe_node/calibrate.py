@@ -1,7 +1,8 @@
 """Calibration of the plant against the AM-Bench single tracks (``python -m fe_node calibrate``).
 
-Fits the dense-metal ``absorptivity``, the ``keyhole_absorptivity`` and the liquid conductivity
-factors ``liquid_k_factor_xy`` and ``liquid_k_factor_z`` (Marangoni flow) of
+Fits the dense-metal ``absorptivity``, the ``keyhole_absorptivity``, the liquid conductivity
+factors ``liquid_k_factor_xy`` and ``liquid_k_factor_z`` (Marangoni flow) and the penetration
+depth of the absorbed power ``penetration_depth_m`` (c of eq. 6) of
 :class:`~fe_node.settings.Settings` to the measured widths and depths of
 :data:`fe_node.am_bench.CASES`: Nelder-Mead on the sum of squared relative errors, each
 evaluation the six tracks on the bare plate with evaporation and keyhole onset on.  The record it
@@ -10,7 +11,6 @@ residuals and the command; :class:`~fe_node.settings.Settings` takes its default
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -24,7 +24,8 @@ from fe_node.settings import Settings
 CALIBRATION_PATH = Path(__file__).with_name("calibration.json")
 """The shipped calibration record."""
 FIT_BOUNDS = {"absorptivity": (0.15, 0.7), "keyhole_absorptivity": (0.3, 0.95),
-              "liquid_k_factor_xy": (1.0, 6.0), "liquid_k_factor_z": (1.0, 6.0)}
+              "liquid_k_factor_xy": (1.0, 6.0), "liquid_k_factor_z": (1.0, 6.0),
+              "penetration_depth_m": (0.0, 60e-6)}
 """Fitted settings and their bounds."""
 SOURCE = ("AM-Bench 2018 AMB2018-02, IN625 bare-plate single tracks: Lane et al., Integr. Mater. Manuf. "
           "Innov. 9 (2020) 16-30, doi:10.1007/s40192-020-00169-1 (Tables 1, 3, 4); NIST CHAL-AMB2018-02-AMMT-MP "
@@ -51,35 +52,31 @@ def _with(base: Settings, x: np.ndarray) -> Settings:
 
 
 def calibrate(base: Settings, max_evaluations: int = 40, log=print) -> dict:
-    """Fit :data:`FIT_BOUNDS`'s settings on ``base`` (module docstring); returns the record."""
+    """Fit :data:`FIT_BOUNDS`'s settings on ``base`` (module docstring), starting from ``base``'s
+    values with a simplex of 20 % steps; returns the record of the best evaluated point."""
     lo, hi = (np.array(b) for b in zip(*FIT_BOUNDS.values()))
-    x0 = np.array([getattr(base, k) for k in FIT_BOUNDS])
+    x0 = np.array([getattr(base, k) for k in FIT_BOUNDS], dtype=float)
+    best = {"cost": math.inf, "x": x0}
 
     def cost(x):
         if np.any(x < lo) or np.any(x > hi):
-            return 1e3 + float(np.sum(np.maximum(lo - x, 0) + np.maximum(x - hi, 0)))
+            return 1e6 * (1.0 + float(np.sum(np.maximum(lo - x, 0) + np.maximum(x - hi, 0))))
         rows = case_errors(_with(base, x))
         c = float(sum(r["width_error_pct"] ** 2 + r["depth_error_pct"] ** 2 for r in rows))
-        log(" ".join(f"{k}={v:.4f}" for k, v in zip(FIT_BOUNDS, x)) + f"  cost {c:.1f}")
+        log(" ".join(f"{k}={v:.4g}" for k, v in zip(FIT_BOUNDS, x)) + f"  cost {c:.1f}")
+        if c < best["cost"]:
+            best.update(cost=c, x=x.copy())
         return c
 
-    simplex = np.array([x0] + [x0 + np.eye(len(x0))[i] * 0.2 * np.maximum(x0[i], 0.5) for i in range(len(x0))])
+    steps = 0.2 * np.where(x0 > 0, x0, hi - lo)
+    simplex = np.clip(np.vstack([x0, x0 + np.diag(steps)]), lo, hi)
     res = minimize(cost, x0, method="Nelder-Mead",
-                   options=dict(maxfev=max_evaluations, initial_simplex=np.clip(simplex, lo, hi), xatol=1e-3))
-    fitted = {k: round(float(v), 4) for k, v in zip(FIT_BOUNDS, res.x)}
+                   options=dict(maxfev=max_evaluations, initial_simplex=simplex, xatol=1e-4, fatol=0.5))
+    fitted = {k: float(f"{v:.4g}") for k, v in zip(FIT_BOUNDS, best["x"])}
     rows = case_errors(replace(base, **fitted))
+    errors = [r[e] for r in rows for e in ("width_error_pct", "depth_error_pct")]
     return dict(source=SOURCE, command="python -m fe_node calibrate", fitted=fitted,
-                fixed={k: v for k, v in (("evaporation", base.evaporation), ("keyhole", base.keyhole),
-                                         ("h_fine_m", base.h_fine_m), ("t0_k", 300.0))},
-                evaluations=int(res.nfev), rms_error_pct=math.sqrt(np.mean(
-                    [r[e] ** 2 for r in rows for e in ("width_error_pct", "depth_error_pct")])),
+                fixed={k: getattr(base, k) for k in ("evaporation", "keyhole", "h_fine_m", "powder_absorptivity")},
+                evaluations=int(res.nfev), rms_error_pct=math.sqrt(float(np.mean(np.square(errors)))),
                 max_width_error_pct=max(abs(r["width_error_pct"]) for r in rows),
                 max_depth_error_pct=max(abs(r["depth_error_pct"]) for r in rows), cases=rows)
-
-
-if __name__ == "__main__":
-    base = Settings(keyhole=True, evaporation=True, absorptivity=0.3, keyhole_absorptivity=0.7,
-                    liquid_k_factor_xy=1.5, liquid_k_factor_z=2.0)
-    rec = calibrate(base, max_evaluations=45, log=lambda m: print(m, flush=True))
-    print(json.dumps(rec, indent=1))
-    Path("/tmp/calib_first.json").write_text(json.dumps(rec, indent=1))

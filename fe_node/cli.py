@@ -38,7 +38,7 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--config", type=Path, help=config_help)
     v.add_argument("--json", action="store_true", help="print JSON only")
     c = sub.add_parser("calibrate", help="fit absorptivities and liquid conductivity factors to the AM-Bench tracks")
-    c.add_argument("--config", type=Path, help=config_help + "; its values start the fit")
+    c.add_argument("--config", type=Path, help=config_help + " over the physical preset; its values start the fit")
     c.add_argument("--max-evaluations", type=int, default=40, help="plant evaluations of the fit (default 40)")
     c.add_argument("--out", type=Path, help="write the calibration record here (default: print only); "
                    "fe_node/calibration.json is the record the plant's defaults come from")
@@ -61,9 +61,12 @@ def plant_table(path: Path | None) -> dict:
     return dict(data.get("plant", {}))
 
 
-def _settings(args):
-    """The plant settings of ``--config`` and ``--h-um`` (ValueError naming a bad key)."""
+def _settings(args, preset: str | None = None):
+    """The plant settings of ``--config`` and ``--h-um`` (ValueError naming a bad key); ``preset``
+    applies under the table (:mod:`fe_node.presets`)."""
     over = plant_table(args.config)
+    if preset is not None:
+        over = {"preset": preset, **over}
     if args.h_um is not None:
         if not args.h_um > 0:
             raise ValueError(f"--h-um must be > 0, got {args.h_um}")
@@ -114,7 +117,7 @@ def main(argv=None) -> int:
             if args.max_evaluations < 1:
                 raise ValueError(f"--max-evaluations must be >= 1, got {args.max_evaluations}")
             args.h_um = None
-            res = calibrate(_settings(args), args.max_evaluations,
+            res = calibrate(_settings(args, preset="physical"), args.max_evaluations,
                             log=(lambda m: None) if args.json else (lambda m: print(m, file=sys.stderr)))
             if args.out:
                 args.out.write_text(json.dumps(res, indent=1) + "\n")

@@ -46,8 +46,12 @@ def keyhole_temperature_k(beam_radius_m: float, t_boil_k: float,
     return 1.0 / (1.0 / t_boil_k - math.log(p / P_AMBIENT_PA) / b)
 
 
-def drill(h: np.ndarray, m: np.ndarray, h_cap: float) -> np.ndarray:
-    """Carry the enthalpy of top nodes above ``h_cap`` down their columns, in place.
+def drill(h: np.ndarray, m: np.ndarray, h_cap: float, n_heated: int = 1) -> np.ndarray:
+    """Carry the enthalpy above ``h_cap`` down each column, in place.
+
+    From the top down, a node above ``h_cap`` is set to it and its excess passed to the node
+    below, which takes what it can up to ``h_cap``; what no node of the column can take stays in
+    its bottom node.
 
     Parameters
     ----------
@@ -57,24 +61,29 @@ def drill(h: np.ndarray, m: np.ndarray, h_cap: float) -> np.ndarray:
         Lumped nodal volumes [m³].
     h_cap : float
         Enthalpy at the keyhole-onset temperature [J/m³].
+    n_heated : int
+        Top node layers the laser heats directly (the depth of its load); below them only the
+        excess carried down can exceed ``h_cap``.
 
     Returns
     -------
     ndarray of bool, shape (ny, nx)
         The columns drilled (the keyhole's opening).  The sum of ``m * h`` is unchanged.
     """
-    opening = h[:, -1, :] > h_cap
+    nz = h.shape[1]
+    n_heated = min(max(n_heated, 1), nz)
+    opening = np.any(h[:, nz - n_heated:, :] > h_cap, axis=1)
     j, i = np.nonzero(opening)
     if len(j) == 0:
         return opening
-    excess = (h[j, -1, i] - h_cap) * m[j, -1, i]
-    h[j, -1, i] = h_cap
-    for k in range(h.shape[1] - 2, -1, -1):
+    excess = np.zeros(len(j))
+    for k in range(nz - 1, -1, -1):
         mk = m[j, k, i]
-        put = np.minimum(excess, np.maximum(h_cap - h[j, k, i], 0.0) * mk)
-        h[j, k, i] += put / mk
-        excess -= put
-        if not np.any(excess > 0):
+        total = excess + (h[j, k, i] - h_cap) * mk
+        full = total > 0
+        h[j, k, i] = np.where(full, h_cap, h_cap + total / mk)
+        excess = np.where(full, total, 0.0)
+        if k <= nz - n_heated and not np.any(excess > 0):
             break
     h[j, 0, i] += excess / m[j, 0, i]
     return opening

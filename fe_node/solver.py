@@ -33,7 +33,7 @@ from fe_node.operators import CsrOperator, TensorOperator
 from fe_node.powder import KW_DENSE, RHO_W, PowderBed
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
-from fe_node.source import surface_load
+from fe_node.source import depth_weights, surface_load
 from fe_node.window import ConsolidationLattice, ahead, conserve, element_map, kept, needs_move, transfer, window_axis
 
 DWELL_EXPLICIT_S = 2e-3
@@ -377,6 +377,7 @@ class ThermalModel:
     def _set_time_step(self) -> None:
         """Sub-steps and update factors from the current weights (stability limit, module docstring)."""
         self._m = np.reshape(self.operator.lumped_mass, self.grid.solver_shape)
+        self._depth_w = depth_weights(self.grid.zs, self.settings.penetration_depth_m)
         if self._work is None or self._work.phi.shape != self._m.shape:
             self._work = StepWork(self.law, self._m.shape)
         lam = self.operator.stability_eigenvalue()
@@ -499,12 +500,18 @@ class ThermalModel:
             q_plate = self._a_bottom * s.plate_h_w_m2k * (self.law.temperature(self._h[:, 0, :]) - s.t0_k)
             self._h[:, 0, :] -= q_plate * self._c_bottom
             self._lost += float(q_plate.sum()) * self._dt_sub
+        if len(self._depth_w) > 1 and load.shape != (1, 1):
+            below = load.T[:, None, :] * self._depth_w[None, :0:-1, None]     # nodes under the top, deepest first
+            n = len(self._depth_w) - 1
+            self._h[:, -1 - n:-1, :] += below * (self._dt_sub / self._m[:, -1 - n:-1, :])
+            load = load * self._depth_w[0]
+            self._absorbed += float(np.sum(below)) * self._dt_sub
         explicit_update(self._h, self.operator, self.law, self._c, load.T - q, self._c_top, self._liquid_factors,
                         self._work)
         self._absorbed += float(np.sum(load)) * self._dt_sub
         self._lost += float(q.sum()) * self._dt_sub
         if self._h_keyhole is not None:
-            self._keyhole = drill(self._h, self._m, self._h_keyhole)
+            self._keyhole = drill(self._h, self._m, self._h_keyhole, len(self._depth_w))
         if self.settings.evaporation:
             self._evaporate()
 
@@ -548,8 +555,10 @@ class ThermalModel:
         track, xy, d = self.plan.locate(self._s)
         t_top = self.law.temperature(h[:, -1, :]).T       # (nx, ny)
         geo = self.pool(s.material.t_liquidus, t_top)
-        gradient = trailing_edge(t_top, g.xs, g.ys, xy, d, s.material.t_liquidus,
-                                 reach_m=geo["length_m"] + 2 * s.h_fine_m, step_m=0.25 * s.h_fine_m) if geo["area_m2"] else 0.0
+        gradient = 0.0
+        if geo["area_m2"] > 0:
+            gradient = trailing_edge(t_top, g.xs, g.ys, xy, d, s.material.t_liquidus,
+                                     reach_m=geo["length_m"] + 2 * s.h_fine_m, step_m=0.25 * s.h_fine_m)
         rate = speed_m_s if gradient > 0 else 0.0
         ahead = xy + (speed_m_s * s.dt_s + s.beam_radius_m) * d
         stored = self._energy() - self._e0

@@ -11,11 +11,49 @@ product of 1-D integrals ``g_i = int N_i(x) exp(-(x - x_L)²/(2 s²)) dx``, eval
 closed form with erf (no quadrature error).  Motion during a time step is integrated by
 averaging over evenly spaced sub-positions along the path (spacing <= r_s / 20); the
 load is finally renormalised so that the deposited energy is exactly ``a P dt``.
+
+With a penetration depth ``c`` resolved by the mesh (``Settings.penetration_depth_m`` > 0) the
+depth factor ``exp(-3 z² / c²)`` of eq. 6 is kept: :func:`depth_weights` splits each column's
+load over the nodes below it in proportion to the integral of the factor over each node's share
+of the column (lumped), so the column still receives exactly its load.
 """
 from __future__ import annotations
 
 import numpy as np
 from scipy.special import erf
+
+DEPTH_TAIL = 1e-12
+"""Share of the depth factor's integral below which deeper nodes get no load."""
+
+
+def depth_weights(zs: np.ndarray, penetration_depth_m: float) -> np.ndarray:
+    """Share [-] of a column's laser load at each node from the top down (eq. 6's depth factor).
+
+    Node ``k`` from the top (depth ``d_k = zs[-1] - zs[-1 - k]``) takes the integral of
+    ``exp(-3 z² / c²)`` over its lumped share of the column, from the midpoint to the node above
+    to the midpoint to the node below, normalised: ``erf(sqrt(3) z / c)`` between those depths.
+
+    Parameters
+    ----------
+    zs : ndarray, shape (nz,)
+        Node heights [m], increasing; ``zs[-1]`` is the top surface.
+    penetration_depth_m : float
+        c [m]; 0 puts the whole load on the top node (the surface flux).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Weights of the top ``n`` nodes, summing to 1 (``n = 1`` for ``c = 0``).
+    """
+    if penetration_depth_m <= 0:
+        return np.ones(1)
+    depth = zs[-1] - zs[::-1]
+    bounds = np.concatenate([[0.0], 0.5 * (depth[1:] + depth[:-1]), [np.inf]])
+    cdf = erf(np.sqrt(3.0) * bounds / penetration_depth_m)
+    w = np.diff(cdf)
+    n = max(1, int(np.searchsorted(-(1.0 - cdf[1:]), -DEPTH_TAIL)) + 1)
+    w = w[:n]
+    return w / w.sum()
 
 
 def hat_gaussian_integrals(x: np.ndarray, centre: float, sigma: float) -> np.ndarray:

@@ -110,3 +110,57 @@ def test_presets():
     assert scenario("single-track", preset="physical", evaporation=False).settings.evaporation is False
     with pytest.raises(ValueError, match="preset must be one of"):
         scenario("single-track", preset="rough")
+
+
+def test_validate_names_each_failed_check(monkeypatch, capsys):
+    """``python -m fe_node validate`` exits 1 naming every figure outside its limit (0 when all hold)."""
+    import fe_node.validate as v
+    from fe_node.cli import main
+
+    good = {k: 0.5 * (lo + hi) for k, (lo, hi) in v.CHECKS.items()}
+    assert v.failures(good) == []
+    bad = dict(good, peak_temperature_k=4689.0, am_bench_width_error_pct=31.0)
+    assert [f.split(" =")[0] for f in v.failures(bad)] == ["peak_temperature_k", "am_bench_width_error_pct"]
+    for report, status in ((good, 0), (bad, 1)):
+        monkeypatch.setattr(v, "validate", lambda s, progress=False, r=report: dict(
+            r, passed=not v.failures(r), failed=v.failures(r)))
+        assert main(["validate", "--json"]) == status
+    err = capsys.readouterr().err
+    assert "FAILED: peak_temperature_k = 4689 outside [0, 3500]; am_bench_width_error_pct = 31" in err
+
+
+def test_run_and_validate_take_the_plant_table(tmp_path, capsys):
+    """``run --config`` applies ``[plant]`` (a bare plate here) and reports width and depth; a bad key is
+    one line naming it, exit 2."""
+    import json
+
+    from fe_node.cli import main
+
+    bare = tmp_path / "bare.toml"
+    bare.write_text('[plant]\npowder_layer_m = 0.0\nh_fine_m = 40e-6\ntrack_length_m = 1e-3\n')
+    assert main(["run", "--scenario", "single-track", "--power-w", "180", "--speed-mm-s", "800",
+                 "--config", str(bare), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["width_um"] > 50 and res["depth_um"] > 10
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text('[plant]\nabsorptivity = 2.0\n')
+    for command in ("run", "validate"):
+        assert main([command, "--config", str(wrong), "--json"]) == 2
+        assert "absorptivity must be in (0, 1]" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_validate_on_the_physical_preset_and_with_a_wrong_absorptivity(tmp_path):
+    """The whole check on the physical preset; with ``absorptivity = 0.2`` it names the AM-Bench checks."""
+    import json
+    import subprocess
+    import sys
+
+    low = tmp_path / "low.toml"
+    low.write_text('[plant]\npreset = "physical"\nabsorptivity = 0.2\n')
+    p = subprocess.run([sys.executable, "-m", "fe_node", "validate", "--config", str(low), "--json"],
+                       capture_output=True, text=True, timeout=3600)
+    assert p.returncode == 1, p.stderr[-2000:]
+    assert "am_bench_width_error_pct" in p.stderr
+    report = json.loads(p.stdout.strip().splitlines()[-1])
+    assert report["passed"] is False and report["am_bench_width_error_pct"] > 10
