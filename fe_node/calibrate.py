@@ -75,7 +75,8 @@ def calibrate(base: Settings, max_evaluations: int = 40, log=print) -> dict:
     fitted = {k: float(f"{v:.4g}") for k, v in zip(FIT_BOUNDS, best["x"])}
     rows = case_errors(replace(base, **fitted))
     errors = [r[e] for r in rows for e in ("width_error_pct", "depth_error_pct")]
-    return dict(source=SOURCE, command="python -m fe_node calibrate", fitted=fitted,
+    return dict(source=SOURCE, command="python -m fe_node calibrate", start=dict(zip(FIT_BOUNDS, x0.tolist())),
+                fitted=fitted,
                 fixed={k: getattr(base, k) for k in ("evaporation", "keyhole", "h_fine_m", "powder_absorptivity")},
                 evaluations=int(res.nfev), rms_error_pct=math.sqrt(float(np.mean(np.square(errors)))),
                 max_width_error_pct=max(abs(r["width_error_pct"]) for r in rows),
