@@ -55,8 +55,8 @@ class Observation:
     z_top_m : float
         Height of the current top surface above the plate's top [m].
     thermal_gradient_k_m : float
-        Temperature gradient G [K/m] at the pool's trailing edge on the scan line (top surface,
-        liquidus; :func:`trailing_edge`); 0 without a pool.
+        Temperature gradient G [K/m] across the mushy zone at the pool's trailing edge on the
+        scan line (top surface; :func:`trailing_edge`); 0 without a pool.
     solidification_rate_m_s : float
         Solidification rate R [m/s] there: the boundary's speed along its normal, the scan speed
         in the quasi-steady pool (the normal is the scan direction on the scan line).
@@ -227,13 +227,14 @@ def bilinear(field: np.ndarray, xs: np.ndarray, ys: np.ndarray, x: float, y: flo
 
 
 def trailing_edge(t_top: np.ndarray, xs: np.ndarray, ys: np.ndarray, position: np.ndarray, direction: np.ndarray,
-                  level: float, reach_m: float, step_m: float) -> float:
-    """Temperature gradient [K/m] at the pool's trailing edge on the scan line.
+                  t_liquidus: float, t_solidus: float, reach_m: float, step_m: float) -> float:
+    """Temperature gradient G [K/m] across the mushy zone at the pool's trailing edge on the scan line.
 
     Samples the bilinear top-surface field behind the laser, ``position - s * direction`` for
-    ``0 <= s <= reach_m`` every ``step_m``, finds the first point where it falls below ``level``
-    and returns ``-dT/ds`` there (one-sided difference over the crossing interval); 0 if the
-    surface under the laser is not above ``level`` or the edge is not reached.
+    ``0 <= s <= reach_m`` every ``step_m``, finds where it first falls below the liquidus and
+    below the solidus (linear between samples) and returns ``(T_liquidus - T_solidus) / (s_solidus -
+    s_liquidus)``: the mean gradient over the solidification range.  0 if the surface under the
+    laser is not liquid or the solidus is not reached within ``reach_m``.
 
     Parameters
     ----------
@@ -243,16 +244,25 @@ def trailing_edge(t_top: np.ndarray, xs: np.ndarray, ys: np.ndarray, position: n
         Node coordinates [m].
     position, direction : ndarray, shape (2,)
         Laser position [m] and scan direction (unit vector).
-    level : float
-        Isotherm [K] (the liquidus).
+    t_liquidus, t_solidus : float
+        [K].
     reach_m, step_m : float
         Length of the sampled line and its spacing [m].
     """
     s = np.arange(0.0, reach_m + 0.5 * step_m, step_m)
     px, py = position[0] - s * direction[0], position[1] - s * direction[1]
     t = np.einsum("pi,ij,pj->p", interp_matrix(xs, px), t_top, interp_matrix(ys, py))
-    below = np.nonzero(t <= level)[0]
-    if t[0] <= level or not len(below):
+    if t[0] <= t_liquidus:
         return 0.0
-    k = below[0]
-    return float((t[k - 1] - t[k]) / step_m)
+
+    def crossing(level):
+        below = np.nonzero(t <= level)[0]
+        if not len(below):
+            return None
+        k = below[0]
+        return s[k - 1] + (t[k - 1] - level) / (t[k - 1] - t[k]) * step_m
+
+    s_liq, s_sol = crossing(t_liquidus), crossing(t_solidus)
+    if s_liq is None or s_sol is None or not s_sol > s_liq:
+        return 0.0
+    return float((t_liquidus - t_solidus) / (s_sol - s_liq))

@@ -557,8 +557,8 @@ class ThermalModel:
         geo = self.pool(s.material.t_liquidus, t_top)
         gradient = 0.0
         if geo["area_m2"] > 0:
-            gradient = trailing_edge(t_top, g.xs, g.ys, xy, d, s.material.t_liquidus,
-                                     reach_m=geo["length_m"] + 2 * s.h_fine_m, step_m=0.25 * s.h_fine_m)
+            gradient = trailing_edge(t_top, g.xs, g.ys, xy, d, s.material.t_liquidus, s.material.t_solidus,
+                                     reach_m=2 * geo["length_m"] + 4 * s.h_fine_m, step_m=0.25 * s.h_fine_m)
         rate = speed_m_s if gradient > 0 else 0.0
         ahead = xy + (speed_m_s * s.dt_s + s.beam_radius_m) * d
         stored = self._energy() - self._e0

@@ -83,14 +83,15 @@ def test_consolidation_to_dense_metal_in_mass_coordinates():
 def test_thermal_history_outputs(keyhole_run):
     _, obs = keyhole_run
     o = obs[-1]
-    assert 1e5 < o.thermal_gradient_k_m < 1e8
+    assert 1e5 < o.thermal_gradient_k_m < 1e8          # LPBF: 1e6-1e7 K/m
     assert o.solidification_rate_m_s == pytest.approx(0.8)
     assert o.cooling_rate_k_s == pytest.approx(o.thermal_gradient_k_m * 0.8)
-    # the edge of a linear field along the scan line: its slope
+    # the mushy zone of a linear field along the scan line: its slope
     xs, ys = np.linspace(-1e-3, 1e-3, 41), np.linspace(-0.2e-3, 0.2e-3, 9)
-    t = 2000.0 + 1e6 * xs[:, None] + 0 * ys[None, :]        # 1e6 K/m, liquidus 1623 K at x = -0.377 mm
-    g = trailing_edge(t, xs, ys, np.array([0.0, 0.0]), np.array([1.0, 0.0]), 1623.0, 0.6e-3, 5e-6)
+    t = 2000.0 + 1e6 * xs[:, None] + 0 * ys[None, :]        # 1e6 K/m: liquidus at x = -0.377 mm
+    g = trailing_edge(t, xs, ys, np.array([0.0, 0.0]), np.array([1.0, 0.0]), 1623.0, 1563.0, 0.6e-3, 5e-6)
     assert g == pytest.approx(1e6, rel=1e-9)
+    assert trailing_edge(t, xs, ys, np.array([0.0, 0.0]), np.array([1.0, 0.0]), 1623.0, 1563.0, 0.4e-3, 5e-6) == 0
 
 
 def test_am_bench_beams_and_cases():
