@@ -27,7 +27,7 @@ from fe_node.image import temperature_image
 from fe_node.observe import Observation
 from fe_node.scenarios import NAMES, PART_NAMES, Scenario
 from fe_node.scenarios import scenario as build_scenario
-from fe_node.scene import laser_pose, scene_update
+from fe_node.scene import fitted_scene, laser_pose
 from fe_node.solver import ThermalModel
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
 from messages.bus import Inbox, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
@@ -158,7 +158,7 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
     images = bus.publisher(PLANT_TEMPERATURE, express=False)
     lasers = bus.publisher(PLANT_LASER)
     scenes = bus.publisher(PLANT_SCENE, express=False)
-    scene_layer = None
+    scene_layer, scene_notes = None, set()
     waiter = None if settings.open_loop else CommandWaiter(bus.inbox(LASER_COMMAND), policy)
     gone = threading.Event() if waiter is None else bus.watch_presence(settings.controller)
     total = n_steps(scenario) if settings.max_steps is None else min(n_steps(scenario), settings.max_steps)
@@ -174,7 +174,12 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
         states.put(state_message(bus.run_id, obs))
         lasers.put(laser_pose(obs))
         if obs.layer != scene_layer:
-            scenes.put(scene_update(model.plan, obs, scenario.part_stl))
+            scene, notes = fitted_scene(model.plan, obs, scenario.part_stl)
+            for note in notes:
+                if note not in scene_notes:  # (a decimated part: once, not at every layer)
+                    bus.log(LogLevel.WARNING, note, time_s=obs.time_s)
+            scene_notes.update(notes)
+            scenes.put(scene)
             scene_layer = obs.layer
         if obs.step % settings.image_every == 0:
             image, _ = model.temperature_image()

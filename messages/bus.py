@@ -348,8 +348,9 @@ class TopicPublisher:
         self._publisher = publisher
 
     def put(self, msg: Any) -> float:
-        """Encode (validating) and publish ``msg``; raises :class:`MessageError` if invalid, or
-        larger than the session's transport carries (:data:`LOW_LATENCY_MAX_BYTES`).
+        """Encode (validating) and publish ``msg``; raises :class:`MessageError` if invalid, larger
+        than its topic's limit (``Topic.max_bytes``: every receiver would drop it), or larger than
+        the session's transport carries (:data:`LOW_LATENCY_MAX_BYTES`).
 
         Returns the monotonic time [s] at which the encoded message was handed to zenoh (a
         free-running plant times its round trips from there, as a bare ping-pong does).
@@ -357,6 +358,9 @@ class TopicPublisher:
         if not isinstance(msg, self.topic.type):
             raise MessageError(f"{self.topic.channel} carries {self.topic.type.__name__}, not {type(msg).__name__}")
         payload = encode(msg)
+        if len(payload) > self.topic.max_bytes:
+            raise MessageError(f"{self.topic.channel}: a {len(payload)}-byte message exceeds the topic's "
+                               f"{self.topic.max_bytes}-byte limit (every receiver would drop it); not published")
         if len(payload) > self._bus.max_payload_bytes:
             raise MessageError(f"{self.topic.channel}: a {len(payload)}-byte message exceeds the "
                                f"{self._bus.max_payload_bytes}-byte limit of zenoh's low-latency transport")

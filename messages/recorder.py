@@ -9,9 +9,10 @@ versions; each node's resolved configuration (from its ``start`` event) is attac
 ``config/<node>.json``; metadata ``meltloop.counts`` holds recorded, published, missing, extra
 and dropped counts at the end.
 
-What is recorded (:class:`Intake`): schema-valid messages of this run only; a state or command
-whose step is not newer than the last recorded one of its topic, or more than
-:data:`MAX_STEPS_AHEAD` ahead of it, is dropped and counted. An ``end`` event counts only for a
+What is recorded (:class:`Intake`): schema-valid messages of this run only, taken from a bounded
+queue with a log rate per node (:class:`Arrivals`; what they drop is counted, ``queue_full``
+and ``log_rate``); a state or command whose step is not newer than the last recorded one of its
+topic, or more than :data:`MAX_STEPS_AHEAD` ahead of it, is dropped and counted. An ``end`` event counts only for a
 node that sent a ``start`` and whose liveliness token disappears within the drain time of it
 (:class:`RunTracker`); a second ``end`` of a node is dropped. At the end, published and
 recorded counts are reconciled both ways, per publisher (:func:`reconcile`): a node answers for
@@ -44,6 +45,7 @@ import json
 import os
 import queue
 import sys
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -88,6 +90,15 @@ BATCH_S = 0.002
 wakes a few hundred times a second, not once per message (a 2 kHz loop sends ~5 000 a second)."""
 MAX_WATCHES = 64
 WARNINGS_LOGGED = 20
+MAX_QUEUED_BYTES = 256 * 1024 * 1024
+"""Largest backlog [bytes] between zenoh's callback and the recorder's loop, each message counted
+with :data:`QUEUED_OVERHEAD_BYTES` more; a message arriving beyond it is dropped and counted
+(``queue_full``)."""
+QUEUED_OVERHEAD_BYTES = 256
+LOG_RATE_PER_S = 200.0
+LOG_BURST = 1000
+"""Log lines of one node the recorder takes per second on average, and at once (a token bucket);
+more are dropped and counted (``log_rate``), so that one node's flood cannot crowd out the run."""
 
 
 def log_time_ns(msg: Any) -> int:
@@ -446,11 +457,16 @@ class Intake:
         self.warnings: list[str] = []
         self.last_time_s = 0.0
 
-    def _drop(self, reason: str, text: str) -> list[Accepted]:
-        self.dropped[reason] += 1
-        if sum(self.dropped.values()) <= WARNINGS_LOGGED:
+    def _drop(self, reason: str, text: str, n: int = 1) -> list[Accepted]:
+        if sum(self.dropped.values()) < WARNINGS_LOGGED:
             self.warnings.append(f"dropped ({reason}): {text}")
+        self.dropped[reason] += n
         return []
+
+    def dropped_on_arrival(self, dropped: Counter[tuple[str, str]]) -> None:
+        """Count what :class:`Arrivals` dropped before it reached :meth:`receive`: (reason, node) -> n."""
+        for (reason, node), n in sorted(dropped.items()):
+            self._drop(reason, f"{n} message(s)" + (f" of node {node!r}" if node else ""), n)
 
     def _accept(self, item: Accepted) -> list[Accepted]:
         node = message_node(item.msg)
@@ -550,17 +566,79 @@ class _Presence:
                 self._tracker.gone(node, now_s)
 
 
-def arrived(inbox: queue.SimpleQueue, timeout_s: float) -> list:
-    """Everything in ``inbox``, in order, after waiting up to ``timeout_s`` [s] for the first item."""
-    try:
-        items = [inbox.get(timeout=timeout_s)]
-    except queue.Empty:
-        return []
-    while True:
+class Arrivals:
+    """What zenoh's callback hands the recorder's loop: bounded, with a log rate per node.
+
+    :meth:`put` (the callback; it only enqueues) drops a log line of a node over its
+    :data:`LOG_RATE_PER_S` / :data:`LOG_BURST` token bucket (``log_rate``; nodes beyond the
+    :data:`MAX_WATCHES` th share one bucket) and any message that would take the backlog over
+    ``max_bytes`` (``queue_full``), counting each; :meth:`take` returns everything queued, in
+    order; :meth:`take_dropped` the drop counts since its last call, by (reason, node).
+
+    Parameters
+    ----------
+    run_id : str
+        The run (whose log keys are rate-limited).
+    max_bytes : int
+        Largest backlog [bytes], :data:`MAX_QUEUED_BYTES` by default.
+    clock : callable
+        Monotonic time [s] of the log rate.
+    """
+
+    def __init__(self, run_id: str, max_bytes: int = MAX_QUEUED_BYTES,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.max_bytes = max_bytes
+        self._clock = clock
+        self._items: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self._log_keys = f"{run_prefix(run_id)[:-2]}{LOG.suffix}/"
+        self._buckets: dict[str, tuple[float, float]] = {}
+        self._dropped: Counter[tuple[str, str]] = Counter()
+
+    def _log_allowed(self, node: str, now_s: float) -> bool:
+        if node not in self._buckets and len(self._buckets) >= MAX_WATCHES:
+            node = "*"
+        tokens, then = self._buckets.get(node, (float(LOG_BURST), now_s))
+        tokens = min(float(LOG_BURST), tokens + (now_s - then) * LOG_RATE_PER_S)
+        self._buckets[node] = (tokens - 1.0, now_s) if tokens >= 1.0 else (tokens, now_s)
+        return tokens >= 1.0
+
+    def put(self, key: str, payload: bytes, received_ns: int) -> None:
+        """Queue one sample (zenoh's callback), unless a bound drops it."""
+        size = len(payload) + QUEUED_OVERHEAD_BYTES
+        with self._lock:
+            if key.startswith(self._log_keys):
+                node = key[len(self._log_keys):]
+                if not self._log_allowed(node, self._clock()):
+                    self._dropped[("log_rate", node if node in self._buckets else "*")] += 1
+                    return
+            if self._bytes + size > self.max_bytes:
+                self._dropped[("queue_full", "")] += 1
+                return
+            self._bytes += size
+            self._items.put((key, payload, received_ns))
+
+    def take(self, timeout_s: float) -> list[tuple[str, bytes, int]]:
+        """Everything queued, in order, after waiting up to ``timeout_s`` [s] for the first item."""
         try:
-            items.append(inbox.get_nowait())
+            items = [self._items.get(timeout=timeout_s)]
         except queue.Empty:
-            return items
+            return []
+        while True:
+            try:
+                items.append(self._items.get_nowait())
+            except queue.Empty:
+                break
+        with self._lock:
+            self._bytes -= sum(len(payload) + QUEUED_OVERHEAD_BYTES for _, payload, _ in items)
+        return items
+
+    def take_dropped(self) -> Counter[tuple[str, str]]:
+        """Drops since the last call, by (reason, node; empty for ``queue_full``)."""
+        with self._lock:
+            dropped, self._dropped = self._dropped, Counter()
+        return dropped
 
 
 def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTracker, drain_s: float,
@@ -571,22 +649,24 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
     recorder waits up to ``drain_s`` more for messages still missing and for the end of any
     other node that started.
 
-    zenoh's callback only enqueues; the loop takes all that has arrived at each wake-up
-    (:func:`arrived`) and, after writing it, waits :data:`BATCH_S` before it looks again.
+    zenoh's callback only enqueues (:class:`Arrivals`: bounded, a log rate per node); the loop
+    takes all that has arrived at each wake-up and, after writing it, waits :data:`BATCH_S`
+    before it looks again.
 
     ``bus`` needs ``run_id``, ``subscribe_raw``, ``watch_presence`` and ``ready`` only (a fake in
     the in-process tests).
     """
-    inbox: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
+    inbox = Arrivals(bus.run_id)
     bus.subscribe_raw(run_prefix(bus.run_id),
-                      lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes(), time.time_ns())))
+                      lambda s: inbox.put(str(s.key_expr), s.payload.to_bytes(), time.time_ns()))
     intake = Intake(bus.run_id, tracker)
     presence = _Presence(bus, tracker)
     bus.ready(config=config)
     end_since: float | None = None
     try:
         while not stop.is_set():
-            accepted = [item for sample in arrived(inbox, POLL_S) for item in intake.receive(*sample)]
+            accepted = [item for sample in inbox.take(POLL_S) for item in intake.receive(*sample)]
+            intake.dropped_on_arrival(inbox.take_dropped())
             presence.update(time.time())
             for item in accepted + intake.poll(time.time()):
                 recorder.write(item.topic, item.payload, item.msg, item.received_ns)
@@ -604,6 +684,7 @@ def record(recorder: McapRecorder, bus: NodeBus, stop: StopFlag, tracker: RunTra
             missing, _ = reconcile(tracker.published(), intake.from_nodes, lambda _key: False)
             if not (missing or tracker.not_ended()) or time.monotonic() - end_since > drain_s:
                 break
+        intake.dropped_on_arrival(inbox.take_dropped())
         counts, problem = intake.summary(stop.signal_name if stop.is_set() else None)
         if problem:
             recorder.log(LogLevel.ERROR, problem, intake.last_time_s)

@@ -111,20 +111,19 @@ def test_ready_waits_for_required_nodes_and_reports_a_missing_one(hub, run_id):
 
 
 def test_recorder_takes_everything_arrived_in_order_per_wake_up():
-    """The recorder's loop writes in batches (``messages.recorder.arrived``): all that is queued, in
+    """The recorder's loop writes in batches (``messages.recorder.Arrivals``): all that is queued, in
     order, after waiting for the first item; nothing when nothing comes within the timeout."""
-    import queue
     import threading
     import time
 
-    from messages.recorder import arrived
+    from messages.recorder import Arrivals
 
-    box: queue.SimpleQueue = queue.SimpleQueue()
-    assert arrived(box, 0.01) == []
+    box = Arrivals("run1")
+    assert box.take(0.01) == []
     for k in range(1000):
-        box.put(("key", bytes([k % 256]), k))
-    assert [item[2] for item in arrived(box, 0.01)] == list(range(1000))
-    assert box.empty()
-    threading.Timer(0.05, lambda: box.put(("late", b"", 0))).start()
+        box.put("key", bytes([k % 256]), k)
+    assert [item[2] for item in box.take(0.01)] == list(range(1000))
+    assert box.take(0.0) == []
+    threading.Timer(0.05, lambda: box.put("late", b"", 0)).start()
     started = time.monotonic()
-    assert arrived(box, 5.0) == [("late", b"", 0)] and time.monotonic() - started < 4.0
+    assert box.take(5.0) == [("late", b"", 0)] and time.monotonic() - started < 4.0
