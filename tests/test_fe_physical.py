@@ -165,3 +165,20 @@ def test_validate_on_the_physical_preset_and_with_a_wrong_absorptivity(tmp_path)
     assert "am_bench_width_error_pct" in p.stderr
     report = json.loads(p.stdout.strip().splitlines()[-1])
     assert report["passed"] is False and report["am_bench_width_error_pct"] > 10
+
+
+def test_the_shipped_calibration_record_is_what_the_plant_computes():
+    """The record's residuals are reproduced by the plant as it is (one case, the shortest): a change
+    of the physics that moves the calibrated pools makes the record stale, and this fails until
+    ``python -m fe_node calibrate`` is run again."""
+    import json
+
+    from fe_node.calibrate import CALIBRATION_PATH, case_errors
+
+    record = json.loads(CALIBRATION_PATH.read_text())
+    case = next(c for c in CASES if c.name == "AMMT-C")
+    row = next(r for r in record["cases"] if r["case"] == "AMMT-C")
+    settings = scenario("single-track", preset="physical").settings
+    got = case_errors(settings, (case,))[0]
+    assert got["width_um"] == pytest.approx(row["width_um"], rel=1e-6)
+    assert got["depth_um"] == pytest.approx(row["depth_um"], rel=1e-6)
