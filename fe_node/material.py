@@ -156,6 +156,9 @@ class Constitutive:
         """Largest k/(rho cp) [m²/s] of the table (explicit stability)."""
         self.liquid_heat_capacity = m.rho * cpl
         """rho cp above the liquidus [J/(m³ K)]; ``H`` is linear in ``T`` there."""
+        self.mushy_floor = float(np.interp(m.t_solidus, t, h)) - 2.0 / self._inv_dh
+        """Enthalpy [J/m³] at and below which :meth:`mushy_integral` is 0: two table intervals
+        below the solidus (the table's ``T`` is monotone and exact at its nodes)."""
 
     def workspace(self, shape) -> tuple[np.ndarray, np.ndarray]:
         """Scratch arrays ``(float, intp)`` of ``shape`` for :meth:`kirchhoff` on a hot path."""

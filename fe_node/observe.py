@@ -93,14 +93,19 @@ class Observation:
     cooling_rate_k_s: float = 0.0
 
 
-def interp_matrix(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Dense linear-interpolation matrix, shape (len(points), len(nodes)).
+def interp_weights(nodes: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Interval ``i`` and weight ``w`` of each point: its value is ``(1 - w) f[i] + w f[i + 1]``.
 
     Points outside ``[nodes[0], nodes[-1]]`` are clamped to the end values.
     """
     points = np.clip(points, nodes[0], nodes[-1])
     i = np.clip(np.searchsorted(nodes, points, side="right") - 1, 0, len(nodes) - 2)
-    w = (points - nodes[i]) / (nodes[i + 1] - nodes[i])
+    return i, (points - nodes[i]) / (nodes[i + 1] - nodes[i])
+
+
+def interp_matrix(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Dense linear-interpolation matrix, shape (len(points), len(nodes)) (:func:`interp_weights`)."""
+    i, w = interp_weights(nodes, points)
     out = np.zeros((len(points), len(nodes)))
     r = np.arange(len(points))
     out[r, i] = 1 - w
@@ -226,6 +231,13 @@ def bilinear(field: np.ndarray, xs: np.ndarray, ys: np.ndarray, x: float, y: flo
     return float(wx @ field @ wy)
 
 
+def bilinear_at(field: np.ndarray, xs: np.ndarray, ys: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    """Bilinear interpolant of nodal ``field`` (nx, ny) at points ``(px, py)`` [m] (clamped to the grid)."""
+    (i, wx), (j, wy) = interp_weights(xs, px), interp_weights(ys, py)
+    return ((1 - wx) * ((1 - wy) * field[i, j] + wy * field[i, j + 1])
+            + wx * ((1 - wy) * field[i + 1, j] + wy * field[i + 1, j + 1]))
+
+
 def trailing_edge(t_top: np.ndarray, xs: np.ndarray, ys: np.ndarray, position: np.ndarray, direction: np.ndarray,
                   t_liquidus: float, t_solidus: float, reach_m: float, step_m: float) -> float:
     """Temperature gradient G [K/m] across the mushy zone at the pool's trailing edge on the scan line.
@@ -251,7 +263,7 @@ def trailing_edge(t_top: np.ndarray, xs: np.ndarray, ys: np.ndarray, position: n
     """
     s = np.arange(0.0, reach_m + 0.5 * step_m, step_m)
     px, py = position[0] - s * direction[0], position[1] - s * direction[1]
-    t = np.einsum("pi,ij,pj->p", interp_matrix(xs, px), t_top, interp_matrix(ys, py))
+    t = bilinear_at(t_top, xs, ys, px, py)
     if t[0] <= t_liquidus:
         return 0.0
 

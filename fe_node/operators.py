@@ -128,6 +128,13 @@ class CsrOperator:
         """``K_z u`` with the shape of ``u`` (needs ``vertical=True``)."""
         return (self.matrix_z @ np.ravel(u)).reshape(np.shape(u))
 
+    def add_vertical(self, u_box: np.ndarray, box: tuple[slice, slice, slice], out: np.ndarray) -> None:
+        """``out += K_z u`` for ``u`` zero outside the node box ``box`` (slices of the solver's
+        ``(ny, nz, nx)`` arrays; this operator's ``order`` must be that order), ``u_box`` its values there."""
+        u = np.zeros(out.shape)
+        u[box] = u_box
+        out += self.vertical(u)
+
     def reweight(self, elements, kw, rho_w) -> None:
         """Set the weights of ``elements`` (flat indices) to ``kw``, ``rho_w`` [-]; updates K_w and m."""
         el = np.asarray(elements, dtype=np.intp).ravel()
@@ -174,8 +181,89 @@ def box_stiffness(hx, hy, hz, vertical_only: bool = False) -> np.ndarray:
     return z if vertical_only else kron3(m1(hy), m1(hz), k1(hx)) + kron3(k1(hy), m1(hz), m1(hx)) + z
 
 
+class _Correction:
+    """``sum_e dk_e K_e`` (and ``K_z``) over some elements, as CSR matrices on only the nodes
+    those elements touch: a product costs the correction's size, not the grid's.
+
+    Parameters
+    ----------
+    shape : (int, int, int)
+        Node shape ``(ny, nz, nx)`` of the grid.
+    vertical : bool
+        Also hold the ``K_z`` correction.
+    """
+
+    def __init__(self, shape: tuple[int, int, int], vertical: bool):
+        self.shape = shape
+        self.nodes = np.empty(0, dtype=np.intp)
+        """Sorted flat indices of the nodes the corrected elements touch."""
+        self.k = sp.csr_matrix((0, 0))
+        self.kz = sp.csr_matrix((0, 0)) if vertical else None
+        self.n_elements = 0
+        """Element matrices added so far (an element added twice counts twice)."""
+        self._jki = np.unravel_index(self.nodes, shape)
+
+    def add(self, corners: np.ndarray, ke: np.ndarray, kze: np.ndarray | None) -> None:
+        """Add element matrices ``ke`` (and ``kze``), shape (n, 8, 8), on nodes ``corners`` (n, 8)."""
+        nodes = np.union1d(self.nodes, corners.ravel())
+        remap, local, n = np.searchsorted(nodes, self.nodes), np.searchsorted(nodes, corners), len(nodes)
+        rows, cols = np.repeat(local, 8, axis=1).ravel(), np.tile(local, (1, 8)).ravel()
+        self.k = _renumber(self.k, remap, n) + sp.csr_matrix((ke.ravel(), (rows, cols)), shape=(n, n))
+        if self.kz is not None:
+            self.kz = _renumber(self.kz, remap, n) + sp.csr_matrix((kze.ravel(), (rows, cols)), shape=(n, n))
+        self.nodes, self._jki = nodes, np.unravel_index(nodes, self.shape)
+        self.n_elements += len(corners)
+
+    def apply(self, u: np.ndarray, out: np.ndarray) -> None:
+        """``out += K u`` (flat arrays of the grid's size)."""
+        if len(self.nodes):
+            out[self.nodes] += self.k @ u[self.nodes]
+
+    def apply_vertical(self, u_box: np.ndarray, box: tuple[slice, slice, slice], out: np.ndarray) -> None:
+        """``out += K_z u`` (``out`` flat) for ``u`` zero outside the node box ``box``, ``u_box`` its values there."""
+        j, k, i = self._jki
+        (sj, sk, si) = box
+        sel = np.flatnonzero((j >= sj.start) & (j < sj.stop) & (k >= sk.start) & (k < sk.stop)
+                             & (i >= si.start) & (i < si.stop))
+        if len(sel):       # K_z is symmetric: its columns ``sel`` are its rows ``sel`` transposed
+            out[self.nodes] += self.kz[sel].T @ u_box[j[sel] - sj.start, k[sel] - sk.start, i[sel] - si.start]
+
+    def matrix(self, n_nodes: int) -> sp.csr_matrix:
+        """``K`` on all ``n_nodes`` nodes."""
+        coo = self.k.tocoo()
+        return sp.csr_matrix((coo.data, (self.nodes[coo.row], self.nodes[coo.col])), shape=(n_nodes, n_nodes))
+
+
+def _renumber(m: sp.csr_matrix, remap: np.ndarray, n: int) -> sp.csr_matrix:
+    """``m`` (k, k) as rows and columns ``remap`` (increasing) of an (n, n) CSR matrix."""
+    counts = np.zeros(n, dtype=np.intp)
+    counts[remap] = np.diff(m.indptr)
+    return sp.csr_matrix((m.data, remap[m.indices], np.concatenate([[0], np.cumsum(counts)])), shape=(n, n))
+
+
+def _assemble_yz(hy: np.ndarray, hz: np.ndarray, w: np.ndarray, y: str, z: str) -> sp.csr_matrix:
+    """Sum over the (y, z) elements of ``w[j, k] Y_j (x) Z_k`` [m or 1/m], ``Y, Z`` the 1-D element
+    stiffness (``"k"``) or consistent mass (``"m"``) of edges ``hy``, ``hz``; node ``j nz + k``."""
+    def element(h, which):
+        if which == "k":
+            return np.array([[1.0, -1.0], [-1.0, 1.0]])[None] / h[:, None, None]
+        return np.array([[2.0, 1.0], [1.0, 2.0]])[None] * (h / 6.0)[:, None, None]
+
+    ny, nz = len(hy) + 1, len(hz) + 1
+    local = np.einsum("jab,kcd,jk->jkacbd", element(hy, y), element(hz, z), w).reshape(-1, 4, 4)
+    j, k = np.meshgrid(np.arange(ny - 1), np.arange(nz - 1), indexing="ij")
+    c = ((j.ravel()[:, None] + np.array([0, 0, 1, 1])) * nz + k.ravel()[:, None] + np.array([0, 1, 0, 1]))
+    rows, cols = np.repeat(c, 4, axis=1).ravel(), np.tile(c, (1, 4)).ravel()
+    return sp.csr_matrix((local.ravel(), (rows, cols)), shape=(ny * nz, ny * nz))
+
+
 class TensorOperator:
     """Weighted stiffness and lumped mass of a graded box grid through its tensor structure.
+
+    The Kronecker factors hold weights constant along x in each (y, z) row of elements (the
+    row's median: the tracks run along x); the elements that differ from their row's weight are
+    a sparse correction (:class:`_Correction`).  When re-weighting has grown the correction
+    beyond twice its size at the last factoring plus one row, the factors are rebuilt.
 
     Parameters
     ----------
@@ -183,7 +271,7 @@ class TensorOperator:
     kw, rho_w : array_like, shape (n_elements,), optional
         Per-element weights [-] in element order ``(ny - 1, nz - 1, nx - 1)`` (default 1).
     vertical : bool
-        Also provide ``K_z`` (``conduction_z``) for :meth:`vertical`.
+        Also provide ``K_z`` (``conduction_z``) for :meth:`vertical` and :meth:`add_vertical`.
 
     Attributes
     ----------
@@ -203,29 +291,34 @@ class TensorOperator:
         self._h = [np.diff(a) for a in (grid.ys, grid.zs, grid.xs)]
         hmin = np.minimum(np.minimum.outer(self._h[0], self._h[1])[:, :, None], self._h[2][None, None, :])
         self._lam_e = 4.0 / hmin**2
+        self._ratio = self.kw / self.rho_w * self._lam_e
         self._scratch = None
-        self._layered(self.kw[0, :, 0], self.rho_w[0, :, 0])
-
-    def _layered(self, kz, rz) -> None:
-        """Kronecker factors for layer weights ``kz``, ``rz`` (nz - 1,) and the correction of the rest."""
-        kx, mx = fe1d(self.grid.xs)
-        ky, my = fe1d(self.grid.ys)
-        kz_w, mz_w = fe1d(self.grid.zs, kz)
-        a = sp.kron(my, mz_w)
-        b = sp.kron(ky, mz_w) + sp.kron(my, kz_w)
-        self._ab = sp.vstack([a, b]).tocsr()
-        self._cz = sp.kron(my, kz_w).tocsr() if self._vertical else None
-        self._p = a.shape[0]
+        kx, mx = fe1d(grid.xs)
         self._kd, self._ko = kx.diagonal(), kx.diagonal(1)
         self._md, self._mo = mx.diagonal(), mx.diagonal(1)
+        rz = self.rho_w[0, :, 0]
         sx, sy, sz = (np.asarray(fe1d(c, w)[1].sum(axis=1)).ravel()
-                      for c, w in ((self.grid.xs, None), (self.grid.ys, None), (self.grid.zs, rz)))
+                      for c, w in ((grid.xs, None), (grid.ys, None), (grid.zs, rz)))
         self.lumped_mass = sy[:, None, None] * sz[None, :, None] * sx[None, None, :]
-        dk = self.kw - kz[None, :, None]
-        dr = self.rho_w - rz[None, :, None]
-        self._corr = self._corr_z = None
-        self._add(np.flatnonzero(dk), dk.ravel()[np.flatnonzero(dk)], np.flatnonzero(dr),
-                  dr.ravel()[np.flatnonzero(dr)])
+        dr = (self.rho_w - rz[None, :, None]).ravel()
+        self._add_mass(np.flatnonzero(dr), dr[np.flatnonzero(dr)])
+        self._factor()
+
+    def _factor(self) -> None:
+        """Kronecker factors for the row medians of ``kw`` and the correction of the other elements."""
+        mid = self.elem_shape[2] // 2
+        w = np.partition(self.kw, mid, axis=2)[:, :, mid]
+        hy, hz = self._h[0], self._h[1]
+        a = _assemble_yz(hy, hz, w, "m", "m")
+        cz = _assemble_yz(hy, hz, w, "m", "k")
+        self._ab = sp.vstack([a, _assemble_yz(hy, hz, w, "k", "m") + cz]).tocsr()
+        self._cz = cz if self._vertical else None
+        self._p = a.shape[0]
+        self._corr = _Correction(self.shape, self._vertical)
+        dk = (self.kw - w[:, :, None]).ravel()
+        el = np.flatnonzero(dk)
+        self._add_stiffness(el, dk[el])
+        self._n_factored = self._corr.n_elements
 
     def _corners(self, el: np.ndarray) -> np.ndarray:
         """Flat node indices of the 8 corners of elements ``el``, shape (n, 8), local order of :func:`box_stiffness`."""
@@ -233,23 +326,20 @@ class TensorOperator:
         b = np.array([(by, bz, bx) for by in (0, 1) for bz in (0, 1) for bx in (0, 1)])
         return np.ravel_multi_index((j[:, None] + b[:, 0], k[:, None] + b[:, 1], i[:, None] + b[:, 2]), self.shape)
 
-    def _add(self, el_k, dk, el_r, dr) -> None:
-        """Add ``dk_e K_e`` to the correction and ``dr_e V_e / 8`` to the corners' masses."""
-        if len(el_k):
-            j, k, i = np.unravel_index(el_k, self.elem_shape)
-            ke = box_stiffness(self._h[2][i], self._h[0][j], self._h[1][k]) * dk[:, None, None]
-            c = self._corners(el_k)
-            rows, cols, n = np.repeat(c, 8, axis=1).ravel(), np.tile(c, (1, 8)).ravel(), self.n_nodes
-            delta = sp.csr_matrix((ke.ravel(), (rows, cols)), shape=(n, n))
-            self._corr = delta if self._corr is None else self._corr + delta
-            if self._vertical:
-                kz = box_stiffness(self._h[2][i], self._h[0][j], self._h[1][k], vertical_only=True)
-                delta = sp.csr_matrix(((kz * dk[:, None, None]).ravel(), (rows, cols)), shape=(n, n))
-                self._corr_z = delta if self._corr_z is None else self._corr_z + delta
-        if len(el_r):
-            j, k, i = np.unravel_index(el_r, self.elem_shape)
+    def _add_stiffness(self, el: np.ndarray, dk: np.ndarray) -> None:
+        """Add ``dk_e K_e`` (and ``dk_e K_z,e``) of elements ``el`` to the correction."""
+        if len(el):
+            j, k, i = np.unravel_index(el, self.elem_shape)
+            h = (self._h[2][i], self._h[0][j], self._h[1][k])
+            kze = box_stiffness(*h, vertical_only=True) * dk[:, None, None] if self._vertical else None
+            self._corr.add(self._corners(el), box_stiffness(*h) * dk[:, None, None], kze)
+
+    def _add_mass(self, el: np.ndarray, dr: np.ndarray) -> None:
+        """Add ``dr_e V_e / 8`` to the masses of the corners of elements ``el``."""
+        if len(el):
+            j, k, i = np.unravel_index(el, self.elem_shape)
             v8 = self._h[0][j] * self._h[1][k] * self._h[2][i] / 8.0 * dr
-            np.add.at(self.lumped_mass.reshape(-1), self._corners(el_r).ravel(), np.repeat(v8, 8))
+            np.add.at(self.lumped_mass.reshape(-1), self._corners(el).ravel(), np.repeat(v8, 8))
 
     def __call__(self, u: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Return ``K_w u`` with the shape of ``u`` (solver order, flat or (ny, nz, nx)).
@@ -271,8 +361,7 @@ class TensorOperator:
         dn = np.multiply(v[:, 1:], self._ko, out=e1)      # contributions to row i
         dn += np.multiply(w[:, 1:], self._mo, out=e2)
         res[:, :-1] += dn
-        if self._corr is not None:
-            res.reshape(-1)[:] += self._corr @ np.ravel(u)
+        self._corr.apply(np.ravel(u), res.reshape(-1))
         return res.reshape(np.shape(u)) if out is None else out
 
     def vertical(self, u: np.ndarray) -> np.ndarray:
@@ -281,9 +370,26 @@ class TensorOperator:
         out = v * self._md
         out[:, 1:] += v[:, :-1] * self._mo
         out[:, :-1] += v[:, 1:] * self._mo
-        if self._corr_z is not None:
-            out.reshape(-1)[:] += self._corr_z @ np.ravel(u)
+        self._corr.apply_vertical(np.reshape(u, self.shape), tuple(slice(0, n) for n in self.shape),
+                                  out.reshape(-1))
         return out.reshape(np.shape(u))
+
+    def add_vertical(self, u_box: np.ndarray, box: tuple[slice, slice, slice], out: np.ndarray) -> None:
+        """``out += K_z u`` for ``u`` zero outside the node box ``box`` (slices along y, z, x with
+        explicit bounds), ``u_box`` its values there; only ``box`` and its neighbours are touched."""
+        nz = self.shape[1]
+        sj, sk, si = box
+        jo, ko, io = (slice(max(s.start - 1, 0), min(s.stop + 1, n)) for s, n in zip(box, self.shape))
+        rows = (np.arange(jo.start, jo.stop)[:, None] * nz + np.arange(ko.start, ko.stop)).ravel()
+        cols = (np.arange(sj.start, sj.stop)[:, None] * nz + np.arange(sk.start, sk.stop)).ravel()
+        w = np.zeros((len(rows), io.stop - io.start))
+        w[:, si.start - io.start:si.stop - io.start] = self._cz[rows][:, cols] @ u_box.reshape(len(cols), -1)
+        res = w * self._md[io]
+        mo = self._mo[io.start:io.stop - 1]
+        res[:, 1:] += w[:, :-1] * mo
+        res[:, :-1] += w[:, 1:] * mo
+        out[jo, ko, io] += res.reshape(jo.stop - jo.start, ko.stop - ko.start, -1)
+        self._corr.apply_vertical(u_box, box, out.reshape(-1))
 
     def reweight(self, elements, kw, rho_w) -> None:
         """Set the weights of ``elements`` (flat indices) to ``kw``, ``rho_w`` [-]; updates K_w and m."""
@@ -292,16 +398,22 @@ class TensorOperator:
         rho_w = np.broadcast_to(np.asarray(rho_w, dtype=float), el.shape)
         _check_positive(kw, rho_w)
         flat_k, flat_r = self.kw.reshape(-1), self.rho_w.reshape(-1)
-        self._add(el, kw - flat_k[el], el, rho_w - flat_r[el])
+        dk, dr = kw - flat_k[el], rho_w - flat_r[el]
         flat_k[el], flat_r[el] = kw, rho_w
+        self._ratio.reshape(-1)[el] = kw / rho_w * self._lam_e.reshape(-1)[el]
+        self._add_mass(el[dr != 0], dr[dr != 0])
+        if self._corr.n_elements + np.count_nonzero(dk) > 2 * self._n_factored + self.elem_shape[2]:
+            self._factor()
+        else:
+            self._add_stiffness(el[dk != 0], dk[dk != 0])
 
     def stability_eigenvalue(self) -> float:
         """Upper bound of ``lambda_max(M_L^-1 K_w)`` [1/m²] (element bound, module docstring)."""
-        return float(np.max(self.kw / self.rho_w * self._lam_e))
+        return float(np.max(self._ratio))
 
     def assembled(self) -> sp.csr_matrix:
         """The full sparse ``K_w`` in solver order (for tests)."""
         kx = sp.diags([self._kd, self._ko, self._ko], [0, -1, 1])
         mx = sp.diags([self._md, self._mo, self._mo], [0, -1, 1])
         k = sp.kron(self._ab[: self._p], kx) + sp.kron(self._ab[self._p:], mx)
-        return (k if self._corr is None else k + self._corr).tocsr()
+        return (k + self._corr.matrix(self.n_nodes)).tocsr()

@@ -123,6 +123,20 @@ class StepWork:
         self.phi = np.empty(shape)
         self.kphi = np.empty(shape)
         self.table = law.workspace(shape)
+        self.mask = np.empty(shape, dtype=bool)
+
+
+def node_box(h: np.ndarray, floor: float, mask: np.ndarray | None = None) -> tuple[slice, slice, slice] | None:
+    """Smallest box of nodes (slices along y, z, x) holding every node with ``h > floor``
+    (``None``: no such node); ``mask`` (bool, ``h``'s shape) is scratch."""
+    above = np.greater(h, floor, out=mask)
+    yx = above.any(axis=1)
+    j = np.flatnonzero(yx.any(axis=1))
+    if not len(j):
+        return None
+    i = np.flatnonzero(yx.any(axis=0))
+    k = np.flatnonzero(above[j[0]:j[-1] + 1, :, i[0]:i[-1] + 1].any(axis=(0, 2)))
+    return slice(j[0], j[-1] + 1), slice(k[0], k[-1] + 1), slice(i[0], i[-1] + 1)
 
 
 def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, top_w: np.ndarray,
@@ -132,7 +146,8 @@ def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, t
 
     With liquid conductivity factors ``(f_xy, f_z)`` the conduction term is
     ``K_w phi_xy + K_z (phi_z - phi_xy)``, ``phi_d = phi + (f_d - 1) psi``
-    (:meth:`~fe_node.material.Constitutive.mushy_integral`).
+    (:meth:`~fe_node.material.Constitutive.mushy_integral`), ``psi`` evaluated and ``K_z`` applied
+    only on the box of nodes above ``Constitutive.mushy_floor`` (:func:`node_box`).
 
     Parameters
     ----------
@@ -156,13 +171,13 @@ def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, t
     work = work if work is not None else StepWork(law, h.shape)
     phi = law.kirchhoff(h, out=work.phi, work=work.table)
     f_xy, f_z = liquid_factors
-    if f_xy == f_z == 1.0:
-        kphi = operator(phi, out=work.kphi)
-    else:
-        psi = law.mushy_integral(h)
-        kphi = operator(phi + (f_xy - 1.0) * psi, out=work.kphi)
-        if f_z != f_xy:
-            kphi += operator.vertical((f_z - f_xy) * psi)
+    box = None if f_xy == f_z == 1.0 else node_box(h, law.mushy_floor, work.mask)   # psi = 0 outside
+    if box is not None:
+        psi = law.mushy_integral(h[box])
+        phi[box] += (f_xy - 1.0) * psi
+    kphi = operator(phi, out=work.kphi)
+    if box is not None and f_z != f_xy:
+        operator.add_vertical((f_z - f_xy) * psi, box, kphi)
     kphi *= c
     h -= kphi
     h[:, -1, :] += top_w * c_top
@@ -357,11 +372,19 @@ class ThermalModel:
         """Change the weights of solver elements (flat indices), keeping each node's energy.
 
         The operator and lumped mass are updated, nodal enthalpies rescaled so that ``m_i H_i``
-        is unchanged, and the stability limit (sub-steps) recomputed.
+        is unchanged, and the stability limit (sub-steps) recomputed; with the same ``rho_w``
+        the masses and, unless the sub-steps change, the update factors stay.
         """
-        energy = self._m * self._h
         el = np.asarray(elements, dtype=np.intp)
-        self.operator.reweight(self._csr_elements[el] if self.settings.operator == "csr" else el, kw, rho_w)
+        el = self._csr_elements[el] if self.settings.operator == "csr" else el
+        same_mass = np.array_equal(self.operator.rho_w.reshape(-1)[el], np.broadcast_to(rho_w, el.shape))
+        energy = None if same_mass else self._m * self._h
+        self.operator.reweight(el, kw, rho_w)
+        if energy is None:
+            n_substeps = self._stable_substeps()
+            if n_substeps != self.n_substeps:
+                self._set_factors(n_substeps)
+            return
         self._set_time_step()
         np.divide(energy, self._m, out=self._h)
 
@@ -380,10 +403,18 @@ class ThermalModel:
         self._depth_w = depth_weights(self.grid.zs, self.settings.penetration_depth_m)
         if self._work is None or self._work.phi.shape != self._m.shape:
             self._work = StepWork(self.law, self._m.shape)
+        self._set_factors(self._stable_substeps())
+
+    def _stable_substeps(self) -> int:
+        """Sub-steps per step the stability limit of the current weights needs (module docstring)."""
         lam = self.operator.stability_eigenvalue()
         alpha = self.law.max_diffusivity * max(1.0, *self._liquid_factors)
         dt_stable = 0.9 * 2.0 / (alpha * lam)
-        self.n_substeps = max(self.settings.min_substeps, math.ceil(self.settings.dt_s / dt_stable))
+        return max(self.settings.min_substeps, math.ceil(self.settings.dt_s / dt_stable))
+
+    def _set_factors(self, n_substeps: int) -> None:
+        """``n_substeps`` and the update factors of its sub-step from the lumped masses."""
+        self.n_substeps = n_substeps
         self._dt_sub = self.settings.dt_s / self.n_substeps
         self._c = (self._dt_sub * self.law.k_ref) / self._m
         self._c_top = self._dt_sub / self._m[:, -1, :]

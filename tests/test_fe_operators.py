@@ -143,3 +143,51 @@ def test_thermal_model_same_with_either_operator(physics):
     assert close(models[1].temperature(), models[0].temperature(), 1e-11)
     if physics:
         assert models[0].powder.consolidated.sum() > 0
+
+
+@pytest.mark.parametrize("box", [(slice(2, 6), slice(3, 7), slice(4, 9)),      # inside
+                                 (slice(0, 3), slice(0, 2), slice(0, 4)),      # at the low faces
+                                 (slice(-3, None), slice(-2, None), slice(-4, None))])   # at the high faces
+def test_add_vertical_on_a_box_equals_the_full_product(setup, box):
+    """K_z of a field zero outside a node box, from the box alone (both operators) = the full K_z."""
+    g, mesh, perm, eorder, _ = setup
+    rng = np.random.default_rng(7)
+    box = tuple(slice(*s.indices(n)[:2]) for s, n in zip(box, g.solver_shape))
+    n = eorder.size
+    shape = (len(g.ys) - 1, len(g.zs) - 1, len(g.xs) - 1)
+    kw = np.broadcast_to(rng.uniform(0.1, 1.0, shape[1])[None, :, None], shape).ravel().copy()
+    el = rng.choice(n, 60, replace=False)
+    u = np.zeros(g.solver_shape)
+    u[box] = rng.standard_normal(u[box].shape)
+    for op in (TensorOperator(g, kw, vertical=True), CsrOperator(mesh, kw[np.argsort(eorder)], order=perm,
+                                                                vertical=True)):
+        op.reweight(el if isinstance(op, TensorOperator) else eorder[el], rng.uniform(0.1, 2.0, el.size), 1.0)
+        out = rng.standard_normal(g.solver_shape)
+        expected = out + op.vertical(u)
+        op.add_vertical(u[box].copy(), box, out)
+        assert close(out, expected, 1e-13)
+
+
+def test_refactoring_keeps_the_operator_and_bounds_the_correction(setup):
+    """Tracks consolidating along x: the factors are rebuilt from the rows' medians as the correction
+    grows, and the operator stays the fresh one of the same weights."""
+    g, mesh, perm, eorder, _ = setup
+    rng = np.random.default_rng(8)
+    ey, ez, ex = shape = (len(g.ys) - 1, len(g.zs) - 1, len(g.xs) - 1)
+    kw = np.broadcast_to(np.where(np.arange(ez) >= ez - 2, 0.05, 1.0)[None, :, None], shape).copy()
+    op = TensorOperator(g, kw.ravel(), vertical=True)
+    u = rng.standard_normal(g.n_nodes)
+    sizes, refactored = [], 0
+    for j in range(2, ey - 2):                   # one track per y row of elements, in chunks along x
+        for i0 in range(0, ex, 5):
+            row = np.ravel_multi_index(np.meshgrid([j], [ez - 2, ez - 1], np.arange(i0, min(i0 + 5, ex)),
+                                                   indexing="ij"), shape).ravel()
+            before = op._corr.n_elements
+            op.reweight(row, 1.0, 1.0)
+            kw.ravel()[row] = 1.0
+            refactored += op._corr.n_elements < before
+            sizes.append(op._corr.n_elements)
+    fresh = TensorOperator(g, kw.ravel(), vertical=True)
+    assert close(op(u), fresh(u)) and close(op.vertical(u), fresh.vertical(u))
+    assert abs(op.assembled() - fresh.assembled()).max() <= 1e-12 * abs(fresh.assembled()).max()
+    assert refactored >= 2 and max(sizes) <= 2 * 2 * ex      # two rows of two layers, not the 2 (ey - 4) rows

@@ -7,12 +7,12 @@ import pytest
 
 from fe_node.am_bench import CASES
 from fe_node.keyhole import beam_1e2_radius_m, drill, keyhole_temperature_k
-from fe_node.observe import trailing_edge
+from fe_node.observe import bilinear_at, interp_matrix, trailing_edge
 from fe_node.presets import PHYSICAL, calibrated, preset
 from fe_node.scan import ScanPlan
 from fe_node.scenarios import scenario
 from fe_node.settings import Settings
-from fe_node.solver import ThermalModel
+from fe_node.solver import ThermalModel, explicit_update
 
 COARSE = dict(h_fine_m=40e-6, margin_m=0.5e-3, depth_m=0.6e-3, fine_pad_m=120e-6,
               fine_depth_m=160e-6, h_max_m=0.2e-3)
@@ -92,6 +92,11 @@ def test_thermal_history_outputs(keyhole_run):
     g = trailing_edge(t, xs, ys, np.array([0.0, 0.0]), np.array([1.0, 0.0]), 1623.0, 1563.0, 0.6e-3, 5e-6)
     assert g == pytest.approx(1e6, rel=1e-9)
     assert trailing_edge(t, xs, ys, np.array([0.0, 0.0]), np.array([1.0, 0.0]), 1623.0, 1563.0, 0.4e-3, 5e-6) == 0
+    # its samples: the bilinear interpolant (the dense interpolation matrices), clamped outside
+    rng = np.random.default_rng(10)
+    field, px, py = rng.standard_normal((41, 9)), rng.uniform(-1.2e-3, 1.2e-3, 50), rng.uniform(-0.3e-3, 0.3e-3, 50)
+    dense = np.einsum("pi,ij,pj->p", interp_matrix(xs, px), field, interp_matrix(ys, py))
+    assert np.allclose(bilinear_at(field, xs, ys, px, py), dense, rtol=0, atol=1e-14)
 
 
 def test_am_bench_beams_and_cases():
@@ -182,3 +187,20 @@ def test_the_shipped_calibration_record_is_what_the_plant_computes():
     got = case_errors(settings, (case,))[0]
     assert got["width_um"] == pytest.approx(row["width_um"], rel=1e-6)
     assert got["depth_um"] == pytest.approx(row["depth_um"], rel=1e-6)
+
+
+@pytest.mark.parametrize("operator", ["tensor", "csr"])
+def test_liquid_factors_on_the_mushy_box_equal_the_full_arrays(operator):
+    """explicit_update evaluates psi and K_z only on the box of nodes above the solidus: the same
+    update as psi and K_z on the whole grid."""
+    model, _ = run(12, powder_layer_m=40e-6, liquid_k_factor_xy=1.3, liquid_k_factor_z=2.2, operator=operator)
+    h0, law, op = model._h.copy(), model.law, model.operator
+    psi = law.mushy_integral(h0)
+    assert 0 < np.count_nonzero(psi) < 0.01 * psi.size      # a small pool: the box is a small part
+    top = np.random.default_rng(9).uniform(0.0, 1.0, model._c_top.shape)
+    f_xy, f_z = 1.3, 2.2
+    ref = h0 - model._c * (op(law.kirchhoff(h0) + (f_xy - 1) * psi) + op.vertical((f_z - f_xy) * psi))
+    ref[:, -1, :] += top * model._c_top
+    h = h0.copy()
+    explicit_update(h, op, law, model._c, top, model._c_top, (f_xy, f_z))
+    assert np.max(np.abs(h - ref)) <= 1e-13 * np.max(np.abs(ref - h0))

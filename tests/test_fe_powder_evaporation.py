@@ -55,6 +55,10 @@ def test_reweight_keeps_energy_and_recomputes_the_limit():
     model.reweight(powder, 8.0, 0.5)                 # 16x the dense diffusivity
     assert model._energy() == pytest.approx(e0, rel=1e-14)
     assert model.n_substeps > n0
+    h, n1 = model._h.copy(), model.n_substeps
+    model.reweight(powder + 10, 32.0, 1.0)             # same masses: the enthalpies stay, the limit follows
+    assert np.array_equal(model._h, h) and model.n_substeps > n1
+    assert np.allclose(model._c, model._dt_sub * model.law.k_ref / model._m, rtol=1e-15, atol=0)
 
 
 def test_evaporation_caps_the_peak_temperature(bare):
