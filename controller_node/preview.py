@@ -2,8 +2,9 @@
 
 Each update at state k (:meth:`PreviewMPC.update`):
 
-1. **Estimate**: the output disturbance ``d̂`` (offset-free control) is a random-walk
-   observer on the model's one-step error, ``d̂ ← d̂ + L (x[k] − x̂[k|k−1] − d̂)``.
+1. **Estimate** (:class:`~controller_node.preview_stages.Estimator`): the output disturbance ``d̂``
+   (offset-free control) is a random-walk observer on the model's one-step error,
+   ``d̂ ← d̂ + L (x[k] − x̂[k|k−1] − d̂)``.
 2. **Forecast**: T ahead over the horizon from the scan-plan preview carried by the state
    (``track_elapsed_s``, ``track_remaining_s``, ``next_track``) and the turnaround profile
    (:func:`gp_trainer.narx.forecast_t_ahead`, compiled); the profile of the last turnaround seen in this
@@ -12,6 +13,11 @@ Each update at state k (:meth:`PreviewMPC.update`):
    m = 1..H (model of :mod:`gp_trainer.narx`), affine in the planned powers.
 4. **Optimise**: the QP of :mod:`controller_node.preview_qp` (tracking of the set point,
    move penalty, hard power bounds, soft area bounds tightened by the GP's predictive std).
+
+Steps 1–4 are one compiled call, :func:`~controller_node.preview_kernel.control_step`, on the
+stages' structures (:mod:`controller_node.preview_stages`), shared by the full update and both
+phases of the real-time iteration; the state's place on the scan plan is its
+:class:`~controller_node.preview_stages.StateContext`.
 
 **Real-time iteration.** After the command is sent, :meth:`PreviewMPC.prepare` (the node calls
 it) runs steps 2–4 for the state expected next (the next step of the same track, with the power
@@ -47,6 +53,7 @@ import numpy as np
 from .base import Controller, Proposal
 from .preview_kernel import Kernel
 from .preview_qp import PreviewQP
+from .preview_stages import StateContext
 from .settings import ControllerSettings
 from .types import ConfigurationError, Measurement
 
@@ -141,11 +148,11 @@ class PreviewMPC(Controller):
         """Call the compiled update, preparation and feedback once, with the argument types of a run,
         pushing nothing into the histories: they are compiled (or loaded from numba's cache) now, not at
         the first states of a run."""
-        k = self._kernel
-        k.update(0, 0.0, 0, 0.0, 0.0, True, 0, True, -1, math.nan, True, self._h)
-        k.prepare(0, 0.0, 0, 0.0, 0, True, -1, math.nan, True, self._h)
+        k, context = self._kernel, StateContext(0, 0.0, 0, True, 0, True, -1, False, 0.0, True, self._h)
+        k.update(context, 0.0, 0.0)
+        k.prepare(context, 0.0)
         k.prepared = True                        # the feedback is compiled whatever this preparation gave
-        k.feedback(0, 0.0, 0, 0.0, 0.0, True, 0, True, -1, math.nan, self._h)
+        k.feedback(context, 0.0, 0.0)
 
     def reset(self) -> None:
         """Forget the run: histories, disturbance estimate, plan, learned turnaround profile."""
@@ -166,19 +173,17 @@ class PreviewMPC(Controller):
         self._profile[:] = self.model.turn_profile_k
         self._plan = k.plan
         self._plan[:] = self.settings.nominal_power_w
-        k.observer[:] = (0.0, math.nan, 0.0, 0.0)  # d̂ = 0, no x̂[k+1|k] yet
+        k.estimator.reset()                      # d̂ = 0, no x̂[k+1|k] yet, no error seen after a turn
         n = self.settings.preview.turn_learning_steps
         self.turn_correction_m2 = np.zeros(n)    # learned model error after a turnaround, by state since the turn
-        self._turn_errors = k.turn_errors        # one-step errors seen after the current turn (the kernel's)
-        self._turn_errors[:] = np.nan
         self._turn = -1                          # index of the current turn in the layer (-1: first track)
         self.turn_corrections_by_turn_m2: list[np.ndarray] = []   # learned for turn j of this layer
         self._prior_by_turn: list[np.ndarray] = []                # learned for turn j of the previous layer
         self._learned = False
         self._sync_corrections()
         self._last_qp: int | None = None        # blind rows of the QP in the workspace (see last_qp)
-        self._last_args: tuple | None = None     # the kernel's arguments of the last update (see prepare)
-        self._prepared_for: tuple | None = None  # the arguments the kernel is prepared for
+        self._last_context: StateContext | None = None   # of the last update, if it may be prepared after
+        self._prepared_for: StateContext | None = None   # the state the kernel is prepared for
         self.n_feedback = 0                      # updates that took the feedback phase (prepare)
         k.prepared = False
 
@@ -253,16 +258,15 @@ class PreviewMPC(Controller):
         after turn j and ``ε_j`` the one-step errors seen after it (where seen). ``c`` is applied after
         the next turns of this layer; ``c_j`` after turn j of the next layer (its own turn: a later
         turn of a layer is on a hotter plate)."""
-        if self._turn < 0:
-            self._turn_errors[:] = np.nan
-            return
-        seen = ~np.isnan(self._turn_errors)
-        learned = self._correction_for(self._turn).copy()
-        learned[seen] += self.settings.preview.turn_learning_gain * self._turn_errors[seen]
-        self.turn_correction_m2 = learned
-        self.turn_corrections_by_turn_m2.append(learned)
-        self._learned = self._learned or bool(np.any(learned))
-        self._turn_errors[:] = np.nan
+        k = self._kernel
+        if self._turn >= 0:
+            seen = k.turn_error_seen
+            learned = self._correction_for(self._turn).copy()
+            learned[seen] += self.settings.preview.turn_learning_gain * k.turn_errors[seen]
+            self.turn_correction_m2 = learned
+            self.turn_corrections_by_turn_m2.append(learned)
+            self._learned = self._learned or bool(np.any(learned))
+        k.turn_error_seen[:] = False
 
     def finish_run(self) -> None:
         """Fold the errors after the last turn of the run into the learned correction."""
@@ -304,16 +308,15 @@ class PreviewMPC(Controller):
         track or layer, another power) gets the full update, as without a preparation. Nothing is
         prepared after a state that did not follow the previous one by one step: a loop that skips
         states would not use the preparation."""
-        args = self._last_args
-        if args is None or args[6] == 0:        # (to_end 0: the next state starts a track)
+        last = self._last_context
+        if last is None or last.to_end == 0:    # the next state starts a track
             return
-        _, _, _, _, since, on_first, to_end, turn_base, learned, blind = args
         ps, step = self.settings.preview, self._prev.step + 1
         built_up = step - self._layer_start_step >= ps.observer_start_steps
-        nxt = (1, self._fallback.last_power_w, 1, built_up, since + 1, on_first, max(to_end - 1, -1), turn_base,
-               learned, 0 if built_up else ps.observer_start_steps - (step - self._layer_start_step) - 1)
-        if self._kernel.prepare(1, nxt[1], 1, float(self._kernel.forecast[0]), since + 1, on_first, nxt[6],
-                                math.nan if turn_base is None else turn_base, learned, nxt[9]):
+        nxt = last._replace(p_fill=1, power_w=self._fallback.last_power_w, t_fill=1, observe=built_up,
+                            since=last.since + 1, to_end=max(last.to_end - 1, -1),
+                            blind=0 if built_up else ps.observer_start_steps - (step - self._layer_start_step) - 1)
+        if self._kernel.prepare(nxt, float(self._kernel.forecast[0])):
             self._prepared_for = nxt
 
     @property
@@ -327,7 +330,7 @@ class PreviewMPC(Controller):
     @property
     def disturbance_m2(self) -> float:
         """The observer's output disturbance estimate d̂ [m²]."""
-        return float(self._kernel.observer[0])
+        return self._kernel.estimator.disturbance_m2
 
     def _tracked(self, blind: int) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the workspace's Γ, c with the ``blind`` leading rows (not tracked) zero."""
@@ -360,31 +363,31 @@ class PreviewMPC(Controller):
         blind = 0 if built_up else ps.observer_start_steps - (m.step - self._layer_start_step) - 1
         self._last_qp = None                     # the workspace is overwritten now
         work = self._kernel
-        t_base = math.nan if self._turn_base_k is None else self._turn_base_k
-        args = (self._p_fill, m.power_w, self._t_fill, consecutive and built_up, since, on_first, to_end,
-                self._turn_base_k, self._learned, blind)
+        has_base = self._turn_base_k is not None
+        context = StateContext(self._p_fill, m.power_w, self._t_fill, consecutive and built_up, since, on_first,
+                               to_end, has_base, self._turn_base_k if has_base else 0.0, self._learned, blind)
+        # estimate, predict, plan in one compiled call (preview_kernel.control_step); the feedback
+        # phase of the real-time iteration when this is the state prepared for, else the full update
         status = -1
-        if work.prepared and args == self._prepared_for:   # the state prepared for: the feedback phase
-            status = work.feedback(self._p_fill, m.power_w, self._t_fill, m.t_ahead_k, m.area_m2,
-                                   consecutive and built_up, since, on_first, to_end, t_base, blind)
+        if work.prepared and context == self._prepared_for:
+            status = work.feedback(context, m.t_ahead_k, m.area_m2)
         if status >= 0:
             self.n_feedback += 1
         else:
-            status = work.update(self._p_fill, m.power_w, self._t_fill, m.t_ahead_k, m.area_m2,
-                                 consecutive and built_up, since, on_first, to_end, t_base, self._learned, blind)
+            status = work.update(context, m.t_ahead_k, m.area_m2)
         self._prepared_for = None
         # prepare only while states come one step apart: a loop that skips states (a free-running
         # sensor faster than the controller) would not use the preparation and pays for it in CPU
-        self._last_args = args if status != 2 and consecutive else None
+        self._last_context = context if status != 2 and consecutive else None
         if status == 2:  # an absurd input: no plan from it
             return Proposal(math.nan, status="model_error")
         self._last_qp = blind
         areas, fast = work.areas, status == 0
-        if not fast:     # a bound is active: the kernel's step is not the solution (the plan is unchanged)
+        if not fast:     # apply: a bound is active, the kernel's step is not the solution (the plan is unchanged)
             gamma, c = self._tracked(blind)
-            result = self.qp.finish(gamma, c, work.hess, work.f, work.v, self._margin())
+            result = self.qp.finish(gamma, c, work.hess, work.f, work.v if work.has_step else None, self._margin())
             if result.path.startswith("failed"):
-                work.observer[1] = math.nan      # no prediction from this state
+                work.estimator.forget_prediction()  # no prediction from this state
                 return Proposal(math.nan, status=f"solver_{result.path}")
             plan = np.concatenate((self._plan[1:], self._plan[-1:]))   # ū = p̄[k+1..k+H]
             new_plan, fast = result.power_w, result.path == "fast"

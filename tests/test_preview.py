@@ -419,12 +419,17 @@ def test_turnaround_learning_is_indexed_by_the_turn_across_layers(model):
     def _same(a, b):  # corrections are ~1e-9 m²: compare relative to them, not to numpy's 1e-8 default
         return np.allclose(a, b, rtol=1e-12, atol=1e-21)
 
+    def _seen(ctrl, turn, errors):  # the estimator saw these errors after turn ``turn`` (NaN: not seen)
+        errors = np.asarray(errors, dtype=float)
+        ctrl._turn = turn
+        ctrl._kernel.turn_errors[:], ctrl._kernel.turn_error_seen[:] = np.nan_to_num(errors), ~np.isnan(errors)
+
     settings = ControllerSettings(set_point_m2=1.5e-8, preview=PreviewSettings(
         horizon=10, turn_learning_steps=3, turn_learning_gain=0.5))
     first = PreviewMPC(settings, model)
     errors = [np.array([2e-9, 0.0, -2e-9]), np.array([4e-9, 2e-9, 0.0]), np.array([np.nan, 6e-9, 2e-9])]
     for turn, e in enumerate(errors):
-        first._turn, first._turn_errors[:] = turn, e
+        _seen(first, turn, e)
         first._learn_turn_correction()
     learned = first.turn_corrections_by_turn_m2
     assert _same(learned[0], 0.5 * errors[0])
@@ -435,7 +440,7 @@ def test_turnaround_learning_is_indexed_by_the_turn_across_layers(model):
     for turn in range(3):
         assert _same(second._correction_for(turn), learned[turn])
     assert _same(second._correction_for(3), first.turn_correction_m2)  # a turn the last layer lacked
-    second._turn, second._turn_errors[:] = 1, [1e-9, 1e-9, 1e-9]
+    _seen(second, 1, [1e-9, 1e-9, 1e-9])
     second._learn_turn_correction()
     assert _same(second.turn_corrections_by_turn_m2[0], learned[1] + 0.5e-9)   # from turn 1's own
     second._turn = 0  # state k is the 1st of track 1 (after turn 0); turn 1 comes after k+2

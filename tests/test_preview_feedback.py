@@ -13,6 +13,7 @@ import pytest
 from controller_node.preview import PreviewMPC
 from controller_node.preview_kernel import Kernel
 from controller_node.preview_qp import PreviewQP, solve_reference
+from controller_node.preview_stages import StateContext
 from controller_node.settings import ControllerSettings
 from controller_node.types import Measurement
 from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel
@@ -41,7 +42,8 @@ def _kernels(model, seed: int, blind: int, z_sigma: float = 0.0) -> tuple[Previe
     for _ in range(3):
         k = Kernel(model, qp, H if z_sigma else 1, z_sigma, len(model.turn_profile_k), 60, 0.3)
         k.p_hist[:], k.t_hist[:], k.profile[:], k.plan[:] = p_hist, t_hist, profile, plan
-        k.observer[:] = (2e-10, math.log(SP) - 0.5, 600.0, 0.0)   # d̂, z of x̂[k+1|k] without p[k+1] terms, T, correction
+        k.estimator.disturbance_m2 = 2e-10
+        k.estimator.hold_prediction(math.log(SP) - 0.5, 600.0, 0.0)   # x̂[k+1|k]: z without p[k+1] terms, T, correction
         kernels.append(k)
     return qp, kernels
 
@@ -57,16 +59,17 @@ def test_the_feedback_predicts_as_the_update_and_solves_the_prepared_qp(model, s
     without bound tightening, from the kernel values with it)."""
     qp, (fed, updated, at_forecast) = _kernels(model, seed, blind, z_sigma)
     t_forecast, power, area = 610.0, 240.0, 1.02 * SP
-    since, to_end, t_base = 40, 25, 590.0
-    assert fed.prepare(1, power, 1, t_forecast, since, False, to_end, t_base, False, blind)
+    context = StateContext(1, power, 1, True, 40, False, 25, True, 590.0, False, blind)
+    assert fed.prepare(context, t_forecast)
     t_measured = t_forecast + shift_k
-    status = fed.feedback(1, power, 1, t_measured, area, True, since, False, to_end, t_base, blind)
-    full = updated.update(1, power, 1, t_measured, area, True, since, False, to_end, t_base, False, blind)
-    at_forecast.update(1, power, 1, t_forecast, area, True, since, False, to_end, t_base, False, blind)
+    status = fed.feedback(context, t_measured, area)
+    full = updated.update(context, t_measured, area)
+    at_forecast.update(context, t_forecast, area)
     assert status >= 0 and (status == 2) == (full == 2)
     for name in ("p_hist", "t_hist", "forecast", "powers", "temps", "psi"):
         assert np.array_equal(getattr(fed, name), getattr(updated, name)), name
-    assert fed.observer[0] == updated.observer[0] and fed.observer[2] == updated.observer[2]
+    assert fed.estimator.disturbance_m2 == updated.estimator.disturbance_m2
+    assert fed.estimator.prediction[1] == updated.estimator.prediction[1]
     assert np.allclose(fed.predicted, updated.predicted, rtol=1e-9, atol=0.0)
     assert np.allclose(fed.z, updated.z, rtol=0.0, atol=1e-9)
     assert np.allclose(fed.std, updated.std, rtol=1e-9, atol=0.0)
@@ -84,12 +87,20 @@ def test_the_feedback_predicts_as_the_update_and_solves_the_prepared_qp(model, s
         assert np.allclose(fed.c, updated.c, rtol=1e-9, atol=1e-12)
 
 
+def _run_state(k: Kernel) -> np.ndarray:
+    """What a run carries from one update to the next (its arrays and its estimator's state)."""
+    estimator = k.estimator
+    return np.r_[k.p_hist, k.t_hist, k.plan, k.profile, k.current, k.following, k.turn_errors, k.turn_error_seen,
+                 estimator.disturbance_m2, estimator.has_prediction, estimator.prediction]
+
+
 def test_a_measured_t_ahead_beyond_the_series_changes_nothing(model):
     (_, (fed, untouched, _)) = _kernels(model, 0, 0)
-    assert fed.prepare(1, 240.0, 1, 610.0, 40, False, 25, 590.0, False, 0)
-    state = fed.state.copy()
-    assert fed.feedback(1, 240.0, 1, 610.0 + 2000.0, SP, True, 40, False, 25, 590.0, 0) == -1
-    assert np.array_equal(fed.state, state) and np.array_equal(fed.state, untouched.state)
+    context = StateContext(1, 240.0, 1, True, 40, False, 25, True, 590.0, False, 0)
+    assert fed.prepare(context, 610.0)
+    state = _run_state(fed)
+    assert fed.feedback(context, 610.0 + 2000.0, SP) == -1
+    assert np.array_equal(_run_state(fed), state) and np.array_equal(state, _run_state(untouched))
 
 
 def _state(k: int, power: float, t: float, area: float, track_length: int = 120) -> Measurement:

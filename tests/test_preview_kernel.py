@@ -12,6 +12,7 @@ import pytest
 from controller_node import preview_kernel
 from controller_node.preview_kernel import Kernel, correction_into, exp_into
 from controller_node.preview_qp import PreviewQP
+from controller_node.preview_stages import StateContext
 from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel, forecast_t_ahead
 
 H = 40
@@ -39,8 +40,10 @@ def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_va
     work.profile[:] = rng.normal(0.0, 20.0, work.profile.size).cumsum()
     work.plan[:] = _case.plan = rng.uniform(150.0, 300.0, H)
     t_now = float(work.t_hist[-1])
-    status = work.update(0, 0.0, 0, t_now, 0.0, False, int(rng.integers(0, 300)), False, int(rng.integers(-1, H)),
-                         t_now - 30.0, False, blind)
+    context = StateContext(0, 0.0, 0, False, int(rng.integers(0, 300)), False, int(rng.integers(-1, H)), True,
+                           t_now - 30.0, False, blind)
+    status = work.update(context, t_now, 0.0)
+    _case.kernel = work
     out = (work.gamma, work.c, work.predicted, work.z, work.std, work.hess, work.f, work.v, work.areas, status)
     return qp, work.p_hist.copy(), work.psi, out
 
@@ -98,8 +101,10 @@ def test_the_fast_path_is_taken_exactly_when_no_bound_is_active(model, area_max_
 
 
 def test_a_hessian_that_is_not_positive_definite_gives_no_step(model):
-    *_, (_, _, _, _, _, _, _, v, _, status) = _case(model, 0, r=0.0, blind=H)  # nothing tracked, no move penalty
-    assert np.all(np.isnan(v)) and status == 1
+    *_, (*_, status) = _case(model, 0, r=0.0, blind=H)  # nothing tracked, no move penalty
+    assert not _case.kernel.has_step and status == 1
+    _case(model, 0, blind=H)
+    assert _case.kernel.has_step
 
 
 def test_a_closed_loop_compiles_the_kernel_once_and_predicts_with_what_it_learned(model):
@@ -123,7 +128,8 @@ def test_a_closed_loop_compiles_the_kernel_once_and_predicts_with_what_it_learne
                             expected)
             assert np.any(expected) and np.array_equal(ctrl._kernel.correction, expected)
     assert ctrl._learned
-    assert all(len(f.signatures) == 1 for f in (preview_kernel.update_into, preview_kernel._views))
+    assert all(len(f.signatures) == 1 for f in (preview_kernel.update_into, preview_kernel.prepare_into,
+                                                  preview_kernel.feedback_into))
 
 
 def test_building_the_controller_compiles_every_compiled_function():
@@ -139,10 +145,10 @@ def test_building_the_controller_compiles_every_compiled_function():
         "from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel\n"
         "model = NarxGPModel.load(DEFAULT_MODEL_PATH)\n"
         "make_controller('preview-mpc', ControllerSettings(set_point_m2=6.3e-8), model)\n"
-        "print([len(f.signatures) for f in (k.update_into, k._views, k.prepare_into, k.feedback_into)])\n"
+        "print([len(f.signatures) for f in (k.update_into, k.prepare_into, k.feedback_into)])\n"
     )
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=600)
-    assert out.stdout.strip().splitlines()[-1] == "[1, 1, 1, 1]"
+    assert out.stdout.strip().splitlines()[-1] == "[1, 1, 1]"
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -207,7 +213,8 @@ def test_one_update_pushes_forecasts_and_lays_out_the_correction_as_the_referenc
     work.plan[:] = rng.uniform(150.0, 300.0, H)
     for since, to_end, learned in ((12, 25, True), (3, -1, True), (40, 5, False)):
         work.p_hist[:], work.t_hist[:] = p_before, t_before
-        assert work.update(2, 210.0, 3, 1010.0, 0.0, False, since, False, to_end, 950.0, learned, 0) in (0, 1)
+        context = StateContext(2, 210.0, 3, False, since, False, to_end, True, 950.0, learned, 0)
+        assert work.update(context, 1010.0, 0.0) in (0, 1)
         assert np.array_equal(work.p_hist, np.r_[210.0, 210.0, p_before[:-2]])
         assert np.array_equal(work.t_hist, np.r_[t_before[3:], 1010.0, 1010.0, 1010.0])
         expected = forecast_t_ahead(1010.0, since, False, None if to_end < 0 else to_end, work.profile, H, 950.0,
@@ -254,19 +261,38 @@ def test_the_observer_compares_the_state_with_the_last_prediction(model, after_t
     work = Kernel(model, qp, 1, 0.0, len(model.turn_profile_k), 60, 0.3)
     work.p_hist[:], work.t_hist[:], work.plan[:] = 230.0, 1000.0, 240.0
     work.current[:] = work.following[:] = 2e-9
-    work.turn_errors[:] = np.nan
-    t_base = 950.0 if after_turn else math.nan
-    assert work.update(0, 0.0, 0, 1000.0, 0.0, False, 5, False, -1, t_base, True, 0) in (0, 1)
+    estimator = work.estimator
+    assert work.update(StateContext(0, 0.0, 0, False, 5, False, -1, after_turn, 950.0, True, 0), 1000.0, 0.0) in (0, 1)
     u1 = work.powers[work.p_hist.size]                  # ū[0] = p[k+1] of row 0
     b0, q0 = model.power_coefficients[0], model.power_square_coefficients[0]
     e0 = model.power_temperature_coefficients[0]
     base = work.z[0] - (b0 + q0 * u1 + e0 * 1000.0) * u1
-    assert work.observer[1] == pytest.approx(base, rel=1e-14) and work.observer[3] == work.correction[0] == 2e-9
-    applied, area, d_before = 215.0, 0.07e-6, work.observer[0]
+    z_base, t_ahead_k, correction_m2 = estimator.prediction
+    assert estimator.has_prediction and z_base == pytest.approx(base, rel=1e-14) and t_ahead_k == 1000.0
+    assert correction_m2 == work.correction[0] == 2e-9
+    applied, area, d_before = 215.0, 0.07e-6, estimator.disturbance_m2
     predicted = math.exp(base + (b0 + q0 * applied + e0 * 1000.0) * applied) + 2e-9
-    work.update(1, applied, 1, 1005.0, area, True, 6, False, -1, t_base, True, 0)
+    work.update(StateContext(1, applied, 1, True, 6, False, -1, after_turn, 950.0, True, 0), 1005.0, area)
     error = area - predicted - d_before
-    assert work.observer[0] == pytest.approx(d_before + 0.3 * error, rel=1e-12)
+    assert estimator.disturbance_m2 == pytest.approx(d_before + 0.3 * error, rel=1e-12)
+    assert np.array_equal(np.flatnonzero(work.turn_error_seen), [6] if after_turn else [])
     if after_turn:
         assert work.turn_errors[6] == pytest.approx(error, rel=1e-12)
-    assert np.all(np.isnan(np.delete(work.turn_errors, 6) if after_turn else work.turn_errors))
+
+
+def test_the_estimator_steps_as_do_mpcs_make_step(model):
+    """The estimator on its own: no prediction held, nothing moves; with one, d̂ moves by L times
+    the one-step error, which is kept by state since the turn only after a turn."""
+    qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=1.0, power_scale_w=350.0, power_min_w=-1e6, power_max_w=350.0,
+                   area_min_m2=0.0, area_max_m2=5e-7, slack_linear=100.0, slack_quadratic=1000.0)
+    estimator = Kernel(model, qp, 1, 0.0, len(model.turn_profile_k), 60, 0.3).estimator
+    assert estimator.make_step(SP, 240.0, 3) == 0.0 and not estimator.has_prediction
+    b0, q0 = model.power_coefficients[0], model.power_square_coefficients[0]
+    e0 = model.power_temperature_coefficients[0]
+    z_base = math.log(SP) - (b0 + q0 * 240.0 + e0 * 900.0) * 240.0 + 0.01
+    for since_turn in (None, 3):
+        estimator.reset()
+        estimator.hold_prediction(z_base, 900.0, 1e-10)
+        error = 1.05 * SP - (SP * math.exp(0.01) + 1e-10)
+        assert estimator.make_step(1.05 * SP, 240.0, since_turn) == pytest.approx(0.3 * error, rel=1e-9)
+        assert estimator.disturbance_m2 == pytest.approx(0.3 * error, rel=1e-9)
