@@ -1,9 +1,16 @@
 """Scan plans of a real part: an STL sliced and hatched with PySLM (``pythonslm``), one plan per layer.
 
 Each layer ``i`` is the part's cross-section at height ``(i + 1/2) * layer_m`` above its base,
-hatched by :class:`pyslm.hatching.Hatcher` with lines along x (hatch angle 90°, the plant's
-tracks are parallel to x), alternating direction, no contours and no offsets.  Coordinates
-are centred on the part's plan-view bounding box and converted from PySLM's mm to m.
+scanned as PySLM's :class:`pyslm.hatching.Hatcher` lays it out:
+
+* with ``contours``, first one contour per boundary of the slice (its outline, no spot
+  compensation), each a closed path of tracks scanned without a jump;
+* then the hatch: lines ``hatch_m`` apart at ``i * hatch_rotation_deg`` (mod 180°) counter-clockwise
+  from +x, in alternating directions, clipped to the slice (with contours: inset by half a
+  hatch distance from the contour).
+
+Coordinates are centred on the part's plan-view bounding box and converted from PySLM's mm to
+m; PySLM rounds them to 10 nm, so a hatch line's direction is within about 0.01° of its angle.
 
 The example part :data:`EXAMPLE_STL` is a cylinder 1.5 mm across and 0.5 mm high (10 layers
 of 50 µm).  PySLM is an optional dependency: ``pip install pythonslm``.
@@ -22,6 +29,16 @@ EXAMPLE_STL = Path(__file__).parent / "parts" / "cylinder_d1.5_h0.5_mm.stl"
 """The shipped example part (``--scenario part``)."""
 
 
+HATCH_ROTATION_DEG = 67.0
+"""Default rotation of the hatch from one layer to the next [deg] (``hatch_rotation_deg``)."""
+
+CONTOURS = True
+"""Default: scan each slice's contour before its hatch (``contours``)."""
+
+MIN_TRACK_M = 1e-6
+"""Shortest track kept [m]: shorter hatch lines are dropped, contour points closer than this to
+the previous point are merged into it (PySLM's offsetting leaves sub-micrometre edges)."""
+
 PYSLM_MISSING = "scenario part: needs PySLM (pip install pythonslm, or the project's [part] extra)"
 
 
@@ -31,8 +48,24 @@ def require_pyslm() -> None:
         raise ValueError(PYSLM_MISSING)
 
 
-def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float) -> tuple[ScanPlan, ...]:
-    """Per-layer scan plans of the part in ``stl_path``.
+def _contour_tracks(coords: np.ndarray) -> list:
+    """Tracks [m] along a closed contour polyline (coordinates [m], first point repeated last),
+    merging points closer than :data:`MIN_TRACK_M` to the previous one."""
+    kept = [coords[0]]
+    for p in coords[1:-1]:
+        if np.hypot(*(p - kept[-1])) >= MIN_TRACK_M:
+            kept.append(p)
+    while len(kept) > 1 and np.hypot(*(kept[-1] - coords[-1])) < MIN_TRACK_M:
+        kept.pop()
+    kept.append(coords[-1])
+    if len(kept) < 4:       # fewer than three distinct corners: no area to outline
+        return []
+    return [((float(a[0]), float(a[1])), (float(b[0]), float(b[1]))) for a, b in zip(kept[:-1], kept[1:])]
+
+
+def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float,
+               hatch_rotation_deg: float = HATCH_ROTATION_DEG, contours: bool = CONTOURS) -> tuple[ScanPlan, ...]:
+    """Per-layer scan plans of the part in ``stl_path`` (module docstring).
 
     Parameters
     ----------
@@ -40,6 +73,10 @@ def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float) -> tuple[Sc
         STL file, in mm (PySLM's unit).
     layer_m, hatch_m : float
         Layer thickness and hatch distance [m].
+    hatch_rotation_deg : float
+        Hatch angle of layer ``i`` is ``i`` times this [deg], counter-clockwise from +x.
+    contours : bool
+        Scan each slice's contour before its hatch.
 
     Returns
     -------
@@ -54,7 +91,7 @@ def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float) -> tuple[Sc
     try:
         import pyslm
         from pyslm import hatching
-        from pyslm.geometry import HatchGeometry
+        from pyslm.geometry import ContourGeometry, HatchGeometry
     except ImportError:
         raise ValueError(PYSLM_MISSING) from None
     path = Path(stl_path)
@@ -73,21 +110,28 @@ def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float) -> tuple[Sc
                          f"{y0:g}..{y1:g} x 0..{z1:g} mm)")
     centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
     hatcher = hatching.Hatcher()
-    hatcher.hatchAngle, hatcher.layerAngleIncrement, hatcher.hatchDistance = 90.0, 0.0, hatch_m * 1e3
-    hatcher.numInnerContours = hatcher.numOuterContours = 0
-    hatcher.spotCompensation = hatcher.volumeOffsetHatch = 0.0
+    hatcher.hatchAngle, hatcher.hatchDistance = 90.0, hatch_m * 1e3      # PySLM's 90°: lines along +-x
+    hatcher.numInnerContours, hatcher.numOuterContours = 0, int(contours)
+    hatcher.spotCompensation = hatcher.contourOffset = 0.0
+    hatcher.volumeOffsetHatch = 0.5 * hatch_m * 1e3 if contours else 0.0
+    hatcher.scanContourFirst = True
     hatcher.hatchSortMethod = hatching.AlternateSort()
     n_layers = int(np.floor(z1 / (layer_m * 1e3) + 1e-9))
     if n_layers < 1:
         raise ValueError(f"scenario part: {path.name} is thinner than one layer ({layer_m * 1e6:g} µm)")
     plans = []
     for i in range(n_layers):
+        hatcher.layerAngleIncrement = float(np.mod(i * hatch_rotation_deg, 180.0))
         layer = hatcher.hatch(part.getVectorSlice((i + 0.5) * layer_m * 1e3))
-        coords = [g.coords for g in layer.geometry if isinstance(g, HatchGeometry)]
-        segments = (np.concatenate(coords) - centre).reshape(-1, 2, 2) * 1e-3 if coords else np.empty((0, 2, 2))
-        tracks = tuple(((float(a[0]), float(0.5 * (a[1] + b[1]))), (float(b[0]), float(0.5 * (a[1] + b[1]))))
-                       for a, b in segments if abs(b[0] - a[0]) > 1e-6)
+        tracks = []
+        for geometry in layer.geometry if layer is not None else ():
+            coords = (np.asarray(geometry.coords)[:, :2] - centre) * 1e-3
+            if isinstance(geometry, ContourGeometry):
+                tracks += _contour_tracks(coords)
+            elif isinstance(geometry, HatchGeometry):
+                tracks += [((float(a[0]), float(a[1])), (float(b[0]), float(b[1])))
+                           for a, b in coords.reshape(-1, 2, 2) if np.hypot(*(b - a)) >= MIN_TRACK_M]
         if not tracks:
-            raise ValueError(f"scenario part: layer {i} of {path.name} has no hatch")
-        plans.append(ScanPlan(tracks))
+            raise ValueError(f"scenario part: layer {i} of {path.name} has no scan path")
+        plans.append(ScanPlan(tuple(tracks)))
     return tuple(plans)

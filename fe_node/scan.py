@@ -1,26 +1,44 @@
 """Scan plans (laser paths) and open-loop power/speed profiles.
 
-A :class:`ScanPlan` is a sequence of straight tracks parallel to x, traversed in order
-with no jump delay (paper Fig. 5: new tracks at ~13, 26, 39 ms for 10 mm at 800 mm/s).
-The laser position is a function of the travelled arc length ``s`` [m].
+A :class:`ScanPlan` is a sequence of straight tracks in any direction in the plane, traversed in
+order; between tracks the laser jumps, off and with no delay, to the next track's start (paper
+Fig. 5: new tracks at ~13, 26, 39 ms for 10 mm at 800 mm/s).  The laser position is a function
+of the travelled arc length ``s`` [m], counted along the tracks only.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
 from fe_node.settings import check_type
 
 
+class _Geometry(NamedTuple):
+    """Per track of a :class:`ScanPlan`: start point [m] (n, 2), unit direction (n, 2), length [m]
+    and arc length at its end [m]; the plan's total length [m]; the first and the last track of
+    the path each track belongs to (:meth:`ScanPlan.preview`)."""
+
+    starts: np.ndarray
+    directions: np.ndarray
+    lengths: np.ndarray
+    ends_m: np.ndarray
+    total_m: float
+    first: np.ndarray
+    last: np.ndarray
+
+
 @dataclass(frozen=True)
 class ScanPlan:
-    """Straight tracks along ±x.
+    """Straight tracks, each from its start to its end point, in any direction.
 
     Parameters
     ----------
-    tracks : tuple of ((x0, y), (x1, y))
-        Start and end points [m]; each track has constant y and ``x1 != x0``.
+    tracks : tuple of ((x0, y0), (x1, y1))
+        Start and end points [m]; finite, and each track of non-zero length.
     """
 
     tracks: tuple
@@ -28,9 +46,11 @@ class ScanPlan:
     def __post_init__(self):
         if not self.tracks:
             raise ValueError("scan plan: need at least one track")
-        for (x0, y0), (x1, y1) in self.tracks:
-            if y0 != y1 or x0 == x1:
-                raise ValueError("scan plan: tracks must be non-empty and parallel to x")
+        for i, ((x0, y0), (x1, y1)) in enumerate(self.tracks):
+            if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
+                raise ValueError(f"scan plan: track {i} has a non-finite point")
+            if (x0, y0) == (x1, y1):
+                raise ValueError(f"scan plan: track {i} is empty (start = end)")
 
     @classmethod
     def single(cls, length_m: float = 5e-3) -> ScanPlan:
@@ -40,7 +60,7 @@ class ScanPlan:
     @classmethod
     def layer(cls, n_tracks: int, length_m: float, hatch_m: float,
               bidirectional: bool = True) -> ScanPlan:
-        """``n_tracks`` parallel tracks of ``length_m`` spaced ``hatch_m``, centred on y = 0.
+        """``n_tracks`` tracks along x of ``length_m`` spaced ``hatch_m``, centred on y = 0.
 
         Bidirectional (serpentine) by default: odd tracks run in -x.
         """
@@ -61,14 +81,33 @@ class ScanPlan:
             tracks.append(ends[::-1] if bidirectional and j % 2 else ends)
         return cls(tuple(tracks))
 
+    @cached_property
+    def _geometry(self) -> _Geometry:
+        ends = np.array(self.tracks, dtype=float)            # (n, 2 points, 2 coordinates)
+        delta = ends[:, 1] - ends[:, 0]
+        lengths = np.hypot(delta[:, 0], delta[:, 1])
+        joined = np.all(ends[1:, 0] == ends[:-1, 1], axis=1)  # track k + 1 starts where track k ends
+        first = np.maximum.accumulate(np.where(np.r_[False, joined], 0, np.arange(len(lengths))))
+        last = np.minimum.accumulate(np.where(np.r_[joined, False], len(lengths) - 1,
+                                              np.arange(len(lengths)))[::-1])[::-1]
+        return _Geometry(ends[:, 0], delta / lengths[:, None], lengths, np.cumsum(lengths),
+                         float(lengths.sum()), first, last)
+
     @property
     def lengths(self) -> np.ndarray:
-        return np.array([abs(x1 - x0) for (x0, _), (x1, _) in self.tracks])
+        """Length of each track [m]."""
+        return self._geometry.lengths.copy()
+
+    @property
+    def angles_deg(self) -> np.ndarray:
+        """Direction of each track [deg], counter-clockwise from +x, in (-180, 180]."""
+        d = self._geometry.directions
+        return np.degrees(np.arctan2(d[:, 1], d[:, 0]))
 
     @property
     def total_length(self) -> float:
         """Total scanned length [m]."""
-        return float(self.lengths.sum())
+        return self._geometry.total_m
 
     def bounds(self) -> tuple[float, float, float, float]:
         """(x_min, x_max, y_min, y_max) of all tracks [m]."""
@@ -76,13 +115,17 @@ class ScanPlan:
         return pts[:, 0].min(), pts[:, 0].max(), pts[:, 1].min(), pts[:, 1].max()
 
     def preview(self, s: float) -> tuple[float, float, bool]:
-        """Scan-plan preview at arc length ``s`` [m]: distance travelled on the current track,
-        distance left to its end [m], and whether another track follows it."""
+        """Scan-plan preview at arc length ``s`` [m]: distance travelled on the current path,
+        distance left to its end [m], and whether another path follows it.
+
+        A path is a run of tracks each starting where the one before ends (a contour's polygon),
+        scanned without a jump; a hatch line is a path of one track.
+        """
         track, _, _ = self.locate(s)
-        k = int(track)
-        ends = np.cumsum(self.lengths)
-        start = ends[k] - self.lengths[k]
-        return float(min(s, ends[k]) - start), float(max(ends[k] - s, 0.0)), k + 1 < len(self.tracks)
+        g, k = self._geometry, int(track)
+        start = g.ends_m[g.first[k]] - g.lengths[g.first[k]]
+        end = g.ends_m[g.last[k]]
+        return float(min(s, end) - start), float(max(end - s, 0.0)), bool(g.last[k] + 1 < len(self.tracks))
 
     def locate(self, s):
         """Track index, position and unit direction at arc length(s) ``s`` [m].
@@ -93,14 +136,12 @@ class ScanPlan:
         xy : ndarray, shape (..., 2) [m]
         direction : ndarray, shape (..., 2)
         """
-        s = np.clip(np.asarray(s, dtype=float), 0.0, self.total_length)
-        ends = np.cumsum(self.lengths)
-        k = np.minimum(np.searchsorted(ends, s, side="right"), len(self.tracks) - 1)
-        starts = np.array([t[0] for t in self.tracks])
-        dirs = np.array([[np.sign(t[1][0] - t[0][0]), 0.0] for t in self.tracks])
-        local = s - (ends - self.lengths)[k]
-        xy = starts[k] + local[..., None] * dirs[k]
-        return k, xy, dirs[k]
+        g = self._geometry
+        s = np.clip(np.asarray(s, dtype=float), 0.0, g.total_m)
+        k = np.minimum(np.searchsorted(g.ends_m, s, side="right"), len(self.tracks) - 1)
+        local = s - (g.ends_m - g.lengths)[k]
+        xy = g.starts[k] + local[..., None] * g.directions[k]
+        return k, xy, g.directions[k]
 
 
 @dataclass(frozen=True)

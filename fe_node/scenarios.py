@@ -34,6 +34,8 @@ same seed gives the same profile. The levels are not clipped to the 150-300 W wi
 the shipped 1.5 mm x 0.5 mm cylinder, :data:`fe_node.part.EXAMPLE_STL`) sliced every
 ``powder_layer_m`` (default 50 µm) and hatched every ``hatch_m`` (default 0.1 mm) by PySLM
 (:mod:`fe_node.part`, needs ``pythonslm``); ``n_layers`` defaults to all the part's layers.
+``hatch_rotation_deg`` (default 67) turns the hatch from one layer to the next; ``contours``
+(default true) scans each slice's outline before its hatch.
 ``ident-part``: the same part under a seeded random power staircase (the ``ident_*`` overrides
 above; the powder and the small part need far less power than the bare plate, so its
 identification runs choose lower means, :data:`gp_trainer.campaign.IDENT_PART_RUNS`).
@@ -47,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fe_node.part import CONTOURS, EXAMPLE_STL, HATCH_ROTATION_DEG, part_plans
 from fe_node.presets import preset
 from fe_node.scan import Profile, ScanPlan, Signal
 from fe_node.settings import Settings, check_type
@@ -220,11 +223,10 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
 
 
 def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w: float | None = None,
-          speed_m_s: float = 0.8, **settings_kw) -> Scenario:
+          speed_m_s: float = 0.8, hatch_rotation_deg: float = HATCH_ROTATION_DEG, contours: bool = CONTOURS,
+          **settings_kw) -> Scenario:
     """The ``part`` and ``ident-part`` scenarios (module docstring); ``settings_kw`` are
     :class:`Settings` fields and, for ``ident-part``, the ``ident_*`` overrides."""
-    from fe_node.part import EXAMPLE_STL, part_plans
-
     ident_kw = {k: settings_kw.pop(k) for k in list(settings_kw) if k in IDENT_DEFAULTS}
     unknown = set(settings_kw) - Settings.field_names()
     if unknown:
@@ -233,9 +235,11 @@ def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w
         raise ValueError(f"scenario override {sorted(ident_kw)[0]!r} is only valid for ident-* scenarios, not 'part'")
     if ident_kw and power_w is not None:
         raise ValueError(f"scenario override {sorted(ident_kw)[0]!r} conflicts with 'power_w' (a constant power)")
+    check_type("scenario override 'hatch_rotation_deg'", hatch_rotation_deg, "float")
+    check_type("scenario override 'contours'", contours, "bool")
     layer_m = settings_kw.setdefault("powder_layer_m", 50e-6)
     stl = Path(EXAMPLE_STL if part_stl is None else part_stl)
-    plans = part_plans(stl, layer_m, hatch_m)
+    plans = part_plans(stl, layer_m, hatch_m, float(hatch_rotation_deg), contours)
     n = settings_kw.setdefault("n_layers", len(plans))
     if not 1 <= n <= len(plans):
         raise ValueError(f"scenario {name}: n_layers must be in [1, {len(plans)}] for this part, got {n}")

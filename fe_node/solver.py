@@ -488,11 +488,16 @@ class ThermalModel:
         return s.powder_absorptivity + (s.absorptivity - s.powder_absorptivity) * dense
 
     def _follow(self, travel_m: float) -> None:
-        """Move the fine window ahead of the laser if this step would take it near the edge."""
+        """Move the fine window ahead of the laser if this step would take it near the edge: ahead of
+        where the step starts, or of where it ends if it jumps to a track that window would not hold."""
         _, points, directions = self.plan.locate(np.array([self._s, min(self._s + travel_m, self.plan.total_length)]))
         g, s = self.grid, self.settings
         if needs_move((g.xs, g.ys), self._bands, s.h_fine_m, points, s.window_m):
-            self.remesh(ahead(points[0], directions[0], s.window_m))
+            centre = ahead(points[0], directions[0], s.window_m)
+            there = build_grid(s, self.plan, self._layer_plans, centre)
+            if needs_move((there.xs, there.ys), self._bands, s.h_fine_m, points[1:], s.window_m):
+                centre = ahead(points[1], directions[1], s.window_m)
+            self.remesh(centre)
 
     def remesh(self, window_centre: np.ndarray) -> None:
         """Put the fine window at ``window_centre`` [m] (x, y) and carry the state over
