@@ -33,9 +33,10 @@ class Observation:
     area_m2 : float
         Melt-pool top-surface (plan-view) area above liquidus [m²] - the paper's x.
     width_m, length_m, depth_m : float
-        Extents of the liquid region across, along and below the top surface [m].
+        Extents of the liquid region along y, along x and below the top surface [m] (across and
+        along the scan on a track along x).
     cross_section_m2 : float
-        Transverse (y-z) liquid area through the deepest point [m²].
+        Liquid area in the y-z plane through the deepest point [m²] (transverse on a track along x).
     t_ahead_k : float
         Top-surface temperature at ``position + (v dt + r_s) * direction`` [K] (paper
         footnote 1: next laser spot plus one beam radius).
@@ -47,9 +48,10 @@ class Observation:
     energy_error_pct : float
         ``100 (absorbed - stored - lost) / absorbed`` (0 before any absorption).
     track_travelled_m, track_remaining_m : float
-        Scan-plan preview: distance scanned on the current track and left to its end [m].
+        Scan-plan preview: distance scanned on the current path and left to its end [m]
+        (a path: a hatch line, or a contour's tracks, joined end to start).
     next_track : bool
-        Another track follows the current one.
+        Another path follows the current one.
     layer : int
         Layer of the build (0 first).
     z_top_m : float
