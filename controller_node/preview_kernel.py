@@ -682,7 +682,7 @@ class Kernel:
 
     @staticmethod
     def _workspace(h: int, n_p: int, n_t: int, n_gp: int) -> tuple[Workspace, dict]:
-        """A workspace and its named arrays (the attributes that follow the workspace in use)."""
+        """A workspace and the named arrays of it that are attributes (following the workspace in use)."""
         a = carve({"gamma": (h, h), "hess": (h, h), "chol": (h, h), "c": (h,), "predicted": (h,), "z": (h,),
                    "std": (h,), "f": (h,), "v": (h,), "areas": (h,), "gp_slope": (h,), "inv_diag": (h,),
                    "slopes": (h,), "jac_u": (h,), "psi": (h, 3), "kern": (h, n_gp), "bits": (h * n_gp,),
@@ -692,7 +692,9 @@ class Kernel:
         block = a["gamma"].base                     # the one block of the views
         a["bits"] = a["bits"].view(np.int64)
         ws = new_workspace(*a.values())
-        return ws, dict(a, workspace=ws, work=block)
+        names = ("gamma", "hess", "c", "predicted", "z", "std", "f", "v", "areas", "psi", "kern", "powers", "temps",
+                 "forecast", "correction")
+        return ws, dict({name: a[name] for name in names}, workspace=ws, work=block)
 
     @property
     def has_step(self) -> bool:
