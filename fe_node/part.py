@@ -7,7 +7,11 @@ scanned as PySLM's :class:`pyslm.hatching.Hatcher` lays it out:
   compensation), each a closed path of tracks scanned without a jump;
 * then the hatch: lines ``hatch_m`` apart at ``i * hatch_rotation_deg`` (mod 180°) counter-clockwise
   from +x, in alternating directions, clipped to the slice (with contours: inset by half a
-  hatch distance from the contour).
+  hatch distance from the contour);
+* or, with ``island_width_m > 0``, the hatch in square islands of that side (PySLM's
+  :class:`~pyslm.hatching.islandHatcher.IslandHatcher`, a checkerboard: the lines of neighbouring
+  islands are perpendicular), the island grid turned by ``i * hatch_rotation_deg``; islands are
+  scanned in rows, each island's lines in alternating directions.
 
 Coordinates are centred on the part's plan-view bounding box and converted from PySLM's mm to
 m; PySLM rounds them to 10 nm, so a hatch line's direction is within about 0.01° of its angle.
@@ -34,6 +38,9 @@ HATCH_ROTATION_DEG = 67.0
 
 CONTOURS = True
 """Default: scan each slice's contour before its hatch (``contours``)."""
+
+ISLAND_WIDTH_M = 0.0
+"""Default island side [m] (``island_width_m``): 0, one hatch over the whole slice."""
 
 MIN_TRACK_M = 1e-6
 """Shortest track kept [m]: shorter hatch lines are dropped, contour points closer than this to
@@ -63,8 +70,8 @@ def _contour_tracks(coords: np.ndarray) -> list:
     return [((float(a[0]), float(a[1])), (float(b[0]), float(b[1]))) for a, b in zip(kept[:-1], kept[1:])]
 
 
-def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float,
-               hatch_rotation_deg: float = HATCH_ROTATION_DEG, contours: bool = CONTOURS) -> tuple[ScanPlan, ...]:
+def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float, hatch_rotation_deg: float = HATCH_ROTATION_DEG,
+               contours: bool = CONTOURS, island_width_m: float = ISLAND_WIDTH_M) -> tuple[ScanPlan, ...]:
     """Per-layer scan plans of the part in ``stl_path`` (module docstring).
 
     Parameters
@@ -77,6 +84,8 @@ def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float,
         Hatch angle of layer ``i`` is ``i`` times this [deg], counter-clockwise from +x.
     contours : bool
         Scan each slice's contour before its hatch.
+    island_width_m : float
+        Side of the square islands [m]; 0: no islands.
 
     Returns
     -------
@@ -86,12 +95,17 @@ def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float,
     Raises
     ------
     ValueError
-        Missing file, PySLM not installed, or a part thinner than one layer.
+        Missing file, PySLM not installed, a part thinner than one layer, or islands narrower
+        than the hatch distance.
     """
+    if not (island_width_m == 0 or island_width_m >= hatch_m):
+        raise ValueError(f"scenario part: island_width_m must be 0 (no islands) or at least hatch_m "
+                         f"({hatch_m:g} m), got {island_width_m:g}")
     try:
         import pyslm
         from pyslm import hatching
         from pyslm.geometry import ContourGeometry, HatchGeometry
+        from pyslm.hatching.islandHatcher import IslandHatcher
     except ImportError:
         raise ValueError(PYSLM_MISSING) from None
     path = Path(stl_path)
@@ -109,8 +123,10 @@ def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float,
         raise ValueError(f"scenario part: {str(path)!r} holds no solid (bounding box {x0:g}..{x1:g} x "
                          f"{y0:g}..{y1:g} x 0..{z1:g} mm)")
     centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
-    hatcher = hatching.Hatcher()
-    hatcher.hatchAngle, hatcher.hatchDistance = 90.0, hatch_m * 1e3      # PySLM's 90°: lines along +-x
+    hatcher = hatching.Hatcher() if island_width_m == 0 else IslandHatcher()
+    if island_width_m > 0:
+        hatcher.islandWidth, hatcher.islandOverlap = island_width_m * 1e3, 0.0
+    hatcher.hatchDistance, hatcher.layerAngleIncrement = hatch_m * 1e3, 0.0
     hatcher.numInnerContours, hatcher.numOuterContours = 0, int(contours)
     hatcher.spotCompensation = hatcher.contourOffset = 0.0
     hatcher.volumeOffsetHatch = 0.5 * hatch_m * 1e3 if contours else 0.0
@@ -121,7 +137,7 @@ def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float,
         raise ValueError(f"scenario part: {path.name} is thinner than one layer ({layer_m * 1e6:g} µm)")
     plans = []
     for i in range(n_layers):
-        hatcher.layerAngleIncrement = float(np.mod(i * hatch_rotation_deg, 180.0))
+        hatcher.hatchAngle = 90.0 + float(np.mod(i * hatch_rotation_deg, 180.0))   # PySLM's 90°: along +-x
         layer = hatcher.hatch(part.getVectorSlice((i + 0.5) * layer_m * 1e3))
         tracks = []
         for geometry in layer.geometry if layer is not None else ():

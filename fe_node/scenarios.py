@@ -35,7 +35,8 @@ the shipped 1.5 mm x 0.5 mm cylinder, :data:`fe_node.part.EXAMPLE_STL`) sliced e
 ``powder_layer_m`` (default 50 µm) and hatched every ``hatch_m`` (default 0.1 mm) by PySLM
 (:mod:`fe_node.part`, needs ``pythonslm``); ``n_layers`` defaults to all the part's layers.
 ``hatch_rotation_deg`` (default 67) turns the hatch from one layer to the next; ``contours``
-(default true) scans each slice's outline before its hatch.
+(default true) scans each slice's outline before its hatch; ``island_width_m`` > 0 hatches in
+square islands of that side (default 0: no islands).
 ``ident-part``: the same part under a seeded random power staircase (the ``ident_*`` overrides
 above; the powder and the small part need far less power than the bare plate, so its
 identification runs choose lower means, :data:`gp_trainer.campaign.IDENT_PART_RUNS`).
@@ -49,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fe_node.part import CONTOURS, EXAMPLE_STL, HATCH_ROTATION_DEG, part_plans
+from fe_node.part import CONTOURS, EXAMPLE_STL, HATCH_ROTATION_DEG, ISLAND_WIDTH_M, part_plans
 from fe_node.presets import preset
 from fe_node.scan import Profile, ScanPlan, Signal
 from fe_node.settings import Settings, check_type
@@ -224,7 +225,7 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
 
 def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w: float | None = None,
           speed_m_s: float = 0.8, hatch_rotation_deg: float = HATCH_ROTATION_DEG, contours: bool = CONTOURS,
-          **settings_kw) -> Scenario:
+          island_width_m: float = ISLAND_WIDTH_M, **settings_kw) -> Scenario:
     """The ``part`` and ``ident-part`` scenarios (module docstring); ``settings_kw`` are
     :class:`Settings` fields and, for ``ident-part``, the ``ident_*`` overrides."""
     ident_kw = {k: settings_kw.pop(k) for k in list(settings_kw) if k in IDENT_DEFAULTS}
@@ -237,9 +238,10 @@ def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w
         raise ValueError(f"scenario override {sorted(ident_kw)[0]!r} conflicts with 'power_w' (a constant power)")
     check_type("scenario override 'hatch_rotation_deg'", hatch_rotation_deg, "float")
     check_type("scenario override 'contours'", contours, "bool")
+    check_type("scenario override 'island_width_m'", island_width_m, "float")
     layer_m = settings_kw.setdefault("powder_layer_m", 50e-6)
     stl = Path(EXAMPLE_STL if part_stl is None else part_stl)
-    plans = part_plans(stl, layer_m, hatch_m, float(hatch_rotation_deg), contours)
+    plans = part_plans(stl, layer_m, hatch_m, float(hatch_rotation_deg), contours, float(island_width_m))
     n = settings_kw.setdefault("n_layers", len(plans))
     if not 1 <= n <= len(plans):
         raise ValueError(f"scenario {name}: n_layers must be in [1, {len(plans)}] for this part, got {n}")

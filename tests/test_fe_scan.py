@@ -126,13 +126,36 @@ def test_contours_come_first_in_a_layer():
     assert np.array_equal(_hatch_lines(without), np.arange(len(without.tracks)))  # no contour: hatch only
 
 
+def test_islands_are_a_checkerboard_turned_with_the_layer_and_cover_the_slice():
+    pytest.importorskip("pyslm")
+    from fe_node.part import EXAMPLE_STL, part_plans
+
+    plans = part_plans(EXAMPLE_STL, 50e-6, 100e-6, island_width_m=0.5e-3)
+    grid = np.stack(np.meshgrid(np.linspace(-0.8e-3, 0.8e-3, 81), np.linspace(-0.8e-3, 0.8e-3, 81)), -1).reshape(-1, 2)
+    inside = grid[np.hypot(*grid.T) < 0.748e-3]
+    for i, plan in enumerate(plans[:4]):
+        hatch = _hatch_lines(plan)
+        assert hatch[0] >= 48                                                       # the contour first
+        turn = np.mod(plan.angles_deg[hatch] - 67.0 * i, 90.0)                      # along the island grid's axes
+        assert np.minimum(turn, 90.0 - turn) == pytest.approx(np.zeros(len(hatch)), abs=0.1)   # 10 nm on µm lines
+        across = np.mod(plan.angles_deg[hatch] - 67.0 * i, 180.0)
+        assert np.any(np.abs(across - 90.0) < 1) and np.any(np.minimum(across, 180 - across) < 1)   # both ways
+        assert plan.lengths[hatch].max() <= 0.5e-3 + 1e-7                           # no line leaves its island
+        ends = np.array(plan.tracks)
+        assert _distance(inside, ends[:, 0], ends[:, 1]).max() <= 75e-6             # the slice covered
+    with pytest.raises(ValueError, match="island_width_m must be 0 .no islands. or at least hatch_m"):
+        part_plans(EXAMPLE_STL, 50e-6, 100e-6, island_width_m=50e-6)
+
+
 def test_part_options_are_checked_and_other_scenarios_refuse_them():
     pytest.importorskip("pyslm")
     with pytest.raises(ValueError, match="^scenario override 'hatch_rotation_deg' must be a finite number, got 'x'$"):
         scenario("part", hatch_rotation_deg="x")
     with pytest.raises(ValueError, match="^scenario override 'contours' must be true or false, got 1$"):
         scenario("part", contours=1)
-    for key, value in (("hatch_rotation_deg", 67.0), ("contours", True)):
+    with pytest.raises(ValueError, match="^scenario override 'island_width_m' must be a finite number, got nan$"):
+        scenario("part", island_width_m=float("nan"))
+    for key, value in (("hatch_rotation_deg", 67.0), ("contours", True), ("island_width_m", 1e-3)):
         with pytest.raises(ValueError, match=f"unknown scenario override '{key}'"):
             scenario("layer", **{key: value})
     flat = scenario("part", n_layers=2, hatch_rotation_deg=0, contours=False).layer_plans[1]
