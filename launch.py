@@ -17,11 +17,18 @@ from pathlib import Path
 from typing import Any
 
 from controller_node.node import load_model
+from controller_node.preview import parse_learning_state
+from controller_node.registry import CONTROLLERS
+from controller_node.report import WINDOW_START_S, plot, read_trace
+from controller_node.report import main as report_main
 from controller_node.settings import ControllerSettings
 from controller_node.summary import comparison_table, summarise, table_line
-from fe_node.scenarios import PART_NAMES
+from fe_node.commands import CommandPolicy
+from fe_node.scenarios import NAMES, PART_NAMES, PART_POWER_W, scenario
+from gp_trainer.narx import PART_MODEL_PATH
 from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
+from messages.config import build, load_toml
 from messages.launch.node import NodeSpec, load_node_list
 from messages.launch.service import (
     LaunchService,
@@ -34,8 +41,7 @@ from messages.launch.service import (
 from messages.live import DEFAULT_PORT, check_port
 
 DEFAULT_CONTROLLER = "preview-mpc"
-CONTROLLER_CHOICES = ("mpc", "preview-mpc", "pid", "feedforward", "open-loop", "none")
-COMPARED = ("open-loop", "pid", "feedforward", "mpc", "preview-mpc")
+CONTROLLER_CHOICES = (*CONTROLLERS, "none")
 NODE_OPTIONS = ("scenario", "part", "layers", "controller", "setpoint_mm2", "learning_state", "model", "max_steps",
                 "h_um", "fallback", "command_timeout_s", "config", "compare", "live")  # refused with --nodes
 DEFAULT_SETPOINT_MM2 = round(ControllerSettings.set_point_m2 * 1e6, 9)
@@ -95,21 +101,18 @@ class RunOptions:
         """Whether a controller node takes part (``none``: the plant plays its own profile)."""
         return self.controller != "none"
 
-    def setpoint(self) -> float:
-        """The set point [mm²]: the option, else the [controller] table's, else the default."""
+    def resolved(self) -> RunOptions:
+        """These options with ``setpoint_mm2`` resolved once: the option, else the ``--config``
+        ``[controller]`` table's, else the default (:class:`UsageError` naming a bad key)."""
         if self.setpoint_mm2 is not None:
-            return self.setpoint_mm2
-        from messages.config import build, load_toml
-
+            return self
         table = {k: v for k, v in load_toml(self.config).get("controller", {}).items() if k != "name"}
-        return build(ControllerSettings, table, f"{self.config} [controller]").set_point_m2 * 1e6
+        settings = build(ControllerSettings, table, f"{self.config} [controller]")
+        return replace(self, setpoint_mm2=settings.set_point_m2 * 1e6)
 
 
 def check_config(opts: RunOptions) -> None:
     """Validate scenario and TOML configuration as the nodes will read them (:class:`UsageError` naming the key)."""
-    from fe_node.scenarios import NAMES, scenario
-    from messages.config import build, load_toml
-
     if opts.scenario not in NAMES:
         raise UsageError(f"--scenario: unknown {opts.scenario!r}; choose one of {', '.join(NAMES)}")
     data = load_toml(opts.config)
@@ -122,7 +125,7 @@ def check_config(opts: RunOptions) -> None:
     except (ValueError, TypeError) as err:
         raise UsageError(f"{opts.config} [plant]: {err}" if opts.config else str(err)) from None
     table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
-    settings = build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint() * 1e-6)
+    settings = build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint_mm2 * 1e-6)
     model = load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
     if opts.closed_loop:
         check_within_plant(settings, f"{opts.config} [controller]")
@@ -135,8 +138,6 @@ def check_config(opts: RunOptions) -> None:
 def check_learning_state(path: Path, model, settings: ControllerSettings) -> None:
     """:class:`UsageError` unless ``path`` holds learning the preview MPC on ``model`` can start from
     (:func:`controller_node.preview.parse_learning_state`; a missing file starts afresh)."""
-    from controller_node.preview import parse_learning_state
-
     try:
         parse_learning_state(json.loads(path.read_bytes()), model.sample_period_s,
                              settings.preview.turn_learning_steps, len(model.turn_profile_k))
@@ -167,8 +168,6 @@ def check_within_plant(settings: ControllerSettings, where: str) -> None:
     """:class:`UsageError` unless the controller's power bounds and speed lie within the bounds the
     plant node starts with (:class:`fe_node.commands.CommandPolicy`'s): the plant would drop every
     command outside them."""
-    from fe_node.commands import CommandPolicy
-
     plant = CommandPolicy()
     if not plant.power_min_w <= settings.power_min_w < settings.power_max_w <= plant.power_max_w:
         raise UsageError(f"{where}: power bounds [{settings.power_min_w:g}, {settings.power_max_w:g}] W must lie "
@@ -183,8 +182,6 @@ def default_model(opts: RunOptions) -> Path | None:
     """The model of the run's plant if it is not the controller's default: the part model
     (``gp_trainer.narx.PART_MODEL_PATH``) for ``preview-mpc`` on a part scenario."""
     if opts.scenario in PART_NAMES and opts.controller == "preview-mpc":
-        from gp_trainer.narx import PART_MODEL_PATH
-
         return PART_MODEL_PATH
     return None
 
@@ -195,9 +192,6 @@ def part_nominal_power(opts: RunOptions) -> float | None:
     nominal_power_w`` is set; ``None`` elsewhere (the controller's own default)."""
     if opts.scenario not in PART_NAMES:
         return None
-    from fe_node.scenarios import PART_POWER_W
-    from messages.config import load_toml
-
     data = load_toml(opts.config)
     if "nominal_power_w" in data.get("controller", {}):
         return None
@@ -212,7 +206,7 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
     nodes = []
     if opts.closed_loop:
         recorder += ["--expect", "controller"]
-        controller = ["--controller", opts.controller, "--setpoint-mm2", repr(opts.setpoint()), "--require",
+        controller = ["--controller", opts.controller, "--setpoint-mm2", repr(opts.setpoint_mm2), "--require",
                       "recorder", *common]
         model = opts.model or default_model(opts)
         controller += ["--model", str(model)] if model else []
@@ -257,7 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     add("--out", type=Path, help="MCAP recording to write (with --compare: the output folder); refused if it exists")
     add("--overwrite", action="store_true", help="replace the --out recording(s) if they exist")
     add("--json", action="store_true", help="print a JSON summary as the last line")
-    add("--compare", action="store_true", help=f"run {', '.join(COMPARED)} on the same plant; table and figure")
+    add("--compare", action="store_true", help=f"run {', '.join(CONTROLLERS)} on the same plant; table and figure")
     add("--report", type=Path, metavar="RECORDING", help="only the Table 4 metrics and figure of a recording")
     add("--nodes", type=Path, metavar="FILE", help="TOML node list replacing the default nodes (docs/node-contract.md)")
     add("--run-id", help="run identifier (default: derived from the recording name)")
@@ -290,23 +284,21 @@ def launch(specs: list[NodeSpec], out: Path, run_id: str | None, hub: str | None
 
 def compare(opts: RunOptions, folder: Path, args: argparse.Namespace, progress: bool) -> tuple[int, dict[str, Any]]:
     """Run every compared controller on one plant (stop at the first failure); ``comparison.md`` and ``.png``."""
-    from controller_node.report import WINDOW_START_S, plot, read_trace
-
     rows, traces = [], {}
-    for name in COMPARED:
+    for name in CONTROLLERS:
         run_opts = RunOptions(**{**vars(opts), "controller": name, "learning_state": None})
         out = writable_recording(folder / f"{opts.scenario}-{name}.mcap")
         status, wall_s = launch(default_nodes(run_opts, out), out, None, args.hub, progress, args.zenoh_config)
-        summary = summarise(out, opts.scenario, name, opts.setpoint(), status, wall_s)
+        summary = summarise(out, opts.scenario, name, status, wall_s)
         print(table_line(summary))
         if status != 0 or summary.get("complete") is not True or "steady_rmse_pct" not in summary:
             return status or 1, {"failed": name, **summary}
         rows.append(summary)
         traces[name] = read_trace(out)
     table = folder / "comparison.md"
-    table.write_text(comparison_table(opts.scenario, opts.setpoint(), rows))
+    table.write_text(comparison_table(opts.scenario, opts.setpoint_mm2, rows))
     print(table.read_text())
-    figure = plot(traces, opts.setpoint(), folder / "comparison.png")
+    figure = plot(traces, opts.setpoint_mm2, folder / "comparison.png")
     return 0, {"table": str(table), "figure": str(figure), "window_start_s": WINDOW_START_S, "runs": rows}
 
 
@@ -316,8 +308,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         if args.report:
-            from controller_node.report import main as report_main
-
             setpoint = ["--setpoint-mm2", str(args.setpoint_mm2)] if args.setpoint_mm2 else []
             return report_main([str(args.report), "--json", *setpoint])
         if args.compare and (given := [f"--{k.replace('_', '-')}" for k in ("controller", "model", "learning_state")
@@ -328,6 +318,7 @@ def main(argv: list[str] | None = None) -> int:
                           | {"scenario": args.scenario or "layer", "controller": args.controller or DEFAULT_CONTROLLER})
         specs = load_node_list(args.nodes) if args.nodes is not None else None
         if specs is None:
+            opts = opts.resolved()
             check_config(opts)
             if opts.live is not None:
                 check_port(opts.live)
@@ -340,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.out:
                 folder = args.out
                 writable_recording(folder / "comparison.md")
-                taken = [p for name in COMPARED if (p := folder / f"{opts.scenario}-{name}.mcap").exists()]
+                taken = [p for name in CONTROLLERS if (p := folder / f"{opts.scenario}-{name}.mcap").exists()]
                 if taken and not args.overwrite:
                     raise UsageError(f"--out {taken[0]}: exists; give --overwrite to replace it")
             else:
@@ -362,8 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     status, wall_s = launch(specs or default_nodes(opts, out), out, args.run_id, args.hub, progress, args.zenoh_config)
     summary = {"status": status, "wall_s": round(wall_s, 2), "recording": str(out)}
     if specs is None and out.exists():  # (no recording: the run failed before its recorder started, said above)
-        summary = summarise(out, opts.scenario, opts.controller, opts.setpoint() if opts.closed_loop else None,
-                            status, wall_s)
+        summary = summarise(out, opts.scenario, opts.controller, status, wall_s)
         print(table_line(summary))
         print(f"[launch] recording: {out}")
         if status == 0 and summary.get("complete") is False:

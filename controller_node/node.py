@@ -44,6 +44,7 @@ from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run
 from messages.config import as_dict, build, load_toml
 from messages.spare_core import SpareCore
 from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE, RUN_EVENTS
+from messages.types import MAX_STEP, MAX_STEPS_AHEAD
 
 NODE_NAME = "controller"
 
@@ -94,10 +95,6 @@ def load_model(name: str, path: Path | None):
         return loader(path)
     except (GPTrainerError, OSError) as err:
         raise UsageError(f"cannot load GP model {path}: {' '.join(str(err).split())}") from None
-
-
-MAX_STEP = 2**31 - 1  # the contract's largest step (messages.types.Step)
-MAX_STEPS_AHEAD = 1000  # a state further ahead of the last answered one is not believed (50 ms at 50 µs)
 
 
 def inadmissible(step: int, last_step: int | None) -> str | None:

@@ -12,22 +12,23 @@ from controller_node.report import (
     WINDOW_START_S,
     metrics,
     read_trace,
+    recorded_setpoint,
     recording_completeness,
     update_latency_us,
 )
 from messages.recording import RecordingError
 
 
-def summarise(out: Path, scenario: str, controller: str, setpoint_mm2: float | None, status: int,
-              wall_s: float) -> dict[str, Any]:
-    """Summary of a run: completeness and, for a closed loop (``setpoint_mm2`` given), the
-    Table-4 metrics; ``complete`` is false for a run that did not finish or whose recording
-    cannot be read."""
+def summarise(out: Path, scenario: str, controller: str, status: int, wall_s: float) -> dict[str, Any]:
+    """Summary of a run: completeness and, for a closed loop, the Table-4 metrics at the set point
+    the controller recorded (none recorded: no metrics); ``complete`` is false for a run that did
+    not finish or whose recording cannot be read."""
     summary: dict[str, Any] = {"status": status, "wall_s": round(wall_s, 2), "recording": str(out),
                                "scenario": scenario, "controller": controller}
     try:
         trace = read_trace(out)
         done = recording_completeness(out, int(trace.time_s.size))
+        setpoint_mm2 = recorded_setpoint(out)
     except RecordingError as err:
         summary.update(error=str(err), complete=False, incomplete_reason=f"unreadable recording: {err}")
         return summary

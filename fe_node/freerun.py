@@ -38,7 +38,7 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -298,12 +298,14 @@ class FreeRunStats:
 
 
 def state_message(run_id: str, step: int, time_s: float, s: PlantSample, power_w: float, speed_m_s: float,
-                  source: str) -> MeltPoolState:
-    """SI sample → contract message (mm², mm, mm/s at this edge)."""
+                  source: str, **details: Any) -> MeltPoolState:
+    """SI sample → contract message (mm², mm, mm/s at this edge): the one construction of a plant's
+    ``MeltPoolState``; ``details`` are its optional fields, already in the message's units."""
     return MeltPoolState(
         run_id=run_id, step=step, time_s=time_s, laser_x_mm=s.x_m * 1e3, laser_y_mm=s.y_m * 1e3,
         scan_dir_x=s.direction[0], scan_dir_y=s.direction[1], track=s.track, area_mm2=s.area_m2 * 1e6,
         t_ahead_k=s.t_ahead_k, power_w=power_w, speed_mm_s=speed_m_s * 1e3, source=source,  # type: ignore[arg-type]
+        **details,
     )
 
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fe_node.commands import FALLBACKS, CommandGate, CommandPolicy, Verdict
+from fe_node.freerun import state_message
 from fe_node.image import temperature_image
 from fe_node.observe import Observation
 from fe_node.scenarios import NAMES, PART_NAMES, Scenario
@@ -95,24 +96,19 @@ def describe(scenario: Scenario) -> dict:
         default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
-def state_message(run_id: str, obs: Observation) -> MeltPoolState:
-    """SI observation → contract message (mm², µm, mm/s at this edge)."""
-    return MeltPoolState(
-        run_id=run_id, step=obs.step, time_s=obs.time_s, laser_x_mm=obs.x_m * 1e3, laser_y_mm=obs.y_m * 1e3,
-        scan_dir_x=obs.direction[0], scan_dir_y=obs.direction[1], track=obs.track, area_mm2=obs.area_m2 * 1e6,
-        t_ahead_k=obs.t_ahead_k, power_w=obs.power_w, speed_mm_s=obs.speed_m_s * 1e3, width_um=obs.width_m * 1e6,
-        length_um=obs.length_m * 1e6, depth_um=obs.depth_m * 1e6, cross_section_mm2=obs.cross_section_m2 * 1e6,
-        t_peak_k=obs.t_peak_k, cooling_rate_k_s=obs.cooling_rate_k_s, thermal_gradient_k_m=obs.thermal_gradient_k_m,
-        solidification_rate_mm_s=obs.solidification_rate_m_s * 1e3, layer=obs.layer, source="fe", **preview_fields(obs),
-    )
-
-
-def preview_fields(obs: Observation) -> dict:
-    """Scan-plan preview of a state: track distances → times at the applied speed (none before laser-on)."""
-    if not obs.speed_m_s > 0:
-        return {"next_track": obs.next_track}
-    return {"track_elapsed_s": obs.track_travelled_m / obs.speed_m_s,
-            "track_remaining_s": obs.track_remaining_m / obs.speed_m_s, "next_track": obs.next_track}
+def fe_state(run_id: str, obs: Observation) -> MeltPoolState:
+    """SI observation → contract message: :func:`~fe_node.freerun.state_message` with what an FE model
+    knows besides (extents in µm, cross-section in mm², peak temperature, solidification figures,
+    layer, and the scan-plan preview: track distances → times at the applied speed, none before
+    laser-on)."""
+    preview = {} if not obs.speed_m_s > 0 else {"track_elapsed_s": obs.track_travelled_m / obs.speed_m_s,
+                                                 "track_remaining_s": obs.track_remaining_m / obs.speed_m_s}
+    return state_message(run_id, obs.step, obs.time_s, obs, obs.power_w, obs.speed_m_s, "fe",
+                         width_um=obs.width_m * 1e6, length_um=obs.length_m * 1e6, depth_um=obs.depth_m * 1e6,
+                         cross_section_mm2=obs.cross_section_m2 * 1e6, t_peak_k=obs.t_peak_k,
+                         cooling_rate_k_s=obs.cooling_rate_k_s, thermal_gradient_k_m=obs.thermal_gradient_k_m,
+                         solidification_rate_mm_s=obs.solidification_rate_m_s * 1e3, layer=obs.layer,
+                         next_track=obs.next_track, **preview)
 
 
 class CommandWaiter:
@@ -171,7 +167,7 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
     status = 0
     t_min, t_max = scenario.settings.t0_k, scenario.settings.material.t_liquidus + 600.0
     while not stop.is_set():
-        states.put(state_message(bus.run_id, obs))
+        states.put(fe_state(bus.run_id, obs))
         lasers.put(laser_pose(obs))
         if obs.layer != scene_layer:
             scene, notes = fitted_scene(model.plan, obs, scenario.part_stl)
@@ -214,7 +210,7 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
             n_dropped=waiter.n_dropped if waiter else 0, command_source=source,
         ))
         if status:
-            states.put(state_message(bus.run_id, obs))
+            states.put(fe_state(bus.run_id, obs))
             break
     ended = "aborted" if status else "stopped" if stop.is_set() else "finished"  # "finished": end of the plan
     summary = (f"{ended} at step {obs.step}{': controller lost' if status else ''}; {n_fallbacks} fallbacks"

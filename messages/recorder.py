@@ -76,11 +76,9 @@ from messages.topics import (
     run_prefix,
     split_key,
 )
-from messages.types import RunEvent
+from messages.types import MAX_STEPS_AHEAD, RunEvent
 
 NODE_NAME = "recorder"
-MAX_STEPS_AHEAD = 1000
-"""Largest step advance over the last recorded state/command of a topic that is still possible."""
 STEP_TOPICS = (PLANT_STATE, LASER_COMMAND)
 FLUSH_PERIOD_S = 0.5
 """Wall time [s] between chunk closes and file flushes (while messages arrive and when idle)."""

@@ -30,7 +30,14 @@ RunId = Annotated[
     ),
 ]
 NodeName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")]
-Step = Annotated[int, msgspec.Meta(ge=0, le=2**31 - 1, description="Step index k.")]
+MAX_STEP = 2**31 - 1
+"""The largest step index of the contract."""
+MAX_STEPS_AHEAD = 1000
+"""Admission limit: a state or command more than this many steps ahead of the last one admitted on
+its topic is not believed (a forged or corrupted step; 50 ms at 50 µs, far beyond any real gap of a
+plant in lockstep or free-running at its frame period). The controller node and the recorder both
+drop such a message and count it."""
+Step = Annotated[int, msgspec.Meta(ge=0, le=MAX_STEP, description="Step index k.")]
 TimeS = Annotated[float, msgspec.Meta(ge=0.0, le=1.0e6, description="Process time [s].")]
 TempK = Annotated[float, msgspec.Meta(gt=0.0, le=1.0e5, description="Temperature [K].")]
 PositionMm = Annotated[float, msgspec.Meta(ge=-1.0e4, le=1.0e4)]

@@ -6,10 +6,11 @@ import threading
 
 from msgspec.structs import replace
 
-from controller_node.node import MAX_STEP, MAX_STEPS_AHEAD, inadmissible, run
+from controller_node.node import inadmissible, run
 from controller_node.registry import make_controller
 from controller_node.settings import ControllerSettings
 from messages import MeltPoolState
+from messages.types import MAX_STEP, MAX_STEPS_AHEAD
 
 
 def test_inadmissible_steps():

@@ -12,10 +12,7 @@ from fe_node.commands import CommandGate, CommandPolicy, Verdict
 from fe_node.node import POLL_S, CommandWaiter, PlantSettings
 from messages import LaserCommand
 from messages.cli import UsageError
-from messages.types import Step
-
-MAX_STEP = 2**31 - 1
-assert Step.__metadata__[0].le == MAX_STEP  # the contract's largest step
+from messages.types import MAX_STEP
 
 
 def cmd(step: int, power_w: float = 200.0, speed_mm_s: float = 800.0) -> LaserCommand:

@@ -18,12 +18,12 @@ import pytest
 from messages import LaserCommand
 from messages.bus import BusSettings, NodeBus
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
+from messages.types import MAX_STEP
 from tests.conftest import finish, spawn
 
 STEPS = 60
 SLACK = 10  # steps after the last burst, for the plant to read every forged command
 N_FORGED = 2000
-MAX_STEP = 2**31 - 1
 
 
 def forgery(i: int, run_id: str, k: int) -> LaserCommand:

@@ -15,7 +15,6 @@ import pytest
 from messages.cli import UsageError
 from messages.codec import encode
 from messages.recorder import (
-    MAX_STEPS_AHEAD,
     Admission,
     Intake,
     McapRecorder,
@@ -26,7 +25,7 @@ from messages.recorder import (
 )
 from messages.recording import is_complete, metadata, read_messages
 from messages.topics import LASER_COMMAND, LOG, PLANT_STATE, RUN_EVENTS, key_expr, message_node
-from messages.types import RunEvent
+from messages.types import MAX_STEPS_AHEAD, RunEvent
 from tests.samples import sample_messages
 
 RUN = "run1"

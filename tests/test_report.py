@@ -238,16 +238,27 @@ def test_launch_summary_and_table_of_an_incomplete_run(tmp_path, capsys):
     from controller_node.summary import summarise, table_line
 
     path = _write_recording(tmp_path / "run.mcap", 40, 60, end_detail="stopped at step 39; 0 fallbacks")
-    summary = summarise(path, "single-track", "pid", SETPOINT_MM2, 0, 1.0)
+    summary = summarise(path, "single-track", "pid", 0, 1.0)
     assert summary["complete"] is False and summary["incomplete_reason"] == "40 of 61 plant states recorded"
     out = table_line(summary)
     assert "pid on single-track: INCOMPLETE (40 of 61 plant states recorded)" in out and "overshoot" not in out
 
     full = _write_recording(tmp_path / "full.mcap", 61, 60)
-    summary = summarise(full, "single-track", "pid", SETPOINT_MM2, 0, 1.0)
+    summary = summarise(full, "single-track", "pid", 0, 1.0)
     assert summary["complete"] is True and summary["window_start_s"] == WINDOW_START_S
     assert summary["rmse_turnaround_pct"] is None and summary["n_along"] == 41
     assert "window from 1 ms after laser-on" in table_line(summary)
+
+
+def test_launch_summary_takes_the_set_point_the_controller_recorded(tmp_path):
+    from controller_node.summary import summarise
+
+    recorded = summarise(_write_recording(tmp_path / "at.mcap", 61, 60, setpoint_mm2=0.08), "single-track", "pid",
+                         0, 1.0)
+    assert recorded["setpoint_mm2"] == 0.08 and "steady_rmse_pct" in recorded
+    plain = summarise(_write_recording(tmp_path / "plain.mcap", 61, 60, setpoint_mm2=0.1), "single-track", "pid",
+                      0, 1.0)
+    assert plain["steady_rmse_pct"] != recorded["steady_rmse_pct"]
 
 
 @pytest.mark.parametrize("n_states, expected_status", [(40, 1), (61, 0)])

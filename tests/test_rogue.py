@@ -88,6 +88,6 @@ def test_the_table4_figures_are_those_of_the_clean_run(runs):
     from controller_node.summary import summarise
 
     (_, clean), (_, attacked) = runs
-    figures = [{k: v for k, v in summarise(path, "layer", "pid", 0.063, 0, 0.0).items()
+    figures = [{k: v for k, v in summarise(path, "layer", "pid", 0, 0.0).items()
                 if k.endswith("_pct") or k in ("steps", "complete")} for path in (clean, attacked)]
     assert figures[0] == figures[1] and figures[0]["complete"] is True
