@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from controller_node.node import load_model
-from controller_node.preview import parse_learning_state
+from controller_node.preview import parse_learning_state, process_mismatch
 from controller_node.registry import CONTROLLERS
 from controller_node.report import WINDOW_START_S, plot, read_trace
 from controller_node.report import main as report_main
@@ -25,7 +25,7 @@ from controller_node.settings import ControllerSettings
 from controller_node.summary import comparison_table, summarise, table_line
 from fe_node.commands import CommandPolicy
 from fe_node.scenarios import NAMES, PART_NAMES, PART_POWER_W, scenario
-from gp_trainer.narx import PART_MODEL_PATH
+from gp_model.narx import PART_MODEL_PATH
 from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 from messages.config import build, load_toml
@@ -49,7 +49,11 @@ DEFAULT_SETPOINT_MM2 = round(ControllerSettings.set_point_m2 * 1e6, 9)
 
 @dataclass(frozen=True)
 class RunOptions:
-    """What one default run consists of (validated command-line options; SI inside the nodes)."""
+    """What one default run consists of (validated command-line options; SI inside the nodes).
+
+    ``setpoint_mm2`` [mm²] is resolved once, on construction: the option, else the ``--config``
+    ``[controller]`` table's, else the controller's default.
+    """
 
     scenario: str = "layer"
     part: Path | None = None
@@ -89,6 +93,10 @@ class RunOptions:
         for ok, message in checks:
             if not ok:
                 raise UsageError(message)
+        if self.setpoint_mm2 is None:  # resolved once, here: the [controller] table's, else the default
+            table = {k: v for k, v in load_toml(self.config).get("controller", {}).items() if k != "name"}
+            settings = build(ControllerSettings, table, f"{self.config} [controller]")
+            object.__setattr__(self, "setpoint_mm2", settings.set_point_m2 * 1e6)
 
     @property
     def plant_overrides(self) -> dict[str, Any]:
@@ -101,14 +109,6 @@ class RunOptions:
         """Whether a controller node takes part (``none``: the plant plays its own profile)."""
         return self.controller != "none"
 
-    def resolved(self) -> RunOptions:
-        """These options with ``setpoint_mm2`` resolved once: the option, else the ``--config``
-        ``[controller]`` table's, else the default (:class:`UsageError` naming a bad key)."""
-        if self.setpoint_mm2 is not None:
-            return self
-        table = {k: v for k, v in load_toml(self.config).get("controller", {}).items() if k != "name"}
-        settings = build(ControllerSettings, table, f"{self.config} [controller]")
-        return replace(self, setpoint_mm2=settings.set_point_m2 * 1e6)
 
 
 def check_config(opts: RunOptions) -> None:
@@ -152,7 +152,6 @@ def check_process(model, plant, settings: ControllerSettings, config: Path | Non
     ``model`` was identified on (:func:`controller_node.preview.process_mismatch`): the speed of its
     first state (the scenario's), the speed the controller commands after it, its sample period and
     its material."""
-    from controller_node.preview import process_mismatch
 
     file = f"{config} " if config else ""
     checks = ((f"{file}[plant] speed_m_s", {"speed_m_s": plant.profile.command(0)[1]}),
@@ -180,7 +179,7 @@ def check_within_plant(settings: ControllerSettings, where: str) -> None:
 
 def default_model(opts: RunOptions) -> Path | None:
     """The model of the run's plant if it is not the controller's default: the part model
-    (``gp_trainer.narx.PART_MODEL_PATH``) for ``preview-mpc`` on a part scenario."""
+    (``gp_model.narx.PART_MODEL_PATH``) for ``preview-mpc`` on a part scenario."""
     if opts.scenario in PART_NAMES and opts.controller == "preview-mpc":
         return PART_MODEL_PATH
     return None
@@ -243,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
     add("--config", type=Path, help="TOML run configuration: [plant] and [controller] tables of settings")
     add("--learning-state", type=Path, metavar="FILE", help="preview-mpc: start from FILE's learning, write this run's")
     add("--model", type=Path, help="model file of mpc, feedforward or preview-mpc (default: the controller's shipped "
-                                   "model in gp_trainer/models/; refused with --compare)")
+                                   "model in gp_model/models/; refused with --compare)")
     add("--max-steps", type=int, help="end the run after this many plant steps")
     add("--h-um", type=float, help="fine FE element size [µm]")
     add("--fallback", help="what the plant applies when the controller is gone or late: safe (default) or hold")
@@ -318,7 +317,6 @@ def main(argv: list[str] | None = None) -> int:
                           | {"scenario": args.scenario or "layer", "controller": args.controller or DEFAULT_CONTROLLER})
         specs = load_node_list(args.nodes) if args.nodes is not None else None
         if specs is None:
-            opts = opts.resolved()
             check_config(opts)
             if opts.live is not None:
                 check_port(opts.live)

@@ -33,10 +33,10 @@ SHIPPED = Path(__file__).resolve().parent.parent / "gp_trainer" / "models" / "in
 
 def load_model(plant: AnalyticMeltPoolModel):
     """The shipped GP if present, else a GP fitted here on 100 synthetic transitions."""
-    from gp_trainer.model import GPModel
+    from gp_model.model import GPModel
 
     if SHIPPED.exists():
-        return GPModel.load(SHIPPED), "gp_trainer/models/in625_gp.json (shipped)"
+        return GPModel.load(SHIPPED), "gp_model/models/in625_gp.json (shipped)"
     rng = np.random.default_rng(0)
     z = np.column_stack([rng.uniform(0.02e-6, 0.16e-6, 100), rng.uniform(300.0, 1400.0, 100),
                          rng.uniform(50.0, 350.0, 100), np.full(100, 0.8)])

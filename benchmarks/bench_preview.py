@@ -41,7 +41,7 @@ from controller_node.preview_qp import solve_reference
 from controller_node.types import Measurement
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
-from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel
+from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel
 
 
 def measurement(obs) -> Measurement:
@@ -134,7 +134,7 @@ def main() -> None:
         "loadavg_1min_at_start": round(load_at_start, 2),
         "qp_paths": dict(paths),
         "scenario": args.scenario,
-        "model": "gp_trainer/models/in625_narx_gp.json",
+        "model": "gp_model/models/in625_narx_gp.json",
     }
     print(f"{result['n_updates']} updates on {args.scenario}: "
           f"median {result['median_us']} us, p99 {result['p99_us']} us; "

@@ -36,7 +36,7 @@ from bench_preview import measurement  # noqa: E402
 from controller_node import ControllerSettings, make_controller  # noqa: E402
 from fe_node.scenarios import scenario  # noqa: E402
 from fe_node.solver import ThermalModel  # noqa: E402
-from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel  # noqa: E402
+from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel  # noqa: E402
 
 SPEED_M_S = 0.8
 

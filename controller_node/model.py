@@ -2,7 +2,7 @@
 
 Any one-step model of eq. (1), ``x[k+1] = f(x[k], T[k], p[k], v[k])``, works if it
 provides ``predict`` and ``mean_and_jacobian`` on ``z = (x [m²], T [K], p [W], v [m/s])``,
-e.g. ``gp_trainer.model.GPModel`` or :class:`controller_node.synthetic.AnalyticMeltPoolModel`.
+e.g. ``gp_model.model.GPModel`` or :class:`controller_node.synthetic.AnalyticMeltPoolModel`.
 A *history model* (``n_inputs == 5``, the shipped GP) takes the last area change
 ``x[k] − x[k−1]`` [m²] as a fifth input; its linearisation then has a second state gain
 ``a_prev = ∂f/∂x[k−1]`` and the MPC predicts with ``x[k+1] = f0 + a(x − x0) + a_prev(x⁻ − x0⁻) + …``.
@@ -118,7 +118,7 @@ def linearise(model: DynamicsModel, z0: np.ndarray, variance: bool = False) -> L
         Operating point, shape (4,) or (5,) (:func:`operating_point`), SI units.
     variance : bool
         Also give the predictive variance at ``z0`` (``variance_m4``): from the same evaluation
-        when the model has ``mean_jacobian_and_variance`` (:class:`gp_trainer.model.GPModel`), else
+        when the model has ``mean_jacobian_and_variance`` (:class:`gp_model.model.GPModel`), else
         from ``predict``.
 
     Returns

@@ -24,10 +24,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from controller_node.registry import CONTROLLERS, make_controller
+from controller_node.registry import CONTROLLERS, MODELS, make_controller
 from controller_node.settings import PLANT_PRESETS, ControllerSettings, with_preset
 from controller_node.types import ConfigurationError, Measurement
-from gp_trainer.atomic import atomic_write_bytes
+from gp_model.atomic import atomic_write_bytes
+from gp_model.files import load_for_node
 from messages import ControllerDiagnostics, LaserCommand, LogLevel, MeltPoolState
 from messages.bus import (
     Inbox,
@@ -67,34 +68,20 @@ def measurement_from_state(state: MeltPoolState) -> Measurement:
 
 
 def default_model_path(name: str) -> Path | None:
-    """The shipped model file of controller ``name`` (``None``: it needs no model)."""
-    if name == "preview-mpc":
-        from gp_trainer.narx import DEFAULT_MODEL_PATH
-    elif name in ("mpc", "feedforward"):
-        from gp_trainer.model import DEFAULT_MODEL_PATH
-    else:
-        return None
-    return DEFAULT_MODEL_PATH
+    """The shipped model file of controller ``name`` (``None``: it runs no model)."""
+    return MODELS[name][1] if name in MODELS else None
 
 
 def load_model(name: str, path: Path | None):
-    """The model for controllers that need one (``mpc``, ``feedforward``: the one-step GP;
-    ``preview-mpc``: the delay-aware model), else ``None``; :class:`UsageError` if it cannot be
+    """The model of controller ``name`` (:data:`~controller_node.registry.MODELS`; ``path``, else the
+    shipped one), or ``None`` for a controller that runs none; :class:`UsageError` if it cannot be
     loaded, or if ``path`` is given for a controller that uses no model."""
-    default = default_model_path(name)
-    if default is None:
+    if name not in MODELS:
         if path is not None:
             raise UsageError(f"--model: the {name} controller uses no model")
         return None
-    from gp_trainer.errors import GPTrainerError
-    from gp_trainer.model import GPModel
-    from gp_trainer.narx import NarxGPModel
-
-    loader, path = (NarxGPModel.load if name == "preview-mpc" else GPModel.load), path or default
-    try:
-        return loader(path)
-    except (GPTrainerError, OSError) as err:
-        raise UsageError(f"cannot load GP model {path}: {' '.join(str(err).split())}") from None
+    model_class, default = MODELS[name]
+    return load_for_node(model_class, path or default)
 
 
 def inadmissible(step: int, last_step: int | None) -> str | None:
@@ -363,7 +350,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--controller", default="preview-mpc", choices=CONTROLLERS,
                         help="control law (default: %(default)s)")
     parser.add_argument("--model", type=Path,
-                        help="model file (default: the controller's shipped model in gp_trainer/models/)")
+                        help="model file (default: the controller's shipped model in gp_model/models/)")
     parser.add_argument("--setpoint-mm2", type=float, help="melt-pool area set point [mm²]")
     parser.add_argument("--nominal-power-w", type=float,
                         help="power at laser-on and during the pool build-up [W] (default: [controller] "

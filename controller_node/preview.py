@@ -7,10 +7,10 @@ Each update at state k (:meth:`PreviewMPC.update`):
    ``d̂ ← d̂ + L (x[k] − x̂[k|k−1] − d̂)``.
 2. **Forecast**: T ahead over the horizon from the scan-plan preview carried by the state
    (``track_elapsed_s``, ``track_remaining_s``, ``next_track``) and the turnaround profile
-   (:func:`gp_trainer.narx.forecast_t_ahead`, compiled); the profile of the last turnaround seen in this
+   (:func:`gp_model.narx.forecast_t_ahead`, compiled); the profile of the last turnaround seen in this
    run replaces the trained one where it has been observed (learning from the run).
 3. **Predict**: ``x̂[k+m] = c₀ + Σ b_i p[k+m−i] + Σ c_j T[k+m−1−j] + r(ψ_{k+m−1}) + d̂``,
-   m = 1..H (model of :mod:`gp_trainer.narx`), affine in the planned powers.
+   m = 1..H (model of :mod:`gp_model.narx`), affine in the planned powers.
 4. **Optimise**: the QP of :mod:`controller_node.preview_qp` (tracking of the set point,
    move penalty, hard power bounds, soft area bounds tightened by the GP's predictive std).
 
@@ -119,7 +119,7 @@ class PreviewMPC(Controller):
     ----------
     settings : ControllerSettings
         ``settings.preview`` configures it.
-    model : gp_trainer.narx.NarxGPModel
+    model : gp_model.narx.NarxGPModel
         Delay-aware model (FIR part, residual GP, turnaround profile, sample period).
 
     Attributes

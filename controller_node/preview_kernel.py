@@ -8,9 +8,9 @@ and the state's :class:`~controller_node.preview_stages.StateContext`:
    compares the state's area with its held x̂[k|k−1]; the state's power and T ahead enter the
    histories.
 2. **Predict** (:class:`~controller_node.preview_stages.Predictor`): T ahead over the horizon
-   (:func:`gp_trainer.narx.forecast_into`), the learned turnaround correction
+   (:func:`gp_model.narx.forecast_into`), the learned turnaround correction
    (:func:`correction_into`), and, for the planned powers ū (the previous plan, shifted), for
-   m = 1..H (model of :mod:`gp_trainer.narx`, rows indexed ``i = m − 1``)::
+   m = 1..H (model of :mod:`gp_model.narx`, rows indexed ``i = m − 1``)::
 
     z_m = c₀ + Σ_i (b_i p_i + q_i p_i²) + Σ_j c_j T_j + Σ_{j<n_Tq} d_j T_j² + Σ_{i<n_x} e_i p_i T_i + r(ψ_{k+m−1})
     x̂_m = exp(z_m) (log output) + d̂ + κ-learned correction_m
@@ -44,7 +44,7 @@ each, their arrays are views into a few blocks allocated once, the GP kernel's e
 vectorisable loop (:func:`exp_into`, within 1 ulp of numpy's), and the Hessian and its Cholesky
 factor are formed by loops over their band (n_p powers per row of Γ). The numpy formulation stays
 the reference: ``tests/test_preview_kernel.py`` checks this kernel against the model's own
-prediction (:meth:`gp_trainer.narx.NarxGPModel.predict_run`), its Jacobian against finite
+prediction (:meth:`gp_model.narx.NarxGPModel.predict_run`), its Jacobian against finite
 differences, and the QP terms against :meth:`PreviewQP.hessian` / :meth:`PreviewQP.gradient`;
 ``tests/test_preview_replay.py`` checks the commands on recorded states.
 """
@@ -56,8 +56,8 @@ import math
 import numpy as np
 from numba import njit
 
-from gp_trainer.compiled import BoundOnFirstCall
-from gp_trainer.narx import STEPS_SINCE_START_CAP, forecast_into
+from gp_model.compiled import BoundOnFirstCall
+from gp_model.narx import STEPS_SINCE_START_CAP, forecast_into
 
 from .preview_stages import (
     MOMENTS,
@@ -277,7 +277,7 @@ def _series_variance(planner):  # pragma: no cover (compiled)
 # ---------------------------------------------------------------------------------------- predict
 @njit(cache=True, nogil=True)
 def _forecast(predictor, run, context, t_ahead_k, out):  # pragma: no cover (compiled)
-    """T ahead over the horizon into ``out`` (:func:`gp_trainer.narx.forecast_into`, whose
+    """T ahead over the horizon into ``out`` (:func:`gp_model.narx.forecast_into`, whose
     convention for "no turn behind" is a NaN base)."""
     t_base = context.turn_base_k if context.has_turn_base else math.nan
     forecast_into(t_ahead_k, context.since, context.on_first, context.to_end, run.profile, t_base, predictor.decay,
@@ -579,7 +579,7 @@ class Kernel:
 
     Parameters
     ----------
-    model : gp_trainer.narx.NarxGPModel
+    model : gp_model.narx.NarxGPModel
         The delay-aware model.
     qp : controller_node.preview_qp.PreviewQP
         The QP (set point, scales, bounds, weights, move matrix).

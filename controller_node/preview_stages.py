@@ -174,7 +174,7 @@ class Estimator(structref.StructRefProxy):
 
 
 class Predictor(structref.StructRefProxy):
-    """The delay-aware model's constants (:mod:`gp_trainer.narx`): ``intercept`` c₀; ``b``, ``q``
+    """The delay-aware model's constants (:mod:`gp_model.narx`): ``intercept`` c₀; ``b``, ``q``
     (powers, squared), ``cc``, ``d`` (temperatures, squared), ``e`` (power × temperature)
     coefficients; the residual GP's input mean and scale, prior and noise variances, largest
     ``|W_a0|`` (``w0_max``), per training point ``gp_points`` (rows ``W_a`` and ``−‖W_a‖²/2``),

@@ -19,7 +19,7 @@ from __future__ import annotations
 import daqp
 import numpy as np
 
-from gp_trainer.compiled import BoundOnFirstCall
+from gp_model.compiled import BoundOnFirstCall
 
 from .qp import QPData, QPSolution, qp_constants
 from .qp_condensed import condense_into

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+from gp_model import model as one_step
+from gp_model import narx
+
 from .base import Controller
 from .baselines import OpenLoopController
 from .feedforward import FeedForwardController
@@ -11,9 +16,16 @@ from .pid import PIDController
 from .preview import PreviewMPC
 from .settings import ControllerSettings
 
-__all__ = ["CONTROLLERS", "make_controller"]
+__all__ = ["CONTROLLERS", "MODELS", "make_controller"]
 
 CONTROLLERS: tuple[str, ...] = ("open-loop", "pid", "feedforward", "mpc", "preview-mpc")
+"""Every controller by name, in the order of launch.py's comparison."""
+MODELS: dict[str, tuple[type, Path]] = {
+    "feedforward": (one_step.GPModel, one_step.DEFAULT_MODEL_PATH),
+    "mpc": (one_step.GPModel, one_step.DEFAULT_MODEL_PATH),
+    "preview-mpc": (narx.NarxGPModel, narx.DEFAULT_MODEL_PATH),
+}
+"""The model class and shipped model file of each controller that runs a model (the others run none)."""
 
 
 def make_controller(
@@ -27,7 +39,7 @@ def make_controller(
         Controller kind.
     settings : ControllerSettings, optional
         Defaults to ``ControllerSettings()``.
-    model : DynamicsModel or gp_trainer.narx.NarxGPModel, optional
+    model : DynamicsModel or gp_model.narx.NarxGPModel, optional
         Required by ``"mpc"`` (one-step model), by ``"preview-mpc"`` (delay-aware model), and by
         ``"feedforward"`` unless ``settings.feedforward.gain_w_per_k`` is set; ignored otherwise.
 
@@ -53,6 +65,6 @@ def make_controller(
         return MPCController(settings, model)
     if name == "preview-mpc":
         if model is None or not hasattr(model, "turn_profile_k"):
-            raise ValueError("the 'preview-mpc' controller needs a delay-aware model (gp_trainer.narx.NarxGPModel)")
+            raise ValueError("the 'preview-mpc' controller needs a delay-aware model (gp_model.narx.NarxGPModel)")
         return PreviewMPC(settings, model)
     raise ValueError(f"unknown controller {name!r}; choose one of {', '.join(CONTROLLERS)}")

@@ -267,7 +267,7 @@ class PreviewSettings:
         ``L`` in (0, 1] of the output-disturbance observer ``d̂ += L (x − x̂ − d̂)``.
     observer_start_steps : int
         States of the pool build-up after laser-on, of the run and of every layer (the model is
-        not fitted on them, ``gp_trainer.narx.BUILD_UP_STEPS``): the observer starts after them
+        not fitted on them, ``gp_model.narx.BUILD_UP_STEPS``): the observer starts after them
         and the QP does not track them.
     learn_turn_profile : bool
         Forecast the next turnaround with the rise of T ahead seen at the last one in this run.

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from fe_node.freerun import PlantSample, add_free_run_arguments, serve, settings_from_args
+from gp_model.files import load_for_node
+from gp_model.model import DEFAULT_MODEL_PATH, GPModel
 from messages.bus import add_bus_arguments, bus_settings_from_args, single_threaded_blas
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 
@@ -83,8 +85,6 @@ class GPSurrogate:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m fe_node.surrogate``."""
-    from gp_trainer.model import DEFAULT_MODEL_PATH
-
     parser = ArgumentParser(prog="python -m fe_node.surrogate", description=__doc__.split("\n\n")[0])
     add_free_run_arguments(parser, rate_hz=2000.0)
     parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
@@ -103,15 +103,9 @@ def main(argv: list[str] | None = None) -> int:
                  {"model": str(args.model), "profile": vars(profile), "dt_s": GP_STEP_S}, source="surrogate")
 
 
-def load_model(path: Path):
+def load_model(path: Path) -> GPModel:
     """The GP model at ``path`` (:class:`UsageError` with a one-line reason if it cannot be loaded)."""
-    from gp_trainer.errors import GPTrainerError
-    from gp_trainer.model import GPModel
-
-    try:
-        return GPModel.load(path)
-    except (GPTrainerError, OSError, ValueError) as err:
-        raise UsageError(f"cannot load GP model {path}: {' '.join(str(err).split())}") from None
+    return load_for_node(GPModel, path)
 
 
 if __name__ == "__main__":

@@ -38,32 +38,36 @@ the other jobs are kept.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import dataclasses
 import hashlib
 import json
 import math
-import os
-import signal
-import subprocess
 import sys
-import tempfile
-import threading
-import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Protocol
 
+from fe_node.settings import Settings
+from gp_model.narx import DEFAULT_MODEL_PATH as NARX_MODEL_PATH
+from gp_model.narx import PART_MODEL_PATH
+from gp_trainer.distributed import check_scheduler_address, dask_client, run_on_dask
 from gp_trainer.errors import CampaignError
-from gp_trainer.narx import DEFAULT_MODEL_PATH as NARX_MODEL_PATH
-from gp_trainer.narx import PART_MODEL_PATH
+from gp_trainer.jobs import (
+    Job,
+    JobResult,
+    RunnerSettings,
+    RunSpec,
+    interrupt_running,
+    job_command,
+    job_recording,
+    plant_toml,
+    recording_complete,
+    run_job,
+)
 from gp_trainer.provenance import REPO_ROOT
+from messages.recording import read_messages, run_config
 
 TABLE2_CASES = tuple(range(1, 10))
 DEFAULT_IDENT_DIR = Path("recordings/identification")
-STOP_GRACE_S = 30.0  # after a timeout: SIGINT, then SIGKILL if the launcher is still running
-OUTPUT_TAIL_LINES = 15  # of a failed run's output, kept in its result
 
 
 @dataclass(frozen=True)
@@ -129,87 +133,6 @@ class CaseResult:
     states_sha256: str | None = None
 
 
-@dataclass(frozen=True)
-class Job:
-    """One recorded run of the launcher.
-
-    Attributes
-    ----------
-    name : str
-        Run id and recording stem (``<out_dir>/<name>.mcap``).
-    scenario : str
-        launch.py's ``--scenario``.
-    plant : tuple[tuple[str, Any], ...]
-        ``[plant]`` table (key, value pairs: numbers, booleans, strings). If not empty it is
-        written to a TOML file in a temporary directory, passed as ``--config`` and removed
-        after the run (the plant records its resolved scenario, profile included, in the MCAP).
-    args : tuple[str, ...]
-        Further launch.py arguments.
-    controller : str or None
-        launch.py's ``--controller`` for this job (None: the runner's, ``none`` by default).
-    """
-
-    name: str
-    scenario: str
-    plant: tuple[tuple[str, Any], ...] = ()
-    args: tuple[str, ...] = ()
-    controller: str | None = None
-
-
-@dataclass(frozen=True)
-class JobResult:
-    """Outcome of one job.
-
-    Attributes
-    ----------
-    name : str
-    recording : str
-        The final recording, or the ``.partial.mcap`` a failed run left.
-    status : str
-        ``skipped`` (already complete), ``ok`` or ``failed`` (every attempt failed).
-    wall_s : float
-        Wall time of the last attempt [s].
-    detail : str
-        The launcher's last output line; for a failure ``exit status N: <last line>``.
-    attempts : int
-        Launcher runs (0 for skipped; 2 for a failure retried once).
-    exit_status : int or None
-        The launcher's exit status of the last attempt (None: it never ran or its worker died).
-    worker : str
-        Dask worker address of the last attempt (``local`` without Dask).
-    output_tail : str
-        Last lines of the launcher's merged stdout/stderr of a failed attempt.
-    states_sha256 : str or None
-        :func:`states_sha256` of a complete recording.
-    """
-
-    name: str
-    recording: str
-    status: str
-    wall_s: float
-    detail: str
-    attempts: int = 1
-    exit_status: int | None = None
-    worker: str = ""
-    output_tail: str = ""
-    states_sha256: str | None = None
-
-
-class RunnerSettings(Protocol):
-    """What :func:`run_jobs` needs (:class:`CampaignSettings`, :class:`IdentifySettings`)."""
-
-    out_dir: Path
-    workers: int
-    launcher: Path
-    python: str
-    timeout_s: float | None
-    controller: str
-    scheduler: str | None
-    sequential: bool
-    retries: int
-    launch_args: tuple[str, ...]
-
-
 def scenario_name(case: int) -> str:
     """Scenario (and run id, recording stem) of Table 2 case ``case``, e.g. ``table2-case2``."""
     return f"table2-case{case}"
@@ -220,11 +143,6 @@ def case_job(case: int) -> Job:
     return Job(scenario_name(case), scenario_name(case))
 
 
-def job_recording(settings: RunnerSettings | RunSpec, job: Job) -> Path:
-    """Final recording of one job."""
-    return settings.out_dir / f"{job.name}.mcap"
-
-
 def recording_path(settings: CampaignSettings, case: int) -> Path:
     """Final recording of one case."""
     return job_recording(settings, case_job(case))
@@ -233,7 +151,6 @@ def recording_path(settings: CampaignSettings, case: int) -> Path:
 def requested_mesh_m(job: Job, settings: RunnerSettings) -> float:
     """The FE mesh size ``h_fine_m`` [m] a run of ``job`` asks for: the runner's ``--h-um`` (launch.py's
     option wins over the job's ``[plant]`` table), else the table's ``h_fine_m``, else the plant's default."""
-    from fe_node.settings import Settings
 
     args = list(getattr(settings, "launch_args", ()))
     if "--h-um" in args:
@@ -244,7 +161,6 @@ def requested_mesh_m(job: Job, settings: RunnerSettings) -> float:
 def check_recorded_mesh(path: Path, job: Job, settings: RunnerSettings) -> None:
     """:class:`CampaignError` if the complete recording ``path``, which a re-run would keep, was made on
     another FE mesh than ``job`` asks for (e.g. an earlier ``--h-um 50`` run in the same ``--out-dir``)."""
-    from messages.recording import run_config
 
     recorded = run_config(path).get("plant", {}).get("settings", {}).get("h_fine_m")
     wanted = requested_mesh_m(job, settings)
@@ -253,62 +169,9 @@ def check_recorded_mesh(path: Path, job: Job, settings: RunnerSettings) -> None:
                             f"{wanted * 1e6:g} µm: use another --out-dir, or delete it to record it again")
 
 
-def recording_complete(path: Path) -> bool:
-    """True if ``path`` exists and the recorder finished it with no message missing."""
-    from messages.recording import is_complete
-
-    return path.is_file() and is_complete(path)
-
-
-def job_command(settings: RunnerSettings | RunSpec, job: Job, out: Path, config: Path | None = None) -> list[str]:
-    """Command line that records ``job`` to ``out``, with ``--config config`` if given (the job's
-    ``[plant]`` table as TOML), then the job's and the settings' further arguments; ``out`` (the
-    job's partial recording, left by an earlier attempt) is overwritten. The launcher runs in the
-    repository root: the runner passes absolute paths."""
-    return [settings.python, str(settings.launcher), "--scenario", job.scenario,
-            "--controller", job.controller or settings.controller,
-            *(("--config", str(config)) if config is not None else ()), *job.args,
-            *getattr(settings, "launch_args", ()), "--no-progress", "--json", "--out", str(out), "--overwrite",
-            "--run-id", job.name]
-
-
 def case_command(settings: CampaignSettings, case: int, out: Path) -> list[str]:
     """Command line that records one case to ``out``."""
     return job_command(settings, case_job(case), out)
-
-
-def _toml_value(key: str, value: Any) -> str:
-    if not key or not set(key) <= set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-"):
-        raise CampaignError(f"[plant] key {key!r}: not a bare TOML key")
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise CampaignError(f"[plant] {key}: not a finite number: {value}")
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)  # a TOML basic string
-    raise CampaignError(f"[plant] {key}: unsupported value {value!r}")
-
-
-def plant_toml(plant: tuple[tuple[str, Any], ...]) -> str:
-    """A TOML document with one ``[plant]`` table (flat numbers, booleans and strings)."""
-    return "[plant]\n" + "".join(f"{key} = {_toml_value(key, value)}\n" for key, value in plant)
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    """What a worker needs to record a job: absolute paths, so a Dask worker in another working
-    directory (or on another machine sharing the file system) writes where the campaign would."""
-
-    out_dir: Path
-    launcher: Path
-    python: str
-    timeout_s: float | None
-    controller: str
-    launch_args: tuple[str, ...] = ()
 
 
 def run_spec(settings: RunnerSettings) -> RunSpec:
@@ -317,118 +180,11 @@ def run_spec(settings: RunnerSettings) -> RunSpec:
                    settings.controller, tuple(getattr(settings, "launch_args", ())))
 
 
-_RUNNING: dict[str, subprocess.Popen[str]] = {}  # partial recording -> launcher process, in this process
-_RUNNING_LOCK = threading.Lock()
-
-
-def _tail(text: str, lines: int = OUTPUT_TAIL_LINES) -> str:
-    return "\n".join(text.rstrip().splitlines()[-lines:])
-
-
-def _worker_name() -> str:
-    try:
-        from distributed import get_worker
-
-        return get_worker().address
-    except (ImportError, ValueError):
-        return "local"
-
-
-def run_job(spec: RunSpec, job: Job, attempt: int = 1) -> JobResult:
-    """Record one job now, in this process (a Dask worker runs exactly this).
-
-    The launcher runs as a subprocess in the repository root (its nodes are separate processes
-    as in any run) and writes ``<name>.partial.mcap``, renamed to ``<name>.mcap`` when it
-    succeeded and the recorder marked the file complete. Never raises for a failed run: the
-    result says ``failed`` with the exit status and the last lines of the launcher's output.
-    """
-    started = time.monotonic()
-    final = job_recording(spec, job)
-    partial = final.with_name(f"{job.name}.partial.mcap")
-    worker = _worker_name()
-    try:
-        if not job.plant:
-            returncode, output = _launch(spec, job, partial, None)
-        else:
-            with tempfile.TemporaryDirectory(prefix="meltloop-job-") as tmp:
-                config = Path(tmp) / f"{job.name}.toml"
-                config.write_text(plant_toml(job.plant))
-                returncode, output = _launch(spec, job, partial, config)
-    except (OSError, CampaignError) as exc:  # e.g. the interpreter or launcher is missing on this worker
-        return JobResult(job.name, str(partial), "failed", time.monotonic() - started,
-                         f"could not start the launcher on {worker}: {exc}", attempt, None, worker, str(exc))
-    wall = time.monotonic() - started
-    last = (output.strip().splitlines() or [""])[-1]
-    if returncode == 0 and recording_complete(partial):
-        os.replace(partial, final)
-        return JobResult(job.name, str(final), "ok", wall, last, attempt, 0, worker, "")
-    if returncode == 0:
-        last = f"the recording {partial.name} is not complete; {last}".rstrip("; ")
-    return JobResult(job.name, str(partial), "failed", wall, f"exit status {returncode}: {last or 'no output'}",
-                     attempt, returncode, worker, _tail(output))
-
-
-def _parent_death_sigint() -> Callable[[], None] | None:
-    """On Linux, a ``preexec_fn`` asking the kernel to send the launcher SIGINT when the thread
-    that started it dies (a killed Dask worker or campaign): the launcher then stops its nodes
-    instead of running on, orphaned, while the job is run again elsewhere. None elsewhere."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
-    pr_set_pdeathsig, sigint = ctypes.c_int(1), ctypes.c_ulong(signal.SIGINT)  # built before fork
-
-    def preexec() -> None:
-        prctl(pr_set_pdeathsig, sigint)
-
-    return preexec
-
-
-_PARENT_DEATH_SIGINT = _parent_death_sigint()
-
-
-def _launch(spec: RunSpec, job: Job, partial: Path, config: Path | None) -> tuple[int, str]:
-    """Run the launcher to the end (or the timeout): exit status and its merged stdout/stderr."""
-    partial.parent.mkdir(parents=True, exist_ok=True)
-    proc = subprocess.Popen(job_command(spec, job, partial, config), cwd=REPO_ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, preexec_fn=_PARENT_DEATH_SIGINT)
-    with _RUNNING_LOCK:
-        _RUNNING[str(partial)] = proc
-    try:
-        output, _ = proc.communicate(timeout=spec.timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.send_signal(signal.SIGINT)  # let the launcher stop its nodes, then insist
-        try:
-            output, _ = proc.communicate(timeout=STOP_GRACE_S)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            output, _ = proc.communicate()
-        output += f"\ntimed out after {spec.timeout_s} s"
-    finally:
-        with _RUNNING_LOCK:
-            _RUNNING.pop(str(partial), None)
-    return proc.returncode, output
-
-
-def interrupt_running(partials: list[str] | None = None) -> int:
-    """SIGINT to the launchers this process runs (those writing ``partials``, or all): the
-    launcher stops its nodes in order. Returns how many were signalled."""
-    with _RUNNING_LOCK:
-        procs = [p for key, p in _RUNNING.items() if partials is None or key in partials]
-    for proc in procs:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-    return len(procs)
-
-
 def states_sha256(path: Path) -> str | None:
     """SHA-256 of a recording's ``/plant/state`` messages (msgspec JSON, in file order): what the
     dataset is built from, free of wall-clock times; equal for equal FE runs wherever they ran."""
     import msgspec
 
-    from messages.recording import read_messages
 
     digest = hashlib.sha256()
     try:
@@ -450,7 +206,6 @@ def _check_runner(settings: RunnerSettings) -> None:
     if scheduler is not None and getattr(settings, "sequential", False):
         raise CampaignError("--scheduler and --sequential exclude each other")
     if scheduler is not None:
-        from gp_trainer.distributed import check_scheduler_address
 
         check_scheduler_address(scheduler)
     if not settings.launcher.is_file():
@@ -553,7 +308,6 @@ def run_jobs(jobs: list[Job] | tuple[Job, ...], settings: RunnerSettings, *, pro
     with contextlib.ExitStack() as stack:
         client = None
         if pending and not getattr(settings, "sequential", False):
-            from gp_trainer.distributed import dask_client, run_on_dask
 
             client = stack.enter_context(dask_client(getattr(settings, "scheduler", None), settings.workers))
         report = _Progress(len(jobs), len(results), unit, progress)  # after the cluster is up (or refused)
@@ -655,7 +409,7 @@ class FeedbackRun:
                    args=("--setpoint-mm2", repr(self.setpoint_mm2), *layers, *model), controller=self.controller)
 
 
-STAGE1_MODEL = "gp_trainer/models/in625_narx_gp_stage1.json"
+STAGE1_MODEL = "gp_model/models/in625_narx_gp_stage1.json"
 """The delay-aware model fitted without the preview MPC's own runs (``narx`` on every plate run
 but the ``ident-preview-mpc-*`` ones): the controller of those runs, so that the data do not
 depend on the model they train (one iteration of training on the controller's own closed loop)."""

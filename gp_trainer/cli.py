@@ -6,7 +6,7 @@ Typical use::
     python -m gp_trainer campaign --scheduler tls://HOST:8786   # ... on an existing Dask cluster (TLS)
     python -m gp_trainer identify --workers 2      # 13 identification runs -> recordings/identification/
     python -m gp_trainer dataset                   # -> out/gp/dataset.npz
-    python -m gp_trainer train                     # -> gp_trainer/models/in625_gp.json
+    python -m gp_trainer train                     # -> gp_model/models/in625_gp.json
     python -m gp_trainer evaluate --json           # metrics + out/gp/gp_scatter.png, gp_rollout.png
 
 User errors (missing or bad files, too few samples, bad arguments) end with exit status 2 and a
@@ -26,9 +26,28 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from gp_trainer.campaign import IDENT_SETS
-from gp_trainer.errors import CampaignError, DatasetError, GPTrainerError
-from gp_trainer.model import DEFAULT_MODEL_PATH, DEFAULT_RESTARTS
+from fe_node.part import require_pyslm
+from gp_model import narx
+from gp_model.errors import DatasetError, GPError
+from gp_model.files import is_model_file
+from gp_model.model import DEFAULT_MODEL_PATH, DEFAULT_RESTARTS, GPModel
+from gp_model.narx import NarxGPModel, series_from_states
+from gp_trainer import dataset, synthetic
+from gp_trainer.campaign import (
+    IDENT_SETS,
+    CampaignSettings,
+    IdentifySettings,
+    run_campaign,
+    run_identification,
+    select_ident_runs,
+    summary_json,
+)
+from gp_trainer.dataset import load_samples, read_states, recording_info
+from gp_trainer.errors import CampaignError
+from gp_trainer.evaluate import evaluate
+from gp_trainer.narx_fit import ROLLOUT_HORIZON, evaluate_model, select_and_fit
+from gp_trainer.provenance import REPO_ROOT
+from gp_trainer.train import TrainSettings, train
 
 PROG = "python -m gp_trainer"
 DEFAULT_DATASET = Path("out/gp/dataset.npz")
@@ -107,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--held-out", nargs="+", default=None,
                    help="recording stems held out for selection and evaluation (default: the --plant's)")
     p.add_argument("--out", type=Path, default=None,
-                   help="model file (default: the --plant's model in gp_trainer/models/)")
+                   help="model file (default: the --plant's model in gp_model/models/)")
     p.add_argument("--seed", type=int, default=0, help="seed of the GP point choice and optimiser restarts")
     p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
 
@@ -142,7 +161,6 @@ def _plant_option(p: argparse.ArgumentParser) -> None:
 
 def _runner_options(p: argparse.ArgumentParser, unit: str) -> None:
     """Options of the job runner (`campaign`, `identify`): where the runs execute and how."""
-    from gp_trainer.campaign import CampaignSettings
 
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=argparse.SUPPRESS,
@@ -167,7 +185,6 @@ def _runner_options(p: argparse.ArgumentParser, unit: str) -> None:
 
 def _runner_settings(args: argparse.Namespace) -> dict:
     """The runner fields of the campaign/identify settings from the command line."""
-    from gp_trainer.campaign import CampaignSettings
 
     if args.h_um is not None and not 0 < args.h_um <= 1000:
         raise CampaignError(f"--h-um must be in (0, 1000] µm, got {args.h_um}")
@@ -213,8 +230,6 @@ def _recorded_source(recordings: list[dict]) -> str:
 
 
 def _dataset(args: argparse.Namespace) -> int:
-    from gp_trainer import dataset, synthetic
-
     settings = dataset.DatasetSettings(startup_fraction=args.startup_fraction, min_samples=args.min_samples)
     if not 0.0 < settings.startup_fraction <= 1.0:
         raise DatasetError(f"--startup-fraction must be in (0, 1], got {settings.startup_fraction}")
@@ -248,9 +263,6 @@ def _dataset(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from gp_trainer.dataset import load_samples
-    from gp_trainer.train import TrainSettings, train
-
     if args.n_train < 10 or args.restarts < 1:
         raise DatasetError("--n-train must be at least 10 and --restarts at least 1")
     samples, meta = load_samples(args.dataset)
@@ -265,8 +277,6 @@ def _train(args: argparse.Namespace) -> int:
 def _evaluate_narx(args: argparse.Namespace) -> int:
     """Held-out metrics of a delay-aware model (the keys of the one-step evaluation plus
     ``rollout_h40_mape_pct`` and ``coverage_95_pct``)."""
-    from gp_trainer.dataset import read_states
-    from gp_trainer.narx import NarxGPModel, evaluate_model, series_from_states
 
     ident = IDENT_SETS[args.plant]
     model = NarxGPModel.load(args.model)
@@ -308,8 +318,6 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
 def _identify_held_out(ident, names: list[str], out_dir: Path, command: str) -> int:
     """Record the held-out identification runs ``names`` of ``ident`` into ``out_dir`` (what ``command``
     does, on a local Dask cluster); 0 when all are complete, else the status to exit with."""
-    from gp_trainer.campaign import IdentifySettings, run_identification, select_ident_runs
-
     print(f"{PROG} evaluate: recording the held-out runs first ({', '.join(names)}): {command}", file=sys.stderr)
     settings = IdentifySettings(runs=select_ident_runs(names, ident.runs), out_dir=out_dir)
     try:
@@ -321,13 +329,8 @@ def _identify_held_out(ident, names: list[str], out_dir: Path, command: str) -> 
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from gp_trainer.dataset import load_samples
-    from gp_trainer.evaluate import evaluate
-    from gp_trainer.model import GPModel
-    from gp_trainer.narx import is_model_file
-
     args.model = args.model or IDENT_SETS[args.plant].model_path
-    if is_model_file(args.model):
+    if is_model_file(args.model, narx.FORMAT_NAME):
         return _evaluate_narx(args)
     model = GPModel.load(args.model)
     samples, _ = load_samples(args.dataset)
@@ -348,8 +351,6 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _campaign(args: argparse.Namespace) -> int:
-    from gp_trainer.campaign import CampaignSettings, run_campaign, summary_json
-
     settings = CampaignSettings(cases=tuple(args.cases), **_runner_settings(args))
     try:
         results = run_campaign(settings, progress=not args.no_progress)
@@ -364,17 +365,8 @@ def _campaign(args: argparse.Namespace) -> int:
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from gp_trainer.campaign import (
-        IdentifySettings,
-        run_identification,
-        select_ident_runs,
-        summary_json,
-    )
-
     ident = IDENT_SETS[args.plant]
     if ident.name == "part":  # every run would fail on it: say so once, before starting any
-        from fe_node.part import require_pyslm
-
         try:
             require_pyslm()
         except ValueError as err:
@@ -397,7 +389,6 @@ def _identify(args: argparse.Namespace) -> int:
 def _material(paths: Sequence[Path]) -> str | None:
     """The material of the FE plant that recorded ``paths`` (its recorded configuration; ``None`` if no
     recording names one); :class:`DatasetError` if they name different ones."""
-    from gp_trainer.dataset import recording_info
 
     names = set()
     for path in paths:
@@ -411,10 +402,6 @@ def _material(paths: Sequence[Path]) -> str | None:
 
 
 def _narx(args: argparse.Namespace) -> int:
-    from gp_trainer.dataset import read_states
-    from gp_trainer.narx import ROLLOUT_HORIZON, select_and_fit, series_from_states
-    from gp_trainer.provenance import REPO_ROOT
-
     ident = IDENT_SETS[args.plant]
     held_out = args.held_out or ident.held_out
     paths = args.recordings or sorted((REPO_ROOT / ident.out_dir).glob("*.mcap"))
@@ -454,6 +441,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                "identify": _identify}[args.command]
     try:
         return command(args)
-    except GPTrainerError as exc:
+    except GPError as exc:
         print(f"{PROG} {args.command}: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2

@@ -35,8 +35,11 @@ from typing import Any
 
 import numpy as np
 
-from gp_trainer.atomic import atomic_write
-from gp_trainer.errors import DatasetError, RecordingError
+from gp_model.atomic import atomic_write
+from gp_model.errors import DatasetError
+from gp_trainer.errors import RecordingError
+from messages.recording import RecordingError as ReaderError
+from messages.recording import is_finished, metadata, read_messages, run_config
 
 FIELDS = ("step", "time_s", "track", "area_mm2", "t_ahead_k", "power_w", "speed_mm_s")
 STATE_CHANNEL = "/plant/state"
@@ -85,7 +88,7 @@ class Samples:
     ----------
     Z : np.ndarray, shape (n, 5)
         ``(area_m2, t_ahead_k, power_w, speed_m_s, area_change_m2)`` at step k (the order of
-        ``gp_trainer.model.HISTORY_INPUT_NAMES``).
+        ``gp_model.model.HISTORY_INPUT_NAMES``).
     y : np.ndarray, shape (n,)
         ``area_m2`` at step k+1.
     source : np.ndarray of str, shape (n,)
@@ -215,8 +218,6 @@ def read_states(path: str | os.PathLike[str]) -> list[Any]:
     RecordingError
         Missing, empty, truncated or invalid recording, or no plant states in it.
     """
-    from messages.recording import RecordingError as ReaderError
-    from messages.recording import is_finished, read_messages
 
     try:
         if not is_finished(path):
@@ -233,8 +234,6 @@ def read_states(path: str | os.PathLike[str]) -> list[Any]:
 
 def recording_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Provenance of one recording: name, size, SHA-256, recorder metadata and node configs."""
-    from messages.recording import RecordingError as ReaderError
-    from messages.recording import metadata, run_config
 
     try:
         data = Path(path).read_bytes()

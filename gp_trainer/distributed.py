@@ -1,7 +1,7 @@
 """Campaign jobs on Dask distributed: a ``LocalCluster`` by default, or an existing cluster.
 
 :func:`gp_trainer.campaign.run_jobs` opens a client with :func:`dask_client` and hands the pending
-jobs to :func:`run_on_dask`. Each job is one task, :func:`gp_trainer.campaign.run_job`, which
+jobs to :func:`run_on_dask`. Each job is one task, :func:`gp_trainer.jobs.run_job`, which
 starts ``launch.py`` as a subprocess on the worker; the worker only waits for it. So:
 
 * a local cluster has ``workers`` worker *processes* with one thread each: at most ``workers``
@@ -32,11 +32,10 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
 
 from gp_trainer.errors import CampaignError
+from gp_trainer.jobs import Job, JobResult, RunSpec, interrupt_running, job_recording, run_job
 
 if TYPE_CHECKING:
     from distributed import Client
-
-    from gp_trainer.campaign import Job, JobResult, RunSpec
 
 CONNECT_TIMEOUT_S = 10.0  # an unreachable --scheduler is reported after this long
 _ADDRESS = re.compile(r"^(tcp|tls)://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(\d{1,5})$")
@@ -113,12 +112,6 @@ def dask_client(scheduler: str | None, workers: int) -> Iterator[Client]:
         yield client
 
 
-def _interrupt(partials: list[str]) -> int:
-    from gp_trainer.campaign import interrupt_running
-
-    return interrupt_running(partials)
-
-
 def run_on_dask(client: Client, jobs: list[Job], spec: RunSpec, retries: int,
                 report: Callable[[JobResult, bool], None]) -> dict[str, JobResult]:
     """Run ``jobs`` as tasks on ``client``'s cluster; a failed one again, up to ``retries`` times.
@@ -127,8 +120,6 @@ def run_on_dask(client: Client, jobs: list[Job], spec: RunSpec, retries: int,
     will be retried). Returns the final result of every job, by name.
     """
     from distributed import as_completed
-
-    from gp_trainer.campaign import JobResult, job_recording, run_job
 
     campaign = uuid.uuid4().hex[:8]  # keys unique on a shared cluster; never in a result
     attempts: dict[str, tuple[Job, int]] = {}
@@ -165,6 +156,6 @@ def run_on_dask(client: Client, jobs: list[Job], spec: RunSpec, retries: int,
         client.cancel(list(live.values()))
         partials = [str(job_recording(spec, j).with_name(f"{j.name}.partial.mcap")) for j in jobs]
         with contextlib.suppress(Exception):
-            client.run(_interrupt, partials)
+            client.run(interrupt_running, partials)
         raise
     return results

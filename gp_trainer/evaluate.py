@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from gp_trainer.atomic import atomic_write
+from gp_model.atomic import atomic_write
+from gp_model.errors import DatasetError
+from gp_model.model import GPModel
 from gp_trainer.dataset import Samples
-from gp_trainer.errors import DatasetError
-from gp_trainer.model import GPModel
 
 ROLLOUT_SOURCE = "table2-case2"
 TARGET_R2 = 0.995

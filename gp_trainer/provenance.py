@@ -24,11 +24,11 @@ def _git(*args: str) -> str | None:
 def code_version() -> dict[str, Any]:
     """Revision of the source tree and versions of the numerical libraries.
 
-    ``gp_trainer_modified`` tells whether ``gp_trainer/`` (excluding the shipped model files)
-    differs from the revision; uncommitted changes elsewhere in the tree do not count, and
+    ``gp_trainer_modified`` tells whether ``gp_trainer/`` or ``gp_model/`` (excluding the shipped
+    model files) differs from the revision; uncommitted changes elsewhere in the tree do not count, and
     re-training does not change it, so a fixed seed gives a byte-identical model file.
     """
-    status = _git("status", "--porcelain", "--", "gp_trainer", ":(exclude)gp_trainer/models")
+    status = _git("status", "--porcelain", "--", "gp_trainer", "gp_model", ":(exclude)gp_model/models")
     versions = {"python": platform.python_version()}
     for name in ("numpy", "scipy"):
         try:

@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 
+from gp_model.errors import DatasetError
+from gp_model.kernel import HyperBounds
+from gp_model.model import DEFAULT_RESTARTS, HISTORY_INPUT_NAMES, GPModel
 from gp_trainer.dataset import Samples
-from gp_trainer.errors import DatasetError
-from gp_trainer.kernel import HyperBounds
-from gp_trainer.model import DEFAULT_RESTARTS, HISTORY_INPUT_NAMES, GPModel
 from gp_trainer.provenance import code_version
 from gp_trainer.selection import MAX_VARIANCE_CANDIDATES, farthest_point_indices, variance_reduction_indices
 

@@ -17,10 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gp_trainer import campaign, distributed
-from gp_trainer.campaign import CampaignSettings, Job, run_campaign, run_jobs, states_sha256
+from gp_trainer import cli, distributed
+from gp_trainer.campaign import CampaignSettings, run_campaign, run_jobs, states_sha256
 from gp_trainer.cli import main
 from gp_trainer.dataset import DatasetSettings, build_samples, concatenate, read_states
+from gp_trainer.jobs import Job
+from tests.conftest import REPO
 
 SHORT = ("--h-um", "50")  # the coarsest mesh the beam allows
 
@@ -93,9 +95,9 @@ os.execv(sys.executable, [sys.executable, {launcher!r}, *args])
 
 def test_failed_case_is_retried_once_then_reported_and_the_others_kept(tmp_path, monkeypatch, capsys):
     launcher = tmp_path / "flaky_launch.py"
-    launcher.write_text(FLAKY_LAUNCHER.format(launcher=str(campaign.REPO_ROOT / "launch.py")))
+    launcher.write_text(FLAKY_LAUNCHER.format(launcher=str(REPO / "launch.py")))
     original = run_campaign
-    monkeypatch.setattr(campaign, "run_campaign",
+    monkeypatch.setattr(cli, "run_campaign",
                         lambda settings, progress: original(dataclasses.replace(settings, launcher=launcher),
                                                             progress=progress))
     out = tmp_path / "out"

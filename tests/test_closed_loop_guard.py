@@ -25,7 +25,7 @@ from controller_node.report import Metrics, Trace, metrics
 from fe_node.node import n_steps, state_message
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
-from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel
+from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel
 
 SETPOINT_MM2 = 0.063
 

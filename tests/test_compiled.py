@@ -1,11 +1,11 @@
-"""gp_trainer.compiled.BoundOnFirstCall: the dispatcher once, then the machine code of those types."""
+"""gp_model.compiled.BoundOnFirstCall: the dispatcher once, then the machine code of those types."""
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit, typeof
 
-from gp_trainer.compiled import BoundOnFirstCall
+from gp_model.compiled import BoundOnFirstCall
 
 
 @njit(cache=False)

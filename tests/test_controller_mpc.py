@@ -174,7 +174,7 @@ def test_mpc_feedforward_term_is_added_with_sensitivity_gain() -> None:
 
 
 def test_mpc_with_gp_fitted_on_synthetic_dynamics() -> None:
-    gp_model = pytest.importorskip("gp_trainer.model")
+    gp_model = pytest.importorskip("gp_model.model")
     rng = np.random.default_rng(0)
     n = 100
     z = np.column_stack([rng.uniform(0.02e-6, 0.16e-6, n), rng.uniform(300.0, 1400.0, n),

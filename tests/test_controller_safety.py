@@ -19,7 +19,7 @@ MODEL = AnalyticMeltPoolModel()
 
 
 def _delay_model():
-    from gp_trainer.narx import NarxGPModel
+    from gp_model.narx import NarxGPModel
     from tests.test_preview import synthetic_run
 
     return NarxGPModel.fit([synthetic_run(s) for s in range(2)], n_power_lags=8, n_temperature_lags=5,

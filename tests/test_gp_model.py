@@ -9,11 +9,11 @@ import sys
 import numpy as np
 import pytest
 
+from gp_model.errors import ModelFormatError, ModelVersionError
+from gp_model.kernel import log_marginal_likelihood, squared_differences
+from gp_model.model import FORMAT_VERSION, GPModel
 from gp_trainer import synthetic
 from gp_trainer.dataset import build_samples, concatenate
-from gp_trainer.errors import ModelFormatError, ModelVersionError
-from gp_trainer.kernel import log_marginal_likelihood, squared_differences
-from gp_trainer.model import FORMAT_VERSION, GPModel
 from gp_trainer.selection import farthest_point_indices
 
 
@@ -83,8 +83,8 @@ def test_the_compiled_evaluation_is_ready_when_the_model_is():
     In a fresh process, where no earlier call compiled it."""
     code = (
         "import numpy as np\n"
-        "from gp_trainer.gp_eval import evaluate_into\n"
-        "from gp_trainer.model import DEFAULT_MODEL_PATH, GPModel\n"
+        "from gp_model.gp_eval import evaluate_into\n"
+        "from gp_model.model import DEFAULT_MODEL_PATH, GPModel\n"
         "model = GPModel.load(DEFAULT_MODEL_PATH)\n"
         "known = len(evaluate_into.signatures)\n"
         "z = np.array([0.07e-6, 600.0, 200.0, 0.8, 1e-9])\n"

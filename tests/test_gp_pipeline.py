@@ -13,12 +13,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gp_model.errors import DatasetError
+from gp_model.model import GPModel
 from gp_trainer import synthetic
 from gp_trainer.campaign import CampaignSettings, recording_path, run_campaign
 from gp_trainer.cli import main
 from gp_trainer.dataset import DatasetSettings, build_samples, concatenate, read_states
-from gp_trainer.errors import CampaignError, DatasetError, RecordingError
-from gp_trainer.model import GPModel
+from gp_trainer.errors import CampaignError, RecordingError
 
 State = synthetic.SyntheticState
 

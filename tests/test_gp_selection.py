@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gp_model.errors import DatasetError
+from gp_model.model import GPModel
 from gp_trainer import synthetic
 from gp_trainer.cli import FE_SOURCE, RECORDED_SOURCE, SYNTHETIC_SOURCE, _recorded_source, main
 from gp_trainer.dataset import build_samples, concatenate
-from gp_trainer.errors import DatasetError
-from gp_trainer.model import GPModel
 from gp_trainer.selection import farthest_point_indices, variance_reduction_indices
 from gp_trainer.train import TRAIN_BOUNDS, TrainSettings, check_design_spans_inputs, select_training_points, train
 
@@ -110,7 +110,7 @@ def test_cli_synthetic_model_says_synthetic(tmp_path, capsys):
 
 
 def test_shipped_model_is_trained_on_the_fe_campaign():
-    from gp_trainer.model import DEFAULT_MODEL_PATH
+    from gp_model.model import DEFAULT_MODEL_PATH
 
     model = GPModel.load(DEFAULT_MODEL_PATH)
     prov = model.provenance

@@ -20,14 +20,12 @@ from gp_trainer.campaign import (
     IdentifySettings,
     IdentRun,
     identify_jobs,
-    job_command,
-    job_recording,
-    plant_toml,
     run_identification,
     select_ident_runs,
 )
 from gp_trainer.cli import main
 from gp_trainer.errors import CampaignError
+from gp_trainer.jobs import job_command, job_recording, plant_toml
 from gp_trainer.provenance import REPO_ROOT
 
 REPO = Path(__file__).resolve().parent.parent

@@ -8,9 +8,10 @@ import pytest
 
 from controller_node.settings import PLANT_PRESETS, ControllerSettings, with_preset
 from fe_node.scenarios import PART_POWER_W
-from gp_trainer.campaign import IDENT_PART_RUNS, IDENT_RUNS, IDENT_SETS, FeedbackRun, IdentRun, plant_toml
+from gp_model.narx import DEFAULT_MODEL_PATH, PART_MODEL_PATH, NarxGPModel
+from gp_trainer.campaign import IDENT_PART_RUNS, IDENT_RUNS, IDENT_SETS, FeedbackRun, IdentRun
 from gp_trainer.cli import main as gp_main
-from gp_trainer.narx import DEFAULT_MODEL_PATH, PART_MODEL_PATH, NarxGPModel
+from gp_trainer.jobs import plant_toml
 from launch import RunOptions, default_nodes
 from messages.config import build
 

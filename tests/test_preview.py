@@ -1,4 +1,4 @@
-"""Delay-aware model (gp_trainer.narx) and the scan-plan preview MPC (controller_node.preview)."""
+"""Delay-aware model (gp_model.narx) and the scan-plan preview MPC (controller_node.preview)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from controller_node.registry import make_controller
 from controller_node.settings import ControllerSettings, PreviewSettings
 from controller_node.types import ConfigurationError, Measurement
 from fe_node.scan import ScanPlan
-from gp_trainer.narx import NarxGPModel, RunSeries, forecast_t_ahead
+from gp_model.narx import NarxGPModel, RunSeries, forecast_t_ahead
 
 DT = 50e-6
 SPEED_M_S = 0.8  # the synthetic runs' scan speed, as the measurements'
@@ -320,7 +320,7 @@ def test_the_process_is_the_models(tmp_path):
     from controller_node.preview import process_mismatch
     from fe_node.material import Material
     from fe_node.scenarios import scenario
-    from gp_trainer.narx import DEFAULT_MODEL_PATH
+    from gp_model.narx import DEFAULT_MODEL_PATH
     from launch import check_process
     from messages.cli import UsageError
 
@@ -353,7 +353,7 @@ def test_a_state_at_another_speed_is_refused(model):
 
 
 def test_the_model_takes_the_speed_of_its_runs():
-    from gp_trainer.errors import DatasetError
+    from gp_model.errors import DatasetError
 
     runs = [dataclasses.replace(synthetic_run(s), speed_m_s=0.6) for s in range(2)]
     fit = dict(n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity", n_train=40, n_restarts=1,
@@ -370,8 +370,8 @@ def test_the_model_takes_the_speed_of_its_runs():
 def test_a_recorded_run_carries_its_speed():
     from types import SimpleNamespace
 
-    from gp_trainer.errors import DatasetError
-    from gp_trainer.narx import series_from_states
+    from gp_model.errors import DatasetError
+    from gp_model.narx import series_from_states
 
     def state(k, speed_mm_s=800.0):
         return SimpleNamespace(step=k, time_s=k * DT, track=0, area_mm2=0.05, t_ahead_k=500.0, power_w=250.0,
@@ -383,10 +383,11 @@ def test_a_recorded_run_carries_its_speed():
 
 
 def test_evaluate_of_the_delay_aware_model_names_the_command_when_data_are_missing(tmp_path, capsys):
+    from gp_model.files import is_model_file
+    from gp_model.narx import DEFAULT_MODEL_PATH, FORMAT_NAME
     from gp_trainer.cli import main
-    from gp_trainer.narx import DEFAULT_MODEL_PATH, is_model_file
 
-    assert is_model_file(DEFAULT_MODEL_PATH) and not is_model_file(tmp_path / "none.json")
+    assert is_model_file(DEFAULT_MODEL_PATH, FORMAT_NAME) and not is_model_file(tmp_path / "none.json", FORMAT_NAME)
     assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json", "--no-identify"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     command = ("python -m gp_trainer identify --plant plate --runs ident-layer-p250-s2 ident-double-track-p250-s5 "
@@ -476,7 +477,7 @@ def _two_layer_run() -> RunSeries:
 
 
 def test_a_layer_start_is_neither_a_turnaround_nor_fitted_build_up():
-    from gp_trainer.narx import BUILD_UP_STEPS, turn_bases
+    from gp_model.narx import BUILD_UP_STEPS, turn_bases
 
     run = _two_layer_run()
     assert run.turn_starts().tolist() == [40, 120]                  # not 80: layer 1 starts a new pool
@@ -519,7 +520,7 @@ def test_every_layers_pool_build_up_is_planned_for_but_not_tracked(model):
 def test_evaluate_splits_error_and_coverage_between_turnarounds_and_tracks():
     """A plant that departs from the model only in the 50 states after a turn: the turnaround
     window's coverage and error say so, the along-track ones do not."""
-    from gp_trainer.narx import evaluate_model
+    from gp_trainer.narx_fit import evaluate_model
 
     rng = np.random.default_rng(0)
 
@@ -539,7 +540,7 @@ def test_evaluate_splits_error_and_coverage_between_turnarounds_and_tracks():
 
 def test_a_new_controller_answers_as_one_reset_after_a_run():
     """Nothing of the compile warm-up or of a previous run reaches the next run's commands."""
-    from gp_trainer.narx import DEFAULT_MODEL_PATH
+    from gp_model.narx import DEFAULT_MODEL_PATH
 
     model = NarxGPModel.load(DEFAULT_MODEL_PATH)
     settings = ControllerSettings(set_point_m2=0.063e-6)
@@ -570,7 +571,7 @@ def test_launch_checks_the_learning_state_before_any_node_starts(tmp_path, conte
     """``launch.py --learning-state FILE``: a file the controller could not start from is a usage
     error of launch.py (the same checks as :meth:`PreviewMPC.load_learning_state`), a written one passes."""
     import launch
-    from gp_trainer.narx import DEFAULT_MODEL_PATH
+    from gp_model.narx import DEFAULT_MODEL_PATH
     from messages.cli import UsageError
 
     model, settings = NarxGPModel.load(DEFAULT_MODEL_PATH), ControllerSettings()

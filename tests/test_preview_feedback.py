@@ -16,7 +16,7 @@ from controller_node.preview_qp import PreviewQP, solve_reference
 from controller_node.preview_stages import StateContext
 from controller_node.settings import ControllerSettings
 from controller_node.types import Measurement
-from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel
+from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel
 
 H = 40
 SP = 0.063e-6

@@ -13,7 +13,7 @@ from controller_node import preview_kernel
 from controller_node.preview_kernel import Kernel, correction_into, exp_into
 from controller_node.preview_qp import PreviewQP
 from controller_node.preview_stages import StateContext
-from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel, forecast_t_ahead
+from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel, forecast_t_ahead
 
 H = 40
 SP = 0.063e-6
@@ -142,7 +142,7 @@ def test_building_the_controller_compiles_every_compiled_function():
         "from controller_node.registry import make_controller\n"
         "from controller_node.settings import ControllerSettings\n"
         "from controller_node import preview_kernel as k\n"
-        "from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel\n"
+        "from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel\n"
         "model = NarxGPModel.load(DEFAULT_MODEL_PATH)\n"
         "make_controller('preview-mpc', ControllerSettings(set_point_m2=6.3e-8), model)\n"
         "print([len(f.signatures) for f in (k.update_into, k.prepare_into, k.feedback_into)])\n"
@@ -200,7 +200,7 @@ def test_the_exponential_is_numpys_within_one_ulp():
 
 def test_one_update_pushes_forecasts_and_lays_out_the_correction_as_the_reference_functions(model):
     """The fused update's first steps: the histories shifted by p_fill/t_fill copies, T ahead forecast
-    as gp_trainer.narx.forecast_t_ahead, the learned correction as correction_into (0 when nothing
+    as gp_model.narx.forecast_t_ahead, the learned correction as correction_into (0 when nothing
     is learned)."""
     rng = np.random.default_rng(7)
     qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=1.0, power_scale_w=350.0, power_min_w=0.0, power_max_w=350.0,

@@ -22,7 +22,7 @@ import pytest
 from controller_node.preview import PreviewMPC
 from controller_node.settings import ControllerSettings
 from controller_node.types import Measurement
-from gp_trainer.narx import DEFAULT_MODEL_PATH, NarxGPModel
+from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel
 
 FIXTURE = Path(__file__).resolve().parent / "data" / "preview_replay.npz"
 SP = 0.063e-6

@@ -22,7 +22,7 @@ Structure
   first order; the GP only has to learn the (smaller, local) nonlinearity.
 * ``r(z) ~ GP(0, k)`` with the SE-ARD kernel of eq. (3) on ``u`` and the residual scaled to
   unit standard deviation; hyper-parameters ``(σ_f, σ_n, ℓ_1..d)`` maximise the log marginal
-  likelihood (:mod:`gp_trainer.kernel`).
+  likelihood (:mod:`gp_model.kernel`).
 
 Far from the data ``k(z, X) → 0`` so the mean reverts to ``m(z)`` and the variance to
 ``σ_f² s_r²`` (the prior), which is the honest "I don't know" the MPC can read.
@@ -34,7 +34,6 @@ new noisy observation.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -43,11 +42,11 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from gp_trainer.atomic import atomic_write_bytes
-from gp_trainer.compiled import BoundOnFirstCall
-from gp_trainer.errors import ModelFormatError, ModelVersionError
-from gp_trainer.gp_eval import evaluate_into
-from gp_trainer.kernel import HyperBounds, fit_hyperparameters, gram, squared_differences
+from gp_model.compiled import BoundOnFirstCall
+from gp_model.errors import ModelFormatError, ModelVersionError
+from gp_model.files import is_format, read_document, write_document
+from gp_model.gp_eval import evaluate_into
+from gp_model.kernel import HyperBounds, fit_hyperparameters, gram, squared_differences
 
 FORMAT_NAME = "meltloop-gp-model"
 FORMAT_VERSION = 2
@@ -265,7 +264,7 @@ class GPModel:
         return float(out[0]), out[1:-1], float(out[-1])
 
     def _evaluate(self, z: np.ndarray, jacobian: bool, variance: bool) -> np.ndarray:
-        """``[mean, J (d,), variance]`` at ``z`` (:func:`gp_trainer.gp_eval.evaluate_into`; the parts
+        """``[mean, J (d,), variance]`` at ``z`` (:func:`gp_model.gp_eval.evaluate_into`; the parts
         not asked for are undefined). Every call passes the same argument types (``z`` made a
         contiguous float64 vector of the model's length), so it skips numba's dispatcher."""
         z = np.ascontiguousarray(z, dtype=float)
@@ -404,8 +403,7 @@ class GPModel:
         Path
             The written path.
         """
-        text = json.dumps(self.to_dict(), indent=1, sort_keys=True, allow_nan=False) + "\n"
-        return atomic_write_bytes(path, text.encode("utf-8"))
+        return write_document(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> GPModel:
@@ -418,18 +416,12 @@ class GPModel:
         ModelFormatError
             The file is missing, not JSON, not a model file or inconsistent.
         """
-        try:
-            doc = json.loads(Path(path).read_bytes())
-        except OSError as exc:
-            raise ModelFormatError(f"cannot read model file {path}: {exc.strerror or exc}") from exc
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ModelFormatError(f"model file {path} is not valid JSON ({exc})") from exc
-        return cls.from_dict(doc, source=str(path))
+        return cls.from_dict(read_document(path), source=str(path))
 
     @classmethod
     def from_dict(cls, doc: Any, *, source: str = "<dict>") -> GPModel:
         """Build a model from the document of :meth:`to_dict`; errors as in :meth:`load`."""
-        if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
+        if not is_format(doc, FORMAT_NAME):
             raise ModelFormatError(f"{source} is not a {FORMAT_NAME} file")
         if doc.get("format_version") not in READABLE_VERSIONS:
             raise ModelVersionError(f"{source} has format version {doc.get('format_version')!r}, "

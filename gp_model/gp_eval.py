@@ -2,7 +2,7 @@
 
 The hot path of the one-step GP-MPC (one call per update, :func:`controller_node.model.linearise`)
 and of the GP surrogate plant (one per frame). The formulas are eq. (4)-(5) over the linear mean,
-with the constants :class:`gp_trainer.model.GPModel` precomputes: with ``w = (z − μ) ∘ g``
+with the constants :class:`gp_model.model.GPModel` precomputes: with ``w = (z − μ) ∘ g``
 (``g = 1/(s ∘ ℓ)``), the scaled training points ``W_i`` and ``k̃_i = exp(W_i·w − ½|W_i|² − ½|w|²)``::
 
     mean     = b + a·z + c·k̃
@@ -33,7 +33,7 @@ def evaluate_into(z, offset, scale, points, half_sq_norms, mean_weights, interce
     Parameters
     ----------
     z : numpy.ndarray
-        Input, shape (d,), SI (:data:`gp_trainer.model.INPUT_NAMES` order).
+        Input, shape (d,), SI (:data:`gp_model.model.INPUT_NAMES` order).
     offset, scale : numpy.ndarray
         ``μ`` and ``g``, shape (d,): ``w = (z − μ) ∘ g``.
     points : numpy.ndarray

@@ -1,7 +1,7 @@
 """SE-ARD covariance (paper eq. 3) and hyper-parameter fitting by maximum marginal likelihood.
 
 Everything here works in *normalised* coordinates: inputs ``U`` (n, d) standardised per
-dimension and a target vector ``t`` (n,) of unit scale (see :mod:`gp_trainer.model`).
+dimension and a target vector ``t`` (n,) of unit scale (see :mod:`gp_model.model`).
 
 Hyper-parameters are handled as ``theta = (log σ_f, log σ_n, log ℓ_1, ..., log ℓ_d)`` so that
 the optimiser works on an unconstrained-looking, well-scaled space with box bounds. The kernel

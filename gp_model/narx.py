@@ -16,11 +16,11 @@ regressor, in lagged powers and temperatures only (no lagged areas):
   interactions ``p[k+1−i] T[k−i]`` give each past power the gain of the substrate it heated
   (``quadratic=False`` and ``interaction=False`` in :meth:`NarxGPModel.fit` leave them out).
 * The GP of eq. (1)–(5) (SE-ARD kernel, hyper-parameters by maximum marginal likelihood on
-  seeded random samples, :mod:`gp_trainer.kernel`) learns the residual in z on
+  seeded random samples, :mod:`gp_model.kernel`) learns the residual in z on
   ``ψ_k = (T[k] [K], log(1 + min(s_k, 100)), mean(p[k+2−n_p..k+1]) [W])`` with ``s_k`` the states
   since the current track started, and gives the predictive variance.
-* :func:`select_and_fit` chooses the lags, the output map, the squared lags, the interactions and
-  the GP's length-scale floor by the 40-step rollout error on held-out runs.
+* :func:`gp_trainer.narx_fit.select_and_fit` chooses the lags, the output map, the squared lags,
+  the interactions and the GP's length-scale floor by the 40-step rollout error on held-out runs.
 * Over a horizon the temperature ahead is forecast from the scan plan
   (:func:`forecast_t_ahead`): after a turnaround it follows the learned turnaround profile
   (:attr:`NarxGPModel.turn_profile_k`), the rise of T ahead over the state before the turn.
@@ -31,7 +31,6 @@ Everything is SI; the model file records the sample period and the definition of
 from __future__ import annotations
 
 import itertools
-import json
 import math
 import os
 from collections.abc import Iterable, Mapping, Sequence
@@ -43,9 +42,9 @@ import numpy as np
 import scipy.linalg
 from numba import njit
 
-from gp_trainer.atomic import atomic_write_bytes
-from gp_trainer.errors import DatasetError, ModelFormatError, ModelVersionError
-from gp_trainer.kernel import (
+from gp_model.errors import DatasetError, ModelFormatError, ModelVersionError
+from gp_model.files import is_format, read_document, write_document
+from gp_model.kernel import (
     HyperBounds,
     fit_hyperparameters,
     gram,
@@ -74,15 +73,6 @@ DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_narx_gp
 """The shipped delay-aware model of the bare plate (``python -m gp_trainer narx`` writes it; the MPC loads it)."""
 PART_MODEL_PATH = DEFAULT_MODEL_PATH.with_name("in625_part_narx_gp.json")
 """The delay-aware model of the ``part`` scenario (``python -m gp_trainer narx --plant part``)."""
-
-
-def is_model_file(path: str | os.PathLike[str]) -> bool:
-    """True if ``path`` is a readable JSON file of this model's format (any version)."""
-    try:
-        doc = json.loads(Path(path).read_bytes())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return False
-    return isinstance(doc, dict) and doc.get("format") == FORMAT_NAME
 
 
 @dataclass(frozen=True)
@@ -694,19 +684,13 @@ class NarxGPModel:
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the model as JSON, atomically."""
-        text = json.dumps(self.to_dict(), indent=1, sort_keys=True, allow_nan=False) + "\n"
-        return atomic_write_bytes(path, text.encode("utf-8"))
+        return write_document(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> NarxGPModel:
         """Read a model written by :meth:`save` (``ModelFormatError`` with a one-line reason)."""
-        try:
-            doc = json.loads(Path(path).read_bytes())
-        except OSError as exc:
-            raise ModelFormatError(f"cannot read model file {path}: {exc.strerror or exc}") from exc
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ModelFormatError(f"model file {path} is not valid JSON ({exc})") from exc
-        if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
+        doc = read_document(path)
+        if not is_format(doc, FORMAT_NAME):
             raise ModelFormatError(f"{path} is not a {FORMAT_NAME} file")
         if doc.get("format_version") != FORMAT_VERSION:
             raise ModelVersionError(f"{path} has format version {doc.get('format_version')!r}, "
@@ -728,88 +712,3 @@ class NarxGPModel:
                        provenance=doc.get("provenance") or {})
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelFormatError(f"{path} is a corrupt model file: {exc}") from exc
-
-
-# ---------------------------------------------------------------------- evaluation and selection
-ROLLOUT_HORIZON = 40
-STRUCTURES = ((24, 30), (32, 40))
-"""Candidate (power lags, temperature lags) of the model selection."""
-FORMS = (("log", True, True), ("log", True, False), ("log", False, False), ("identity", True, True),
-         ("identity", True, False), ("identity", False, False))
-"""Candidate (output map, squared lags, lag-matched power × temperature interactions) of the model selection."""
-LENGTH_SCALE_FLOORS = (0.5, 2.0)
-"""Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
-
-
-def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int = ROLLOUT_HORIZON,
-                   stride: int = 5) -> dict[str, Any]:
-    """Held-out metrics: one-step R² and MAPE, 95 % coverage, and the mean ``horizon``-step rollout error.
-
-    The rollout starts every ``stride`` states after the build-up and predicts ``x[k+1..k+H]`` from
-    what is known at k (:meth:`NarxGPModel.rollout`: applied powers as the plan, T forecast from the
-    scan plan); its error is the mean relative error over the horizon, averaged over the starts.
-    Coverage counts held-out one-step targets inside ``mean ± 1.96 sqrt(var + σ_n²)``, over all of
-    them and separately in the turnaround windows (the first
-    :data:`controller_node.report.TURNAROUND_STEPS` states of every track but a layer's first) and
-    along the tracks, with the one-step MAPE of each: where the model is overconfident.
-    """
-    from controller_node.report import TURNAROUND_STEPS
-
-    ys, means, sds, rollouts, turns = [], [], [], [], []
-    for run in runs:
-        mean, var = model.predict_run(run)
-        since_laser_on = run.steps_since_layer_start()
-        keep = (since_laser_on[1:] >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
-        turn = ~run.first_track_of_layer()[1:] & (run.steps_since_track_start()[1:] < TURNAROUND_STEPS)
-        turns.append(turn[keep])
-        ys.append(run.area_m2[1:][keep]), means.append(mean[keep])
-        sds.append(np.sqrt(var[keep] + model.residual.noise_variance))
-        for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride):
-            truth = run.area_m2[k + 1:k + horizon + 1]
-            if since_laser_on[k] >= BUILD_UP_STEPS and np.all(truth > 0):
-                rollouts.append(float(np.mean(np.abs(model.rollout(run, k, horizon) - truth) / truth)))
-    y, mean, sd, turn = np.concatenate(ys), np.concatenate(means), np.concatenate(sds), np.concatenate(turns)
-    inside, error = np.abs(mean - y) <= 1.96 * sd, np.abs(mean - y) / y
-
-    def share(values: np.ndarray, where: np.ndarray) -> float | None:
-        return float(100.0 * np.mean(values[where])) if np.any(where) else None
-
-    return {
-        "r2": float(1.0 - np.sum((y - mean) ** 2) / np.sum((y - y.mean()) ** 2)),
-        "mape_pct": float(100.0 * np.mean(error)),
-        "n_valid": int(y.size),
-        f"rollout_h{horizon}_mape_pct": float(100.0 * np.mean(rollouts)) if rollouts else None,
-        "coverage_95_pct": float(100.0 * np.mean(inside)),
-        "coverage_95_turnaround_pct": share(inside, turn),
-        "coverage_95_along_pct": share(inside, ~turn),
-        "mape_turnaround_pct": share(error, turn),
-        "mape_along_pct": share(error, ~turn),
-        "n_turnaround": int(np.sum(turn)),
-        "held_out": [r.name for r in runs],
-    }
-
-
-def select_and_fit(
-    train: Sequence[RunSeries],
-    held_out: Sequence[RunSeries],
-    *,
-    seed: int = 0,
-    n_train: int = 150,
-    provenance: Mapping[str, Any] | None = None,
-) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
-    """Fit every candidate (lags, output map, squared lags, interactions, length-scale floor) on ``train``; keep the
-    one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
-    Returns it, its row and the whole table; ``provenance`` goes into every candidate's."""
-    table, best = [], None
-    for (n_p, n_t), (output, quadratic, with_x), floor in itertools.product(STRUCTURES, FORMS, LENGTH_SCALE_FLOORS):
-            model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
-                                    output=output, quadratic=quadratic, interaction=with_x,
-                                    bounds=HyperBounds(length_scale=(floor, 100.0)), provenance=provenance)
-            scores = evaluate_model(model, held_out)
-            row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
-                   "interaction": with_x,
-                   "length_scale_floor": floor, **scores}
-            table.append(row)
-            if best is None or row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"] < best[0]:
-                best = (row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"], model, row)
-    return best[1], best[2], table
