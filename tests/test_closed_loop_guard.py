@@ -1,7 +1,7 @@
 """Closed-loop regression guard: the shipped preview-MPC model on the FE plant, with thresholds.
 
 The loop runs in process (no zenoh) as the nodes run it: every plant observation becomes the
-contract's ``MeltPoolState`` (:func:`fe_node.node.state_message`) and the controller's
+contract's ``MeltPoolState`` (:func:`fe_node.node.fe_state`) and the controller's
 ``Measurement`` (:func:`controller_node.node.measurement_from_state`); the controller answers it,
 then prepares its next update (the real-time iteration, as the controller node does after every
 command), and the plant takes the commanded power and speed for its next step. The metrics are the
@@ -22,7 +22,7 @@ import pytest
 from controller_node import ControllerSettings, make_controller
 from controller_node.node import measurement_from_state
 from controller_node.report import Metrics, Trace, metrics
-from fe_node.node import n_steps, state_message
+from fe_node.node import fe_state, n_steps
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
 from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel
@@ -40,7 +40,7 @@ def closed_loop(name: str, setpoint_mm2: float = SETPOINT_MM2) -> Metrics:
     obs = dataclasses.replace(plant.initial_observation(), speed_m_s=sc.profile.command(0)[1])  # as fe_node
     seen = []
     while True:
-        state = state_message("guard", obs)
+        state = fe_state("guard", obs)
         seen.append(state)
         if obs.step >= total or plant.done:
             break
