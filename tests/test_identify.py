@@ -244,8 +244,7 @@ def test_identify_records_one_double_track_end_to_end(tmp_path):
 def test_evaluate_records_the_missing_held_out_runs_first(tmp_path, monkeypatch, capsys):
     """On a fresh clone ``evaluate`` records the held-out runs it lacks (as ``identify --runs`` would,
     here a stand-in that writes synthetic recordings), then evaluates on them."""
-    import gp_trainer.campaign
-    from gp_trainer import synthetic
+    from gp_trainer import cli, synthetic
     from tests.test_gp_pipeline import _record
 
     held_out = ("ident-layer-p250-s2", "ident-double-track-p250-s5", "ident-mpc-double-track-a0.063")
@@ -258,7 +257,7 @@ def test_evaluate_records_the_missing_held_out_runs_first(tmp_path, monkeypatch,
             _record(settings.out_dir / f"{run.name}.mcap", synthetic.table2_case(2, seed=2 + i))
         return []
 
-    monkeypatch.setattr(gp_trainer.campaign, "run_identification", identify)
+    monkeypatch.setattr(cli, "run_identification", identify)
     assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json"]) == 0
     assert asked == [(list(held_out[1:]), tmp_path)]
     out, err = capsys.readouterr()
