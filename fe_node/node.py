@@ -99,16 +99,21 @@ def describe(scenario: Scenario) -> dict:
 def fe_state(run_id: str, obs: Observation) -> MeltPoolState:
     """SI observation → contract message: :func:`~fe_node.freerun.state_message` with what an FE model
     knows besides (extents in µm, cross-section in mm², peak temperature, solidification figures,
-    layer, and the scan-plan preview: track distances → times at the applied speed, none before
-    laser-on)."""
-    preview = {} if not obs.speed_m_s > 0 else {"track_elapsed_s": obs.track_travelled_m / obs.speed_m_s,
-                                                 "track_remaining_s": obs.track_remaining_m / obs.speed_m_s}
+    layer, and the scan-plan preview of :func:`preview_fields`)."""
     return state_message(run_id, obs.step, obs.time_s, obs, obs.power_w, obs.speed_m_s, "fe",
                          width_um=obs.width_m * 1e6, length_um=obs.length_m * 1e6, depth_um=obs.depth_m * 1e6,
                          cross_section_mm2=obs.cross_section_m2 * 1e6, t_peak_k=obs.t_peak_k,
                          cooling_rate_k_s=obs.cooling_rate_k_s, thermal_gradient_k_m=obs.thermal_gradient_k_m,
                          solidification_rate_mm_s=obs.solidification_rate_m_s * 1e3, layer=obs.layer,
-                         next_track=obs.next_track, **preview)
+                         **preview_fields(obs))
+
+
+def preview_fields(obs: Observation) -> dict:
+    """Scan-plan preview of a state: track distances → times at the applied speed (none before laser-on)."""
+    if not obs.speed_m_s > 0:
+        return {"next_track": obs.next_track}
+    return {"track_elapsed_s": obs.track_travelled_m / obs.speed_m_s,
+            "track_remaining_s": obs.track_remaining_m / obs.speed_m_s, "next_track": obs.next_track}
 
 
 class CommandWaiter:
