@@ -225,8 +225,10 @@ class _Correction:
         (sj, sk, si) = box
         sel = np.flatnonzero((j >= sj.start) & (j < sj.stop) & (k >= sk.start) & (k < sk.stop)
                              & (i >= si.start) & (i < si.stop))
-        if len(sel):       # K_z is symmetric: its columns ``sel`` are its rows ``sel`` transposed
-            out[self.nodes] += self.kz[sel].T @ u_box[j[sel] - sj.start, k[sel] - sk.start, i[sel] - si.start]
+        if len(sel):
+            u = np.zeros(len(self.nodes))
+            u[sel] = u_box[j[sel] - sj.start, k[sel] - sk.start, i[sel] - si.start]
+            out[self.nodes] += self.kz @ u
 
     def matrix(self, n_nodes: int) -> sp.csr_matrix:
         """``K`` on all ``n_nodes`` nodes."""
@@ -313,6 +315,7 @@ class TensorOperator:
         cz = _assemble_yz(hy, hz, w, "m", "k")
         self._ab = sp.vstack([a, _assemble_yz(hy, hz, w, "k", "m") + cz]).tocsr()
         self._cz = cz if self._vertical else None
+        self._cz_blocks = {}
         self._p = a.shape[0]
         self._corr = _Correction(self.shape, self._vertical)
         dk = (self.kw - w[:, :, None]).ravel()
@@ -380,10 +383,16 @@ class TensorOperator:
         nz = self.shape[1]
         sj, sk, si = box
         jo, ko, io = (slice(max(s.start - 1, 0), min(s.stop + 1, n)) for s, n in zip(box, self.shape))
-        rows = (np.arange(jo.start, jo.stop)[:, None] * nz + np.arange(ko.start, ko.stop)).ravel()
-        cols = (np.arange(sj.start, sj.stop)[:, None] * nz + np.arange(sk.start, sk.stop)).ravel()
-        w = np.zeros((len(rows), io.stop - io.start))
-        w[:, si.start - io.start:si.stop - io.start] = self._cz[rows][:, cols] @ u_box.reshape(len(cols), -1)
+        key = (sj.start, sj.stop, sk.start, sk.stop)
+        if key not in self._cz_blocks:        # the (y, z) box moves slowly: its block is reused
+            if len(self._cz_blocks) >= 256:
+                self._cz_blocks.clear()
+            rows = (np.arange(jo.start, jo.stop)[:, None] * nz + np.arange(ko.start, ko.stop)).ravel()
+            cols = (np.arange(sj.start, sj.stop)[:, None] * nz + np.arange(sk.start, sk.stop)).ravel()
+            self._cz_blocks[key] = self._cz[rows][:, cols]
+        block = self._cz_blocks[key]
+        w = np.zeros((block.shape[0], io.stop - io.start))
+        w[:, si.start - io.start:si.stop - io.start] = block @ u_box.reshape(block.shape[1], -1)
         res = w * self._md[io]
         mo = self._mo[io.start:io.stop - 1]
         res[:, 1:] += w[:, :-1] * mo

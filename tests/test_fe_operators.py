@@ -177,6 +177,9 @@ def test_refactoring_keeps_the_operator_and_bounds_the_correction(setup):
     kw = np.broadcast_to(np.where(np.arange(ez) >= ez - 2, 0.05, 1.0)[None, :, None], shape).copy()
     op = TensorOperator(g, kw.ravel(), vertical=True)
     u = rng.standard_normal(g.n_nodes)
+    box = (slice(3, 8), slice(ez - 3, ez + 1), slice(2, 12))
+    u_box = rng.standard_normal((5, 4, 10))
+    op.add_vertical(u_box, box, np.zeros(g.solver_shape))        # the box's (y, z) block, before
     sizes, refactored = [], 0
     for j in range(2, ey - 2):                   # one track per y row of elements, in chunks along x
         for i0 in range(0, ex, 5):
@@ -189,5 +192,9 @@ def test_refactoring_keeps_the_operator_and_bounds_the_correction(setup):
             sizes.append(op._corr.n_elements)
     fresh = TensorOperator(g, kw.ravel(), vertical=True)
     assert close(op(u), fresh(u)) and close(op.vertical(u), fresh.vertical(u))
+    on_box, out = np.zeros(g.solver_shape), np.zeros(g.solver_shape)
+    on_box[box] = u_box
+    op.add_vertical(u_box, box, out)
+    assert close(out, fresh.vertical(on_box))
     assert abs(op.assembled() - fresh.assembled()).max() <= 1e-12 * abs(fresh.assembled()).max()
     assert refactored >= 2 and max(sizes) <= 2 * 2 * ex      # two rows of two layers, not the 2 (ey - 4) rows
