@@ -2,6 +2,13 @@
 
 Functional core: ``controller.update(measurement) -> (command, diagnostics)``; build
 controllers with :func:`make_controller`.  The zenoh wrapper lives in ``node.py``.
+
+>>> from controller_node import ControllerSettings, Measurement, make_controller
+>>> pid = make_controller("pid", ControllerSettings())
+>>> state = Measurement(step=0, time_s=0.0, area_m2=0.05e-6, t_ahead_k=500.0, power_w=200.0, speed_m_s=0.8, track=0)
+>>> command, diagnostics = pid.update(state)                 # SI: m², K, W, m/s
+>>> command.step, command.power_w, diagnostics.status
+(1, 250.0, 'ok')
 """
 
 from .base import Controller, Proposal

@@ -1,11 +1,13 @@
 """fe_node: the FE thermal plant of meltloop (paper Sec. II.D) and its zenoh node.
 
-Core API (no transport)::
+Core API (no transport), here on a coarse mesh that builds at once:
 
-    from fe_node import scenario, ThermalModel
-    sc = scenario("layer")
-    model = ThermalModel(sc.settings, sc.plan)
-    obs = model.step(*sc.profile.command(model.step_index))
+>>> from fe_node import ThermalModel, scenario
+>>> sc = scenario("single-track", h_fine_m=40e-6)
+>>> model = ThermalModel(sc.settings, sc.plan)
+>>> obs = model.step(*sc.profile.command(model.step_index))  # one step of the scenario's profile
+>>> obs.step, obs.area_m2 > 0                                   # the melt pool's area [m²]
+(1, True)
 
 See docs/fe.md.
 """
