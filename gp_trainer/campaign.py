@@ -71,8 +71,8 @@ DEFAULT_IDENT_DIR = Path("recordings/identification")
 
 
 @dataclass(frozen=True)
-class CampaignSettings:
-    """What the campaign runs and where it writes.
+class CampaignSettings(RunnerSettings):
+    """What the campaign runs and where it writes (the runner's fields as :class:`RunnerSettings`).
 
     Attributes
     ----------
@@ -80,57 +80,17 @@ class CampaignSettings:
         Table 2 case numbers to run (1-9).
     out_dir : Path
         Directory of the recordings.
-    workers : int
-        Worker processes of the local Dask cluster, i.e. cases run at the same time (each is
-        several processes; the FE plant dominates).
-    launcher : Path
-        The project's ``launch.py``.
-    python : str
-        Interpreter used to run the launcher.
-    timeout_s : float or None
-        Wall-time limit per case [s].
-    controller : str
-        launch.py's ``--controller``; ``none`` plays the scenario's profiles (module docstring).
-    scheduler : str or None
-        Address of an existing Dask scheduler (``tls://HOST:PORT``); None: a ``LocalCluster`` of
-        ``workers`` worker processes started for the campaign.
-    sequential : bool
-        No Dask: the cases run in this process, one after the other (the reference of the
-        bit-for-bit comparison, and a fallback).
-    retries : int
-        A failed case is run again this many times before it is reported failed.
-    launch_args : tuple[str, ...]
-        Further launch.py arguments for every case (e.g. ``--max-steps 40 --h-um 50``).
     """
 
     cases: tuple[int, ...] = TABLE2_CASES
     out_dir: Path = Path("recordings/campaign")
-    workers: int = 2
-    launcher: Path = REPO_ROOT / "launch.py"
-    python: str = sys.executable
-    timeout_s: float | None = None
-    controller: str = "none"
-    scheduler: str | None = None
-    sequential: bool = False
-    retries: int = 1
-    launch_args: tuple[str, ...] = ()
 
 
-@dataclass(frozen=True)
-class CaseResult:
-    """Outcome of one case: ``status`` is ``skipped`` (already complete), ``ok`` or ``failed``
-    (further fields as :class:`JobResult`)."""
+@dataclass(frozen=True, kw_only=True)
+class CaseResult(JobResult):
+    """Outcome of one Table 2 case: the :class:`JobResult` of its job, with its case number."""
 
     case: int
-    recording: str
-    status: str
-    wall_s: float
-    detail: str
-    attempts: int = 1
-    exit_status: int | None = None
-    worker: str = ""
-    output_tail: str = ""
-    states_sha256: str | None = None
 
 
 def scenario_name(case: int) -> str:
@@ -345,7 +305,7 @@ def run_campaign(settings: CampaignSettings = CampaignSettings(), *, progress: b
     _check_runner(settings)
     cases = list(dict.fromkeys(settings.cases))
     done = run_jobs([case_job(c) for c in cases], settings, progress=progress, unit="case")
-    by_case = {c: CaseResult(c, **{k: v for k, v in asdict(r).items() if k != "name"}) for c, r in zip(cases, done)}
+    by_case = {c: CaseResult(case=c, **asdict(r)) for c, r in zip(cases, done)}
     return [by_case[c] for c in settings.cases]
 
 
@@ -481,8 +441,8 @@ IDENT_SETS = {
 
 
 @dataclass(frozen=True)
-class IdentifySettings:
-    """What ``identify`` runs and where it writes (fields as :class:`CampaignSettings`).
+class IdentifySettings(RunnerSettings):
+    """What ``identify`` runs and where it writes (the runner's fields as :class:`RunnerSettings`).
 
     Attributes
     ----------
@@ -496,15 +456,6 @@ class IdentifySettings:
 
     runs: tuple[IdentRun | FeedbackRun, ...] = IDENT_RUNS
     out_dir: Path = DEFAULT_IDENT_DIR
-    workers: int = 2
-    launcher: Path = REPO_ROOT / "launch.py"
-    python: str = sys.executable
-    timeout_s: float | None = None
-    controller: str = "none"
-    scheduler: str | None = None
-    sequential: bool = False
-    retries: int = 1
-    launch_args: tuple[str, ...] = ()
 
 
 def select_ident_runs(

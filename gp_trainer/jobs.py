@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from gp_trainer.errors import CampaignError
 from gp_trainer.provenance import REPO_ROOT
@@ -236,19 +236,48 @@ def interrupt_running(partials: list[str] | None = None) -> int:
     return len(procs)
 
 
-class RunnerSettings(Protocol):
-    """What :func:`run_jobs` needs (:class:`CampaignSettings`, :class:`IdentifySettings`)."""
+@dataclass(frozen=True)
+class RunnerSettings:
+    """How and where jobs run (:func:`gp_trainer.campaign.run_jobs`); the campaign's and the
+    identification's settings extend it with what they run.
 
-    out_dir: Path
-    workers: int
-    launcher: Path
-    python: str
-    timeout_s: float | None
-    controller: str
-    scheduler: str | None
-    sequential: bool
-    retries: int
-    launch_args: tuple[str, ...]
+    Attributes
+    ----------
+    out_dir : Path
+        Directory of the recordings.
+    workers : int
+        Worker processes of the local Dask cluster, i.e. jobs run at the same time (each is
+        several processes; the FE plant dominates).
+    launcher : Path
+        The project's ``launch.py``.
+    python : str
+        Interpreter used to run the launcher.
+    timeout_s : float or None
+        Wall-time limit per job [s].
+    controller : str
+        launch.py's ``--controller``; ``none`` plays the scenario's profiles (:mod:`gp_trainer.campaign`).
+    scheduler : str or None
+        Address of an existing Dask scheduler (``tls://HOST:PORT``); None: a ``LocalCluster`` of
+        ``workers`` worker processes started for the campaign.
+    sequential : bool
+        No Dask: the jobs run in this process, one after the other (the reference of the
+        bit-for-bit comparison, and a fallback).
+    retries : int
+        A failed job is run again this many times before it is reported failed.
+    launch_args : tuple[str, ...]
+        Further launch.py arguments for every job (e.g. ``--max-steps 40 --h-um 50``).
+    """
+
+    out_dir: Path = Path("recordings")
+    workers: int = 2
+    launcher: Path = REPO_ROOT / "launch.py"
+    python: str = sys.executable
+    timeout_s: float | None = None
+    controller: str = "none"
+    scheduler: str | None = None
+    sequential: bool = False
+    retries: int = 1
+    launch_args: tuple[str, ...] = ()
 
 
 def _toml_value(key: str, value: Any) -> str:
