@@ -9,6 +9,7 @@ import sys
 import pytest
 
 from messages.cli import SIGPIPE_STATUS
+from tests import forked_cli
 from tests.conftest import REPO
 
 CASES = [
@@ -84,7 +85,7 @@ CASES = [
 
 @pytest.mark.parametrize("argv, message", CASES, ids=[" ".join(a) for a, _ in CASES])
 def test_bad_value_exits_2_with_one_line(argv, message):
-    run = subprocess.run([sys.executable, *argv], cwd=REPO, capture_output=True, text=True, timeout=60)
+    run = forked_cli.run(*argv)
     assert run.returncode == 2, run.stdout + run.stderr
     lines = run.stderr.splitlines()
     assert len(lines) == 1 and "error" in lines[0] and message in lines[0], run.stderr
@@ -93,8 +94,7 @@ def test_bad_value_exits_2_with_one_line(argv, message):
 def test_launch_refuses_default_node_options_with_a_node_list(tmp_path):
     nodes = tmp_path / "nodes.toml"
     nodes.write_text('[[node]]\nname = "recorder"\nmodule = "messages.recorder"\n')
-    run = subprocess.run([sys.executable, "launch.py", "--nodes", str(nodes), "--setpoint-mm2", "0.07", "--h-um", "20"],
-                         cwd=REPO, capture_output=True, text=True, timeout=60)
+    run = forked_cli.run("launch.py", "--nodes", str(nodes), "--setpoint-mm2", "0.07", "--h-um", "20")
     assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
     assert "--setpoint-mm2, --h-um cannot be combined with --nodes" in run.stderr
 
@@ -159,6 +159,5 @@ def test_run_main_passes_on_the_status_and_other_broken_pipes():
 def test_launch_refuses_controller_bounds_the_plant_would_drop(tmp_path, table, message):
     config = tmp_path / "run.toml"
     config.write_text(f"[controller]\n{table}\n")
-    run = subprocess.run([sys.executable, "launch.py", "--config", str(config)], cwd=REPO, capture_output=True,
-                         text=True, timeout=60)
+    run = forked_cli.run("launch.py", "--config", str(config))
     assert run.returncode == 2 and run.stderr.count("\n") == 1 and message in run.stderr, run.stderr

@@ -8,8 +8,6 @@ The recordings are written with the mcap writer (no zenoh): a small closed-loop 
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from collections import Counter
 from pathlib import Path
 
@@ -20,7 +18,7 @@ from messages import conformance
 from messages.codec import json_schema
 from messages.recording import read_recording
 from messages.topics import TOPICS
-from tests.conftest import REPO
+from tests import forked_cli
 
 RUN = "r1"
 DT_S = 50e-6
@@ -144,8 +142,7 @@ MUTATIONS = {  # name: (edit, violated rule, first offending step)
 
 
 def run_checker(path, *extra):
-    run = subprocess.run([sys.executable, "-m", "messages.conformance", str(path), *extra], cwd=REPO,
-                         capture_output=True, text=True, timeout=60)
+    run = forked_cli.run("-m", "messages.conformance", str(path), *extra)
     return run.returncode, run.stdout, run.stderr
 
 
@@ -211,11 +208,9 @@ def test_usage_errors_exit_2_in_one_line(tmp_path, make, message):
     assert status == 2 and out == "" and err.count("\n") == 1 and message in err
 
 
-def test_real_run_conforms_and_a_broken_step_sequence_does_not(tmp_path):
-    out = tmp_path / "real.mcap"
-    run = subprocess.run([sys.executable, "launch.py", "--max-steps", "40", "--out", str(out), "--no-progress"],
-                         cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stdout + run.stderr
+def test_real_run_conforms_and_a_broken_step_sequence_does_not(tmp_path, mpc_run):
+    status, output, out = mpc_run
+    assert status == 0, output
     status, stdout, _ = run_checker(out)
     assert status == 0 and stdout.strip().endswith("nodes controller, plant, recorder"), stdout
 

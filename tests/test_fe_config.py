@@ -3,8 +3,6 @@ types of scenario overrides and settings, and grids too large to build."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -14,7 +12,7 @@ from fe_node.mesh import graded_axis, graded_axis_size
 from fe_node.scan import ScanPlan
 from fe_node.scenarios import scenario
 from fe_node.solver import MAX_GRID_NODES, build_grid, grid_shape
-from tests.conftest import REPO
+from tests import forked_cli
 
 BAD_OVERRIDES = [
     ({"n_tracks": "three"}, "'n_tracks' must be an integer, got 'three'"),
@@ -87,8 +85,7 @@ def test_the_largest_plan_under_the_limit_is_accepted_and_the_next_refused():
 def test_launch_refuses_an_oversized_plan_before_starting_a_node(tmp_path):
     config = tmp_path / "big.toml"
     config.write_text("[plant]\nn_tracks = 100000\n")
-    run = subprocess.run([sys.executable, "launch.py", "--config", str(config)], cwd=REPO, capture_output=True,
-                         text=True, timeout=60)
+    run = forked_cli.run("launch.py", "--config", str(config))
     assert run.returncode == 2 and run.stdout == "", run.stdout
     assert run.stderr.count("\n") == 1 and "[plant]: the FE grid would have" in run.stderr, run.stderr
 
@@ -96,6 +93,5 @@ def test_launch_refuses_an_oversized_plan_before_starting_a_node(tmp_path):
 def test_an_array_of_tables_is_refused(tmp_path):
     config = tmp_path / "list.toml"
     config.write_text("[[plant]]\nn_tracks = 2\n")
-    run = subprocess.run([sys.executable, "launch.py", "--config", str(config)], cwd=REPO, capture_output=True,
-                         text=True, timeout=60)
+    run = forked_cli.run("launch.py", "--config", str(config))
     assert run.returncode == 2 and "[plant] must be a table, got list" in run.stderr, run.stderr

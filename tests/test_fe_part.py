@@ -114,12 +114,8 @@ def test_a_flat_mesh_is_refused_as_no_solid(tmp_path):
 
 
 def test_launch_refuses_a_part_file_that_is_not_an_stl():
-    import subprocess
-    import sys
+    from tests import forked_cli
 
-    from tests.conftest import REPO
-
-    run = subprocess.run([sys.executable, "launch.py", "--scenario", "part", "--part", "README.md"], cwd=REPO,
-                         capture_output=True, text=True, timeout=60)
+    run = forked_cli.run("launch.py", "--scenario", "part", "--part", "README.md")
     assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
     assert "cannot read 'README.md' as an STL mesh" in run.stderr

@@ -103,6 +103,6 @@ def test_both_operators_follow_the_window_alike():
     traces = {}
     for operator in ("tensor", "csr"):
         model = ThermalModel(replace(sc.settings, window_m=1.6e-3, operator=operator), sc.plan)
-        traces[operator] = np.array([model.step(250.0, 0.8).area_m2 for _ in range(120)])
-        assert model.n_remeshes >= 4
+        traces[operator] = np.array([model.step(250.0, 0.8).area_m2 for _ in range(50)])
+        assert model.n_remeshes >= 2  # the window moves every 20 steps
     assert np.allclose(traces["csr"], traces["tensor"], rtol=1e-10, atol=0)

@@ -217,13 +217,14 @@ def test_cli_user_errors_exit_2(tmp_path, capsys):
 
 
 def test_identify_records_one_double_track_end_to_end(tmp_path):
-    """``python -m gp_trainer identify --runs ident-double-track-p250-s5``: 250 FE steps (~10 s)."""
+    """``python -m gp_trainer identify --runs ident-double-track-p250-s5``: 250 FE steps, on a coarse mesh and
+    without Dask (the Dask runner: tests/test_campaign_dask.py)."""
     from gp_trainer.dataset import read_states
     from messages.recording import is_complete
 
     name = "ident-double-track-p250-s5"
     cmd = [sys.executable, "-m", "gp_trainer", "identify", "--runs", name, "--out-dir", str(tmp_path),
-           "--no-progress", "--json", "--timeout", "120"]
+           "--no-progress", "--json", "--timeout", "120", "--h-um", "50", "--sequential"]
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     summary = json.loads(proc.stdout.strip().splitlines()[-1])

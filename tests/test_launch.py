@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from messages.recording import is_complete, is_finished, metadata, read_messages
+from tests import forked_cli
 from tests.conftest import REPO, finish
 from tests.test_recorder import validate_recording
 
@@ -54,7 +55,7 @@ def alive(pid: int) -> bool:
 
 
 def test_launch_help():
-    out = subprocess.run([sys.executable, "launch.py", "--help"], cwd=REPO, capture_output=True, text=True)
+    out = forked_cli.run("launch.py", "--help")
     assert out.returncode == 0 and "usage" in out.stdout.lower()
 
 
@@ -104,7 +105,7 @@ def test_failing_node_ends_the_run_with_a_clear_message(tmp_path):
 def test_bad_node_list_exit_2(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[[node]]\nname='x'\n")
-    out = subprocess.run([sys.executable, "launch.py", "--nodes", str(bad)], cwd=REPO, capture_output=True, text=True)
+    out = forked_cli.run("launch.py", "--nodes", str(bad))
     assert out.returncode == 2
     assert out.stderr.count("\n") == 1 and "without 'module'" in out.stderr
 

@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from controller_node.node import inadmissible, load_model, measurement_from_state
-from controller_node.registry import make_controller
+from controller_node.registry import CONTROLLERS, make_controller
 from controller_node.settings import ControllerSettings
 from controller_node.types import ConfigurationError
 from fe_node.commands import CommandGate, CommandPolicy, Verdict
@@ -36,7 +36,6 @@ def test_a_schema_valid_payload_decodes_or_is_rejected_by_the_codec(topic, data)
         pass  # a cross-field rule the schema cannot state (e.g. image size); never another error
 
 
-CONTROLLERS = ("preview-mpc", "mpc", "feedforward", "pid", "open-loop")
 _MODELS: dict[str, object] = {}
 
 

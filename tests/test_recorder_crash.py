@@ -9,8 +9,6 @@ import json
 import os
 import signal
 import stat
-import subprocess
-import sys
 import time
 
 import pytest
@@ -33,7 +31,8 @@ from messages.recording import (
     recover,
 )
 from messages.topics import PLANT_STATE, RUN_EVENTS
-from tests.conftest import REPO, finish, spawn
+from tests import forked_cli
+from tests.conftest import finish, spawn
 from tests.test_recorder_rules import RUN, FakeBus, FakeStop, event, plant_run, state
 
 
@@ -169,8 +168,7 @@ def test_truncated_file_reads_its_complete_chunks_and_says_so(tmp_path):
 
 
 def run_recover(*args):
-    return subprocess.run([sys.executable, "-m", "messages.recording", "recover", *args], cwd=REPO,
-                          capture_output=True, text=True, timeout=60)
+    return forked_cli.run("-m", "messages.recording", "recover", *args)
 
 
 def test_recover_writes_an_mcap_the_seeking_reader_opens(tmp_path):
@@ -326,7 +324,7 @@ def test_out_refuses_an_existing_recording_without_overwrite(tmp_path, command):
     other = tmp_path / "other.mcap"
     other.write_bytes(MAGIC)
     args = [a.format(out=out, folder=tmp_path, other=other) for a in command]
-    done = subprocess.run([sys.executable, *args], cwd=REPO, capture_output=True, text=True, timeout=60)
+    done = forked_cli.run(*args)
     assert done.returncode == 2, done.stderr
     assert f"--out {out}: exists; give --overwrite to replace it" in done.stderr
     assert done.stderr.count("\n") == 1 and out.read_bytes() == b"a recording"

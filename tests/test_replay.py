@@ -12,6 +12,7 @@ from fe_node.replay import schedule
 from messages.bus import BusSettings, NodeBus, StopFlag
 from messages.recording import read_messages
 from messages.topics import LASER_COMMAND, PLANT_STATE
+from tests import forked_cli
 from tests.conftest import REPO, finish, spawn
 
 
@@ -66,5 +67,5 @@ def test_replay_drives_the_controller_node(fe_recording, hub, run_id):
 ])
 def test_replay_bad_input_exit_2(args, message, fe_recording):
     args = [str(fe_recording) if a == "X" else a for a in args]
-    run = subprocess.run([sys.executable, "-m", "fe_node.replay", *args], cwd=REPO, capture_output=True, text=True)
+    run = forked_cli.run("-m", "fe_node.replay", *args)
     assert run.returncode == 2 and run.stderr.count("\n") == 1 and message in run.stderr, run.stderr
