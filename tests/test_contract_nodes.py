@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import subprocess
 import sys
 
 import pytest
 
 from messages.cli import UsageError
 from messages.launch.node import NodeSpec, load_node_list
+from tests import forked_cli
 from tests.conftest import REPO
 
 
@@ -56,8 +56,7 @@ def test_bad_entries_are_one_line_usage_errors(tmp_path, body, expected):
 def test_launch_exits_2_naming_the_command_key(tmp_path):
     nodes = tmp_path / "nodes.toml"
     nodes.write_text('[[node]]\nname = "cam"\ncommand = ["no-such-exe-4711", "--x"]\n')
-    run = subprocess.run([sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(tmp_path / "r.mcap")],
-                         cwd=REPO, capture_output=True, text=True, timeout=60)
+    run = forked_cli.run("launch.py", "--nodes", str(nodes), "--out", str(tmp_path / "r.mcap"))
     assert run.returncode == 2 and run.stdout == ""
     assert run.stderr.count("\n") == 1 and "'command' executable 'no-such-exe-4711' not found" in run.stderr
 

@@ -7,6 +7,7 @@ import time
 from messages import MeltPoolState
 from messages.bus import BusSettings, NodeBus, StopFlag
 from messages.topics import CONTROLLER_DIAGNOSTICS, LASER_COMMAND, PLANT_STATE, key_expr
+from tests import forked_cli
 from tests.conftest import finish, spawn
 
 
@@ -52,7 +53,6 @@ def test_pid_node_answers_each_state_and_exits_when_the_plant_goes(hub, run_id):
 
 
 def test_mpc_node_without_model_file_exits_2(tmp_path):
-    node = spawn("controller_node", "--controller", "mpc", "--model", str(tmp_path / "missing.json"))
-    status, out = finish(node)
-    assert status == 2
-    assert out.strip().count("\n") == 0 and "cannot load GP model" in out
+    run = forked_cli.run("-m", "controller_node", "--controller", "mpc", "--model", str(tmp_path / "missing.json"))
+    assert run.returncode == 2
+    assert run.stdout == "" and run.stderr.strip().count("\n") == 0 and "cannot load GP model" in run.stderr

@@ -1,7 +1,5 @@
 """Eagar-Tsai reference and FE agreement, scenarios, CLI behaviour (fe_node)."""
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -10,6 +8,7 @@ from fe_node.eagar_tsai import EagarTsai, EagarTsaiCase
 from fe_node.scenarios import NAMES, PART_NAMES, scenario
 from fe_node.settings import Settings
 from fe_node.validate import fe_eagar_tsai_area
+from tests import forked_cli
 
 
 @pytest.fixture(scope="module")
@@ -95,8 +94,7 @@ def test_unknown_scenario():
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "fe_node", *args], capture_output=True,
-                          text=True, timeout=300)
+    return forked_cli.run("-m", "fe_node", *args)
 
 
 @pytest.mark.parametrize("args", [("run", "--power-w", "-5"), ("run", "--speed-mm-s", "0"),

@@ -80,6 +80,7 @@ def test_laser_pose_heads_along_the_scan_direction():
 def test_launch_builds_a_part_and_shows_it(tmp_path):
     """``launch.py --scenario part --part STL --layers N``: the plant builds it, the recording holds the scene."""
     from messages.recording import read_messages
+    from tests import forked_cli
     from tests.test_end_to_end import run_launch
 
     out = tmp_path / "part.mcap"
@@ -90,9 +91,9 @@ def test_launch_builds_a_part_and_shows_it(tmp_path):
     assert '"n_layers": 3' in config.config_json
     scene = next(iter(read_messages(out, "/plant/scene")))
     assert [e.id for e in scene.entities] == ["scan_plan", "part"] and scene.entities[1].models[0].data[:5] == b"\0" * 5
-    status, output = run_launch("--scenario", "part", "--layers", "11")
-    assert status == 2 and output.strip() == ("python launch.py: error: scenario part: n_layers must be in [1, 10] "
-                                              "for this part, got 11")
+    refused = forked_cli.run("launch.py", "--scenario", "part", "--layers", "11")
+    assert refused.returncode == 2 and refused.stdout == "" and refused.stderr.strip() == (
+        "python launch.py: error: scenario part: n_layers must be in [1, 10] for this part, got 11")
 
 
 @pytest.mark.parametrize("content", [b"", b"solid x\nendsolid x\n", bytes(range(256)) * 12],

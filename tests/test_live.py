@@ -23,6 +23,7 @@ from messages.bus import BusSettings, NodeBus, StopFlag
 from messages.live import DropOldestQueue, RateGate
 from messages.recorder import McapRecorder
 from messages.topics import PLANT_STATE, PLANT_TEMPERATURE, RUN_EVENTS, TOPICS
+from tests import forked_cli
 from tests.conftest import finish, spawn
 
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]  # foxglove-sdk >= 0.x speaks the first
@@ -152,9 +153,8 @@ def test_port_in_use_is_a_one_line_usage_error(run_id, hub):
 
 
 def test_bad_options_are_usage_errors(run_id):
-    proc = spawn("messages.live", "--run-id", run_id, "--image-max-hz", "0")
-    status, output = finish(proc, timeout=20)
-    assert status == 2 and "--image-max-hz" in output, output
+    run = forked_cli.run("-m", "messages.live", "--run-id", run_id, "--image-max-hz", "0")
+    assert run.returncode == 2 and "--image-max-hz" in run.stderr, run.stderr
 
 
 def test_queue_drops_oldest_and_counts():

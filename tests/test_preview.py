@@ -298,16 +298,12 @@ def test_jacobian_of_lag_matched_interactions_uses_each_powers_own_temperature()
 def test_launch_refuses_a_plant_of_another_process(tmp_path, table, message):
     """The FE plant at another sample period or speed than the shipped model's is refused before any
     node starts, in one line naming the setting (exit 2)."""
-    import subprocess
-    import sys
-    from pathlib import Path
+    from tests import forked_cli
 
     config = tmp_path / "process.toml"
     config.write_text(table + "\n")
-    root = Path(__file__).resolve().parent.parent
-    proc = subprocess.run([sys.executable, "launch.py", "--scenario", "single-track", "--config", str(config),
-                           "--no-progress", "--out", str(tmp_path / "run.mcap")], cwd=root, capture_output=True,
-                          text=True, timeout=120, check=False)
+    proc = forked_cli.run("launch.py", "--scenario", "single-track", "--config", str(config), "--no-progress",
+                          "--out", str(tmp_path / "run.mcap"))
     output = proc.stdout + proc.stderr
     assert proc.returncode == 2 and output.strip().count("\n") == 0, output
     assert message in output and str(config) in output

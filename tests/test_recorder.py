@@ -11,6 +11,7 @@ from mcap.reader import make_reader
 
 from messages.bus import BusSettings, NodeBus, StopFlag
 from messages.recording import is_complete, metadata, read_messages, run_config
+from tests import forked_cli
 from tests.conftest import finish, spawn
 from tests.samples import sample_messages
 
@@ -84,10 +85,9 @@ def test_recorder_finishes_file_on_sigint(tmp_path, hub, run_id):
 
 
 def test_recorder_bad_arguments_exit_2(tmp_path):
-    rec = spawn("messages.recorder", "--out", str(tmp_path / "x.txt"))
-    status, output = finish(rec)
-    assert status == 2
-    assert output.strip().count("\n") == 0 and "error" in output
+    run = forked_cli.run("-m", "messages.recorder", "--out", str(tmp_path / "x.txt"))
+    assert run.returncode == 2
+    assert run.stdout == "" and run.stderr.strip().count("\n") == 0 and "error" in run.stderr
 
 
 def test_recorder_reports_a_lost_event_even_with_its_own_in_the_file(tmp_path, hub, run_id):
