@@ -285,7 +285,8 @@ def test_the_estimator_steps_as_do_mpcs_make_step(model):
     the one-step error, which is kept by state since the turn only after a turn."""
     qp = PreviewQP(H, SP, q=1.0, q_f=20.0, r=1.0, power_scale_w=350.0, power_min_w=-1e6, power_max_w=350.0,
                    area_min_m2=0.0, area_max_m2=5e-7, slack_linear=100.0, slack_quadratic=1000.0)
-    estimator = Kernel(model, qp, 1, 0.0, len(model.turn_profile_k), 60, 0.3).estimator
+    kernel = Kernel(model, qp, 1, 0.0, len(model.turn_profile_k), 60, 0.3)
+    estimator = kernel.estimator
     assert estimator.make_step(SP, 240.0, 3) == 0.0 and not estimator.has_prediction
     b0, q0 = model.power_coefficients[0], model.power_square_coefficients[0]
     e0 = model.power_temperature_coefficients[0]
@@ -296,3 +297,5 @@ def test_the_estimator_steps_as_do_mpcs_make_step(model):
         error = 1.05 * SP - (SP * math.exp(0.01) + 1e-10)
         assert estimator.make_step(1.05 * SP, 240.0, since_turn) == pytest.approx(0.3 * error, rel=1e-9)
         assert estimator.disturbance_m2 == pytest.approx(0.3 * error, rel=1e-9)
+        assert np.array_equal(np.flatnonzero(kernel.turn_error_seen), [] if since_turn is None else [3])
+        assert kernel.turn_errors[3] == (0.0 if since_turn is None else pytest.approx(error, rel=1e-9))
