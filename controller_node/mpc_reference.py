@@ -22,13 +22,7 @@ __all__ = ["CvxpyBackend"]
 
 
 class CvxpyBackend:
-    """cvxpy/Clarabel solver of the MPC QP.
-
-    Parameters
-    ----------
-    settings : ControllerSettings
-        Weights, horizon, bounds (``settings.mpc``).
-    """
+    """cvxpy/Clarabel solver of the MPC QP (a :class:`~controller_node.qp.QPBackend`)."""
 
     def __init__(self, settings: ControllerSettings) -> None:
         m = settings.mpc
@@ -74,18 +68,8 @@ class CvxpyBackend:
         self._e, self._u = e, u
 
     def solve(self, data: QPData) -> QPSolution:
-        """Set the parameters from ``data`` and solve.
-
-        Parameters
-        ----------
-        data : QPData
-            Normalised step data.
-
-        Returns
-        -------
-        QPSolution
-            ``status`` is ``"solved"`` when cvxpy reports an optimal solution.
-        """
+        """Set the parameters from ``data`` and solve (:meth:`~controller_node.qp.QPBackend.solve`);
+        ``status`` is ``"solved"`` when cvxpy reports an optimal solution."""
         for name in ("a", "a_prev", "beta", "g", "e0", "e_prev", "u_lo", "u_hi", "u_prev"):
             getattr(self, name).value = getattr(data, name)
         h = self._u.shape[0]

@@ -103,10 +103,27 @@ class QPSolution:
 
 
 class QPBackend(Protocol):
-    """A solver of the QP above for fixed settings."""
+    """A solver of the QP above, built for fixed settings.
+
+    Parameters
+    ----------
+    settings : ControllerSettings
+        Weights, horizon, bounds and solver tolerances (``settings.mpc``).
+    """
 
     def solve(self, data: QPData) -> QPSolution:
-        """Solve for one step's data."""
+        """Solve the QP of one step.
+
+        Parameters
+        ----------
+        data : QPData
+            Normalised step data.
+
+        Returns
+        -------
+        QPSolution
+            ``u`` shape (H,), ``e`` shape (H,).
+        """
         ...
 
 

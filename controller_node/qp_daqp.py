@@ -31,13 +31,7 @@ _INF = 1e30  # DAQP's infinity
 
 
 class DaqpBackend:
-    """Exact dense solver of the MPC QP (condensed, DAQP), fixed settings.
-
-    Parameters
-    ----------
-    settings : ControllerSettings
-        Weights, horizon, bounds (``settings.mpc``).
-    """
+    """Exact dense solver of the MPC QP (condensed, DAQP), fixed settings (a :class:`~controller_node.qp.QPBackend`)."""
 
     def __init__(self, settings: ControllerSettings) -> None:
         m = settings.mpc
@@ -76,20 +70,9 @@ class DaqpBackend:
         self.solve(QPData(a=0.5, beta=1.0, g=0.0, e0=0.0, u_lo=-1.0, u_hi=1.0, u_prev=0.0, p_ref_w=0.0))
 
     def solve(self, data: QPData) -> QPSolution:
-        """Condense one step's QP and solve it (DAQP only if a rate or area bound binds, phase 2 only if an
-        area bound does).
-
-        Parameters
-        ----------
-        data : QPData
-            Normalised step data.
-
-        Returns
-        -------
-        QPSolution
-            ``u`` shape (H,), ``e`` shape (H,); ``iterations``: the compiled active set's when it
-            solves the QP (0: the unconstrained optimum), else the sum of DAQP's two phases.
-        """
+        """Condense one step's QP and solve it (:meth:`~controller_node.qp.QPBackend.solve`; DAQP only if
+        a rate or area bound binds, phase 2 only if an area bound does); ``iterations``: the compiled
+        active set's when it solves the QP (0: the unconstrained optimum), else the sum of DAQP's two phases."""
         h = self._h
         gamma, c, hess, grad, bounds = self._gamma, self._c, self._hess, self._grad, self._bounds
         bounds[0], bounds[1] = data.u_lo, data.u_hi

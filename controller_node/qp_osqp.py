@@ -27,12 +27,8 @@ class OSQPBackend:
     """Sparse OSQP solver of the MPC QP, built once, updated in place each step.
 
     Variables ``z = (e[1..H], u[0..H-1], s[1..H])``; constraint rows: dynamics (H),
-    soft lower (H), soft upper (H), power bounds (H), rate bounds (H), ``s >= 0`` (H).
-
-    Parameters
-    ----------
-    settings : ControllerSettings
-        Weights, horizon, bounds and OSQP tolerances (``settings.mpc``).
+    soft lower (H), soft upper (H), power bounds (H), rate bounds (H), ``s >= 0`` (H). A
+    :class:`~controller_node.qp.QPBackend`.
     """
 
     def __init__(self, settings: ControllerSettings) -> None:
@@ -111,18 +107,7 @@ class OSQPBackend:
         )
 
     def solve(self, data: QPData) -> QPSolution:
-        """Update the QP with one step's data and solve it.
-
-        Parameters
-        ----------
-        data : QPData
-            Normalised step data.
-
-        Returns
-        -------
-        QPSolution
-            ``u`` shape (H,), ``e`` shape (H,).
-        """
+        """Update the QP with one step's data and solve it (:meth:`~controller_node.qp.QPBackend.solve`)."""
         h = self._h
         self._ax[: h - 1] = -data.a
         self._ax[h - 1 : 2 * h - 3] = -data.a_prev

@@ -248,18 +248,8 @@ class GPModel:
         return float(out[0]), out[1:-1]
 
     def mean_jacobian_and_variance(self, z: np.ndarray) -> tuple[float, np.ndarray, float]:
-        """:meth:`mean_and_jacobian` and :meth:`predict`'s variance in one evaluation of the kernel row.
-
-        Parameters
-        ----------
-        z : np.ndarray, shape (d,)
-            As in :meth:`predict`.
-
-        Returns
-        -------
-        tuple[float, np.ndarray, float]
-            Mean [m²], ``J`` shape (d,) as in :meth:`mean_and_jacobian`, latent variance [m⁴] (≥ 0).
-        """
+        """:meth:`mean_and_jacobian` and :meth:`predict`'s variance at ``z`` (as in :meth:`predict`) in one
+        evaluation of the kernel row: mean [m²], ``J`` shape (d,), latent variance [m⁴] (≥ 0)."""
         out = self._evaluate(z, True, True)
         return float(out[0]), out[1:-1], float(out[-1])
 

@@ -350,18 +350,25 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_and_report(args: argparse.Namespace, run: Callable, settings: Any, label: Callable[[Any], str],
+                    key: str) -> int:
+    """Run the campaign or the identification (``run(settings)``): a line per job, the failures, the JSON
+    summary under ``key`` with ``--json``; the exit status."""
+    try:
+        results = run(settings, progress=not args.no_progress)
+    except KeyboardInterrupt:
+        return _interrupted(args.command, settings.out_dir)
+    for r in results:
+        print(f"{label(r)}: {r.status} ({r.wall_s:.1f} s) {r.recording} {r.detail}".rstrip())
+    _report_failures(results, label)
+    if args.json:
+        print(summary_json(results, key=key))
+    return 1 if any(r.status == "failed" for r in results) else 0
+
+
 def _campaign(args: argparse.Namespace) -> int:
     settings = CampaignSettings(cases=tuple(args.cases), **_runner_settings(args))
-    try:
-        results = run_campaign(settings, progress=not args.no_progress)
-    except KeyboardInterrupt:
-        return _interrupted("campaign", settings.out_dir)
-    for r in results:
-        print(f"case {r.case}: {r.status} ({r.wall_s:.1f} s) {r.recording} {r.detail}".rstrip())
-    _report_failures(results, lambda r: f"case {r.case}")
-    if args.json:
-        print(summary_json(results))
-    return 1 if any(r.status == "failed" for r in results) else 0
+    return _run_and_report(args, run_campaign, settings, lambda r: f"case {r.case}", "cases")
 
 
 def _identify(args: argparse.Namespace) -> int:
@@ -374,16 +381,7 @@ def _identify(args: argparse.Namespace) -> int:
     args.out_dir = args.out_dir or ident.out_dir
     settings = IdentifySettings(runs=select_ident_runs(getattr(args, "runs", None), ident.runs),
                                 **_runner_settings(args))
-    try:
-        results = run_identification(settings, progress=not args.no_progress)
-    except KeyboardInterrupt:
-        return _interrupted("identify", settings.out_dir)
-    for r in results:
-        print(f"{r.name}: {r.status} ({r.wall_s:.1f} s) {r.recording} {r.detail}".rstrip())
-    _report_failures(results, lambda r: r.name)
-    if args.json:
-        print(summary_json(results, key="runs"))
-    return 1 if any(r.status == "failed" for r in results) else 0
+    return _run_and_report(args, run_identification, settings, lambda r: r.name, "runs")
 
 
 def _material(paths: Sequence[Path]) -> str | None:

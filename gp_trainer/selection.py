@@ -18,6 +18,14 @@ from __future__ import annotations
 import numpy as np
 
 
+def _candidates(points: np.ndarray, n_select: int) -> np.ndarray:
+    """``points`` as a float array of candidate rows; :class:`ValueError` unless ``1 <= n_select <= n``."""
+    points = np.asarray(points, dtype=float)
+    if not 1 <= n_select <= points.shape[0]:
+        raise ValueError(f"cannot select {n_select} points out of {points.shape[0]}")
+    return points
+
+
 def farthest_point_indices(Z: np.ndarray, n_select: int, *, seed: int = 0) -> np.ndarray:
     """Indices of ``n_select`` rows of ``Z`` chosen by greedy maximin on standardised columns.
 
@@ -35,10 +43,8 @@ def farthest_point_indices(Z: np.ndarray, n_select: int, *, seed: int = 0) -> np
     np.ndarray of int, shape (n_select,)
         Distinct row indices in the order they were chosen.
     """
-    Z = np.asarray(Z, dtype=float)
+    Z = _candidates(Z, n_select)
     n = Z.shape[0]
-    if not 1 <= n_select <= n:
-        raise ValueError(f"cannot select {n_select} points out of {n}")
     std = Z.std(axis=0)
     U = (Z - Z.mean(axis=0)) / np.where(std > 0.0, std, 1.0)
     chosen = np.empty(n_select, dtype=np.intp)
@@ -85,10 +91,8 @@ def variance_reduction_indices(W: np.ndarray, n_select: int, *, noise_ratio: flo
     np.ndarray of int, shape (n_select,)
         Distinct row indices in the order they were chosen.
     """
-    W = np.asarray(W, dtype=float)
+    W = _candidates(W, n_select)
     n = W.shape[0]
-    if not 1 <= n_select <= n:
-        raise ValueError(f"cannot select {n_select} points out of {n}")
     if n > MAX_VARIANCE_CANDIDATES:
         raise ValueError(f"{n} candidates exceed the limit of {MAX_VARIANCE_CANDIDATES} for variance-reduction "
                          "selection; use farthest-point selection")
