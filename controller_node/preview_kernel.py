@@ -277,11 +277,9 @@ def _series_variance(planner):  # pragma: no cover (compiled)
 # ---------------------------------------------------------------------------------------- predict
 @njit(cache=True, nogil=True)
 def _forecast(predictor, run, context, t_ahead_k, out):  # pragma: no cover (compiled)
-    """T ahead over the horizon into ``out`` (:func:`gp_model.narx.forecast_into`, whose
-    convention for "no turn behind" is a NaN base)."""
-    t_base = context.turn_base_k if context.has_turn_base else math.nan
-    forecast_into(t_ahead_k, context.since, context.on_first, context.to_end, run.profile, t_base, predictor.decay,
-                  out)
+    """T ahead over the horizon into ``out`` (:func:`gp_model.narx.forecast_into`)."""
+    forecast_into(t_ahead_k, context.since, context.on_first, context.to_end, run.profile, context.has_turn_base,
+                  context.turn_base_k, predictor.decay, out)
 
 
 @njit(cache=True, nogil=True)

@@ -264,18 +264,20 @@ def forecast_t_ahead(t_now_k: float, steps_since_start: int, on_first_track: boo
     out = np.empty(horizon)
     forecast_into(float(t_now_k), int(steps_since_start), bool(on_first_track),
                    -1 if steps_to_end is None else int(steps_to_end), np.asarray(profile_k, dtype=float),
-                   math.nan if t_base_k is None else float(t_base_k), persistence ** np.arange(1.0, horizon + 1), out)
+                   t_base_k is not None, 0.0 if t_base_k is None else float(t_base_k),
+                   persistence ** np.arange(1.0, horizon + 1), out)
     return out
 
 
 @njit(cache=True, nogil=True)
-def forecast_into(t_now, since, on_first, to_end, profile, t_base, decay, out):  # pragma: no cover (compiled)
+def forecast_into(t_now, since, on_first, to_end, profile, has_base, t_base, decay,
+                  out):  # pragma: no cover (compiled)
     """:func:`forecast_t_ahead` into ``out``, shape (H,), compiled: the preview MPC calls it in every
-    update, with ``to_end = −1`` for no turn foreseen, ``t_base = NaN`` for no ``T_b`` and
-    ``decay = ρ^j``, j = 1..H."""
+    update, with ``to_end = −1`` for no turn foreseen, ``has_base`` False for no ``T_b`` (``t_base``
+    [K] is then not read) and ``decay = ρ^j``, j = 1..H."""
     horizon, last = out.size, profile.size - 1
     here = profile[min(since, last)]
-    base = t_now - here if math.isnan(t_base) else t_base
+    base = t_base if has_base else t_now - here
     deviation = t_now - base - here
     for i in range(horizon):
         j = i + 1
