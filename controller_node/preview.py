@@ -146,13 +146,16 @@ class PreviewMPC(Controller):
 
     def _warm_up(self) -> None:
         """Call the compiled update, preparation and feedback once, with the argument types of a run,
-        pushing nothing into the histories: they are compiled (or loaded from numba's cache) now, not at
-        the first states of a run."""
+        pushing nothing into the histories, and the accessors of the paths where a bound is active or
+        the solver fails: they are compiled (or loaded from numba's cache) now, not at the first states
+        of a run that take them."""
         k, context = self._kernel, StateContext(0, 0.0, 0, True, 0, True, -1, False, 0.0, True, self._h)
         k.update(context, 0.0, 0.0)
         k.prepare(context, 0.0)
         k.prepared = True                        # the feedback is compiled whatever this preparation gave
         k.feedback(context, 0.0, 0.0)
+        _ = k.has_step
+        k.estimator.forget_prediction()
 
     def reset(self) -> None:
         """Forget the run: histories, disturbance estimate, plan, learned turnaround profile."""

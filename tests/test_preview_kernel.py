@@ -141,14 +141,15 @@ def test_building_the_controller_compiles_every_compiled_function():
     script = (
         "from controller_node.registry import make_controller\n"
         "from controller_node.settings import ControllerSettings\n"
-        "from controller_node import preview_kernel as k\n"
+        "from controller_node import preview_kernel as k, preview_stages as s\n"
         "from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel\n"
         "model = NarxGPModel.load(DEFAULT_MODEL_PATH)\n"
         "make_controller('preview-mpc', ControllerSettings(set_point_m2=6.3e-8), model)\n"
-        "print([len(f.signatures) for f in (k.update_into, k.prepare_into, k.feedback_into)])\n"
+        "print([len(f.signatures) for f in (k.update_into, k.prepare_into, k.feedback_into, s._has_step,\n"
+        "                                    s.forget_prediction)])\n"
     )
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=600)
-    assert out.stdout.strip().splitlines()[-1] == "[1, 1, 1]"
+    assert out.stdout.strip().splitlines()[-1] == "[1, 1, 1, 1, 1]"
 
 
 @pytest.mark.parametrize("seed", range(6))
