@@ -181,9 +181,36 @@ def box_stiffness(hx, hy, hz, vertical_only: bool = False) -> np.ndarray:
     return z if vertical_only else kron3(m1(hy), m1(hz), k1(hx)) + kron3(k1(hy), m1(hz), m1(hx)) + z
 
 
+class _Block:
+    """A CSR matrix ``k`` (and ``kz``) on the sorted flat node indices ``nodes`` of a grid of ``shape``."""
+
+    def __init__(self, nodes: np.ndarray, k: sp.csr_matrix, kz: sp.csr_matrix | None, shape: tuple[int, int, int]):
+        self.nodes, self.k, self.kz = nodes, k, kz
+        self.jki = np.unravel_index(nodes, shape)
+
+    @classmethod
+    def of_elements(cls, corners: np.ndarray, ke: np.ndarray, kze: np.ndarray | None, shape) -> _Block:
+        """The sum of element matrices ``ke`` (and ``kze``), shape (n, 8, 8), on nodes ``corners`` (n, 8)."""
+        nodes = np.unique(corners)
+        local, n = np.searchsorted(nodes, corners), len(nodes)
+        rows, cols = np.repeat(local, 8, axis=1).ravel(), np.tile(local, (1, 8)).ravel()
+        kz = None if kze is None else sp.csr_matrix((kze.ravel(), (rows, cols)), shape=(n, n))
+        return cls(nodes, sp.csr_matrix((ke.ravel(), (rows, cols)), shape=(n, n)), kz, shape)
+
+    def plus(self, other: _Block, shape) -> _Block:
+        """The sum of two blocks, on the union of their nodes."""
+        nodes = np.union1d(self.nodes, other.nodes)
+        n, a, b = len(nodes), np.searchsorted(nodes, self.nodes), np.searchsorted(nodes, other.nodes)
+        kz = None if self.kz is None else _renumber(self.kz, a, n) + _renumber(other.kz, b, n)
+        return _Block(nodes, _renumber(self.k, a, n) + _renumber(other.k, b, n), kz, shape)
+
+
 class _Correction:
     """``sum_e dk_e K_e`` (and ``K_z``) over some elements, as CSR matrices on only the nodes
     those elements touch: a product costs the correction's size, not the grid's.
+
+    Elements are added to a recent block, merged into the main one once it holds more than a
+    quarter of the main block's elements, so adding a few costs the recent block's size.
 
     Parameters
     ----------
@@ -195,45 +222,44 @@ class _Correction:
 
     def __init__(self, shape: tuple[int, int, int], vertical: bool):
         self.shape = shape
-        self.nodes = np.empty(0, dtype=np.intp)
-        """Sorted flat indices of the nodes the corrected elements touch."""
-        self.k = sp.csr_matrix((0, 0))
-        self.kz = sp.csr_matrix((0, 0)) if vertical else None
+        self._empty = _Block(np.empty(0, dtype=np.intp), sp.csr_matrix((0, 0)),
+                             sp.csr_matrix((0, 0)) if vertical else None, shape)
+        self._main = self._recent = self._empty
         self.n_elements = 0
         """Element matrices added so far (an element added twice counts twice)."""
-        self._jki = np.unravel_index(self.nodes, shape)
+        self._n_recent = 0
 
     def add(self, corners: np.ndarray, ke: np.ndarray, kze: np.ndarray | None) -> None:
         """Add element matrices ``ke`` (and ``kze``), shape (n, 8, 8), on nodes ``corners`` (n, 8)."""
-        nodes = np.union1d(self.nodes, corners.ravel())
-        remap, local, n = np.searchsorted(nodes, self.nodes), np.searchsorted(nodes, corners), len(nodes)
-        rows, cols = np.repeat(local, 8, axis=1).ravel(), np.tile(local, (1, 8)).ravel()
-        self.k = _renumber(self.k, remap, n) + sp.csr_matrix((ke.ravel(), (rows, cols)), shape=(n, n))
-        if self.kz is not None:
-            self.kz = _renumber(self.kz, remap, n) + sp.csr_matrix((kze.ravel(), (rows, cols)), shape=(n, n))
-        self.nodes, self._jki = nodes, np.unravel_index(nodes, self.shape)
+        self._recent = self._recent.plus(_Block.of_elements(corners, ke, kze, self.shape), self.shape)
         self.n_elements += len(corners)
+        self._n_recent += len(corners)
+        if 4 * self._n_recent > self.n_elements - self._n_recent:
+            self._main, self._recent, self._n_recent = self._main.plus(self._recent, self.shape), self._empty, 0
 
     def apply(self, u: np.ndarray, out: np.ndarray) -> None:
         """``out += K u`` (flat arrays of the grid's size)."""
-        if len(self.nodes):
-            out[self.nodes] += self.k @ u[self.nodes]
+        for b in (self._main, self._recent):
+            if len(b.nodes):
+                out[b.nodes] += b.k @ u[b.nodes]
 
     def apply_vertical(self, u_box: np.ndarray, box: tuple[slice, slice, slice], out: np.ndarray) -> None:
         """``out += K_z u`` (``out`` flat) for ``u`` zero outside the node box ``box``, ``u_box`` its values there."""
-        j, k, i = self._jki
         (sj, sk, si) = box
-        sel = np.flatnonzero((j >= sj.start) & (j < sj.stop) & (k >= sk.start) & (k < sk.stop)
-                             & (i >= si.start) & (i < si.stop))
-        if len(sel):
-            u = np.zeros(len(self.nodes))
-            u[sel] = u_box[j[sel] - sj.start, k[sel] - sk.start, i[sel] - si.start]
-            out[self.nodes] += self.kz @ u
+        for b in (self._main, self._recent):
+            j, k, i = b.jki
+            sel = np.flatnonzero((j >= sj.start) & (j < sj.stop) & (k >= sk.start) & (k < sk.stop)
+                                 & (i >= si.start) & (i < si.stop))
+            if len(sel):
+                u = np.zeros(len(b.nodes))
+                u[sel] = u_box[j[sel] - sj.start, k[sel] - sk.start, i[sel] - si.start]
+                out[b.nodes] += b.kz @ u
 
     def matrix(self, n_nodes: int) -> sp.csr_matrix:
         """``K`` on all ``n_nodes`` nodes."""
-        coo = self.k.tocoo()
-        return sp.csr_matrix((coo.data, (self.nodes[coo.row], self.nodes[coo.col])), shape=(n_nodes, n_nodes))
+        coo = self._main.plus(self._recent, self.shape).k.tocoo()
+        nodes = np.union1d(self._main.nodes, self._recent.nodes)
+        return sp.csr_matrix((coo.data, (nodes[coo.row], nodes[coo.col])), shape=(n_nodes, n_nodes))
 
 
 def _renumber(m: sp.csr_matrix, remap: np.ndarray, n: int) -> sp.csr_matrix:
