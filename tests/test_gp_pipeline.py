@@ -189,17 +189,18 @@ print('{{"status": 0}}')
 '''
 
 
-def test_campaign_runs_cases_in_parallel_and_skips_complete_ones(tmp_path):
+def test_campaign_runs_cases_and_skips_complete_ones(tmp_path):
+    """In this process, one after the other (on Dask: tests/test_campaign_dask.py)."""
     log = tmp_path / "calls.txt"
     launcher = tmp_path / "fake_launch.py"
     launcher.write_text(FAKE_LAUNCHER.format(tests=str(Path(__file__).parent), log=str(log)))
-    settings = CampaignSettings(cases=(1, 2, 4), out_dir=tmp_path / "campaign", workers=2, launcher=launcher,
+    settings = CampaignSettings(cases=(1, 2, 4), out_dir=tmp_path / "campaign", sequential=True, launcher=launcher,
                                 python=sys.executable)
     first = run_campaign(settings, progress=False)
     assert [(r.case, r.status) for r in first] == [(1, "ok"), (2, "ok"), (4, "failed")]
     assert "plant diverged" in first[2].detail
     assert recording_path(settings, 1).is_file() and not recording_path(settings, 4).exists()
-    second = run_campaign(dataclasses.replace(settings, sequential=True), progress=False)  # skipped before any runner
+    second = run_campaign(settings, progress=False)
     assert [(r.case, r.status) for r in second] == [(1, "skipped"), (2, "skipped"), (4, "failed")]
     # case 4 is retried once per campaign
     assert sorted(log.read_text().split()) == sorted(["table2-case1", "table2-case2"] + ["table2-case4"] * 4)
