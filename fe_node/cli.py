@@ -67,10 +67,11 @@ def _settings(args, preset: str | None = None):
     over = plant_table(args.config)
     if preset is not None:
         over = {"preset": preset, **over}
-    if args.h_um is not None:
-        if not args.h_um > 0:
-            raise ValueError(f"--h-um must be > 0, got {args.h_um}")
-        over["h_fine_m"] = args.h_um * 1e-6
+    h_um = getattr(args, "h_um", None)     # calibrate has no --h-um: the calibration's mesh is the plant's
+    if h_um is not None:
+        if not h_um > 0:
+            raise ValueError(f"--h-um must be > 0, got {h_um}")
+        over["h_fine_m"] = h_um * 1e-6
     try:
         return scenario("single-track", **over).settings
     except ValueError as err:
@@ -116,7 +117,6 @@ def main(argv=None) -> int:
             from fe_node.calibrate import calibrate
             if args.max_evaluations < 1:
                 raise ValueError(f"--max-evaluations must be >= 1, got {args.max_evaluations}")
-            args.h_um = None
             res = calibrate(_settings(args, preset="physical"), args.max_evaluations,
                             log=(lambda m: None) if args.json else (lambda m: print(m, file=sys.stderr)))
             if args.out:
