@@ -1,0 +1,78 @@
+"""The turnaround feature (gp_model.plan_feature): linear in power, a superposition of the moving
+source's heat-equation solution that matches its quadrature."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate
+
+from gp_model.plan_feature import TurnFeature, turn_feature_series
+
+DT, STEP = 50e-6, 40e-6
+
+
+def _runs():
+    """Two tracks after a first one: 3 tracks of 90 states, a turn at 90 and 180."""
+    track = np.repeat([0, 1, 2], 90)
+    starts = np.array([90, 180])
+    ends = np.repeat([89, 179, 269], 90)
+    return track, starts, ends
+
+
+def test_feature_is_the_plan_matrix_times_the_powers_and_linear():
+    feature = TurnFeature(n_targets=40, n_sources=70)
+    kernel = feature.kernel(STEP, DT)
+    _, starts, ends = _runs()
+    n = ends.size
+    matrix = np.zeros((n, n))                      # K[k, j] of the plan, written out
+    for start in starts:
+        for s in range(min(feature.n_targets, ends[start] + 1 - start)):
+            for e in range(min(feature.n_sources, start)):
+                matrix[start + s, start - 1 - e] = kernel[s, e]
+    rng = np.random.default_rng(0)
+    p1, p2 = rng.uniform(100, 350, n), rng.uniform(100, 350, n)
+    f1 = turn_feature_series(kernel, p1, starts, ends)
+    np.testing.assert_allclose(f1, matrix @ p1, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(turn_feature_series(kernel, p1 + 3.0 * p2, starts, ends),
+                               f1 + 3.0 * turn_feature_series(kernel, p2, starts, ends), rtol=1e-12, atol=1e-9)
+    assert np.all(f1[:90] == 0.0) and np.all(f1[90 + 40:180] == 0.0) and np.all(f1[90:130] > 0)
+
+
+def test_green_function_is_the_point_source_over_the_gaussian_beam():
+    f = TurnFeature()
+    alpha, rho_cp, sigma = f.diffusivity_m2_s, f.volumetric_heat_j_m3_k, f.beam_sigma_m
+    for r, tau in ((0.0, 2e-4), (1e-4, 1e-3), (6e-5, 4e-4)):
+        def point(y, x, r=r, tau=tau):
+            beam = np.exp(-(x * x + y * y) / (2 * sigma**2)) / (2 * math.pi * sigma**2)
+            d2 = (r - x) ** 2 + y * y
+            return beam * 2.0 / (rho_cp * (4 * math.pi * alpha * tau) ** 1.5) * math.exp(-d2 / (4 * alpha * tau))
+        span = 8 * sigma
+        direct, _ = integrate.dblquad(point, -span, span, -span, span, epsabs=0, epsrel=1e-9)
+        assert float(f.green_k_per_j(r, tau)) == pytest.approx(direct, rel=1e-6)
+
+
+def test_kernel_is_the_moving_source_integral_of_the_previous_track():
+    """Constant power P along the previous track (it ends at the turn, t = 0, x = 0): Σ_e K[s, e] P
+    against the time integral of the moving Gaussian source, at the laser run back beside it."""
+    f = TurnFeature(n_sources=400)
+    kernel, power = f.kernel(STEP, DT), 250.0
+    v = STEP / DT
+    for s in (2, 10, 30):
+        t_s, x_s = (s + 1) * DT, -(s + 1) * STEP     # the laser in state t0 + s
+
+        def heat(t, x_s=x_s, t_s=t_s):                                  # the source at time t < 0 is at x = v t
+            return f.absorptivity * power * float(f.green_k_per_j(math.hypot(x_s - v * t, f.hatch_m), t_s - t))
+        direct, _ = integrate.quad(heat, -400 * DT, 0.0, limit=400, epsrel=1e-10)
+        assert kernel[s] @ np.full(f.n_sources, power) == pytest.approx(direct, rel=0.02)
+
+
+def test_constants_round_trip_and_bad_ones_are_refused():
+    f = TurnFeature(hatch_m=9e-5)
+    assert TurnFeature.from_dict(f.to_dict()) == f
+    with pytest.raises(ValueError, match="hatch_m"):
+        TurnFeature(hatch_m=0.0)
+    with pytest.raises(ValueError, match="n_sources"):
+        TurnFeature(n_sources=0)
+    with pytest.raises(ValueError, match="unknown keys"):
+        TurnFeature.from_dict({**f.to_dict(), "extra": 1})
