@@ -13,6 +13,29 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Under pytest-xdist (``--dist loadgroup``), keep the tests that share one of this suite's
+    module- or session-scoped fixtures on one worker, so that the fixture is built once: group
+    ``<file>`` for a module fixture, ``<fixture name>`` for a session fixture (e.g. ``mpc_run``)."""
+    tests_dir = Path(__file__).resolve().parent
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None or item.get_closest_marker("xdist_group"):
+            continue
+        group = None
+        for name in item.fixturenames:
+            definition = info.name2fixturedefs.get(name, ())[-1:]
+            code = getattr(definition[0].func, "__code__", None) if definition else None
+            if code is None or tests_dir not in Path(code.co_filename).resolve().parents:
+                continue  # not this suite's (pytest's own tmp_path_factory, ...)
+            if definition[0].scope == "session":
+                group = name
+            elif definition[0].scope == "module" and group is None:
+                group = item.path.name
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
+
+
 def free_endpoint() -> str:
     from launch import free_loopback_endpoint
 

@@ -5,6 +5,7 @@ assertions: timings live in benchmarks/bench_loop.py)."""
 from __future__ import annotations
 
 import os
+import sys
 import threading
 import time
 
@@ -434,6 +435,43 @@ def test_answer_loop_prepares_late_when_states_come_far_apart():
             assert prepared - answered > 0.5 * PREPARE_AT * period
 
 
+LOOK_S = 20e-6
+"""Virtual time one look at an inbox and the yield of the core after it take [s]."""
+
+
+class VirtualClock:
+    """``time`` of :mod:`fe_node.freerun` and of the stand-ins below, and ``os.sched_yield``: a sleep
+    advances ``monotonic`` at once (no wall time passes), a yield by :data:`LOOK_S`; so a free-running
+    plant keeps its schedule exactly and its misses and round trips do not depend on the machine's load."""
+
+    def __init__(self) -> None:
+        self.now, self.yields = 100.0, 0
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def time(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += max(seconds, 0.0)
+
+    def sched_yield(self) -> None:
+        self.yields += 1
+        self.now += LOOK_S
+
+
+@pytest.fixture
+def clock(monkeypatch) -> VirtualClock:
+    import fe_node.freerun as freerun
+
+    virtual = VirtualClock()
+    monkeypatch.setattr(freerun, "time", virtual)
+    monkeypatch.setattr(sys.modules[__name__], "time", virtual)  # the stand-ins' stamps
+    monkeypatch.setattr(os, "sched_yield", virtual.sched_yield)
+    return virtual
+
+
 class _Plant:
     def initial(self) -> PlantSample:
         return PlantSample(0.06e-6, 300.0, 0.0, 0.0, (1.0, 0.0), 0)
@@ -485,7 +523,7 @@ class _PlantBus:
         self.logs.append(text)
 
 
-def test_free_running_plant_times_commands_from_their_arrival_not_from_its_tick():
+def test_free_running_plant_times_commands_from_their_arrival_not_from_its_tick(clock):
     bus = _PlantBus()
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
     stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=200.0, max_steps=20), threading.Event(),
@@ -559,7 +597,7 @@ class _SpareCore:
 
 
 @pytest.mark.parametrize("case", ["on time", "controller gone", "late", "no spare core"])
-def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, monkeypatch):
+def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, monkeypatch, clock):
     """Faster than POLL_MAX_PERIOD_S, the plant takes each command as it comes (round trip ~ the
     command's delay, not the period) by polling zenoh's channel from POLL_AT of the period. With its
     controller gone, or no core to spare, it switches at once to a callback inbox (stamped on
@@ -575,15 +613,13 @@ def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, 
     if case == "controller gone":
         gone.set()
     monkeypatch.setattr(freerun, "SpareCore", _NoSpareCore if case == "no spare core" else _SpareCore)
-    yields = []
-    monkeypatch.setattr(os, "sched_yield", lambda: yields.append(None))
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
     stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=rate_hz, max_steps=60), threading.Event(),
                      "surrogate", gone)
     rtt = sorted(stats.rtt_s)[len(stats.rtt_s) // 2]
     [channel] = bus.channels
     if case in ("controller gone", "no spare core"):
-        assert len(bus.callbacks) == 1 and bus.callbacks[0].looks <= stats.steps + 2 and not yields  # ticks only
+        assert len(bus.callbacks) == 1 and bus.callbacks[0].looks <= stats.steps + 2 and not clock.yields  # ticks only
         assert channel.looks == 1 and channel.closed_t < bus.published[1][1]  # read once, closed at the start
         assert rtt == pytest.approx(delay_s, abs=1e-9) and stats.misses <= 2  # stamped on arrival
     elif case == "late":
@@ -592,30 +628,28 @@ def test_a_fast_plant_polls_for_its_command_while_its_controller_keeps_up(case, 
         assert bus.callbacks[0].looks <= stats.steps + 2
     else:
         assert not bus.callbacks and delay_s <= rtt < delay_s + 0.3 / rate_hz and channel.looks > stats.steps
-        assert len(yields) >= channel.looks - 2 * stats.steps - 2  # a yield after each look in vain
+        assert clock.yields >= channel.looks - 2 * stats.steps - 2  # a yield after each look in vain
     assert len(stats.rtt_s) >= stats.steps - 2 and latch.gate.n_stale == 0  # each command taken once
 
 
-def test_a_fast_plant_behind_a_router_never_polls(monkeypatch):
+def test_a_fast_plant_behind_a_router_never_polls(monkeypatch, clock):
     """A client of a router (launch.py's nodes): every command crosses the router, whose threads
     need the core a poller would keep; the plant takes its commands at its ticks from a callback
     inbox, a core to spare or not."""
     import fe_node.freerun as freerun
 
     monkeypatch.setattr(freerun, "SpareCore", _SpareCore)
-    yields = []
-    monkeypatch.setattr(os, "sched_yield", lambda: yields.append(None))
     bus = _FastPlantBus(0.5e-3)
     bus.routed = True
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
     stats = run_free(bus, _Plant(), latch, FreeRunSettings(rate_hz=600.0, max_steps=30), threading.Event(),
                      "surrogate", threading.Event())
-    assert not bus.channels and len(bus.callbacks) == 1 and not yields and stats.polled == 0
+    assert not bus.channels and len(bus.callbacks) == 1 and not clock.yields and stats.polled == 0
     assert bus.callbacks[0].looks <= stats.steps + 2 and len(stats.rtt_s) >= stats.steps - 2
     assert any("client of a router" in text for text in bus.logs)  # said, not silently ignored
 
 
-def test_a_fast_plant_switching_inboxes_takes_every_command_once(monkeypatch):
+def test_a_fast_plant_switching_inboxes_takes_every_command_once(monkeypatch, clock):
     """A core to spare, then none, then one again (every 15 steps): the plant declares a callback
     inbox or a channel, then closes the other, at each switch, and every command is applied
     exactly once (none lost at a switch, no copy counted as stale)."""
@@ -640,7 +674,7 @@ def test_a_fast_plant_switching_inboxes_takes_every_command_once(monkeypatch):
     assert stats.misses <= 4
 
 
-def test_a_plant_without_poll_commands_takes_its_commands_at_its_ticks():
+def test_a_plant_without_poll_commands_takes_its_commands_at_its_ticks(clock):
     """``--no-poll-commands``: the callback inbox (commands stamped on arrival), looked at once per tick."""
     bus = _PlantBus()
     latch = CommandLatch(CommandPolicy(timeout_s=1.0), power_w=250.0, speed_m_s=0.8)
@@ -650,7 +684,7 @@ def test_a_plant_without_poll_commands_takes_its_commands_at_its_ticks():
     assert all(r == pytest.approx(100e-6, abs=1e-9) for r in stats.rtt_s)
 
 
-def test_steady_misses_leave_out_the_first_warmup_steps():
+def test_steady_misses_leave_out_the_first_warmup_steps(clock):
     """``steady_miss_pct`` counts the misses after the first WARMUP_STEPS; ``deadline_miss_pct`` all."""
     from fe_node.freerun import WARMUP_STEPS, FreeRunStats
 
@@ -774,7 +808,7 @@ def test_declaring_a_publisher_or_an_inbox_builds_its_topics_decoder(declare):
     assert codec._decoder.cache_info().hits == 1  # the one built at the declaration
 
 
-def test_miss_bursts_count_runs_of_consecutive_misses():
+def test_miss_bursts_count_runs_of_consecutive_misses(clock):
     """A run of misses counts once, however long; the longest is kept (a stall of the machine)."""
     from fe_node.freerun import MissBursts
 
