@@ -25,7 +25,7 @@ from controller_node.settings import ControllerSettings
 from controller_node.summary import comparison_table, summarise, table_line
 from fe_node.commands import CommandPolicy
 from fe_node.scenarios import NAMES, PART_NAMES, PART_POWER_W, scenario
-from gp_model.narx import PART_MODEL_PATH
+from gp_model.narx import DEFAULT_MODEL_PATH, PART_MODEL_PATH, default_model_path
 from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 from messages.config import build, load_toml
@@ -150,14 +150,15 @@ def check_learning_state(path: Path, model, settings: ControllerSettings) -> Non
 def check_process(model, plant, settings: ControllerSettings, config: Path | None) -> None:
     """:class:`UsageError` naming the setting unless the plant is the process the preview MPC's
     ``model`` was identified on (:func:`controller_node.preview.process_mismatch`): the speed of its
-    first state (the scenario's), the speed the controller commands after it, its sample period and
-    its material."""
+    first state (the scenario's), the speed the controller commands after it, its sample period, its
+    material and its powder layer thickness."""
 
     file = f"{config} " if config else ""
     checks = ((f"{file}[plant] speed_m_s", {"speed_m_s": plant.profile.command(0)[1]}),
               (f"{file}[controller] nominal_speed_m_s", {"speed_m_s": settings.nominal_speed_m_s}),
               (f"{file}[plant] dt_s", {"sample_period_s": plant.settings.dt_s}),
-              (f"{file}[plant] material", {"material": plant.settings.material.name}))
+              (f"{file}[plant] material", {"material": plant.settings.material.name}),
+              (f"{file}[plant] powder_layer_m", {"powder_layer_m": plant.settings.powder_layer_m}))
     for where, value in checks:
         if (reason := process_mismatch(model, **value)) is not None:
             raise UsageError(f"{where}: {reason}")
@@ -178,11 +179,21 @@ def check_within_plant(settings: ControllerSettings, where: str) -> None:
 
 
 def default_model(opts: RunOptions) -> Path | None:
-    """The model of the run's plant if it is not the controller's default: the part model
-    (``gp_model.narx.PART_MODEL_PATH``) for ``preview-mpc`` on a part scenario."""
-    if opts.scenario in PART_NAMES and opts.controller == "preview-mpc":
+    """The model of the run's plant if it is not the controller's default, for ``preview-mpc``: the part
+    model (``gp_model.narx.PART_MODEL_PATH``) on a part scenario, the bare plate's
+    (``gp_model.narx.default_model_path``) on a plate without powder."""
+    if opts.controller != "preview-mpc":
+        return None
+    if opts.scenario in PART_NAMES:
         return PART_MODEL_PATH
-    return None
+    if opts.scenario not in NAMES:
+        return None  # check_config names the unknown scenario
+    try:
+        plant = scenario(opts.scenario, **{**load_toml(opts.config).get("plant", {}), **opts.plant_overrides})
+    except (ValueError, TypeError):
+        return None  # check_config names the bad key
+    path = default_model_path(plant.settings.powder_layer_m)
+    return None if path == DEFAULT_MODEL_PATH else path
 
 
 def part_nominal_power(opts: RunOptions) -> float | None:

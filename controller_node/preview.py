@@ -67,10 +67,11 @@ SPEED_TOLERANCE = 0.01
 
 
 def process_mismatch(model, speed_m_s: float | None = None, sample_period_s: float | None = None,
-                     material: str | None = None) -> str | None:
-    """Why a plant scanning at ``speed_m_s`` [m/s] with the sample period ``sample_period_s`` [s] and
-    ``material`` is not the process ``model`` was identified on (one line), or None. A value not given,
-    or a material the model does not record, is not compared."""
+                     material: str | None = None, powder_layer_m: float | None = None) -> str | None:
+    """Why a plant scanning at ``speed_m_s`` [m/s] with the sample period ``sample_period_s`` [s],
+    ``material`` and a powder layer of ``powder_layer_m`` [m] is not the process ``model`` was identified
+    on (one line), or None. A value not given, or a material or layer the model does not record, is not
+    compared."""
     if speed_m_s is not None and not abs(speed_m_s / model.speed_m_s - 1.0) <= SPEED_TOLERANCE:
         return (f"the plant scans at {speed_m_s * 1e3:.4g} mm/s but the model was identified at "
                 f"{model.speed_m_s * 1e3:.4g} mm/s; retrain at the plant's speed")
@@ -79,6 +80,11 @@ def process_mismatch(model, speed_m_s: float | None = None, sample_period_s: flo
                 f"{model.sample_period_s * 1e6:.4g} µs; retrain at the plant's period")
     if material is not None and model.material is not None and material != model.material:
         return f"the plant's material is {material} but the model was identified on {model.material}"
+    recorded = model.powder_layer_m
+    if powder_layer_m is not None and recorded is not None and not math.isclose(powder_layer_m, recorded,
+                                                                                rel_tol=1e-6, abs_tol=1e-9):
+        return (f"the plant's powder layer is {powder_layer_m * 1e6:.4g} µm but the model was identified on "
+                f"{recorded * 1e6:.4g} µm; retrain on the plant's layer")
     return None
 
 

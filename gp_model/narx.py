@@ -70,9 +70,19 @@ BUILD_UP_STEPS = 20
 """Samples whose target lies in the first 20 steps after laser-on (pool build-up) are not fitted."""
 DEFAULT_BOUNDS = HyperBounds()
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_narx_gp.json"
-"""The shipped delay-aware model of the bare plate (``python -m gp_trainer narx`` writes it; the MPC loads it)."""
+"""The shipped delay-aware model of the physical plant (``[plant] preset = "physical"``, a 40 µm powder layer;
+``python -m gp_trainer learn`` writes it, docs/gp.md; the preview MPC loads it)."""
+PLATE_MODEL_PATH = DEFAULT_MODEL_PATH.with_name("in625_plate_narx_gp.json")
+"""The delay-aware model of the bare plate (no powder; ``python -m gp_trainer narx --plant plate``)."""
 PART_MODEL_PATH = DEFAULT_MODEL_PATH.with_name("in625_part_narx_gp.json")
 """The delay-aware model of the ``part`` scenario (``python -m gp_trainer narx --plant part``)."""
+
+
+def default_model_path(powder_layer_m: float) -> Path:
+    """The shipped model of a plate plant with a powder layer of ``powder_layer_m`` [m]: the bare plate's
+    (:data:`PLATE_MODEL_PATH`) without powder, else :data:`DEFAULT_MODEL_PATH` (which refuses a plant whose
+    layer is not the one it was identified on)."""
+    return PLATE_MODEL_PATH if powder_layer_m == 0 else DEFAULT_MODEL_PATH
 
 
 @dataclass(frozen=True)
@@ -443,13 +453,16 @@ class NarxGPModel:
     speed_m_s : float
         The constant scan speed of the data [m/s] (power-only control).
     provenance : Mapping, optional
-        How the model was made; its ``"process"`` entry, if any, names the ``"material"`` and the
-        ``"plant"`` (``plate``, ``part``) of the identification runs.
+        How the model was made; its ``"process"`` entry, if any, names the ``"material"``, the
+        ``"powder_layer_m"`` [m] and the ``"plant"`` of the identification runs.
 
     Attributes
     ----------
     material : str or None
         The material of the identification runs (``None``: not recorded).
+    powder_layer_m : float or None
+        The powder layer thickness of the identification runs' plant [m] (0: a bare plate; ``None``: not
+        recorded).
     """
 
     def __init__(self, *, sample_period_s: float, intercept: float, power_coefficients: np.ndarray,
@@ -474,8 +487,13 @@ class NarxGPModel:
         self.provenance = dict(provenance or {})
         process = self.provenance.get("process", {})
         self.material = process.get("material") if isinstance(process, dict) else None
+        self.powder_layer_m = process.get("powder_layer_m") if isinstance(process, dict) else None
         if not isinstance(process, dict) or not (self.material is None or isinstance(self.material, str)):
             raise ModelFormatError("NARX model: provenance.process must be an object whose material is a string")
+        if not (self.powder_layer_m is None or (isinstance(self.powder_layer_m, (int, float))
+                                                and not isinstance(self.powder_layer_m, bool)
+                                                and 0 <= self.powder_layer_m < 1e-2)):
+            raise ModelFormatError("NARX model: provenance.process.powder_layer_m must be a number in [0, 0.01) m")
         arrays = (self.power_coefficients, self.power_square_coefficients, self.temperature_coefficients,
                   self.temperature_square_coefficients, self.turn_profile_k, self.power_temperature_coefficients)
         if output not in OUTPUTS:

@@ -45,10 +45,10 @@ import math
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 from fe_node.settings import Settings
-from gp_model.narx import DEFAULT_MODEL_PATH as NARX_MODEL_PATH
-from gp_model.narx import PART_MODEL_PATH
+from gp_model.narx import PART_MODEL_PATH, PLATE_MODEL_PATH
 from gp_trainer.distributed import check_scheduler_address, dask_client, run_on_dask
 from gp_trainer.errors import CampaignError
 from gp_trainer.jobs import (
@@ -256,7 +256,7 @@ def run_jobs(jobs: list[Job] | tuple[Job, ...], settings: RunnerSettings, *, pro
         raise CampaignError(f"need at least one job and distinct names, got {names}")
     _check_runner(settings)
     for job in jobs:
-        plant_toml(job.plant)  # a bad [plant] table is a usage error before anything runs
+        plant_toml(job.plant, job.controller_table)  # a bad [plant] table is a usage error before anything runs
     spec = run_spec(settings)
     spec.out_dir.mkdir(parents=True, exist_ok=True)
     results = {j.name: JobResult(j.name, str(job_recording(settings, j)), "skipped", 0.0, "recording complete", 0)
@@ -319,6 +319,8 @@ class IdentRun:
     seed: int
     n_layers: int | None = None
     """Layers to build (``ident-part``; None: the scenario's default)."""
+    plant: tuple[tuple[str, Any], ...] = ()
+    """``[plant]`` table of the process (e.g. ``preset``), before the run's own keys."""
 
     @property
     def name(self) -> str:
@@ -328,9 +330,15 @@ class IdentRun:
     def job(self) -> Job:
         """The launcher job: the scenario with its ``[plant]`` ``ident_*`` (and ``n_layers``) overrides."""
         layers = () if self.n_layers is None else (("n_layers", int(self.n_layers)),)
-        return Job(self.name, self.scenario, plant=(("ident_seed", int(self.seed)),
-                                                    ("ident_mean_w", float(self.mean_w)),
-                                                    ("ident_amplitude_w", float(self.amplitude_w)), *layers))
+        return Job(self.name, self.scenario, plant=_merged(self.plant, (
+            ("ident_seed", int(self.seed)), ("ident_mean_w", float(self.mean_w)),
+            ("ident_amplitude_w", float(self.amplitude_w)), *layers)))
+
+
+def _merged(process: tuple[tuple[str, Any], ...], run: tuple[tuple[str, Any], ...]) -> tuple[tuple[str, Any], ...]:
+    """The process's ``[plant]`` keys, then the run's (a run's key replaces the process's)."""
+    own = dict(run)
+    return tuple((k, v) for k, v in process if k not in own) + run
 
 
 @dataclass(frozen=True)
@@ -351,7 +359,12 @@ class FeedbackRun:
     t0_k: float | None = None
     """Preheat [K] (None: the scenario's)."""
     model: str | None = None
-    """The controller's model file, relative to the repository (None: its shipped model)."""
+    """The controller's model file, relative to the repository or absolute (None: its shipped model)."""
+    plant: tuple[tuple[str, Any], ...] = ()
+    """``[plant]`` table of the process (e.g. ``preset``), before the run's own keys."""
+    nominal_power_w: float | None = None
+    """``[controller] nominal_power_w`` [W] (None: the controller's default): the feed-forward baseline's
+    power at the reference temperature."""
 
     @property
     def name(self) -> str:
@@ -364,36 +377,118 @@ class FeedbackRun:
         """The launcher job: the scenario under the controller (with its ``[plant]`` overrides)."""
         layers = () if self.n_layers is None else ("--layers", str(int(self.n_layers)))
         model = () if self.model is None else ("--model", str(REPO_ROOT / self.model))
-        plant = tuple((k, float(v)) for k, v in (("hatch_m", self.hatch_m), ("t0_k", self.t0_k)) if v is not None)
+        plant = _merged(self.plant, tuple((k, float(v)) for k, v in (("hatch_m", self.hatch_m), ("t0_k", self.t0_k))
+                                          if v is not None))
+        controller = () if self.nominal_power_w is None else (("nominal_power_w", float(self.nominal_power_w)),)
         return Job(self.name, self.scenario, plant=plant,
-                   args=("--setpoint-mm2", repr(self.setpoint_mm2), *layers, *model), controller=self.controller)
+                   args=("--setpoint-mm2", repr(self.setpoint_mm2), *layers, *model), controller=self.controller,
+                   controller_table=controller)
 
 
-STAGE1_MODEL = "gp_model/models/in625_narx_gp_stage1.json"
-"""The delay-aware model fitted without the preview MPC's own runs (``narx`` on every plate run
-but the ``ident-preview-mpc-*`` ones): the controller of those runs, so that the data do not
-depend on the model they train (one iteration of training on the controller's own closed loop)."""
-PREVIEW_RUNS = tuple(
-    FeedbackRun(scenario, "preview-mpc", a, hatch_m=hatch, t0_k=t0, model=STAGE1_MODEL)
-    for scenario, a, hatch, t0 in (
-        ("double-track", 0.058, None, None), ("double-track", 0.068, None, None),
-        ("layer", 0.06, None, None), ("layer", 0.066, None, None),
-        ("double-track", 0.06, 0.9e-4, 350.0), ("layer", 0.065, 0.9e-4, 350.0),
-        ("double-track", 0.066, 1.1e-4, 450.0), ("layer", 0.061, 1.1e-4, 450.0))
-)
-"""The preview MPC (stage-1 model) on the double track and the layer at set points between the
-acceptance cases', at the default hatch and preheat and at two others (0.09 mm / 350 K,
-0.11 mm / 450 K): the pre-turn power profile of the controller itself, which random power steps
+@dataclass(frozen=True)
+class ProcessDesign:
+    """The identification runs of a plate process, designed around its operating point.
+
+    Stage 1: seeded random power staircases on the layer and the double track about the operating
+    power (means ``power_ratios`` × it, amplitude ``amplitude_ratio`` × it), a closed-loop controller
+    on the double track and the layer at set points about the target (``*_setpoint_ratios`` × it) and
+    the feed-forward baseline at the target. Stage 2: the preview MPC with the stage-1 model on the
+    double track and the layer at set points about the target, at the default hatch and preheat and
+    at two others (:data:`PREVIEW_VARIANTS`). The shipped bare-plate design (:data:`IDENT_RUNS`) is
+    the instance at 250 W and 0.063 mm² with the one-step GP-MPC as its closed-loop controller.
+
+    Attributes
+    ----------
+    operating_power_w : float
+        The power that holds ``setpoint_mm2`` along a track [W] (:mod:`gp_trainer.learn`).
+    setpoint_mm2 : float
+        The target set point [mm²].
+    stage1_model : str
+        The preview MPC's model in the stage-2 runs (relative to the repository, or absolute).
+    plant : tuple[tuple[str, Any], ...]
+        ``[plant]`` table of the process (a preset and overrides), before each run's own keys.
+    feedback_controller : str
+        The stage-1 closed-loop controller (``pid``: needs no model of the process).
+    feedforward_scenarios : tuple[str, ...]
+        Scenarios of the feed-forward baseline's runs at the target.
+    """
+
+    operating_power_w: float
+    setpoint_mm2: float
+    stage1_model: str
+    plant: tuple[tuple[str, Any], ...] = ()
+    feedback_controller: str = "pid"
+    feedforward_scenarios: tuple[str, ...] = ("double-track",)
+    power_ratios: tuple[float, ...] = (0.8, 1.0, 1.2)
+    amplitude_ratio: float = 0.24
+    double_track_setpoint_ratios: tuple[float, ...] = (55 / 63, 1.0, 70 / 63)
+    layer_setpoint_ratios: tuple[float, ...] = (58 / 63, 68 / 63)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.operating_power_w) and self.operating_power_w > 0):
+            raise CampaignError(f"operating_power_w must be > 0 W, got {self.operating_power_w}")
+        if not (math.isfinite(self.setpoint_mm2) and self.setpoint_mm2 > 0):
+            raise CampaignError(f"set_point must be > 0 mm², got {self.setpoint_mm2}")
+        if 1.0 not in self.power_ratios or not 0 <= self.amplitude_ratio < min(self.power_ratios):
+            raise CampaignError("the staircases need the operating power among their means and levels >= 0 W")
+
+    def _setpoint(self, ratio: float) -> float:
+        return round(self.setpoint_mm2 * ratio, 4)
+
+    def _power(self, ratio: float) -> float:
+        return float(round(self.operating_power_w * ratio))
+
+    def stage1_runs(self) -> tuple[IdentRun | FeedbackRun, ...]:
+        """Open-loop staircases (seeds 1-3 on the layer, 4-6 on the double track), then the closed-loop runs."""
+        amplitude = self._power(self.amplitude_ratio)
+        staircases = tuple(IdentRun(scenario, self._power(ratio), amplitude, seed, plant=self.plant)
+                           for scenario, first in (("ident-layer", 1), ("ident-double-track", 4))
+                           for seed, ratio in enumerate(self.power_ratios, first))
+        feedback = tuple(FeedbackRun(scenario, self.feedback_controller, self._setpoint(ratio), plant=self.plant)
+                         for scenario, ratios in (("double-track", self.double_track_setpoint_ratios),
+                                                  ("layer", self.layer_setpoint_ratios)) for ratio in ratios)
+        feedforward = tuple(FeedbackRun(scenario, "feedforward", self.setpoint_mm2, plant=self.plant,
+                                        nominal_power_w=self.operating_power_w)
+                            for scenario in self.feedforward_scenarios)
+        return staircases + feedback + feedforward
+
+    def stage2_runs(self) -> tuple[FeedbackRun, ...]:
+        """The preview MPC with :attr:`stage1_model` (:data:`PREVIEW_VARIANTS`)."""
+        return tuple(FeedbackRun(scenario, "preview-mpc", self._setpoint(ratio), hatch_m=hatch, t0_k=t0,
+                                 model=self.stage1_model, plant=self.plant)
+                     for scenario, ratio, hatch, t0 in PREVIEW_VARIANTS)
+
+    def runs(self) -> tuple[IdentRun | FeedbackRun, ...]:
+        """Stage 1, then stage 2."""
+        return self.stage1_runs() + self.stage2_runs()
+
+    def held_out(self) -> tuple[str, ...]:
+        """Runs held out for selection and evaluation: the staircases at the operating power (layer and
+        double track) and the closed-loop double track at the target."""
+        at_power = [r.name for r in self.stage1_runs() if isinstance(r, IdentRun)
+                    and r.mean_w == self._power(1.0)]
+        closed = FeedbackRun("double-track", self.feedback_controller, self.setpoint_mm2).name
+        return (*at_power, closed)
+
+
+PREVIEW_VARIANTS = (
+    ("double-track", 58 / 63, None, None), ("double-track", 68 / 63, None, None),
+    ("layer", 60 / 63, None, None), ("layer", 66 / 63, None, None),
+    ("double-track", 60 / 63, 0.9e-4, 350.0), ("layer", 65 / 63, 0.9e-4, 350.0),
+    ("double-track", 66 / 63, 1.1e-4, 450.0), ("layer", 61 / 63, 1.1e-4, 450.0))
+"""(scenario, set point / target, hatch [m], preheat [K]) of the preview MPC's stage-2 runs: set points
+between the stage-1 ones, at the default hatch and preheat and at two others (0.09 mm / 350 K,
+0.11 mm / 450 K). They hold the controller's own pre-turn power profile, which random power steps
 never show (the model's error after a turn came from it, ``docs/gp.md``)."""
 
-
-IDENT_RUNS = tuple(
-    IdentRun(scenario, mean, 60.0, seed)
-    for scenario, seeds in (("ident-layer", (1, 2, 3)), ("ident-double-track", (4, 5, 6)))
-    for mean, seed in zip((200.0, 250.0, 300.0), seeds)
-) + tuple(FeedbackRun("double-track", "mpc", a) for a in (0.055, 0.063, 0.07)) + tuple(
-    FeedbackRun("layer", "mpc", a) for a in (0.058, 0.068)) + tuple(
-    FeedbackRun(scenario, "feedforward", 0.063) for scenario in ("double-track", "layer")) + PREVIEW_RUNS
+PLATE_STAGE1_MODEL = "gp_model/models/in625_plate_narx_gp_stage1.json"
+"""The bare plate's stage-1 model: ``narx`` over every plate run but the ``ident-preview-mpc-*`` ones, the
+controller of those runs, so that the data do not depend on the model they train."""
+PLATE_DESIGN = ProcessDesign(250.0, 0.063, PLATE_STAGE1_MODEL, feedback_controller="mpc",
+                             feedforward_scenarios=("double-track", "layer"))
+"""The bare plate's runs: 250 W, 0.063 mm², the one-step GP-MPC in closed loop (its model is the plate's)."""
+IDENT_RUNS = PLATE_DESIGN.runs()
+PREVIEW_RUNS = PLATE_DESIGN.stage2_runs()
 
 PART_IDENT_LAYERS = 4
 DEFAULT_PART_IDENT_DIR = Path("recordings/identification-part")
@@ -429,9 +524,7 @@ class IdentSet:
 
 
 IDENT_SETS = {
-    "plate": IdentSet("plate", IDENT_RUNS, DEFAULT_IDENT_DIR,
-                      ("ident-layer-p250-s2", "ident-double-track-p250-s5", "ident-mpc-double-track-a0.063"),
-                      NARX_MODEL_PATH),
+    "plate": IdentSet("plate", IDENT_RUNS, DEFAULT_IDENT_DIR, PLATE_DESIGN.held_out(), PLATE_MODEL_PATH),
     "part": IdentSet("part", IDENT_PART_RUNS, DEFAULT_PART_IDENT_DIR,
                      ("ident-part-p100-s12", "ident-pid-part-a0.063"), PART_MODEL_PATH),
 }

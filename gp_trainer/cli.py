@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import sys
 from collections.abc import Callable, Sequence
@@ -26,7 +27,9 @@ from typing import Any, NoReturn
 
 import numpy as np
 
+from controller_node.settings import ControllerSettings
 from fe_node.part import require_pyslm
+from fe_node.scenarios import scenario
 from gp_model import narx
 from gp_model.errors import DatasetError, GPError
 from gp_model.files import is_model_file
@@ -42,12 +45,16 @@ from gp_trainer.campaign import (
     select_ident_runs,
     summary_json,
 )
-from gp_trainer.dataset import load_samples, read_states, recording_info
-from gp_trainer.errors import CampaignError
-from gp_trainer.evaluate import evaluate
+from gp_trainer.dataset import load_samples, read_states
+from gp_trainer.errors import CampaignError, LearnError
+from gp_trainer.evaluate import evaluate, plot_narx
+from gp_trainer.jobs import JobResult
+from gp_trainer.learn import LearnSettings, design_from_record, learn, process_record
 from gp_trainer.narx_fit import ROLLOUT_HORIZON, evaluate_model, select_and_fit
 from gp_trainer.provenance import REPO_ROOT
 from gp_trainer.train import TrainSettings, train
+from messages.cli import UsageError
+from messages.config import build, load_toml
 
 PROG = "python -m gp_trainer"
 DEFAULT_DATASET = Path("out/gp/dataset.npz")
@@ -104,12 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=fmt,
         help="validate a model: the delay-aware one on held-out identification runs, a one-step one on the dataset",
     )
-    _plant_option(p)
+    _plant_option(p, None)
     p.add_argument("--model", type=Path, default=None,
                    help="model file (default: the --plant's delay-aware model; a delay-aware model is evaluated "
                         "on --recordings-dir, a one-step GP on --dataset)")
     p.add_argument("--recordings-dir", type=Path, default=None,
-                   help="identification recordings (delay-aware model; default: the --plant's)")
+                   help="identification recordings (delay-aware model; default: the model's (learn) or the "
+                        "--plant's)")
     p.add_argument("--dataset", type=Path, default=DEFAULT_DATASET, help="dataset file")
     p.add_argument("--plots-dir", type=Path, default=DEFAULT_PLOTS, help="where the PNG figures go")
     p.add_argument("--rollout-source", default="table2-case2", help="case of the multi-step forward simulation")
@@ -150,13 +158,33 @@ def build_parser() -> argparse.ArgumentParser:
                    help="only these runs (default: all of the --plant's)")
     p.add_argument("--out-dir", type=Path, default=None, help="recordings directory (default: the --plant's)")
     _runner_options(p, "run")
+
+    p = sub.add_parser(
+        "learn", formatter_class=fmt, help="learn a process: operating point, identification runs, delay-aware model",
+        description="Learn the delay-aware model of a plate process: find the power that holds the set point "
+        "along a track, record the identification runs designed around it (staircases, closed-loop runs, then "
+        "the preview MPC with the stage-1 model) on Dask, select and fit the model by its held-out rollout, and "
+        "write the model, its stage-1 model beside it, a JSON report (learn.json) and plots in --out-dir.")
+    p.add_argument("--config", type=Path, required=True,
+                   help="TOML file whose [plant] table is the process (launch.py's; [controller] sets the power "
+                        "limits)")
+    p.add_argument("--set-point-mm2", type=float, default=None,
+                   help="target melt-pool area [mm²] (default: the [controller] table's, else "
+                        f"{ControllerSettings.set_point_m2 * 1e6:g})")
+    p.add_argument("--out", type=Path, default=LearnSettings.model_out, help="model file (JSON)")
+    p.add_argument("--out-dir", type=Path, default=LearnSettings.out_dir,
+                   help="recordings, report and plots (a re-run skips complete recordings)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the fits")
+    _runner_options(p, "run")
     return parser
 
 
-def _plant_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--plant", choices=tuple(IDENT_SETS), default="plate",
+def _plant_option(p: argparse.ArgumentParser, default: str | None = "plate") -> None:
+    p.add_argument("--plant", choices=tuple(IDENT_SETS), default=default,
                    help="plate: the bare-plate scenarios (layer, double track); part: the part scenario "
-                        "(powder, the example part)")
+                        "(powder, the example part); a process learned by `learn` is on neither"
+                        + ("" if default else " (default: the shipped model of the physical plant, whose held-out "
+                           "runs its provenance names)"))
 
 
 def _runner_options(p: argparse.ArgumentParser, unit: str) -> None:
@@ -276,23 +304,35 @@ def _train(args: argparse.Namespace) -> int:
 
 def _evaluate_narx(args: argparse.Namespace) -> int:
     """Held-out metrics of a delay-aware model (the keys of the one-step evaluation plus
-    ``rollout_h40_mape_pct`` and ``coverage_95_pct``)."""
+    ``rollout_h40_mape_pct`` and ``coverage_95_pct``) and its plots: on the held-out runs of the process
+    its ``provenance.design`` records (``learn``), else on those of ``--plant``."""
 
-    ident = IDENT_SETS[args.plant]
     model = NarxGPModel.load(args.model)
-    recordings_dir = args.recordings_dir or ident.out_dir
-    paths = [recordings_dir / f"{name}.mcap" for name in ident.held_out]
+    record = model.provenance.get("design")
+    if record is not None:
+        design, default_dir = design_from_record(record)
+        runs, held_out, plant = design.runs(), design.held_out(), None
+        command = (f"{PROG} learn (the model's process, provenance.design) --out-dir "
+                   f"{args.recordings_dir or default_dir}")
+    else:
+        ident = IDENT_SETS[args.plant or "plate"]
+        runs, held_out, default_dir, plant = ident.runs, ident.held_out, ident.out_dir, ident.name
+    recordings_dir = args.recordings_dir or default_dir
+    paths = [recordings_dir / f"{name}.mcap" for name in held_out]
     missing = [p.stem for p in paths if not p.is_file()]
-    command = f"{PROG} identify --plant {ident.name} --runs {' '.join(missing)} --out-dir {recordings_dir}"
+    if plant is not None:
+        command = f"{PROG} identify --plant {plant} --runs {' '.join(missing)} --out-dir {recordings_dir}"
     if missing and args.no_identify:
         raise DatasetError(f"held-out identification recordings missing in {recordings_dir} "
                            f"({', '.join(missing)}): run `{command}`")
-    if missing and (status := _identify_held_out(ident, missing, recordings_dir, command)) != 0:
+    if missing and (status := _identify_held_out(runs, missing, recordings_dir, command)) != 0:
         return status
-    result = evaluate_model(model, [series_from_states(read_states(p), p.stem) for p in paths])
+    held = [series_from_states(read_states(p), p.stem) for p in paths]
+    result = evaluate_model(model, held)
+    result.update(plot_narx(model, held, args.plots_dir))
     case2 = DEFAULT_RECORDINGS / f"{args.rollout_source}.mcap"
     result["rollout_case2_mape_pct"] = None
-    on_plate = ident.name == "plate"  # the Table 2 cases run on the bare plate; another plant's model skips them
+    on_plate = plant == "plate"  # the Table 2 cases run on the bare plate; another plant's model skips them
     if on_plate and case2.is_file():  # the paper's Fig. 4b: the whole case predicted from its powers and measured T
         run = series_from_states(read_states(case2), case2.stem)
         mean, _ = model.predict_run(run)
@@ -315,11 +355,11 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
     return 0
 
 
-def _identify_held_out(ident, names: list[str], out_dir: Path, command: str) -> int:
-    """Record the held-out identification runs ``names`` of ``ident`` into ``out_dir`` (what ``command``
+def _identify_held_out(runs: tuple, names: list[str], out_dir: Path, command: str) -> int:
+    """Record the held-out identification runs ``names`` of ``runs`` into ``out_dir`` (what ``command``
     does, on a local Dask cluster); 0 when all are complete, else the status to exit with."""
     print(f"{PROG} evaluate: recording the held-out runs first ({', '.join(names)}): {command}", file=sys.stderr)
-    settings = IdentifySettings(runs=select_ident_runs(names, ident.runs), out_dir=out_dir)
+    settings = IdentifySettings(runs=select_ident_runs(names, runs), out_dir=out_dir)
     try:
         results = run_identification(settings)
     except KeyboardInterrupt:
@@ -329,7 +369,7 @@ def _identify_held_out(ident, names: list[str], out_dir: Path, command: str) -> 
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    args.model = args.model or IDENT_SETS[args.plant].model_path
+    args.model = args.model or (narx.DEFAULT_MODEL_PATH if args.plant is None else IDENT_SETS[args.plant].model_path)
     if is_model_file(args.model, narx.FORMAT_NAME):
         return _evaluate_narx(args)
     model = GPModel.load(args.model)
@@ -384,21 +424,6 @@ def _identify(args: argparse.Namespace) -> int:
     return _run_and_report(args, run_identification, settings, lambda r: r.name, "runs")
 
 
-def _material(paths: Sequence[Path]) -> str | None:
-    """The material of the FE plant that recorded ``paths`` (its recorded configuration; ``None`` if no
-    recording names one); :class:`DatasetError` if they name different ones."""
-
-    names = set()
-    for path in paths:
-        plant = recording_info(path)["config"].get("plant") or {}
-        material = (plant.get("settings") or {}).get("material") if isinstance(plant, dict) else None
-        names.add(material.get("name") if isinstance(material, dict) else None)
-    names.discard(None)
-    if len(names) > 1:
-        raise DatasetError(f"the recordings are of different materials: {', '.join(sorted(names))}")
-    return names.pop() if names else None
-
-
 def _narx(args: argparse.Namespace) -> int:
     ident = IDENT_SETS[args.plant]
     held_out = args.held_out or ident.held_out
@@ -413,7 +438,7 @@ def _narx(args: argparse.Namespace) -> int:
     if not held or not train:
         raise DatasetError("need both training and held-out runs; "
                            f"held out {[r.name for r in held]} of {[r.name for r in runs]}")
-    process = {"material": _material(paths), "plant": ident.name}
+    process = {**process_record(paths), "plant": ident.name}
     model, best, table = select_and_fit(train, held, seed=args.seed, provenance={"process": process})
     out = model.save(args.out or ident.model_path)
     for row in table:
@@ -431,12 +456,52 @@ def _narx(args: argparse.Namespace) -> int:
     return 0
 
 
+def _learn(args: argparse.Namespace) -> int:
+    try:
+        data = load_toml(args.config)
+        unknown = sorted(set(data) - {"plant", "controller"})
+        if unknown:
+            raise UsageError(f"{args.config}: unknown table(s) {', '.join(unknown)}; expected [plant], [controller]")
+        plant = data.get("plant", {})
+        search = {} if args.h_um is None else {"h_fine_m": args.h_um * 1e-6}
+        try:
+            scenario("layer", **plant, **search)
+        except (ValueError, TypeError) as err:
+            raise UsageError(f"{args.config} [plant]: {err}") from None
+        table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
+        overrides = {} if args.set_point_mm2 is None else {"set_point_m2": args.set_point_mm2 * 1e-6}
+        if args.set_point_mm2 is not None and not (math.isfinite(args.set_point_mm2) and args.set_point_mm2 > 0):
+            raise UsageError(f"--set-point-mm2 (set_point) must be > 0, got {args.set_point_mm2}")
+        controller = build(ControllerSettings, table, f"{args.config} [controller]", **overrides)
+    except UsageError as err:
+        raise LearnError(str(err)) from None
+    settings = LearnSettings(plant=tuple(plant.items()), set_point_m2=controller.set_point_m2,
+                             power_min_w=controller.power_min_w, power_max_w=controller.power_max_w,
+                             model_out=args.out, search_plant=tuple(search.items()), seed=args.seed,
+                             **_runner_settings(args))
+    try:
+        report = learn(settings, progress=not args.no_progress,
+                       log=(lambda m: None) if args.no_progress else (lambda m: print(m, file=sys.stderr)))
+    except KeyboardInterrupt:
+        return _interrupted("learn", settings.out_dir)
+    failed = [r for r in report["runs"] if r["status"] == "failed"]
+    _report_failures([JobResult(**r) for r in failed], lambda r: r.name)
+    if report["status"] == "ok":
+        m = report["metrics"]
+        print(f"operating point {report['operating_point']['power_w']:.1f} W; held-out R² = {m['r2']:.4f}, "
+              f"MAPE = {m['mape_pct']:.2f} %, 40-step rollout {m['rollout_h40_mape_pct']:.2f} % -> {settings.model_out}"
+              f" (report {settings.report_out})")
+    if args.json:
+        print(json.dumps(report))
+    return 0 if report["status"] == "ok" else 1
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one sub-command; return the exit status (2 for user errors, with a one-line reason)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     command = {"dataset": _dataset, "train": _train, "evaluate": _evaluate, "campaign": _campaign, "narx": _narx,
-               "identify": _identify}[args.command]
+               "identify": _identify, "learn": _learn}[args.command]
     try:
         return command(args)
     except GPError as exc:

@@ -12,3 +12,7 @@ class RecordingError(DatasetError):
 
 class CampaignError(GPError):
     """The data campaign cannot run (e.g. the launcher is missing) or a case failed."""
+
+
+class LearnError(GPError):
+    """A process cannot be learned as asked (e.g. its set point is out of reach of the power limits)."""

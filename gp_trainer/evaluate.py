@@ -182,3 +182,24 @@ def evaluate(model: GPModel, samples: Samples, plots_dir: str | os.PathLike[str]
             result["rollout_png"] = plot_rollout(traj, rollout_source, result["rollout_case2_mape_pct"],
                                                  plots / "gp_rollout.png")
     return result
+
+
+def plot_narx(model: Any, runs: list[Any], plots_dir: str | os.PathLike[str]) -> dict[str, str]:
+    """Figures of a delay-aware model (:class:`gp_model.narx.NarxGPModel`) on held-out runs
+    (:class:`gp_model.narx.RunSeries`): the one-step scatter over all of them (``narx_scatter.png``, as
+    Fig. 4a) and the forward simulation of the last one from its powers and measured T
+    (``narx_rollout.png``, as Fig. 4b); the states of the pool build-up are left out."""
+    from gp_model.narx import BUILD_UP_STEPS
+
+    ys, preds, traj = [], [], None
+    for run in runs:
+        mean, _ = model.predict_run(run)
+        keep = (run.steps_since_layer_start()[1:] >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
+        ys.append(run.area_m2[1:][keep]), preds.append(mean[keep])
+        step = np.arange(len(run) - 1)[keep]
+        traj = Rollout(step=step, recorded=run.area_m2[1:][keep], simulated=mean[keep], power_w=run.power_w[1:][keep])
+    y, pred = np.concatenate(ys), np.concatenate(preds)
+    plots = Path(plots_dir)
+    return {"scatter_png": plot_scatter(y, pred, r2_score(y, pred), mape_pct(y, pred), plots / "narx_scatter.png"),
+            "rollout_png": plot_rollout(traj, runs[-1].name, mape_pct(traj.recorded, traj.simulated),
+                                        plots / "narx_rollout.png")}

@@ -47,6 +47,8 @@ class Job:
         Further launch.py arguments.
     controller : str or None
         launch.py's ``--controller`` for this job (None: the runner's, ``none`` by default).
+    controller_table : tuple[tuple[str, Any], ...]
+        ``[controller]`` table (key, value pairs), written to the same TOML file as ``plant``.
     """
 
     name: str
@@ -54,6 +56,7 @@ class Job:
     plant: tuple[tuple[str, Any], ...] = ()
     args: tuple[str, ...] = ()
     controller: str | None = None
+    controller_table: tuple[tuple[str, Any], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -160,12 +163,12 @@ def run_job(spec: RunSpec, job: Job, attempt: int = 1) -> JobResult:
     partial = final.with_name(f"{job.name}.partial.mcap")
     worker = _worker_name()
     try:
-        if not job.plant:
+        if not job.plant and not job.controller_table:
             returncode, output = _launch(spec, job, partial, None)
         else:
             with tempfile.TemporaryDirectory(prefix="meltloop-job-") as tmp:
                 config = Path(tmp) / f"{job.name}.toml"
-                config.write_text(plant_toml(job.plant))
+                config.write_text(plant_toml(job.plant, job.controller_table))
                 returncode, output = _launch(spec, job, partial, config)
     except (OSError, CampaignError) as exc:  # e.g. the interpreter or launcher is missing on this worker
         return JobResult(job.name, str(partial), "failed", time.monotonic() - started,
@@ -296,6 +299,9 @@ def _toml_value(key: str, value: Any) -> str:
     raise CampaignError(f"[plant] {key}: unsupported value {value!r}")
 
 
-def plant_toml(plant: tuple[tuple[str, Any], ...]) -> str:
-    """A TOML document with one ``[plant]`` table (flat numbers, booleans and strings)."""
-    return "[plant]\n" + "".join(f"{key} = {_toml_value(key, value)}\n" for key, value in plant)
+def plant_toml(plant: tuple[tuple[str, Any], ...], controller: tuple[tuple[str, Any], ...] = ()) -> str:
+    """A TOML document with a ``[plant]`` table and, if ``controller`` is given, a ``[controller]`` table
+    (flat numbers, booleans and strings)."""
+    def table(name: str, pairs: tuple[tuple[str, Any], ...]) -> str:
+        return f"[{name}]\n" + "".join(f"{key} = {_toml_value(key, value)}\n" for key, value in pairs)
+    return table("plant", plant) + (table("controller", controller) if controller else "")

@@ -25,17 +25,17 @@ from controller_node.report import Metrics, Trace, metrics
 from fe_node.node import fe_state, n_steps
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
-from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel
+from gp_model.narx import NarxGPModel, default_model_path
 
 SETPOINT_MM2 = 0.063
 
 
 def closed_loop(name: str, setpoint_mm2: float = SETPOINT_MM2) -> Metrics:
-    """Run ``preview-mpc`` with the shipped model on scenario ``name`` to its end; its metrics."""
+    """Run ``preview-mpc`` with the shipped model of the plant's layer on scenario ``name`` to its end; its metrics."""
     sc = scenario(name)
     plant = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
     ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=setpoint_mm2 * 1e-6),
-                           NarxGPModel.load(DEFAULT_MODEL_PATH))
+                           NarxGPModel.load(default_model_path(sc.settings.powder_layer_m)))
     total = n_steps(sc)
     obs = dataclasses.replace(plant.initial_observation(), speed_m_s=sc.profile.command(0)[1])  # as fe_node
     seen = []

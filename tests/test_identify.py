@@ -15,7 +15,7 @@ import pytest
 from fe_node.scenarios import IDENT_DEFAULTS, IDENT_HOLD_STEPS, scenario
 from gp_trainer.campaign import (
     IDENT_RUNS,
-    STAGE1_MODEL,
+    PLATE_STAGE1_MODEL,
     FeedbackRun,
     IdentifySettings,
     IdentRun,
@@ -137,6 +137,8 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
         assert tomllib.loads(plant_toml(job.plant)) == {"plant": dict(job.plant)}
     for run, job in zip(feedback[:7], jobs[6:]):
         out = tmp_path / f"{job.name}.partial.mcap"
+        nominal = {"nominal_power_w": 250.0} if run.controller == "feedforward" else {}  # the plate's operating power
+        assert dict(job.controller_table) == nominal
         assert job_command(settings, job, out) == [
             "PY",
             "/repo/launch.py",
@@ -157,9 +159,9 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
     for run, job in zip(feedback[7:], jobs[13:]):  # the preview MPC (stage-1 model), some at another hatch/preheat
         out, config = tmp_path / f"{job.name}.partial.mcap", tmp_path / "cfg.toml"
         command = job_command(settings, job, out, config if job.plant else None)
-        assert command[command.index("--model") + 1] == str(REPO_ROOT / STAGE1_MODEL)
+        assert command[command.index("--model") + 1] == str(REPO_ROOT / PLATE_STAGE1_MODEL)
         assert dict(job.plant) == ({} if run.hatch_m is None else {"hatch_m": run.hatch_m, "t0_k": run.t0_k})
-    assert (REPO_ROOT / STAGE1_MODEL).is_file()
+    assert (REPO_ROOT / PLATE_STAGE1_MODEL).is_file()
     assert [(r.scenario, r.mean_w, r.seed) for r in open_loop] == [
         ("ident-layer", 200.0, 1), ("ident-layer", 250.0, 2), ("ident-layer", 300.0, 3),
         ("ident-double-track", 200.0, 4), ("ident-double-track", 250.0, 5), ("ident-double-track", 300.0, 6)]

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from controller_node.settings import PLANT_PRESETS, ControllerSettings, with_preset
-from fe_node.scenarios import PART_POWER_W
-from gp_model.narx import DEFAULT_MODEL_PATH, PART_MODEL_PATH, NarxGPModel
+from fe_node.scenarios import PART_POWER_W, scenario
+from gp_model.narx import PART_MODEL_PATH, PLATE_MODEL_PATH, NarxGPModel
 from gp_trainer.campaign import IDENT_PART_RUNS, IDENT_RUNS, IDENT_SETS, FeedbackRun, IdentRun
 from gp_trainer.cli import main as gp_main
 from gp_trainer.jobs import plant_toml
@@ -40,13 +40,12 @@ def test_part_identification_runs_build_four_layers_and_hold_out_named_runs():
     assert all("n_layers" not in dict(r.job().plant) for r in IDENT_RUNS if isinstance(r, IdentRun))
     for ident in IDENT_SETS.values():      # every held-out name is a run of its set (a typo would hold out nothing)
         assert set(ident.held_out) < {r.name for r in ident.runs}
-    assert IDENT_SETS["plate"].model_path == DEFAULT_MODEL_PATH and IDENT_SETS["part"].model_path == PART_MODEL_PATH
+    assert IDENT_SETS["plate"].model_path == PLATE_MODEL_PATH and IDENT_SETS["part"].model_path == PART_MODEL_PATH
     assert IDENT_SETS["part"].out_dir != IDENT_SETS["plate"].out_dir
 
 
 def test_ident_part_scenario_is_a_seeded_staircase_over_every_layer():
     pytest.importorskip("pyslm")
-    from fe_node.scenarios import scenario
 
     a = scenario("ident-part", ident_seed=12, ident_mean_w=100.0, ident_amplitude_w=40.0, n_layers=2)
     b = scenario("ident-part", ident_seed=12, ident_mean_w=100.0, ident_amplitude_w=40.0, n_layers=2)
@@ -69,7 +68,9 @@ def test_launch_gives_a_part_run_the_part_model_preset_and_power(tmp_path):
     pid = _controller_args(RunOptions(scenario="part", controller="pid"), tmp_path)
     assert _value(pid, "--model") is None and float(_value(pid, "--nominal-power-w")) == PART_POWER_W
     layer = _controller_args(RunOptions(scenario="layer"), tmp_path)
-    assert {"--model", "--preset", "--nominal-power-w"}.isdisjoint(layer)
+    assert {"--preset", "--nominal-power-w"}.isdisjoint(layer)  # the model of the default plant's layer:
+    bare = scenario("layer").settings.powder_layer_m == 0     # the plate's without powder, else the shipped default
+    assert _value(layer, "--model") == (str(PLATE_MODEL_PATH) if bare else None)
     config = tmp_path / "c.toml"
     config.write_text("[plant]\npower_w = 80.0\n")
     assert float(_value(_controller_args(RunOptions(scenario="part", config=config), tmp_path),

@@ -310,17 +310,17 @@ def test_launch_refuses_a_plant_of_another_process(tmp_path, table, message):
 
 
 def test_the_process_is_the_models(tmp_path):
-    """The shipped model records its process; :func:`process_mismatch` names each difference."""
+    """The bare plate's shipped model records its process; :func:`process_mismatch` names each difference."""
     from dataclasses import replace
 
     from controller_node.preview import process_mismatch
     from fe_node.material import Material
     from fe_node.scenarios import scenario
-    from gp_model.narx import DEFAULT_MODEL_PATH
+    from gp_model.narx import PLATE_MODEL_PATH
     from launch import check_process
     from messages.cli import UsageError
 
-    shipped = NarxGPModel.load(DEFAULT_MODEL_PATH)
+    shipped = NarxGPModel.load(PLATE_MODEL_PATH)
     assert (shipped.speed_m_s, round(shipped.sample_period_s, 12), shipped.material) == (0.8, 50e-6, "IN625")
     assert shipped.provenance["process"]["plant"] == "plate"
     assert process_mismatch(shipped, speed_m_s=0.805, sample_period_s=50.4e-6, material="IN625") is None
@@ -333,7 +333,7 @@ def test_the_process_is_the_models(tmp_path):
     other = replace(plate, settings=replace(plate.settings, material=Material.constant(20.0, 8000.0, 500.0)))
     with pytest.raises(UsageError, match=r"^\[plant\] material: the plant's material is constant but"):
         check_process(shipped, other, ControllerSettings(), None)
-    unrecorded = json.loads(DEFAULT_MODEL_PATH.read_text())
+    unrecorded = json.loads(PLATE_MODEL_PATH.read_text())
     del unrecorded["provenance"]["process"]
     (tmp_path / "m.json").write_text(json.dumps(unrecorded))
     assert NarxGPModel.load(tmp_path / "m.json").material is None      # not recorded: not compared

@@ -1,0 +1,296 @@
+"""Learning a process: ``python -m gp_trainer learn --config FILE.toml``.
+
+One command takes a plate process (a ``[plant]`` table, as ``launch.py --config`` takes it) to a
+delay-aware model of it:
+
+1. **Operating point** (:func:`find_operating_power`): the power that holds the set point along a
+   track, by regula falsi on the plant's steady area over a single track (a few short FE runs,
+   :func:`fe_steady_area`), after checking that the set point is reachable within the controller's
+   power limits.
+2. **Runs** (:class:`gp_trainer.campaign.ProcessDesign`): stage 1, open-loop staircases about the
+   operating power and closed-loop runs at set points about the target; stage 2, the preview MPC
+   with the stage-1 model. Both on the campaign's runner (:func:`gp_trainer.campaign.run_jobs`:
+   Dask, partial/complete recordings, a re-run skips complete ones).
+3. **Fit** (:func:`gp_trainer.narx_fit.select_and_fit`: selection by the held-out 40-step rollout)
+   after each stage, the held-out metrics and plots of the final model, and a JSON report.
+
+The functional core (:func:`find_operating_power`, :class:`~gp_trainer.campaign.ProcessDesign`) is
+free of FE runs; :func:`learn` is the shell that runs them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gp_model.atomic import atomic_write
+from gp_model.narx import NarxGPModel, RunSeries, series_from_states
+from gp_trainer.campaign import ProcessDesign, run_jobs
+from gp_trainer.dataset import read_states, recording_info
+from gp_trainer.errors import CampaignError, LearnError
+from gp_trainer.evaluate import plot_narx
+from gp_trainer.jobs import JobResult, RunnerSettings, job_recording
+from gp_trainer.narx_fit import select_and_fit
+from gp_trainer.provenance import REPO_ROOT
+
+SEARCH_SCENARIO = "single-track"
+"""The scenario of the operating-point search: one 5 mm track at the plant's speed."""
+SEARCH_REL_TOL = 0.005
+"""The search stops when the steady area is within this fraction of the set point."""
+SEARCH_MAX_EVALUATIONS = 10
+"""FE runs of the search at most (the bounds included)."""
+
+
+@dataclass(frozen=True)
+class OperatingPoint:
+    """The power that holds a set point along a track.
+
+    Attributes
+    ----------
+    power_w : float
+        The operating power [W].
+    area_m2 : float
+        The plant's steady area at ``power_w`` [m²].
+    set_point_m2 : float
+        The set point [m²].
+    evaluations : tuple[tuple[float, float], ...]
+        Every (power [W], steady area [m²]) the search ran, in order.
+    """
+
+    power_w: float
+    area_m2: float
+    set_point_m2: float
+    evaluations: tuple[tuple[float, float], ...]
+
+
+def find_operating_power(steady_area_m2: Callable[[float], float], set_point_m2: float, power_min_w: float,
+                         power_max_w: float, *, rel_tol: float = SEARCH_REL_TOL,
+                         max_evaluations: int = SEARCH_MAX_EVALUATIONS) -> OperatingPoint:
+    """The power in ``[power_min_w, power_max_w]`` whose steady area is ``set_point_m2``.
+
+    ``steady_area_m2(p)`` is the plant's steady melt-pool area [m²] at the constant power ``p`` [W],
+    non-decreasing in ``p``. The search evaluates the upper bound, then the lower one (an area of 0
+    at 0 W is taken without a run), then narrows the bracket by regula falsi (Illinois) until the
+    area is within ``rel_tol`` of the set point or ``max_evaluations`` runs were made; it returns
+    the evaluated power closest to the set point.
+
+    Raises
+    ------
+    LearnError
+        The set point lies outside the areas the power limits reach (naming ``set_point``), or bad
+        limits.
+    """
+    if not (math.isfinite(set_point_m2) and set_point_m2 > 0):
+        raise LearnError(f"set_point must be > 0 mm², got {set_point_m2 * 1e6:g}")
+    if not 0 <= power_min_w < power_max_w or not math.isfinite(power_max_w):
+        raise LearnError(f"power limits must satisfy 0 <= power_min_w < power_max_w, got {power_min_w:g}, "
+                         f"{power_max_w:g} W")
+    evaluations: list[tuple[float, float]] = []
+
+    def area(power_w: float) -> float:
+        value = float(steady_area_m2(power_w))
+        evaluations.append((float(power_w), value))
+        return value
+
+    hi, a_hi = power_max_w, area(power_max_w)
+    if a_hi < set_point_m2:
+        raise LearnError(f"set_point {set_point_m2 * 1e6:g} mm² is not reachable: the plant's steady area at the "
+                         f"controller's power_max_w {power_max_w:g} W is {a_hi * 1e6:.4g} mm²")
+    lo, a_lo = power_min_w, (0.0 if power_min_w == 0 else area(power_min_w))
+    if a_lo > set_point_m2:
+        raise LearnError(f"set_point {set_point_m2 * 1e6:g} mm² is not reachable: the plant's steady area at the "
+                         f"controller's power_min_w {power_min_w:g} W is {a_lo * 1e6:.4g} mm²")
+    side = 0
+    while len(evaluations) < max_evaluations:
+        f_lo, f_hi = a_lo - set_point_m2, a_hi - set_point_m2
+        power = hi if f_hi == f_lo else (lo * f_hi - hi * f_lo) / (f_hi - f_lo)
+        power = min(max(power, lo + 1e-3 * (hi - lo)), hi - 1e-3 * (hi - lo))
+        value = area(power)
+        if abs(value / set_point_m2 - 1.0) <= rel_tol:
+            break
+        if value < set_point_m2:
+            lo, a_lo = power, value
+            if side == -1:  # Illinois: the end that stayed twice is pulled halfway to the set point
+                a_hi = set_point_m2 + 0.5 * (a_hi - set_point_m2)
+            side = -1
+        else:
+            hi, a_hi = power, value
+            if side == 1:
+                a_lo = set_point_m2 + 0.5 * (a_lo - set_point_m2)
+            side = 1
+    power, value = min(evaluations, key=lambda e: abs(e[1] - set_point_m2))
+    return OperatingPoint(power, value, set_point_m2, tuple(evaluations))
+
+
+def fe_steady_area(plant: dict[str, Any], scenario_name: str = SEARCH_SCENARIO) -> Callable[[float], float]:
+    """``steady_area_m2(power_w)`` of the FE plant ``plant`` (a ``[plant]`` table): the mean area [m²]
+    over the last fifth of a single track at that constant power (:func:`fe_node.driver.quasi_steady`)."""
+    from fe_node.driver import quasi_steady, run_open_loop
+    from fe_node.scenarios import scenario
+
+    def steady_area_m2(power_w: float) -> float:
+        return quasi_steady(run_open_loop(scenario(scenario_name, **{**plant, "power_w": float(power_w)})))[
+            "area_mm2"] * 1e-6
+
+    return steady_area_m2
+
+
+@dataclass(frozen=True)
+class LearnSettings(RunnerSettings):
+    """What ``learn`` learns and where it writes (the runner's fields as :class:`RunnerSettings`).
+
+    Attributes
+    ----------
+    plant : tuple[tuple[str, Any], ...]
+        The process's ``[plant]`` table.
+    set_point_m2 : float
+        The target set point [m²].
+    power_min_w, power_max_w : float
+        The controller's power limits [W].
+    model_out : Path
+        The final model; the stage-1 model goes beside it (:attr:`stage1_out`).
+    search_plant : tuple[tuple[str, Any], ...]
+        Extra ``[plant]`` keys of the operating-point search only (e.g. a coarser mesh in tests).
+    seed : int
+        Seed of the fits.
+    """
+
+    plant: tuple[tuple[str, Any], ...] = ()
+    set_point_m2: float = 0.063e-6
+    power_min_w: float = 0.0
+    power_max_w: float = 350.0
+    model_out: Path = Path("out/learn/narx_gp.json")
+    out_dir: Path = Path("recordings/learn")
+    search_plant: tuple[tuple[str, Any], ...] = field(default=())
+    seed: int = 0
+
+    @property
+    def stage1_out(self) -> Path:
+        """The stage-1 model: ``<model>_stage1.json`` beside the model."""
+        return self.model_out.with_name(f"{self.model_out.stem}_stage1{self.model_out.suffix}")
+
+    @property
+    def report_out(self) -> Path:
+        """The JSON report, in the recordings directory."""
+        return self.out_dir / "learn.json"
+
+
+def _series(settings: RunnerSettings, runs) -> list[RunSeries]:
+    return [series_from_states(read_states(job_recording(settings, r.job())), r.name) for r in runs]
+
+
+def process_record(paths: list[Path]) -> dict[str, Any]:
+    """The process of the FE plant that recorded ``paths`` (``material``, ``powder_layer_m`` [m]) from
+    their recorded configuration; :class:`DatasetError` naming the key if they differ."""
+    from gp_model.errors import DatasetError
+
+    found: dict[str, set] = {"material": set(), "powder_layer_m": set()}
+    for path in paths:
+        plant = recording_info(path)["config"].get("plant") or {}
+        settings = (plant.get("settings") or {}) if isinstance(plant, dict) else {}
+        material = settings.get("material")
+        found["material"].add(material.get("name") if isinstance(material, dict) else None)
+        found["powder_layer_m"].add(settings.get("powder_layer_m"))
+    record = {}
+    for key, values in found.items():
+        values.discard(None)
+        if len(values) > 1:
+            raise DatasetError(f"the recordings are of different {key}: {', '.join(map(str, sorted(values)))}")
+        record[key] = values.pop() if values else None
+    return record
+
+
+def _fit(settings: LearnSettings, design: ProcessDesign, runs, out: Path, provenance: dict[str, Any]
+         ) -> tuple[NarxGPModel, dict[str, Any], list[RunSeries]]:
+    """Select and fit the model on ``runs`` but the design's held-out ones, write it to ``out``; the model,
+    its held-out row and the held-out runs."""
+    series = _series(settings, runs)
+    held_names = set(design.held_out())
+    held = [r for r in series if r.name in held_names]
+    train = [r for r in series if r.name not in held_names]
+    paths = [job_recording(settings, r.job()) for r in runs]
+    record = {**provenance, "process": {**process_record(paths), "plant": dict(settings.plant)}}
+    model, best, _ = select_and_fit(train, held, seed=settings.seed, provenance=record)
+    model.save(out)
+    return model, best, held
+
+
+def design_record(design: ProcessDesign, recordings_dir: Path) -> dict[str, Any]:
+    """The design as the model's ``provenance.design`` records it (what ``evaluate`` rebuilds it from)."""
+    return {"operating_power_w": design.operating_power_w, "setpoint_mm2": design.setpoint_mm2,
+            "stage1_model": design.stage1_model, "plant": dict(design.plant),
+            "feedback_controller": design.feedback_controller,
+            "feedforward_scenarios": list(design.feedforward_scenarios), "held_out": list(design.held_out()),
+            "recordings_dir": str(recordings_dir)}
+
+
+def design_from_record(record: dict[str, Any]) -> tuple[ProcessDesign, Path]:
+    """The design and recordings directory a model's ``provenance.design`` records."""
+    try:
+        design = ProcessDesign(float(record["operating_power_w"]), float(record["setpoint_mm2"]),
+                               str(record["stage1_model"]), tuple(dict(record["plant"]).items()),
+                               str(record["feedback_controller"]), tuple(record["feedforward_scenarios"]))
+        return design, Path(record["recordings_dir"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise CampaignError(f"the model's provenance.design is incomplete ({err})") from None
+
+
+def _stage(jobs_of, settings: LearnSettings, progress: bool, log: Callable[[str], None]) -> list[JobResult]:
+    results = run_jobs([r.job() for r in jobs_of], settings, progress=progress)
+    for r in results:
+        log(f"{r.name}: {r.status} ({r.wall_s:.1f} s) {r.recording}")
+    return results
+
+
+def learn(settings: LearnSettings, *, progress: bool = True,
+          log: Callable[[str], None] = lambda m: print(m, file=sys.stderr)) -> dict[str, Any]:
+    """Learn the process of ``settings``: operating point, stage-1 runs and fit, stage-2 runs and fit,
+    held-out evaluation, plots and the report (also written to :attr:`LearnSettings.report_out`).
+
+    Returns
+    -------
+    dict
+        The report: ``status`` (``ok``, or ``failed`` with the runs that failed, and no model),
+        ``operating_point``, ``runs``, ``held_out``, ``stage1`` and ``model`` metrics, paths.
+    """
+    plant = dict(settings.plant)
+    log(f"operating point: searching the power that holds {settings.set_point_m2 * 1e6:g} mm² on a single track")
+    op = find_operating_power(fe_steady_area({**plant, **dict(settings.search_plant)}), settings.set_point_m2,
+                              settings.power_min_w, settings.power_max_w)
+    log(f"operating point: {op.power_w:.1f} W gives {op.area_m2 * 1e6:.4g} mm² ({len(op.evaluations)} FE runs)")
+    stage1 = settings.stage1_out.absolute()
+    design = ProcessDesign(float(round(op.power_w)), round(settings.set_point_m2 * 1e6, 6),
+                           str(stage1.relative_to(REPO_ROOT) if stage1.is_relative_to(REPO_ROOT) else stage1),
+                           tuple(plant.items()))
+    report: dict[str, Any] = {
+        "operating_point": {**asdict(op), "power_fraction_of_max": op.power_w / settings.power_max_w,
+                            "power_min_w": settings.power_min_w, "power_max_w": settings.power_max_w},
+        "plant": plant, "set_point_mm2": design.setpoint_mm2, "held_out": list(design.held_out()),
+        "model": str(settings.model_out), "stage1_model": str(settings.stage1_out),
+        "recordings_dir": str(settings.out_dir)}
+    provenance = {"design": design_record(design, settings.out_dir)}
+    stages = ((design.stage1_runs(), design.stage1_runs(), settings.stage1_out, "stage1"),
+              (design.stage2_runs(), design.runs(), settings.model_out, "metrics"))
+    for stage, (record, fit_on, out, key) in enumerate(stages, 1):
+        results = _stage(record, settings, progress, log)
+        report.setdefault("runs", []).extend(asdict(r) for r in results)
+        if failed := [r.name for r in results if r.status == "failed"]:
+            report.update(status="failed", failed=failed)
+            _write_report(settings.report_out, report)
+            return report
+        log(f"stage {stage}: selecting and fitting the model on {len(fit_on)} runs")
+        model, report[key], held = _fit(settings, design, fit_on, out, provenance)
+        log(f"stage {stage}: held-out 40-step rollout {report[key]['rollout_h40_mape_pct']:.2f} % -> {out}")
+    report["plots"] = plot_narx(model, held, settings.out_dir)
+    report["status"] = "ok"
+    _write_report(settings.report_out, report)
+    return report
+
+
+def _write_report(path: Path, report: dict[str, Any]) -> None:
+    atomic_write(path, lambda handle: handle.write(json.dumps(report, indent=1).encode()))
