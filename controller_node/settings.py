@@ -13,10 +13,12 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+from gp_model.narx import BUILD_UP_STEPS
 from messages.types import LASER_POWER_MAX_W
 
-__all__ = ["ControllerSettings", "MPCSettings", "PreviewSettings", "PIDSettings", "FeedForwardSettings",
-           "FE_TEMPERATURE_GAIN_W_PER_K", "FE_MPC_TEMPERATURE_GAIN_W_PER_K", "FE_REFERENCE_TEMPERATURE_K"]
+__all__ = ["ControllerSettings", "SoftAreaBounds", "MPCSettings", "PreviewSettings", "PIDSettings",
+           "FeedForwardSettings", "FE_TEMPERATURE_GAIN_W_PER_K", "FE_MPC_TEMPERATURE_GAIN_W_PER_K",
+           "FE_REFERENCE_TEMPERATURE_K"]
 
 # Temperature feed-forward gain K_T of the FE plant (IN625, 250 W, 0.8 m/s), measured, not
 # identifiable from the one-step GP (whose T-sensitivity has the wrong size and, at some
@@ -95,7 +97,34 @@ class FeedForwardSettings:
 
 
 @dataclass(frozen=True)
-class MPCSettings:
+class SoftAreaBounds:
+    """The soft area bounds of an MPC's QP and their penalty, shared by :class:`MPCSettings` and
+    :class:`PreviewSettings` (their first fields).
+
+    Parameters
+    ----------
+    area_min_m2, area_max_m2 : float
+        Soft area bounds ``x_l, x_u`` [m²] (Table 3: 0, 0.5 mm²), ``0 <= x_l < x_u``.
+    slack_linear, slack_quadratic : float
+        Penalty ``ρ₁·s + ρ₂·s²`` on the normalised area-bound violation ``s >= 0`` (``ρ₁ >= 0``,
+        ``ρ₂ > 0``).
+    """
+
+    area_min_m2: float = 0.0
+    area_max_m2: float = 0.5e-6
+    slack_linear: float = 100.0
+    slack_quadratic: float = 1000.0
+
+    def __post_init__(self) -> None:
+        name = type(self).__name__
+        _finite(self, "area_min_m2", "area_max_m2", "slack_linear", "slack_quadratic")
+        _check(0 <= self.area_min_m2 < self.area_max_m2, f"{name} needs 0 <= area_min_m2 < area_max_m2")
+        _check(self.slack_linear >= 0 and self.slack_quadratic > 0,
+               f"{name}.slack_linear must be >= 0 and slack_quadratic > 0")
+
+
+@dataclass(frozen=True)
+class MPCSettings(SoftAreaBounds):
     """Linear time-varying MPC of eq. (7)-(8) in normalised deviation variables.
 
     Normalisation (so that Table 3's Q, R, Q_f are meaningful):
@@ -115,10 +144,8 @@ class MPCSettings:
     rate_min_w, rate_max_w : float
         Bounds of ``Δp`` per step [W] (Table 3: ±350; cannot bind when
         ``p_u − p_l <= 350`` W, kept for other ranges).
-    area_min_m2, area_max_m2 : float
-        Soft area bounds ``x_l, x_u`` [m²] (Table 3: 0, 0.5 mm²).
-    slack_linear, slack_quadratic : float
-        Penalty ``ρ₁·s + ρ₂·s²`` on the normalised area-bound violation ``s >= 0``.
+    area_min_m2, area_max_m2, slack_linear, slack_quadratic : float
+        Soft area bounds and their penalty (:class:`SoftAreaBounds`).
     disturbance_gain : float
         Filter gain in [0, 1] of the output-disturbance estimate (the model's
         one-step prediction error, added to the prediction); 0 disables it.
@@ -166,10 +193,6 @@ class MPCSettings:
     input_penalty: Literal["steady_state", "move"] = "move"
     rate_min_w: float = -LASER_POWER_MAX_W
     rate_max_w: float = LASER_POWER_MAX_W
-    area_min_m2: float = 0.0
-    area_max_m2: float = 0.5e-6
-    slack_linear: float = 100.0
-    slack_quadratic: float = 1000.0
     disturbance_gain: float = 0.0
     integral_gain: float = 0.03
     integral_band: float = 0.1
@@ -187,6 +210,7 @@ class MPCSettings:
         reference_temperature_k=FE_REFERENCE_TEMPERATURE_K, gain_w_per_k=FE_MPC_TEMPERATURE_GAIN_W_PER_K))
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         _check(
             isinstance(self.horizon, int) and not isinstance(self.horizon, bool) and 1 <= self.horizon <= 500,
             f"MPCSettings.horizon must be an int in [1, 500], got {self.horizon!r}",
@@ -198,10 +222,6 @@ class MPCSettings:
             "q_f",
             "rate_min_w",
             "rate_max_w",
-            "area_min_m2",
-            "area_max_m2",
-            "slack_linear",
-            "slack_quadratic",
             "disturbance_gain",
             "integral_gain",
             "integral_band",
@@ -213,9 +233,6 @@ class MPCSettings:
         _check(self.input_penalty in ("steady_state", "move"),
                f"MPCSettings.input_penalty must be 'steady_state' or 'move', got {self.input_penalty!r}")
         _check(self.rate_min_w < 0 < self.rate_max_w, "MPCSettings.rate_min_w < 0 < rate_max_w required")
-        _check(0 <= self.area_min_m2 < self.area_max_m2, "MPCSettings.area bounds need 0 <= area_min_m2 < area_max_m2")
-        _check(self.slack_linear >= 0 and self.slack_quadratic > 0,
-               "MPCSettings.slack_linear must be >= 0 and slack_quadratic > 0")
         _check(0 <= self.disturbance_gain <= 1, "MPCSettings.disturbance_gain must be in [0, 1]")
         _check(0 <= self.integral_gain <= 1, "MPCSettings.integral_gain must be in [0, 1]")
         _check(0 < self.integral_band <= 1, "MPCSettings.integral_band must be in (0, 1]")
@@ -240,7 +257,7 @@ class MPCSettings:
 
 
 @dataclass(frozen=True)
-class PreviewSettings:
+class PreviewSettings(SoftAreaBounds):
     """Scan-plan preview MPC on the delay-aware model (:mod:`controller_node.preview`).
 
     Normalisation: ``e = (x − x_sp)/x_sp`` (relative area error), ``v = p / P``.
@@ -256,10 +273,8 @@ class PreviewSettings:
         Weight of the squared normalised moves ``(Δp/P)²``.
     power_scale_w : float
         ``P`` [W].
-    area_min_m2, area_max_m2 : float
-        Soft area bounds [m²] (Table 3: 0, 0.5 mm²).
-    slack_linear, slack_quadratic : float
-        Penalty ``ρ₁ s + ρ₂ s²`` on the normalised bound violation ``s >= 0``.
+    area_min_m2, area_max_m2, slack_linear, slack_quadratic : float
+        Soft area bounds and their penalty (:class:`SoftAreaBounds`).
     uncertainty_z : float
         The area bounds are tightened by ``z σ_m`` (σ the GP's predictive std of step m);
         0 disables the tightening.
@@ -284,28 +299,21 @@ class PreviewSettings:
     q_f: float = 20.0
     r: float = 0.3
     power_scale_w: float = LASER_POWER_MAX_W
-    area_min_m2: float = 0.0
-    area_max_m2: float = 0.5e-6
-    slack_linear: float = 100.0
-    slack_quadratic: float = 1000.0
     uncertainty_z: float = 0.0
     observer_gain: float = 0.02
-    observer_start_steps: int = 20
+    observer_start_steps: int = BUILD_UP_STEPS
     learn_turn_profile: bool = True
     turn_learning_gain: float = 0.75
     turn_learning_steps: int = 60
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         _check(isinstance(self.horizon, int) and not isinstance(self.horizon, bool) and 1 <= self.horizon <= 400,
                f"PreviewSettings.horizon must be an int in [1, 400], got {self.horizon!r}")
-        _finite(self, "q", "q_f", "r", "power_scale_w", "area_min_m2", "area_max_m2", "slack_linear",
-                "slack_quadratic", "uncertainty_z", "observer_gain")
+        _finite(self, "q", "q_f", "r", "power_scale_w", "uncertainty_z", "observer_gain")
         _check(self.q >= 0 and self.q_f >= 0, "PreviewSettings.q and q_f must be >= 0")
         _check(self.r > 0, f"PreviewSettings.r must be > 0 (strictly convex QP), got {self.r}")
         _check(self.power_scale_w > 0, "PreviewSettings.power_scale_w must be > 0 W")
-        _check(0 <= self.area_min_m2 < self.area_max_m2, "PreviewSettings needs 0 <= area_min_m2 < area_max_m2")
-        _check(self.slack_linear >= 0 and self.slack_quadratic > 0,
-               "PreviewSettings.slack_linear must be >= 0 and slack_quadratic > 0")
         _check(self.uncertainty_z >= 0, "PreviewSettings.uncertainty_z must be >= 0")
         _check(0 < self.observer_gain <= 1, "PreviewSettings.observer_gain must be in (0, 1]")
         _check(isinstance(self.observer_start_steps, int) and not isinstance(self.observer_start_steps, bool)

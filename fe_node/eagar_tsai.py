@@ -21,19 +21,24 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from fe_node.material import Material
+
+_IN625 = Material.in625()
+
 
 @dataclass(frozen=True)
 class EagarTsaiCase:
-    """Inputs (SI units)."""
+    """Inputs (SI units): by default the plant's process on IN625's density and liquidus, with
+    constant conductivity and specific heat."""
 
     power_w: float = 250.0
     absorptivity: float = 0.4
     beam_radius_m: float = 50e-6
     k: float = 20.0
-    rho: float = 8440.0
+    rho: float = _IN625.rho
     cp: float = 600.0
     speed_m_s: float = 0.8
-    t_liquidus_k: float = 1623.0
+    t_liquidus_k: float = _IN625.t_liquidus
     t0_k: float = 300.0
 
     def as_dict(self) -> dict:

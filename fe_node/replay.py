@@ -18,7 +18,7 @@ import msgspec
 from messages import LogLevel, MeltPoolState
 from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
-from messages.recording import RecordingError, read_messages
+from messages.recording import RecordingError, read_all
 from messages.topics import LASER_COMMAND, PLANT_STATE
 
 NODE_NAME = "plant"
@@ -27,12 +27,9 @@ NODE_NAME = "plant"
 def load_states(path: Path) -> list[MeltPoolState]:
     """Every valid state of the recording, in file order (:class:`UsageError` if none or unreadable)."""
     try:
-        states = list(read_messages(path, PLANT_STATE))
+        return read_all(path, PLANT_STATE)
     except RecordingError as err:
         raise UsageError(str(err)) from None
-    if not states:
-        raise UsageError(f"{path}: no /plant/state messages to replay")
-    return states
 
 
 def schedule(states: list[MeltPoolState], rate_scale: float) -> list[float]:

@@ -39,10 +39,10 @@ from gp_model.atomic import atomic_write
 from gp_model.errors import DatasetError
 from gp_trainer.errors import RecordingError
 from messages.recording import RecordingError as ReaderError
-from messages.recording import is_finished, metadata, read_messages, run_config
+from messages.recording import metadata, read_all, run_config
+from messages.topics import PLANT_STATE
 
 FIELDS = ("step", "time_s", "track", "area_mm2", "t_ahead_k", "power_w", "speed_mm_s")
-STATE_CHANNEL = "/plant/state"
 
 
 @dataclass(frozen=True)
@@ -218,18 +218,10 @@ def read_states(path: str | os.PathLike[str]) -> list[Any]:
     RecordingError
         Missing, empty, truncated or invalid recording, or no plant states in it.
     """
-
     try:
-        if not is_finished(path):
-            raise ReaderError(f"{path}: truncated recording (the recorder did not finish it); to train on its "
-                              "complete chunks, recover it first: python -m messages.recording recover FILE --out "
-                              "FIXED.mcap")
-        states = list(read_messages(path, STATE_CHANNEL))
+        return read_all(path, PLANT_STATE, finished=True)
     except ReaderError as exc:
         raise RecordingError(str(exc)) from None
-    if not states:
-        raise RecordingError(f"{path}: no {STATE_CHANNEL} messages")
-    return states
 
 
 def recording_info(path: str | os.PathLike[str]) -> dict[str, Any]:

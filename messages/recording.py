@@ -372,6 +372,34 @@ def read_messages(path: str | Path, channel: str | Topic) -> Iterator[Any]:
             raise RecordingError(f"{path}: unreadable MCAP ({type(err).__name__}: {err})") from None
 
 
+def read_all(path: str | Path, channel: str | Topic, *, finished: bool = False) -> list[Any]:
+    """Every message of one channel, as :func:`read_messages`, in a list that is never empty.
+
+    Parameters
+    ----------
+    path : str or Path
+        The recording.
+    channel : str or Topic
+        E.g. ``"/plant/state"``.
+    finished : bool
+        Refuse a file the recorder did not finish (default: read its complete chunks).
+
+    Raises
+    ------
+    RecordingError
+        As :func:`read_messages`; no message on the channel; with ``finished``, a truncated file
+        (the message says how to recover it).
+    """
+    topic = _topic(channel)
+    if finished and not is_finished(path):
+        raise RecordingError(f"{path}: truncated recording (the recorder did not finish it); to use its complete "
+                             "chunks, recover it first: python -m messages.recording recover FILE --out FIXED.mcap")
+    found = list(read_messages(path, topic))
+    if not found:
+        raise RecordingError(f"{path}: no {topic.channel} messages")
+    return found
+
+
 def metadata(path: str | Path) -> dict[str, dict[str, str]]:
     """The file's metadata records by name (``meltloop``, ``meltloop.counts``)."""
     with _open(Path(path)) as stream:

@@ -16,6 +16,7 @@ from controller_node import (
     PIDSettings,
     make_controller,
 )
+from controller_node.settings import PreviewSettings
 
 
 def test_measurement_accepts_numpy_and_flags_implausible_values() -> None:
@@ -75,6 +76,8 @@ def test_command_rejects_unsafe_values(power: float, speed: float) -> None:
         lambda: MPCSettings(input_penalty="absolute"),
         lambda: MPCSettings(rate_min_w=10.0),
         lambda: MPCSettings(area_min_m2=1e-6, area_max_m2=0.5e-6),
+        lambda: PreviewSettings(area_min_m2=1e-6, area_max_m2=0.5e-6),  # the bounds both MPCs share
+        lambda: PreviewSettings(slack_quadratic=0.0),
         lambda: MPCSettings(eps_abs=1e-3),
         lambda: MPCSettings(disturbance_gain=1.5),
         lambda: MPCSettings(solver="gurobi"),
