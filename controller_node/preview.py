@@ -9,8 +9,10 @@ Each update at state k (:meth:`PreviewMPC.update`):
    (``track_elapsed_s``, ``track_remaining_s``, ``next_track``) and the turnaround profile
    (:func:`gp_model.narx.forecast_t_ahead`, compiled); the profile of the last turnaround seen in this
    run replaces the trained one where it has been observed (learning from the run).
-3. **Predict**: ``x̂[k+m] = c₀ + Σ b_i p[k+m−i] + Σ c_j T[k+m−1−j] + r(ψ_{k+m−1}) + d̂``,
-   m = 1..H (model of :mod:`gp_model.narx`), affine in the planned powers.
+3. **Predict**: ``x̂[k+m] = c₀ + Σ b_i p[k+m−i] + Σ c_j T[k+m−1−j] + Σ g_l F[k+m−l] + r(ψ_{k+m−1}) + d̂``,
+   m = 1..H (model of :mod:`gp_model.narx`), affine in the planned powers; the turnaround feature
+   ``F`` (:mod:`gp_model.plan_feature`) after the turn ahead is linear in the planned powers
+   before it, so the plan sees what power before a turn does after it.
 4. **Optimise**: the QP of :mod:`controller_node.preview_qp` (tracking of the set point,
    move penalty, hard power bounds, soft area bounds tightened by the GP's predictive std).
 
@@ -182,6 +184,8 @@ class PreviewMPC(Controller):
         self._profile[:] = self.model.turn_profile_k
         self._plan = k.plan
         self._plan[:] = self.settings.nominal_power_w
+        k.p_long[:], k.f_hist[:] = 0.0, 0.0              # the turnaround feature's histories
+        k.start_track(False)
         k.estimator.reset()                      # d̂ = 0, no x̂[k+1|k] yet, no error seen after a turn
         n = self.settings.preview.turn_learning_steps
         self.turn_correction_m2 = np.zeros(n)    # learned model error after a turnaround, by state since the turn
@@ -236,6 +240,7 @@ class PreviewMPC(Controller):
         if new_layer:  # a new pool on fresh powder: no turnaround to learn from or forecast
             self._layer_start_step = self._track_start_step = m.step
             self._first_track, self._turn_base_k, self._observed = m.track, None, []
+            self._kernel.start_track(False)
             self._learn_turn_correction()
             self._prior_by_turn, self.turn_corrections_by_turn_m2 = self.turn_corrections_by_turn_m2, []
             self._turn = -1
@@ -246,6 +251,7 @@ class PreviewMPC(Controller):
             self._learn_turn_correction()
             self._turn += 1
             self._turn_base_k = prev.t_ahead_k
+            self._kernel.start_track(True)
             self._observed = []
             self._track_start_step = m.step
             self._sync_corrections()

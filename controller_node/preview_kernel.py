@@ -12,13 +12,19 @@ and the state's :class:`~controller_node.preview_stages.StateContext`:
    (:func:`correction_into`), and, for the planned powers ū (the previous plan, shifted), for
    m = 1..H (model of :mod:`gp_model.narx`, rows indexed ``i = m − 1``)::
 
-    z_m = c₀ + Σ_i (b_i p_i + q_i p_i²) + Σ_j c_j T_j + Σ_{j<n_Tq} d_j T_j² + Σ_{i<n_x} e_i p_i T_i + r(ψ_{k+m−1})
+    z_m = c₀ + Σ_i (b_i p_i + q_i p_i²) + Σ_j c_j T_j + Σ_{j<n_Tq} d_j T_j² + Σ_{i<n_x} e_i p_i T_i
+          + Σ_{l<n_F} g_l F[k+m−l] + r(ψ_{k+m−1})
     x̂_m = exp(z_m) (log output) + d̂ + κ-learned correction_m
     ∂x̂_m/∂ū_n = x'(z_m) (b_l + 2 q_l ū_n + e_l T[k+m−1−l] + ∂r/∂ψ₂ / n_p),  l = m − 1 − n ∈ [0, n_p)
+              + x'(z_m) M[m − 1 − e_k, e_k − 1 − n]   (a turn ahead, after state k + e_k; n < e_k)
 
    with ``p_i = p[k+m−i]``, ``T_j = T[k+m−1−j]`` (the forecast beyond k), the SE-ARD residual GP
    ``r(ψ) = Σ_a k(ψ, ψ_a) β_a`` at ψ = (T ahead, log1p(min(s, 100)), mean of the p_i), its slope
    in the mean power and its latent variance ``σ² − ‖L⁻¹ k‖²`` for the first ``n_variance`` rows.
+   ``F`` is the turnaround feature (:mod:`gp_model.plan_feature`): on the current track the value
+   its previous track's powers give (set at the turn), after the turn ahead ``Σ_e K[s, e] p`` of
+   the current track's last powers, applied or planned, so a planned power before the turn moves
+   the prediction after it through ``M = Σ_l g_l K[· − l, ·]`` (Γ is then dense in those rows).
 3. **Plan** (:class:`~controller_node.preview_stages.Planner`): the condensed QP of
    :mod:`controller_node.preview_qp` in ``v = u / P``, ``e = Γ v + c``::
 
@@ -183,6 +189,8 @@ def control_step(predictor, planner, run, ws, context, t_ahead_k, area_m2, obser
         estimate(estimator, context.power_w, area_m2, context.has_turn_base, context.since)
     estimator.has_prediction = False                # no x̂[k+1|k] until this update gives one
     push_history(run.p_hist, context.p_fill, context.power_w, run.t_hist, context.t_fill, t_ahead_k)
+    if predictor.g.size:
+        _push_feature(predictor, run, context)
     finite = _predict(predictor, planner, run, ws, context, estimator.disturbance_m2, relinearise)   # predict
     status = _plan(planner, ws, run.p_hist[0], context.blind, predictor.b.size, relinearise,        # plan
                    0 if finite else 2)
@@ -261,6 +269,8 @@ def _copy_run(run, scratch):  # pragma: no cover (compiled)
     copied into ``scratch`` (which shares the run's profile and corrections)."""
     scratch.p_hist[:] = run.p_hist
     scratch.t_hist[:] = run.t_hist
+    scratch.p_long[:] = run.p_long
+    scratch.f_hist[:] = run.f_hist
     scratch.plan[:] = run.plan
     source, target = run.estimator, scratch.estimator
     target.disturbance_m2, target.has_prediction = source.disturbance_m2, source.has_prediction
@@ -275,6 +285,16 @@ def _series_variance(planner):  # pragma: no cover (compiled)
 
 
 # ---------------------------------------------------------------------------------------- predict
+@njit(cache=True, nogil=True)
+def _push_feature(predictor, run, context):  # pragma: no cover (compiled)
+    """Push ``p_fill`` copies of the state's power into ``p_long`` (newest first) and ``t_fill``
+    copies of its turnaround feature F[k] (the current track's, 0 on a layer's first track and
+    beyond the kernel's targets) into ``f_hist`` (oldest first), as :func:`push_history`."""
+    since, n_targets = context.since, predictor.feature_kernel.shape[0]
+    value = run.track_feature[since] if not context.on_first and 0 <= since < n_targets else 0.0
+    push_history(run.p_long, context.p_fill, context.power_w, run.f_hist, context.t_fill, value)
+
+
 @njit(cache=True, nogil=True)
 def _forecast(predictor, run, context, t_ahead_k, out):  # pragma: no cover (compiled)
     """T ahead over the horizon into ``out`` (:func:`gp_model.narx.forecast_into`)."""
@@ -314,7 +334,7 @@ def _predict(predictor, planner, run, ws, context, disturbance, relinearise):  #
     _regressors(predictor, run, ws, context, kern.shape[0])
     exp_into(kern, bits)                            # whole arrays: their contiguous type vectorises
     finite = _prediction(predictor, ws, disturbance, kern.shape[0])
-    _jacobian(predictor, planner, ws)
+    _jacobian(predictor, planner, ws, context.to_end)
     return finite
 
 
@@ -353,6 +373,36 @@ def _regressors(predictor, run, ws, context, n_rows):  # pragma: no cover (compi
         for a in range(n_gp):
             exponents[row, a] = w0 * gp_points[0, a] + w1 * gp_points[1, a] + w2 * gp_points[2, a] + gp_points[3, a] \
                 - half_w
+    if predictor.g.size:
+        _features(predictor, run, ws, context)
+
+
+@njit(cache=True, nogil=True, fastmath=_REORDER)
+def _features(predictor, run, ws, context):  # pragma: no cover (compiled)
+    """The turnaround feature F[k−n_F+2 .. k+H] [K] into ``feats``: the pushed history, then per
+    row the current track's value (``track_feature``) or, after the turn ahead, the kernel's sum over
+    the current track's last powers (planned ū for the states after k, ``p_long`` up to k)."""
+    feats, f_hist, kernel, powers = ws.feats, run.f_hist, predictor.feature_kernel, ws.powers
+    track_feature, p_long = run.track_feature, run.p_long
+    n_f, n_p, h = predictor.g.size, predictor.b.size, ws.c.size
+    n_targets, n_sources = kernel.shape
+    since, to_end, on_first = context.since, context.to_end, context.on_first
+    for q in range(n_f - 1):
+        feats[q] = f_hist[q + 1]
+    for i in range(h):
+        m = i + 1
+        value = 0.0
+        if to_end < 0 or m <= to_end:
+            s = since + m
+            if not on_first and s < n_targets:
+                value = track_feature[s]
+        elif m - to_end - 1 < n_targets:
+            s = m - to_end - 1
+            for e in range(min(to_end, n_sources)):     # planned: p[k + e_k − e] = ū[e_k − 1 − e]
+                value += kernel[s, e] * powers[n_p + to_end - 1 - e]
+            for e in range(to_end, n_sources):          # applied: p[k + e_k − e] = p_long[e − e_k]
+                value += kernel[s, e] * p_long[e - to_end]
+        feats[n_f - 1 + i] = value
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
@@ -360,8 +410,8 @@ def _prediction(predictor, ws, disturbance, gp_rows):  # pragma: no cover (compi
     """x̂ at ū (into ``ws``: z, x̂, std, the GP's mean-power slope and ``x'(z)``); the GP's kernel
     sums and the variance (of the first ``n_variance`` rows) from ``kern`` for the first ``gp_rows``
     rows, from the prepared moments beyond (:func:`feedback_into`). True if every x̂ is finite."""
-    b, q, cc, d, e = predictor.b, predictor.q, predictor.cc, predictor.d, predictor.e
-    n_p, n_t, n_tq, n_x = b.size, cc.size, d.size, e.size
+    b, q, cc, d, e, g, feats = predictor.b, predictor.q, predictor.cc, predictor.d, predictor.e, predictor.g, ws.feats
+    n_p, n_t, n_tq, n_x, n_f = b.size, cc.size, d.size, e.size, g.size
     powers, temps, kern, psi, correction = ws.powers, ws.temps, ws.kern, ws.psi, ws.correction
     h = powers.size - n_p
     n_gp = kern.shape[1]
@@ -418,6 +468,8 @@ def _prediction(predictor, ws, disturbance, gp_rows):  # pragma: no cover (compi
                 zz += d[j] * t * t
         for i in range(n_x):
             zz += e[i] * powers[last_p - i] * temps[last_t - i]
+        for i in range(n_f):
+            zz += g[i] * feats[n_f - 1 + row - i]
         z[row] = zz
     finite = True
     for row in range(h):
@@ -431,8 +483,10 @@ def _prediction(predictor, ws, disturbance, gp_rows):  # pragma: no cover (compi
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
-def _jacobian(predictor, planner, ws):  # pragma: no cover (compiled)
-    """Γ = ∂x̂/∂ū · P / x_sp (banded: n_p powers per row) and ``jac_u`` = (∂x̂/∂ū) ū, by row."""
+def _jacobian(predictor, planner, ws, to_end):  # pragma: no cover (compiled)
+    """Γ = ∂x̂/∂ū · P / x_sp (banded: n_p powers per row, and with the turnaround feature the rows after
+    the turn ahead, ``to_end`` states after k, in the powers before it) and ``jac_u`` = (∂x̂/∂ū) ū, by
+    row; ``ws.width`` the columns left of the diagonal that may be non-zero."""
     b, q, e = predictor.b, predictor.q, predictor.e
     n_p, n_x, n_t = b.size, e.size, predictor.cc.size
     powers, temps, gp_slope, slopes, jac_u, gamma = ws.powers, ws.temps, ws.gp_slope, ws.slopes, ws.jac_u, ws.gamma
@@ -452,6 +506,18 @@ def _jacobian(predictor, planner, ws):  # pragma: no cover (compiled)
             du += jac * u[col]
             gamma[row, col] = jac * ratio
         jac_u[row] = du
+    feature_jac = predictor.feature_jac
+    n_sources = feature_jac.shape[1]
+    ws.width = n_p
+    if predictor.g.size and 1 <= to_end < h:        # F after the turn by the planned powers before it
+        ws.width = h
+        for row in range(to_end, h):
+            slope, r, du = slopes[row], row - to_end, 0.0
+            for col in range(max(0, to_end - n_sources), to_end):
+                jac = slope * feature_jac[r, to_end - 1 - col]
+                du += jac * u[col]
+                gamma[row, col] += jac * ratio
+            jac_u[row] += du
 
 
 # ---------------------------------------------------------------------------------------- plan
@@ -463,41 +529,43 @@ def _plan(planner, ws, p_now, blind, n_p, relinearise, status):  # pragma: no co
     c, predicted, jac_u, sp = ws.c, ws.predicted, ws.jac_u, planner.set_point_m2
     for row in range(c.size):
         c[row] = (predicted[row] - jac_u[row] - sp) / sp
-    _gradient(planner, ws, p_now, blind, n_p)
+    width = ws.width
+    _gradient(planner, ws, p_now, blind, width)
     if relinearise:
-        ws.has_step = _factor(planner, ws, blind, n_p)
+        ws.has_step = _factor(planner, ws, blind, width)
         if not ws.has_step:
             return max(status, 1)
-    return max(status, _step(planner, ws, blind, n_p))
+    return max(status, _step(planner, ws, blind, n_p, width))
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
-def _gradient(planner, ws, p_now, blind, n_p):  # pragma: no cover (compiled)
-    """The QP's gradient ``f = 2 Γᵀ W c − 2 r (p[k] / P) e₁`` over the tracked rows (Γ banded: n_p
-    powers per row)."""
+def _gradient(planner, ws, p_now, blind, width):  # pragma: no cover (compiled)
+    """The QP's gradient ``f = 2 Γᵀ W c − 2 r (p[k] / P) e₁`` over the tracked rows (Γ banded:
+    ``width`` powers per row)."""
     gamma, c, f, weights = ws.gamma, ws.c, ws.f, planner.weights
     f[:] = 0.0
     for m in range(blind, c.size):
         w = 2.0 * weights[m]
-        for a in range(max(0, m + 1 - n_p), m + 1):
+        for a in range(max(0, m + 1 - width), m + 1):
             f[a] += w * gamma[m, a] * c[m]
     f[0] -= 2.0 * planner.move_weight * p_now / planner.power_scale_w
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
-def _factor(planner, ws, blind, n_p):  # pragma: no cover (compiled)
+def _factor(planner, ws, blind, width):  # pragma: no cover (compiled)
     """The QP's Hessian ``2 Γᵀ W Γ + 2 r DᵀD`` over the tracked rows and its banded Cholesky factor
-    ``L`` (``chol``) with ``1/L_jj`` in ``inv_diag``; False if the Hessian is not positive definite."""
+    ``L`` (``chol``) with ``1/L_jj`` in ``inv_diag`` (Γ banded: ``width`` powers per row); False if the
+    Hessian is not positive definite."""
     gamma, hess, chol, inv_diag, weights = ws.gamma, ws.hess, ws.chol, ws.inv_diag, planner.weights
     h = gamma.shape[0]
     hess[:] = planner.moves                         # + 2 Γᵀ W Γ over the tracked rows
-    for m in range(blind, h):                       # Γ is banded (n_p powers per row), so is the Hessian:
-        w, first = 2.0 * weights[m], max(0, m + 1 - n_p)   # square blocks (equal-length loops vectorise)
+    for m in range(blind, h):                       # Γ is banded (width powers per row), so is the Hessian:
+        w, first = 2.0 * weights[m], max(0, m + 1 - width)   # square blocks (equal-length loops vectorise)
         for a in range(first, m + 1):
             wg = w * gamma[m, a]
             for b2 in range(first, m + 1):
                 hess[a, b2] += wg * gamma[m, b2]
-    band = max(n_p - 1, 1)                          # the moves' band is 1 (Kernel checks)
+    band = max(width - 1, 1)                        # the moves' band is 1 (Kernel checks)
     for i in range(h):                              # banded Cholesky, Hessian = L Lᵀ (1/L_jj multiplies:
         first = max(0, i - band)                    # a division's latency would chain the row)
         for j in range(first, i):
@@ -516,13 +584,13 @@ def _factor(planner, ws, blind, n_p):  # pragma: no cover (compiled)
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
-def _step(planner, ws, blind, n_p):  # pragma: no cover (compiled)
+def _step(planner, ws, blind, n_p, width):  # pragma: no cover (compiled)
     """The unconstrained optimum ``v = −Hessian⁻¹ f`` from the factor of :func:`_factor`, the areas
     x̂ at ``P v`` (linearised) and the status: 0 when no power bound and no (tightened) area bound of
     the tracked rows is active, else 1."""
     gamma, c, chol, inv_diag, f, v, areas = ws.gamma, ws.c, ws.chol, ws.inv_diag, ws.f, ws.v, ws.areas
     predicted, std, u = ws.predicted, ws.std, ws.powers[n_p:]
-    h, band = c.size, max(n_p - 1, 1)
+    h, band = c.size, max(width - 1, 1)
     sp, scale = planner.set_point_m2, planner.power_scale_w
     v_lo, v_hi, e_lo, e_hi, z_sigma = planner.v_lo, planner.v_hi, planner.e_lo, planner.e_hi, planner.z_sigma
     status = 0
@@ -539,7 +607,7 @@ def _step(planner, ws, blind, n_p):  # pragma: no cover (compiled)
             status = 1
     for row in range(h):                            # e = Γ v + c of the tracked rows, x̂ at P v
         e, dx = 0.0, 0.0
-        for col in range(max(0, row + 1 - n_p), row + 1):
+        for col in range(max(0, row + 1 - width), row + 1):
             e += gamma[row, col] * v[col]
             dx += gamma[row, col] * (v[col] - u[col] / scale)
         areas[row] = predicted[row] + dx * sp
@@ -622,6 +690,12 @@ class Kernel:
         ``T̂[k+1 .. k+H−1]`` [K] of the rows.
     forecast, correction : numpy.ndarray, shape (H,)
         ``T̂[k+1 .. k+H]`` [K] and the learned correction of x̂_{k+1..k+H} [m²].
+    p_long, f_hist, prev_powers, track_feature : numpy.ndarray
+        The turnaround feature's power history p[k], p[k−1], … (E,) [W], its values F[k−n_F+1 .. k]
+        [K], the previous track's last powers (E,) [W] and the current track's F by state since its
+        start (S,) [K] (:meth:`start_track`).
+    feats : numpy.ndarray, shape (n_F − 1 + H,)
+        F[k−n_F+2 .. k+H] [K] of the rows.
     prepared : bool
         A preparation is waiting for its :meth:`feedback`.
     """
@@ -633,12 +707,16 @@ class Kernel:
             raise ValueError("the QP's move penalty must be tridiagonal (the kernel's Cholesky is banded)")
         scalars, points, var_f = model.residual.kernel_terms()
         n_p, n_t, n_gp = model.power_coefficients.size, model.temperature_coefficients.size, points.shape[1]
-        e = model.power_temperature_coefficients
+        e, g = model.power_temperature_coefficients, model.feature_coefficients
+        feature_kernel = model.feature_kernel()
+        n_targets, n_sources = feature_kernel.shape
+        self.feature_kernel = feature_kernel
         log_output = bool(model.output == "log")
         const = carve({"b": (n_p,), "q": (n_p,), "cc": (n_t,), "d": model.temperature_square_coefficients.shape,
                        "e": e.shape, "mean": (3,), "scale": (3,), "decay": (h,), "weights": (h,), "moves": (h, h),
                        "gp_points": (4, n_gp), "beta": (n_gp,), "slope_weights": (n_gp,), "var_f": (n_gp, n_gp),
-                       "series_weights": (n_gp, 2 * MOMENTS)})
+                       "series_weights": (n_gp, 2 * MOMENTS), "g": g.shape, "feature_kernel": feature_kernel.shape,
+                       "feature_jac": (h, n_sources)})
         w0_powers = points[0][:, None] ** np.arange(MOMENTS)          # W_a0ʲ, (N, MOMENTS)
         for name, value in (("b", model.power_coefficients), ("q", model.power_square_coefficients),
                             ("cc", model.temperature_coefficients), ("d", model.temperature_square_coefficients),
@@ -647,51 +725,78 @@ class Kernel:
                             ("moves", qp.moves), ("gp_points", points[:4]), ("beta", points[4]),
                             ("slope_weights", points[5]), ("var_f", var_f),
                             ("series_weights", np.hstack((points[4][:, None] * w0_powers,
-                                                          points[5][:, None] * w0_powers)))):
+                                                          points[5][:, None] * w0_powers))),
+                            ("g", g), ("feature_kernel", feature_kernel),
+                            ("feature_jac", self._feature_jacobian(g, feature_kernel, h))):
             const[name][...] = value
         self.predictor = new_predictor(float(model.intercept), const["b"], const["q"], const["cc"], const["d"],
                                        const["e"], const["mean"], const["scale"], float(scalars[6]),
                                        float(scalars[7]), float(np.abs(points[0]).max()), const["gp_points"],
                                        const["beta"], const["slope_weights"], const["var_f"],
                                        const["series_weights"], const["decay"], log_output, int(n_variance),
-                                       float(STEPS_SINCE_START_CAP))
+                                       float(STEPS_SINCE_START_CAP), const["g"], const["feature_kernel"],
+                                       const["feature_jac"])
         self.planner = new_planner(float(qp.x_sp), float(qp.scale), float(qp.r), float(qp.v_lo), float(qp.v_hi),
                                    float(qp.e_lo), float(qp.e_hi), float(uncertainty_z), const["weights"],
                                    const["moves"])
         run = carve({"p_hist": (n_p,), "t_hist": (n_t,), "plan": (h,), "profile": (n_profile,),
-                     "current": (n_correction,), "following": (n_correction,), "turn_errors": (n_correction,)})
-        scratch = carve({"p_hist": (n_p,), "t_hist": (n_t,), "plan": (h,)})
+                     "current": (n_correction,), "following": (n_correction,), "turn_errors": (n_correction,),
+                     "p_long": (n_sources,), "f_hist": (max(g.size, 1),), "prev_powers": (n_sources,),
+                     "track_feature": (n_targets,)})
+        scratch = carve({"p_hist": (n_p,), "t_hist": (n_t,), "plan": (h,), "p_long": (n_sources,),
+                         "f_hist": (max(g.size, 1),)})
         self.turn_error_seen = np.zeros(n_correction, dtype=bool)
         estimator_terms = (float(observer_gain), float(model.power_coefficients[0]),
                            float(model.power_square_coefficients[0]), float(e[0]) if e.size else 0.0, log_output)
         self.estimator = new_estimator(*estimator_terms, run["turn_errors"], self.turn_error_seen)
         self.run = new_run(run["p_hist"], run["t_hist"], run["plan"], run["profile"], run["current"],
-                           run["following"], self.estimator)
+                           run["following"], run["p_long"], run["f_hist"], run["prev_powers"], run["track_feature"],
+                           self.estimator)
         self._scratch = new_run(scratch["p_hist"], scratch["t_hist"], scratch["plan"], run["profile"],
-                                run["current"], run["following"],
+                                run["current"], run["following"], scratch["p_long"], scratch["f_hist"],
+                                run["prev_powers"], run["track_feature"],
                                 new_estimator(*estimator_terms, run["turn_errors"], self.turn_error_seen))
         self.p_hist, self.t_hist, self.plan, self.profile = run["p_hist"], run["t_hist"], run["plan"], run["profile"]
         self.current, self.following, self.turn_errors = run["current"], run["following"], run["turn_errors"]
+        self.p_long, self.f_hist = run["p_long"], run["f_hist"]
+        self.prev_powers, self.track_feature = run["prev_powers"], run["track_feature"]
         self.prepared = False
-        self._workspaces = (self._workspace(h, n_p, n_t, n_gp), self._workspace(h, n_p, n_t, n_gp))
+        self._workspaces = (self._workspace(h, n_p, n_t, n_gp, g.size), self._workspace(h, n_p, n_t, n_gp, g.size))
         self.__dict__.update(self._workspaces[0][1])
         self._update, self._prepare, self._feedback = (BoundOnFirstCall(f) for f in (update_into, prepare_into,
                                                                                     feedback_into))
 
     @staticmethod
-    def _workspace(h: int, n_p: int, n_t: int, n_gp: int) -> tuple[Workspace, dict]:
+    def _feature_jacobian(g: np.ndarray, kernel: np.ndarray, h: int) -> np.ndarray:
+        """``M[r, e] = Σ_{l ≤ r, r − l < S} g_l K[r − l, e]``, shape (H, E): ∂z of the r-th state after a
+        turn by the power e states before it, through the lagged turnaround features."""
+        out = np.zeros((h, kernel.shape[1]))
+        for lag, coefficient in enumerate(g):
+            rows = np.arange(lag, min(h, lag + kernel.shape[0]))
+            out[rows] += coefficient * kernel[rows - lag]
+        return out
+
+    def start_track(self, previous: bool) -> None:
+        """At a track's first state, before its update: the previous track's last powers (``p_long``,
+        with ``previous``; zeros at a layer's start) and the turnaround feature they give along this
+        track (``track_feature = K prev_powers``)."""
+        self.prev_powers[:] = self.p_long if previous else 0.0
+        self.track_feature[:] = self.feature_kernel @ self.prev_powers if previous else 0.0
+
+    @staticmethod
+    def _workspace(h: int, n_p: int, n_t: int, n_gp: int, n_f: int) -> tuple[Workspace, dict]:
         """A workspace and the named arrays of it that are attributes (following the workspace in use)."""
         a = carve({"gamma": (h, h), "hess": (h, h), "chol": (h, h), "c": (h,), "predicted": (h,), "z": (h,),
                    "std": (h,), "f": (h,), "v": (h,), "areas": (h,), "gp_slope": (h,), "inv_diag": (h,),
                    "slopes": (h,), "jac_u": (h,), "psi": (h, 3), "kern": (h, n_gp), "bits": (h * n_gp,),
                    "powers": (n_p + h,), "temps": (n_t + h - 1,), "forecast": (h,), "correction": (h,), "w0": (h,),
                    "mean_moments": (h, MOMENTS), "slope_moments": (h, MOMENTS), "variance_moments": (h, MOMENTS),
-                   "powers_of_w0": (n_gp, MOMENTS)})
+                   "powers_of_w0": (n_gp, MOMENTS), "feats": (max(n_f, 1) - 1 + h,)})
         block = a["gamma"].base                     # the one block of the views
         a["bits"] = a["bits"].view(np.int64)
         ws = new_workspace(*a.values())
         names = ("gamma", "hess", "c", "predicted", "z", "std", "f", "v", "areas", "psi", "kern", "powers", "temps",
-                 "forecast", "correction")
+                 "forecast", "correction", "feats")
         return ws, dict({name: a[name] for name in names}, workspace=ws, work=block)
 
     @property

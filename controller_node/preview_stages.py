@@ -105,20 +105,22 @@ PREDICTOR = PredictorType([
     ("gp_input_mean", _F1), ("gp_input_scale", _F1), ("gp_prior_variance", types.float64),
     ("gp_noise_variance", types.float64), ("w0_max", types.float64), ("gp_points", _F2), ("gp_beta", _F1),
     ("gp_slope_weights", _F1), ("var_factor", _F2), ("series_weights", _F2), ("decay", _F1),
-    ("log_output", types.boolean), ("n_variance", types.int64), ("steps_cap", types.float64)])
+    ("log_output", types.boolean), ("n_variance", types.int64), ("steps_cap", types.float64), ("g", _F1),
+    ("feature_kernel", _F2), ("feature_jac", _F2)])
 PLANNER = PlannerType([
     ("set_point_m2", types.float64), ("power_scale_w", types.float64), ("move_weight", types.float64),
     ("v_lo", types.float64), ("v_hi", types.float64), ("e_lo", types.float64), ("e_hi", types.float64),
     ("z_sigma", types.float64), ("weights", _F1), ("moves", _F2)])
 RUN = RunType([
     ("p_hist", _F1), ("t_hist", _F1), ("plan", _F1), ("profile", _F1), ("current", _F1), ("following", _F1),
-    ("estimator", ESTIMATOR)])
+    ("p_long", _F1), ("f_hist", _F1), ("prev_powers", _F1), ("track_feature", _F1), ("estimator", ESTIMATOR)])
 WORKSPACE = WorkspaceType([
     ("gamma", _F2), ("hess", _F2), ("chol", _F2), ("c", _F1), ("predicted", _F1), ("z", _F1), ("std", _F1),
     ("f", _F1), ("v", _F1), ("areas", _F1), ("gp_slope", _F1), ("inv_diag", _F1), ("slopes", _F1),
     ("jac_u", _F1), ("psi", _F2), ("kern", _F2), ("bits", _I1), ("powers", _F1), ("temps", _F1),
     ("forecast", _F1), ("correction", _F1), ("w0", _F1), ("mean_moments", _F2), ("slope_moments", _F2),
-    ("variance_moments", _F2), ("powers_of_w0", _F2), ("has_step", types.boolean)])
+    ("variance_moments", _F2), ("powers_of_w0", _F2), ("feats", _F1), ("has_step", types.boolean),
+    ("width", types.int64)])
 
 
 class Estimator(structref.StructRefProxy):
@@ -181,7 +183,10 @@ class Predictor(structref.StructRefProxy):
     ``gp_beta`` β_a, ``gp_slope_weights`` W_a2 β_a, ``var_factor`` σ_f L⁻¹ and ``series_weights``
     (N, 2 MOMENTS: β_a W_a0ʲ then W_a2 β_a W_a0ʲ); the T-ahead forecast's ``decay`` ρʲ;
     ``log_output``; ``n_variance`` rows with a variance; ``steps_cap`` of the steps-since-start
-    input. Build with :func:`new_predictor`."""
+    input; the turnaround feature's (:mod:`gp_model.plan_feature`) coefficients ``g`` [z/K] (empty
+    without it), kernel ``feature_kernel`` K[s, e] [K/W] and ``feature_jac``
+    ``M[r, e] = Σ_{l ≤ r} g_l K[r − l, e]`` (∂z of the r-th state after a turn by the power e states
+    before it). Build with :func:`new_predictor`."""
 
     __slots__ = ()
 
@@ -199,15 +204,20 @@ class Run(structref.StructRefProxy):
     """What a run carries from one update to the next: ``p_hist`` p[k], p[k−1], … [W]; ``t_hist``
     T[k−n_T+1 .. k] [K]; ``plan`` the previous plan [W]; ``profile`` the turnaround profile [K];
     ``current`` and ``following`` the learned corrections after the current track's turn and after
-    the next [m²]; its ``estimator``. Build with :func:`new_run`."""
+    the next [m²]; ``p_long`` p[k], p[k−1], … [W] over the turnaround feature's sources; ``f_hist``
+    the feature F[k−n_F+1 .. k] [K]; ``prev_powers`` the previous track's last powers, newest first
+    [W], and ``track_feature`` the current track's F by state since its start [K] (both set at a
+    turn); its ``estimator``. Build with :func:`new_run`."""
 
     __slots__ = ()
 
 
 class Workspace(structref.StructRefProxy):
-    """What one update computes (shapes in :class:`controller_node.preview_kernel.Kernel`), and
-    ``has_step``: the Hessian was positive definite, so ``v`` is the unconstrained optimum. Build
-    with :func:`new_workspace`."""
+    """What one update computes (shapes in :class:`controller_node.preview_kernel.Kernel`),
+    ``has_step``: the Hessian was positive definite, so ``v`` is the unconstrained optimum, and
+    ``width``: the columns of Γ left of the diagonal that may be non-zero (n_p, or H when the
+    turnaround feature of a turn in the horizon reaches back to the powers before it). Build with
+    :func:`new_workspace`."""
 
     __slots__ = ()
 
@@ -292,7 +302,7 @@ def _set_disturbance(st, value):  # pragma: no cover (compiled)
 @njit(cache=True)
 def new_predictor(intercept, b, q, cc, d, e, gp_input_mean, gp_input_scale, gp_prior_variance, gp_noise_variance,
                   w0_max, gp_points, gp_beta, gp_slope_weights, var_factor, series_weights, decay, log_output,
-                  n_variance, steps_cap):  # pragma: no cover (compiled)
+                  n_variance, steps_cap, g, feature_kernel, feature_jac):  # pragma: no cover (compiled)
     """A :class:`Predictor` of these constants."""
     st = structref.new(PREDICTOR)
     st.intercept, st.b, st.q, st.cc, st.d, st.e = intercept, b, q, cc, d, e
@@ -301,6 +311,7 @@ def new_predictor(intercept, b, q, cc, d, e, gp_input_mean, gp_input_scale, gp_p
     st.gp_slope_weights, st.var_factor, st.series_weights, st.decay = gp_slope_weights, var_factor, series_weights, \
         decay
     st.log_output, st.n_variance, st.steps_cap = log_output, n_variance, steps_cap
+    st.g, st.feature_kernel, st.feature_jac = g, feature_kernel, feature_jac
     return st
 
 
@@ -316,11 +327,13 @@ def new_planner(set_point_m2, power_scale_w, move_weight, v_lo, v_hi, e_lo, e_hi
 
 
 @njit(cache=True)
-def new_run(p_hist, t_hist, plan, profile, current, following, estimator):  # pragma: no cover (compiled)
+def new_run(p_hist, t_hist, plan, profile, current, following, p_long, f_hist, prev_powers, track_feature,
+            estimator):  # pragma: no cover (compiled)
     """A :class:`Run` of these arrays and estimator."""
     st = structref.new(RUN)
     st.p_hist, st.t_hist, st.plan, st.profile, st.current, st.following = p_hist, t_hist, plan, profile, current, \
         following
+    st.p_long, st.f_hist, st.prev_powers, st.track_feature = p_long, f_hist, prev_powers, track_feature
     st.estimator = estimator
     return st
 
@@ -328,7 +341,7 @@ def new_run(p_hist, t_hist, plan, profile, current, following, estimator):  # pr
 @njit(cache=True)
 def new_workspace(gamma, hess, chol, c, predicted, z, std, f, v, areas, gp_slope, inv_diag, slopes, jac_u, psi, kern,
                   bits, powers, temps, forecast, correction, w0, mean_moments, slope_moments, variance_moments,
-                  powers_of_w0):  # pragma: no cover (compiled)
+                  powers_of_w0, feats):  # pragma: no cover (compiled)
     """A :class:`Workspace` of these arrays, with no step."""
     st = structref.new(WORKSPACE)
     st.gamma, st.hess, st.chol, st.c, st.predicted, st.z, st.std = gamma, hess, chol, c, predicted, z, std
@@ -336,7 +349,8 @@ def new_workspace(gamma, hess, chol, c, predicted, z, std, f, v, areas, gp_slope
         jac_u
     st.psi, st.kern, st.bits, st.powers, st.temps, st.forecast = psi, kern, bits, powers, temps, forecast
     st.correction, st.w0, st.mean_moments, st.slope_moments = correction, w0, mean_moments, slope_moments
-    st.variance_moments, st.powers_of_w0, st.has_step = variance_moments, powers_of_w0, False
+    st.variance_moments, st.powers_of_w0, st.feats, st.has_step, st.width = variance_moments, powers_of_w0, feats, \
+        False, 0
     return st
 
 

@@ -6,7 +6,7 @@ cannot represent it (docs/gp.md, "Delay-aware model"). This model keeps the pool
 regressor, in lagged powers and temperatures only (no lagged areas):
 
     z[k+1] = c₀ + Σ_{i<n_p} (b_i p[k+1−i] + q_i p[k+1−i]²) + Σ_{j<n_T} c_j T[k−j]
-             + Σ_{j<n_Tq} d_j T[k−j]² + Σ_{i<n_x} e_i p[k+1−i] T[k−i] + r(ψ_k)
+             + Σ_{j<n_Tq} d_j T[k−j]² + Σ_{i<n_x} e_i p[k+1−i] T[k−i] + Σ_{l<n_F} g_l F[k+1−l] + r(ψ_k)
     x[k+1] = exp(z[k+1])  (output "log"; "identity": x = z),   r ~ GP(0, k_SE-ARD)
 
 * ``p[j]`` [W] is the power applied during the step j−1 → j (``state[j].power_w``; 0 before
@@ -15,12 +15,15 @@ regressor, in lagged powers and temperatures only (no lagged areas):
   log output carry the area's nonlinearity in power and temperature; the lag-matched
   interactions ``p[k+1−i] T[k−i]`` give each past power the gain of the substrate it heated
   (``quadratic=False`` and ``interaction=False`` in :meth:`NarxGPModel.fit` leave them out).
+* ``F[j]`` [K] is the turnaround feature of :mod:`gp_model.plan_feature`: the previous track's heat
+  at the laser in state j, linear in the powers applied along that track's end and known ahead
+  from the scan plan (``feature_lags=0`` in :meth:`NarxGPModel.fit` leaves it out).
 * The GP of eq. (1)–(5) (SE-ARD kernel, hyper-parameters by maximum marginal likelihood on
   seeded random samples, :mod:`gp_model.kernel`) learns the residual in z on
   ``ψ_k = (T[k] [K], log(1 + min(s_k, 100)), mean(p[k+2−n_p..k+1]) [W])`` with ``s_k`` the states
   since the current track started, and gives the predictive variance.
 * :func:`gp_trainer.narx_fit.select_and_fit` chooses the lags, the output map, the squared lags,
-  the interactions and the GP's length-scale floor by the 40-step rollout error on held-out runs.
+  the interactions, the feature lags and the GP's length-scale floor by the 40-step rollout error on held-out runs.
 * Over a horizon the temperature ahead is forecast from the scan plan
   (:func:`forecast_t_ahead`): after a turnaround it follows the learned turnaround profile
   (:attr:`NarxGPModel.turn_profile_k`), the rise of T ahead over the state before the turn.
@@ -50,9 +53,12 @@ from gp_model.kernel import (
     gram,
     squared_differences,
 )
+from gp_model.plan_feature import TurnFeature, turn_feature_series
 
 FORMAT_NAME = "meltloop-narx-gp-model"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
+READABLE_VERSIONS = (3, 4)
+"""Format 3 is format 4 without the turnaround feature (``turn_feature`` null)."""
 OUTPUTS = ("log", "identity")
 _LOG_AREA_MAX = 700.0  # exp overflows beyond ~709
 RESIDUAL_INPUTS = ("t_ahead_k", "log1p_steps_since_track_start", "mean_power_w")
@@ -446,6 +452,10 @@ class NarxGPModel:
         (a hotter substrate gives another power gain).
     residual : ResidualGP
         GP on ψ (:data:`RESIDUAL_INPUTS`), in units of z.
+    turn_feature : gp_model.plan_feature.TurnFeature or None
+        Constants of the turnaround feature ``F`` (None: no feature).
+    feature_coefficients : numpy.ndarray, shape (n_F,), optional
+        ``g_l`` [z/K] of the lagged features ``F[k+1−l]`` (empty without a feature).
     turn_profile_k : numpy.ndarray, shape (S,)
         Mean rise of T ahead after a turnaround [K] (:func:`turn_profile`).
     forecast_persistence : float
@@ -469,6 +479,7 @@ class NarxGPModel:
                  power_square_coefficients: np.ndarray, temperature_coefficients: np.ndarray,
                  temperature_square_coefficients: np.ndarray, output: str, residual: ResidualGP,
                  power_temperature_coefficients: np.ndarray | None = None,
+                 turn_feature: TurnFeature | None = None, feature_coefficients: np.ndarray | None = None,
                  turn_profile_k: np.ndarray, forecast_persistence: float, speed_m_s: float,
                  provenance: Mapping[str, Any] | None = None) -> None:
         self.sample_period_s = float(sample_period_s)
@@ -479,6 +490,9 @@ class NarxGPModel:
         self.temperature_square_coefficients = np.asarray(temperature_square_coefficients, dtype=float)
         self.power_temperature_coefficients = np.asarray(
             () if power_temperature_coefficients is None else power_temperature_coefficients, dtype=float)
+        self.turn_feature = turn_feature
+        self.feature_coefficients = np.asarray(() if feature_coefficients is None else feature_coefficients,
+                                               dtype=float)
         self.output = output
         self.residual = residual
         self.turn_profile_k = np.asarray(turn_profile_k, dtype=float)
@@ -495,7 +509,8 @@ class NarxGPModel:
                                                 and 0 <= self.powder_layer_m < 1e-2)):
             raise ModelFormatError("NARX model: provenance.process.powder_layer_m must be a number in [0, 0.01) m")
         arrays = (self.power_coefficients, self.power_square_coefficients, self.temperature_coefficients,
-                  self.temperature_square_coefficients, self.turn_profile_k, self.power_temperature_coefficients)
+                  self.temperature_square_coefficients, self.turn_profile_k, self.power_temperature_coefficients,
+                  self.feature_coefficients)
         if output not in OUTPUTS:
             raise ModelFormatError(f"NARX model: output must be one of {OUTPUTS}, got {output!r}")
         if not (self.sample_period_s > 0 and self.speed_m_s > 0 and all(a.ndim == 1 for a in arrays)
@@ -503,6 +518,7 @@ class NarxGPModel:
                 and 0 <= self.temperature_square_coefficients.size <= self.temperature_coefficients.size > 0
                 and self.power_temperature_coefficients.size <= min(self.power_coefficients.size,
                                                                     self.temperature_coefficients.size)
+                and (self.feature_coefficients.size > 0) == (turn_feature is not None)
                 and self.turn_profile_k.size > 0 and 0.0 <= self.forecast_persistence <= 1.0
                 and all(np.all(np.isfinite(a)) for a in arrays) and math.isfinite(self.intercept)):
             raise ModelFormatError("NARX model: non-finite or inconsistent coefficients, or a period/speed <= 0")
@@ -514,6 +530,24 @@ class NarxGPModel:
     @property
     def n_temperature_lags(self) -> int:
         return int(self.temperature_coefficients.size)
+
+    @property
+    def n_feature_lags(self) -> int:
+        return int(self.feature_coefficients.size)
+
+    def feature_kernel(self) -> np.ndarray:
+        """``K[s, e]`` [K/W] of the turnaround feature at the model's step length and period
+        (:meth:`gp_model.plan_feature.TurnFeature.kernel`); shape (1, 1) of zeros without a feature."""
+        if self.turn_feature is None:
+            return np.zeros((1, 1))
+        return self.turn_feature.kernel(self.speed_m_s * self.sample_period_s, self.sample_period_s)
+
+    def features(self, run: RunSeries) -> np.ndarray:
+        """``F[j]`` [K] of every state of ``run``, shape (n,) (zeros without a feature)."""
+        if self.turn_feature is None:
+            return np.zeros(len(run))
+        return turn_feature_series(self.feature_kernel(), run.power_w, run.turn_starts(),
+                                   run._ends(run.layers(), run.track))
 
     def area_at(self, z: float) -> float:
         """``x = exp(z)`` or ``z`` [m²] of one ``z``, in the C library's ``exp`` as the controller's
@@ -544,6 +578,10 @@ class NarxGPModel:
             "t_ahead_k": "GP input: T[k] [K]",
             "log1p_steps_since_track_start": "GP input: log(1 + s), s the states since the current track's "
                                              f"first state, capped at {STEPS_SINCE_START_CAP}",
+            "F[k+1-l], l=0..n_F-1": "turnaround feature [K]: temperature rise at the laser in state k+1-l from the "
+                                    "powers of the previous track's last n_sources steps (superposed Gaussian "
+                                    "moving sources, adiabatic half-space, constants in turn_feature; 0 on a "
+                                    "layer's first track and n_targets states after a turn)",
             "mean_power_w": "GP input: mean of p[k+1-i], i=0..n_p-1 [W]",
             "output": "melt-pool area x[k+1] [m2] (state[k+1].area_mm2 * 1e-6) "
                       "= exp(z) for output 'log', z for 'identity'",
@@ -551,39 +589,42 @@ class NarxGPModel:
         }
 
     # ------------------------------------------------------------------ regressors
-    def _lagged(self, run: RunSeries) -> tuple[np.ndarray, np.ndarray]:
-        """Lag matrices for every target index j = 1..n−1: powers (n−1, n_p), temperatures (n−1, n_T)."""
-        n_p, n_t = self.n_power_lags, self.n_temperature_lags
+    def _lagged(self, run: RunSeries) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Lag matrices for every target index j = 1..n−1: powers (n−1, n_p), temperatures (n−1, n_T),
+        features (n−1, n_F)."""
+        n_p, n_t, n_f = self.n_power_lags, self.n_temperature_lags, self.n_feature_lags
         p = np.r_[np.zeros(n_p), run.power_w]
         t = np.r_[np.full(n_t, run.t_ahead_k[0]), run.t_ahead_k]
+        f = np.r_[np.zeros(n_f), self.features(run)]
         j = np.arange(1, len(run))
         P = p[(j + n_p)[:, None] - np.arange(n_p)[None, :]]
         T = t[(j - 1 + n_t)[:, None] - np.arange(n_t)[None, :]]
-        return P, T
+        F = f[(j + n_f)[:, None] - np.arange(n_f)[None, :]]
+        return P, T, F
 
-    def design(self, P: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """Regressor rows ``[1, p, p², T, T², p×T]`` for lag matrices ``P`` (m, n_p) and ``T`` (m, n_T)."""
+    def design(self, P: np.ndarray, T: np.ndarray, F: np.ndarray) -> np.ndarray:
+        """Regressor rows ``[1, p, p², T, T², p×T, F]`` for lag matrices ``P`` (m, n_p), ``T`` (m, n_T)
+        and ``F`` (m, n_F)."""
         n_tq, n_x = self.temperature_square_coefficients.size, self.power_temperature_coefficients.size
-        return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2, P[:, :n_x] * T[:, :n_x]])
+        return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2, P[:, :n_x] * T[:, :n_x], F])
 
     def coefficients(self) -> np.ndarray:
         """All coefficients in the order of :meth:`design`."""
         return np.r_[self.intercept, self.power_coefficients, self.power_square_coefficients,
                      self.temperature_coefficients, self.temperature_square_coefficients,
-                     self.power_temperature_coefficients]
+                     self.power_temperature_coefficients, self.feature_coefficients]
 
     def residual_inputs(self, run: RunSeries) -> np.ndarray:
         """ψ for every target index j = 1..n−1, shape (n−1, 3)."""
-        P, _ = self._lagged(run)
+        P = self._lagged(run)[0]
         s = steps_since_start_feature(run.steps_since_track_start()[:-1])
         return np.column_stack([run.t_ahead_k[:-1], s, P.mean(axis=1)])
 
     def predict_run(self, run: RunSeries) -> tuple[np.ndarray, np.ndarray]:
         """One-step mean [m²] and latent variance [m⁴] of ``x[j]``, j = 1..n−1, with measured T
         (variance mapped from z by the output's slope)."""
-        P, T = self._lagged(run)
         mean, var = self.residual.predict(self.residual_inputs(run))
-        z = self.design(P, T) @ self.coefficients() + mean
+        z = self.design(*self._lagged(run)) @ self.coefficients() + mean
         area, slope = self.area_and_slope(z)
         return area, slope * slope * var
 
@@ -600,7 +641,7 @@ class NarxGPModel:
     @classmethod
     def fit(cls, runs: Sequence[RunSeries], *, n_power_lags: int, n_temperature_lags: int,
             n_temperature_square_lags: int | None = None, quadratic: bool = True, interaction: bool = False,
-            output: str = "log",
+            feature_lags: int = 0, turn_feature: TurnFeature | None = None, output: str = "log",
             n_train: int = 150, bounds: HyperBounds = DEFAULT_BOUNDS, seed: int = 0, n_restarts: int = 4,
             profile_length: int = 200, speed_m_s: float | None = None,
             provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
@@ -609,7 +650,9 @@ class NarxGPModel:
         Samples whose target is in the first :data:`BUILD_UP_STEPS` states of a run or of a layer, or has no
         pool (area 0), are not fitted (the lags still see their powers). ``quadratic=False``
         leaves out the squared lags (a plain FIR part); ``interaction`` adds the lag-matched
-        p × T terms. The model's scan speed is the runs' (:attr:`RunSeries.speed_m_s`), or ``speed_m_s``
+        p × T terms; ``feature_lags`` > 0 the lagged turnaround features ``F[k+1−l]``, l < feature_lags,
+        of ``turn_feature`` (default :class:`~gp_model.plan_feature.TurnFeature()`). The model's scan
+        speed is the runs' (:attr:`RunSeries.speed_m_s`), or ``speed_m_s``
         [m/s] for runs that record none.
 
         Raises
@@ -632,12 +675,16 @@ class NarxGPModel:
         else:
             n_tq = n_temperature_square_lags
         n_x = min(n_power_lags, n_temperature_lags) if interaction else 0
-        probe = cls._probe(n_power_lags, n_temperature_lags, n_tq, runs[0].sample_period_s, n_x)
+        if feature_lags < 0:
+            raise DatasetError(f"feature_lags must be >= 0, got {feature_lags}")
+        feature = (turn_feature or TurnFeature()) if feature_lags else None
+        probe = cls._probe(n_power_lags, n_temperature_lags, n_tq, runs[0].sample_period_s, n_x, feature_lags,
+                           feature, speed)
         X, Y, PSI = [], [], []
         for run in runs:
-            p, t = probe._lagged(run)
+            p, t, f = probe._lagged(run)
             keep = (run.steps_since_layer_start()[1:] >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
-            X.append(probe.design(p[keep], t[keep])), Y.append(run.area_m2[1:][keep])
+            X.append(probe.design(p[keep], t[keep], f[keep])), Y.append(run.area_m2[1:][keep])
             PSI.append(probe.residual_inputs(run)[keep])
         X, Y, PSI = np.vstack(X), np.concatenate(Y), np.vstack(PSI)
         if not quadratic:
@@ -657,16 +704,20 @@ class NarxGPModel:
                       bounds={"signal_std": list(bounds.signal_std), "noise_std": list(bounds.noise_std),
                               "length_scale": list(bounds.length_scale)})
         n_p, n_t = n_power_lags, n_temperature_lags
+        n_f = feature_lags
+        theta, g = (theta[:theta.size - n_f], theta[theta.size - n_f:]) if n_f else (theta, None)
         return cls(sample_period_s=runs[0].sample_period_s, intercept=theta[0], power_coefficients=theta[1:1 + n_p],
                    power_square_coefficients=theta[1 + n_p:1 + 2 * n_p],
                    temperature_coefficients=theta[1 + 2 * n_p:1 + 2 * n_p + n_t],
                    temperature_square_coefficients=theta[1 + 2 * n_p + n_t:1 + 2 * n_p + n_t + n_tq],
-                   power_temperature_coefficients=theta[1 + 2 * n_p + n_t + n_tq:], output=output, residual=gp,
+                   power_temperature_coefficients=theta[1 + 2 * n_p + n_t + n_tq:], turn_feature=feature,
+                   feature_coefficients=g, output=output, residual=gp,
                    turn_profile_k=profile, forecast_persistence=fit_persistence(runs, profile), speed_m_s=speed,
                    provenance=record)
 
     @classmethod
-    def _probe(cls, n_p: int, n_t: int, n_tq: int, period: float, n_x: int = 0) -> NarxGPModel:
+    def _probe(cls, n_p: int, n_t: int, n_tq: int, period: float, n_x: int = 0, n_f: int = 0,
+               feature: TurnFeature | None = None, speed_m_s: float = 1.0) -> NarxGPModel:
         """A shell with the right lag counts (for building regressors before the fit)."""
         if n_p < 1 or n_t < 1 or not 0 <= n_tq <= n_t:
             raise DatasetError(f"lag counts must be >= 1 (squared T lags <= T lags), got {n_p}, {n_t}, {n_tq}")
@@ -674,7 +725,8 @@ class NarxGPModel:
         obj.power_coefficients, obj.temperature_coefficients = np.zeros(n_p), np.zeros(n_t)
         obj.temperature_square_coefficients = np.zeros(n_tq)
         obj.power_temperature_coefficients = np.zeros(n_x)
-        obj.sample_period_s = period
+        obj.feature_coefficients, obj.turn_feature = np.zeros(n_f), feature
+        obj.sample_period_s, obj.speed_m_s = period, speed_m_s
         return obj
 
     # ------------------------------------------------------------------ persistence
@@ -687,7 +739,8 @@ class NarxGPModel:
             "inputs": self.input_definitions(),
             "structure": (
                 "z[k+1] = c0 + sum_i (b_i p[k+1-i] + q_i p[k+1-i]^2) + sum_j c_j T[k-j] + sum_{j<n_Tq} d_j T[k-j]^2"
-                " + sum_{i<n_x} e_i p[k+1-i] T[k-i] + r(psi_k), r ~ GP(0, SE-ARD); x[k+1] = exp(z) (output 'log') or z"
+                " + sum_{i<n_x} e_i p[k+1-i] T[k-i] + sum_{l<n_F} g_l F[k+1-l] + r(psi_k), r ~ GP(0, SE-ARD);"
+                " x[k+1] = exp(z) (output 'log') or z"
             ),
             "output": self.output,
             "intercept": self.intercept,
@@ -696,6 +749,8 @@ class NarxGPModel:
             "temperature_coefficients": self.temperature_coefficients.tolist(),
             "temperature_square_coefficients": self.temperature_square_coefficients.tolist(),
             "power_temperature_coefficients": self.power_temperature_coefficients.tolist(),
+            "turn_feature": None if self.turn_feature is None else self.turn_feature.to_dict(),
+            "feature_coefficients": self.feature_coefficients.tolist(),
             "residual_gp": {"inputs_names": list(RESIDUAL_INPUTS), **self.residual.to_dict()},
             "turn_profile_k": self.turn_profile_k.tolist(),
             "forecast_persistence": self.forecast_persistence,
@@ -712,11 +767,13 @@ class NarxGPModel:
         doc = read_document(path)
         if not is_format(doc, FORMAT_NAME):
             raise ModelFormatError(f"{path} is not a {FORMAT_NAME} file")
-        if doc.get("format_version") != FORMAT_VERSION:
+        if doc.get("format_version") not in READABLE_VERSIONS:
             raise ModelVersionError(f"{path} has format version {doc.get('format_version')!r}, "
-                                    f"this code reads {FORMAT_VERSION}; retrain it")
+                                    f"this code reads {', '.join(map(str, READABLE_VERSIONS))}; retrain it")
         try:
             g = doc["residual_gp"]
+            feature = doc.get("turn_feature")
+            feature = None if feature is None else TurnFeature.from_dict(feature)
             residual = ResidualGP(inputs=np.array(g["inputs"]), targets=np.array(g["targets"]),
                                   signal_std=g["signal_std"], noise_std=g["noise_std"],
                                   length_scales=np.array(g["length_scales"]), input_mean=np.array(g["input_mean"]),
@@ -727,6 +784,7 @@ class NarxGPModel:
                        temperature_coefficients=np.array(doc["temperature_coefficients"]),
                        temperature_square_coefficients=np.array(doc["temperature_square_coefficients"]),
                        power_temperature_coefficients=np.array(doc["power_temperature_coefficients"]),
+                       turn_feature=feature, feature_coefficients=np.array(doc.get("feature_coefficients", [])),
                        output=doc["output"], residual=residual, turn_profile_k=np.array(doc["turn_profile_k"]),
                        forecast_persistence=doc["forecast_persistence"], speed_m_s=doc["speed_m_s"],
                        provenance=doc.get("provenance") or {})

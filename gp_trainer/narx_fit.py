@@ -23,6 +23,8 @@ STRUCTURES = ((24, 30), (32, 40))
 FORMS = (("log", True, True), ("log", True, False), ("log", False, False), ("identity", True, True),
          ("identity", True, False), ("identity", False, False))
 """Candidate (output map, squared lags, lag-matched power × temperature interactions) of the model selection."""
+FEATURE_LAGS = (0, 24)
+"""Candidate lags of the turnaround feature (:mod:`gp_model.plan_feature`; 0: without it)."""
 LENGTH_SCALE_FLOORS = (0.5, 2.0)
 """Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
 
@@ -81,17 +83,19 @@ def select_and_fit(
     n_train: int = 150,
     provenance: Mapping[str, Any] | None = None,
 ) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
-    """Fit every candidate (lags, output map, squared lags, interactions, length-scale floor) on ``train``; keep the
+    """Fit every candidate (lags, output map, squared lags, interactions, feature lags, length-scale floor) on
+    ``train``; keep the
     one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
     Returns it, its row and the whole table; ``provenance`` goes into every candidate's."""
     table, best = [], None
-    for (n_p, n_t), (output, quadratic, with_x), floor in itertools.product(STRUCTURES, FORMS, LENGTH_SCALE_FLOORS):
+    for (n_p, n_t), (output, quadratic, with_x), n_f, floor in itertools.product(STRUCTURES, FORMS, FEATURE_LAGS,
+                                                                                 LENGTH_SCALE_FLOORS):
             model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
-                                    output=output, quadratic=quadratic, interaction=with_x,
+                                    output=output, quadratic=quadratic, interaction=with_x, feature_lags=n_f,
                                     bounds=HyperBounds(length_scale=(floor, 100.0)), provenance=provenance)
             scores = evaluate_model(model, held_out)
             row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
-                   "interaction": with_x,
+                   "interaction": with_x, "feature_lags": n_f,
                    "length_scale_floor": floor, **scores}
             table.append(row)
             if best is None or row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"] < best[0]:

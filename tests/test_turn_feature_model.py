@@ -1,0 +1,148 @@
+"""The turnaround feature as a model input (gp_model.narx) and in the preview MPC's prediction
+(controller_node.preview_kernel): fitted, saved, predicted over the horizon as the model does, and
+its derivative in the planned powers before a turn."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from controller_node.preview import PreviewMPC
+from controller_node.settings import ControllerSettings, PreviewSettings
+from controller_node.types import Measurement
+from gp_model.errors import ModelVersionError
+from gp_model.narx import NarxGPModel, RunSeries
+from gp_model.plan_feature import TurnFeature
+
+DT, SPEED = 50e-6, 0.8
+FEATURE = TurnFeature(n_targets=20, n_sources=40)
+B = 1e-12 * np.array([5.0, 10.0, 20.0, 30.0, 30.0, 20.0, 10.0, 5.0])
+C = 1e-12 * np.array([2.0, 4.0, 6.0, 4.0, 2.0])
+G_TRUE = 3e-12           # m²/K of F[j] in the synthetic plant
+
+
+def _run(seed: int, n: int = 450, tracks: int = 3, area_of_feature: float = G_TRUE) -> RunSeries:
+    """A serpentine run whose area is an FIR in power and T plus ``area_of_feature`` F."""
+    rng = np.random.default_rng(seed)
+    p = np.repeat(rng.uniform(150, 300, n // 10 + 1), 10)[:n]
+    p[0] = 0.0
+    track = (np.arange(n) * tracks) // n
+    t = 300.0 + 5.0 * rng.standard_normal(n).cumsum() + 300.0 * (track > 0)
+    shell = RunSeries("s", np.ones(n), t, p, track, DT, speed_m_s=SPEED)
+    probe = NarxGPModel._probe(8, 5, 0, DT, 0, 1, FEATURE, SPEED)
+    feature = probe.features(shell)
+    x = np.full(n, 1e-8)
+    for j in range(1, n):
+        x[j] += sum(B[i] * p[j - i] for i in range(8) if j - i >= 0)
+        x[j] += sum(C[m] * t[max(j - 1 - m, 0)] for m in range(5)) + area_of_feature * feature[j]
+    return RunSeries(f"turn-{seed}", x, t, p, track, DT, speed_m_s=SPEED)
+
+
+def _fit(runs, feature_lags):
+    return NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity",
+                           feature_lags=feature_lags, turn_feature=FEATURE, n_train=40, n_restarts=1,
+                           profile_length=50)
+
+
+def test_the_fit_takes_the_feature_and_the_file_records_it(tmp_path):
+    runs = [_run(s) for s in range(3)]
+    with_feature, without = _fit(runs, 4), _fit(runs, 0)
+    held_out = _run(9)
+    error = [np.max(np.abs(m.predict_run(held_out)[0] - held_out.area_m2[1:])[20:]) for m in (with_feature, without)]
+    assert error[0] < 1e-3 * 1e-8 < 1e-2 * 1e-8 < error[1]      # the plant's F term needs the feature
+    path = with_feature.save(tmp_path / "m.json")
+    again = NarxGPModel.load(path)
+    assert again.turn_feature == FEATURE
+    assert np.array_equal(again.predict_run(held_out)[0], with_feature.predict_run(held_out)[0])
+    doc = json.loads(path.read_text())
+    assert doc["format_version"] == 4 and doc["turn_feature"]["hatch_m"] == FEATURE.hatch_m
+    old = dict(without.to_dict(), format_version=3)               # a format-3 file: no feature
+    del old["turn_feature"], old["feature_coefficients"]
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    assert NarxGPModel.load(tmp_path / "old.json").turn_feature is None
+    (tmp_path / "older.json").write_text(json.dumps(dict(old, format_version=2)))
+    with pytest.raises(ModelVersionError, match="format version 2, this code reads 3, 4; retrain it"):
+        NarxGPModel.load(tmp_path / "older.json")
+
+
+@pytest.fixture(scope="module")
+def model() -> NarxGPModel:
+    """Every term visible: the fitted FIR and residual, and feature coefficients of a size that matters."""
+    fitted = _fit([_run(s) for s in range(3)], 6)
+    return NarxGPModel(**{**_constructor_args(fitted), "forecast_persistence": 1.0,
+                          "feature_coefficients": G_TRUE * np.array([1.0, 0.8, 0.6, 0.4, 0.3, 0.2])})
+
+
+def _controller_at_turn(model, k=54, track_length=30, horizon=12):
+    """The preview MPC after the states 0..k of three tracks of ``track_length`` states (the turn
+    ahead ``to_end`` states after k), T held over the horizon; its Γ as ∂x̂/∂u, ū and the run."""
+    run = _run(4, n=3 * track_length, tracks=3)
+    settings = ControllerSettings(set_point_m2=2e-8, preview=PreviewSettings(horizon=horizon, r=1e6,
+                                                                             turn_learning_gain=0.0,
+                                                                             learn_turn_profile=False))
+    ctrl = PreviewMPC(settings, model)
+    ctrl._profile[:] = 0.0
+    for j in range(k + 1):
+        plan = np.r_[ctrl._plan[1:], ctrl._plan[-1:]]               # ū of this update
+        remaining = ((j // track_length + 1) * track_length - 1 - j + 1) * DT
+        ctrl.update(Measurement(step=j, time_s=j * DT, area_m2=run.area_m2[j], t_ahead_k=run.t_ahead_k[j],
+                                power_w=run.power_w[j], speed_m_s=SPEED, track=int(run.track[j]),
+                                track_remaining_s=remaining, next_track=True))
+    gamma, c = ctrl.last_qp[:2]
+    jac = gamma * settings.set_point_m2 / ctrl.qp.scale
+    return ctrl, jac, c, plan, run
+
+
+def _model_prediction(model, run, k, u):
+    """The model's own x̂[k+1..k+H] with the applied powers up to k, then ``u``, T held."""
+    h = u.size
+    p = np.r_[run.power_w[:k + 1], u]
+    t = np.r_[run.t_ahead_k[:k + 1], np.full(h, run.t_ahead_k[k])]
+    track = np.r_[run.track, np.full(h, run.track[-1])][:k + 1 + h]
+    future = RunSeries("f", np.ones(k + 1 + h), t, p, track, DT)
+    return model.predict_run(future)[0][k:k + h]
+
+
+@pytest.mark.parametrize("k", [35, 54])
+def test_the_controllers_prediction_and_jacobian_are_the_models_own_across_a_turn(model, k):
+    """k = 35: 5 states after a turn (the feature of the track's own previous track, and its lags);
+    k = 54: the next turn after state 59, 5 rows before it."""
+    ctrl, jac, c, plan, run = _controller_at_turn(model, k)
+    sp = ctrl.settings.set_point_m2
+    at_plan = c * sp + jac @ plan + sp
+    assert np.allclose(at_plan, _model_prediction(model, run, k, plan) + ctrl.disturbance_m2, rtol=1e-9, atol=0.0)
+    fd = np.column_stack([(_model_prediction(model, run, k, plan + 1e-2 * e)
+                           - _model_prediction(model, run, k, plan - 1e-2 * e)) / 2e-2 for e in np.eye(plan.size)])
+    assert np.allclose(jac, fd, rtol=0.0, atol=1e-6 * np.abs(fd).max())
+    work, gamma = ctrl._kernel, ctrl.last_qp[0]                     # the QP over the dense rows: LAPACK's
+    assert np.allclose(work.hess, ctrl.qp.hessian(gamma), rtol=1e-12, atol=1e-12 * np.abs(work.hess).max())
+    assert np.allclose(work.v, np.linalg.solve(work.hess, -work.f), rtol=1e-9, atol=1e-12)
+    if k == 54:
+        assert np.abs(jac[11, :3]).max() > 0.01 * np.abs(jac).max()  # beyond the lag band: the feature's
+    else:
+        assert ctrl._kernel.feats.min() > 50.0                      # F [K] of every row and lag
+
+
+def test_a_power_cut_before_the_turn_lowers_the_predicted_area_after_it(model):
+    """−20 W on the planned powers before the turn: the rows after it (beyond the power lags'
+    reach) predict a smaller area, with the feature; without it they do not move."""
+    delta = np.zeros(12)
+    delta[:3] = -20.0                                               # p[k+1..k+3], the turn after k+5
+    with_feature = _controller_at_turn(model)[1] @ delta
+    blind = NarxGPModel(**{**_constructor_args(model), "feature_coefficients": np.zeros(6)})
+    without = _controller_at_turn(blind)[1] @ delta
+    assert np.all(with_feature[11:] < -1e-3 * 2e-8)                 # row 11: 8 lags after the last change
+    assert np.all(without[11:] == 0.0)
+
+
+def _constructor_args(model: NarxGPModel) -> dict:
+    return dict(sample_period_s=model.sample_period_s, intercept=model.intercept,
+                power_coefficients=model.power_coefficients, power_square_coefficients=model.power_square_coefficients,
+                temperature_coefficients=model.temperature_coefficients,
+                temperature_square_coefficients=model.temperature_square_coefficients, output=model.output,
+                residual=model.residual, power_temperature_coefficients=model.power_temperature_coefficients,
+                turn_feature=model.turn_feature, feature_coefficients=model.feature_coefficients,
+                turn_profile_k=model.turn_profile_k, forecast_persistence=model.forecast_persistence,
+                speed_m_s=model.speed_m_s, provenance=model.provenance)
