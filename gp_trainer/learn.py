@@ -215,7 +215,8 @@ def _fit(settings: LearnSettings, design: ProcessDesign, runs, out: Path, proven
     train = [r for r in series if r.name not in held_names]
     paths = [job_recording(settings, r.job()) for r in runs]
     record = {**provenance, "process": {**process_record(paths), "plant": dict(settings.plant)}}
-    model, best, _ = select_and_fit(train, held, seed=settings.seed, provenance=record)
+    model, best, _ = select_and_fit(train, held, seed=settings.seed, provenance=record,
+                                    workers=1 if settings.sequential else settings.workers)
     model.save(out)
     return model, best, held
 

@@ -7,8 +7,11 @@ runs it on the identification recordings and writes the shipped model.
 
 from __future__ import annotations
 
+import functools
 import itertools
+import multiprocessing
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -75,6 +78,19 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int =
     }
 
 
+def _fit_candidate(train: Sequence[RunSeries], held_out: Sequence[RunSeries], candidate: tuple, seed: int,
+                   n_train: int, provenance: Mapping[str, Any] | None) -> tuple[NarxGPModel, dict[str, Any]]:
+    """Fit one candidate of :func:`select_and_fit` and score it on ``held_out``: the model and its row."""
+    (n_p, n_t), (output, quadratic, with_x), n_f, floor = candidate
+    model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
+                            output=output, quadratic=quadratic, interaction=with_x, feature_lags=n_f,
+                            bounds=HyperBounds(length_scale=(floor, 100.0)), provenance=provenance)
+    row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
+           "interaction": with_x, "feature_lags": n_f, "length_scale_floor": floor,
+           **evaluate_model(model, held_out)}
+    return model, row
+
+
 def select_and_fit(
     train: Sequence[RunSeries],
     held_out: Sequence[RunSeries],
@@ -82,22 +98,20 @@ def select_and_fit(
     seed: int = 0,
     n_train: int = 150,
     provenance: Mapping[str, Any] | None = None,
+    workers: int = 1,
 ) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
     """Fit every candidate (lags, output map, squared lags, interactions, feature lags, length-scale floor) on
-    ``train``; keep the
-    one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
-    Returns it, its row and the whole table; ``provenance`` goes into every candidate's."""
-    table, best = [], None
-    for (n_p, n_t), (output, quadratic, with_x), n_f, floor in itertools.product(STRUCTURES, FORMS, FEATURE_LAGS,
-                                                                                 LENGTH_SCALE_FLOORS):
-            model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
-                                    output=output, quadratic=quadratic, interaction=with_x, feature_lags=n_f,
-                                    bounds=HyperBounds(length_scale=(floor, 100.0)), provenance=provenance)
-            scores = evaluate_model(model, held_out)
-            row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
-                   "interaction": with_x, "feature_lags": n_f,
-                   "length_scale_floor": floor, **scores}
-            table.append(row)
-            if best is None or row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"] < best[0]:
-                best = (row[f"rollout_h{ROLLOUT_HORIZON}_mape_pct"], model, row)
-    return best[1], best[2], table
+    ``train``; keep the one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
+    Returns it, its row and the whole table; ``provenance`` goes into every candidate's. ``workers`` > 1 fits
+    the candidates in that many forked processes (each fit is deterministic: the same model either way)."""
+    candidates = list(itertools.product(STRUCTURES, FORMS, FEATURE_LAGS, LENGTH_SCALE_FLOORS))
+    fit = functools.partial(_fit_candidate, train, held_out, seed=seed, n_train=n_train, provenance=provenance)
+    if workers > 1:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+            fitted = list(pool.map(fit, candidates))
+    else:
+        fitted = [fit(c) for c in candidates]
+    table = [row for _, row in fitted]
+    key = f"rollout_h{ROLLOUT_HORIZON}_mape_pct"
+    best = min(range(len(fitted)), key=lambda i: table[i][key])  # the first of equal ones, as in table order
+    return fitted[best][0], table[best], table

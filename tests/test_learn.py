@@ -19,14 +19,15 @@ from gp_trainer.provenance import REPO_ROOT
 from messages.cli import UsageError
 
 
-def synthetic_area(threshold_w: float = 60.0, gain_m2_per_w: float = 0.8e-9):
-    """A plant's steady area: no pool below a threshold power, then linear and slightly convex in power."""
+def synthetic_area(threshold_w: float = 60.0, gain_m2_per_w: float = 0.8e-9, curvature_w: float = 200.0):
+    """A plant's steady area: no pool below a threshold power, then convex in power (plain regula falsi
+    would keep one end of its bracket and crawl)."""
     calls = []
 
     def area(power_w: float) -> float:
         calls.append(power_w)
         excess = max(0.0, power_w - threshold_w)
-        return gain_m2_per_w * excess * (1.0 + excess / 1000.0)
+        return gain_m2_per_w * excess * (1.0 + excess / curvature_w)
 
     return area, calls
 
@@ -47,7 +48,7 @@ def test_operating_power_with_a_lower_limit_evaluates_it():
     assert calls[:2] == [300.0, 100.0] and op.area_m2 == pytest.approx(0.063e-6, rel=0.005)
 
 
-@pytest.mark.parametrize("set_point_mm2, limits, bound", [(0.5, (0.0, 350.0), "power_max_w 350 W"),
+@pytest.mark.parametrize("set_point_mm2, limits, bound", [(0.9, (0.0, 350.0), "power_max_w 350 W"),
                                                           (0.063, (0.0, 100.0), "power_max_w 100 W"),
                                                           (0.01, (100.0, 350.0), "power_min_w 100 W")])
 def test_unreachable_set_point_is_refused_in_one_line_naming_set_point(set_point_mm2, limits, bound):
@@ -152,3 +153,42 @@ def test_launch_picks_the_model_of_the_plants_layer(tmp_path):
     assert default_model(RunOptions(controller="preview-mpc", config=physical)) is None  # the shipped default
     assert default_model(RunOptions(controller="pid", config=bare)) is None
     assert NarxGPModel.load(DEFAULT_MODEL_PATH).powder_layer_m in (None, 40e-6)
+
+
+@pytest.mark.slow
+def test_learn_end_to_end_on_a_short_coarse_case(tmp_path, capsys):
+    """``learn`` on the bare plate, every run cut to 80 steps on a 50 µm mesh: operating point, both
+    stages, the model with its stage-1 model, the report and the plots; a re-run skips every run."""
+    config = _config(tmp_path, "[plant]\n")
+    argv = ["learn", "--config", str(config), "--out", str(tmp_path / "m.json"), "--out-dir", str(tmp_path / "rec"),
+            "--h-um", "50", "--max-steps", "80", "--no-progress", "--json"]
+    assert main(argv) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["status"] == "ok" and 150.0 < report["operating_point"]["power_w"] < 350.0
+    assert len(report["runs"]) == 21 and all(r["status"] == "ok" for r in report["runs"])
+    model = NarxGPModel.load(tmp_path / "m.json")
+    assert model.powder_layer_m == 0.0 and model.provenance["design"]["held_out"] == report["held_out"]
+    assert NarxGPModel.load(tmp_path / "m_stage1.json").provenance["runs"] != model.provenance["runs"]
+    assert all(Path(p).is_file() for p in report["plots"].values())
+    assert json.loads((tmp_path / "rec" / "learn.json").read_text())["metrics"] == report["metrics"]
+    assert main(argv) == 0
+    assert {r["status"] for r in json.loads(capsys.readouterr().out.strip().splitlines()[-1])["runs"]} == {"skipped"}
+
+
+def test_selection_in_forked_workers_gives_the_same_model(monkeypatch):
+    """``select_and_fit`` with workers fits each candidate in a forked process: the same table and model."""
+    import dataclasses
+
+    from gp_trainer import narx_fit
+    from tests.test_preview import synthetic_run
+
+    monkeypatch.setattr(narx_fit, "STRUCTURES", ((8, 5),))
+    monkeypatch.setattr(narx_fit, "FORMS", (("identity", False, False), ("log", False, False)))
+    monkeypatch.setattr(narx_fit, "LENGTH_SCALE_FLOORS", (2.0,))
+    monkeypatch.setattr(narx_fit, "FEATURE_LAGS", (0,))
+    runs = [dataclasses.replace(synthetic_run(s, n=200), speed_m_s=0.8) for s in range(4)]
+    one = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40)
+    two = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40, workers=2)
+    assert len(one[2]) == 2 and one[1] == two[1] and one[2] == two[2]
+    assert one[0].to_dict() == two[0].to_dict()
+    assert one[1]["rollout_h40_mape_pct"] == min(r["rollout_h40_mape_pct"] for r in one[2])
