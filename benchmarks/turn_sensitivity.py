@@ -16,7 +16,7 @@ the second over the first (1: the model sees the pre-turn power change as the pl
 without a change of the plant's).
 
 Usage: ``python benchmarks/turn_sensitivity.py [--scenario layer] [--turn 2] [--before 12]
-[--steps 10] [--delta-w -20] [--json]``
+[--steps 10] [--delta-w -20] [--model FILE] [--json]``
 """
 
 from __future__ import annotations
@@ -49,12 +49,14 @@ def main() -> None:
     parser.add_argument("--before", type=int, default=12, help="states between the snapshot and the turn")
     parser.add_argument("--steps", type=int, default=10, help="commands changed after the snapshot")
     parser.add_argument("--delta-w", type=float, default=-20.0, help="change of those commands [W]")
+    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
+                        help="delay-aware model file (default: the shipped one)")
     parser.add_argument("--json", action="store_true", help="print the JSON record as the last line")
     args = parser.parse_args()
     sc = scenario(args.scenario)
     plant = ThermalModel(sc.settings, sc.plan)
     sp = args.setpoint_mm2 * 1e-6
-    ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=sp), NarxGPModel.load(DEFAULT_MODEL_PATH))
+    ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=sp), NarxGPModel.load(args.model))
     horizon = ctrl.qp.horizon
     if not 1 <= args.steps <= horizon:
         parser.error(f"--steps must be in [1, {horizon}]")

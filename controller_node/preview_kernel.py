@@ -63,7 +63,7 @@ import numpy as np
 from numba import njit
 
 from gp_model.compiled import BoundOnFirstCall
-from gp_model.narx import STEPS_SINCE_START_CAP, forecast_into
+from gp_model.narx import STEPS_SINCE_START_CAP, adjust_forecast, forecast_into
 
 from .preview_stages import (
     MOMENTS,
@@ -181,7 +181,7 @@ def control_step(predictor, planner, run, ws, context, t_ahead_k, area_m2, obser
     the GP's kernel sums come from the moments :func:`prepare_into` left in ``ws``, and the
     Jacobian, the Hessian and its factor and the learned correction stay the prepared ones.
     ``observe``: run the estimator with ``area_m2`` [m²]."""
-    _forecast(predictor, run, context, t_ahead_k, ws.forecast)   # reads the plan position only
+    _forecast(predictor, run, context, t_ahead_k, ws)   # the plan position (and with the feature, the plan)
     if not relinearise and not _within_series(predictor, ws, t_ahead_k):
         return -1
     estimator = run.estimator
@@ -189,7 +189,7 @@ def control_step(predictor, planner, run, ws, context, t_ahead_k, area_m2, obser
         estimate(estimator, context.power_w, area_m2, context.has_turn_base, context.since)
     estimator.has_prediction = False                # no x̂[k+1|k] until this update gives one
     push_history(run.p_hist, context.p_fill, context.power_w, run.t_hist, context.t_fill, t_ahead_k)
-    if predictor.g.size:
+    if predictor.has_feature:
         _push_feature(predictor, run, context)
     finite = _predict(predictor, planner, run, ws, context, estimator.disturbance_m2, relinearise)   # predict
     status = _plan(planner, ws, run.p_hist[0], context.blind, predictor.b.size, relinearise,        # plan
@@ -296,10 +296,21 @@ def _push_feature(predictor, run, context):  # pragma: no cover (compiled)
 
 
 @njit(cache=True, nogil=True)
-def _forecast(predictor, run, context, t_ahead_k, out):  # pragma: no cover (compiled)
-    """T ahead over the horizon into ``out`` (:func:`gp_model.narx.forecast_into`)."""
+def _forecast(predictor, run, context, t_ahead_k, ws):  # pragma: no cover (compiled)
+    """T ahead over the horizon into ``ws.forecast`` (:func:`gp_model.narx.forecast_into`); with the
+    turnaround feature, F[k+1..k+H] into ``ws.feats`` (:func:`_future_features`) and its part of the
+    forecast (:func:`gp_model.narx.adjust_forecast`)."""
+    out = ws.forecast
     forecast_into(t_ahead_k, context.since, context.on_first, context.to_end, run.profile, context.has_turn_base,
                   context.turn_base_k, predictor.decay, out)
+    if not predictor.has_feature:
+        return
+    first = max(predictor.g.size, 1) - 1
+    _future_features(predictor, run, context, ws.feats[first:])
+    since, n_targets = context.since, predictor.feature_kernel.shape[0]
+    f_now = run.track_feature[since] if not context.on_first and 0 <= since < n_targets else 0.0
+    adjust_forecast(out, ws.feats[first:], f_now, predictor.feature_mean, predictor.feature_gain, since,
+                    context.on_first, context.to_end, predictor.decay)
 
 
 @njit(cache=True, nogil=True)
@@ -373,22 +384,21 @@ def _regressors(predictor, run, ws, context, n_rows):  # pragma: no cover (compi
         for a in range(n_gp):
             exponents[row, a] = w0 * gp_points[0, a] + w1 * gp_points[1, a] + w2 * gp_points[2, a] + gp_points[3, a] \
                 - half_w
-    if predictor.g.size:
-        _features(predictor, run, ws, context)
+    feats, f_hist = ws.feats, run.f_hist
+    for q in range(predictor.g.size - 1):           # F[k−n_F+2 .. k], pushed (F[k+1..] by _forecast)
+        feats[q] = f_hist[q + 1]
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
-def _features(predictor, run, ws, context):  # pragma: no cover (compiled)
-    """The turnaround feature F[k−n_F+2 .. k+H] [K] into ``feats``: the pushed history, then per
-    row the current track's value (``track_feature``) or, after the turn ahead, the kernel's sum over
-    the current track's last powers (planned ū for the states after k, ``p_long`` up to k)."""
-    feats, f_hist, kernel, powers = ws.feats, run.f_hist, predictor.feature_kernel, ws.powers
-    track_feature, p_long = run.track_feature, run.p_long
-    n_f, n_p, h = predictor.g.size, predictor.b.size, ws.c.size
+def _future_features(predictor, run, context, feats):  # pragma: no cover (compiled)
+    """The turnaround feature F[k+1 .. k+H] [K] into ``feats``: per row the current track's value
+    (``track_feature``) or, after the turn ahead, the kernel's sum over the current track's last
+    powers (the plan ū for the states after k, the state's power and ``p_long`` up to k: read before
+    the state's power is pushed)."""
+    kernel, plan, track_feature, p_long = predictor.feature_kernel, run.plan, run.track_feature, run.p_long
+    h, p_fill, power_w = plan.size, context.p_fill, context.power_w
     n_targets, n_sources = kernel.shape
     since, to_end, on_first = context.since, context.to_end, context.on_first
-    for q in range(n_f - 1):
-        feats[q] = f_hist[q + 1]
     for i in range(h):
         m = i + 1
         value = 0.0
@@ -398,11 +408,12 @@ def _features(predictor, run, ws, context):  # pragma: no cover (compiled)
                 value = track_feature[s]
         elif m - to_end - 1 < n_targets:
             s = m - to_end - 1
-            for e in range(min(to_end, n_sources)):     # planned: p[k + e_k − e] = ū[e_k − 1 − e]
-                value += kernel[s, e] * powers[n_p + to_end - 1 - e]
-            for e in range(to_end, n_sources):          # applied: p[k + e_k − e] = p_long[e − e_k]
-                value += kernel[s, e] * p_long[e - to_end]
-        feats[n_f - 1 + i] = value
+            for e in range(min(to_end, n_sources)):     # planned: p[k + e_k − e] = ū[e_k − 1 − e] = plan[e_k − e]
+                value += kernel[s, e] * plan[to_end - e]
+            for e in range(to_end, n_sources):          # applied: p[k + e_k − e], the state's p_fill first
+                back = e - to_end
+                value += kernel[s, e] * (power_w if back < p_fill else p_long[back - p_fill])
+        feats[i] = value
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
@@ -420,6 +431,7 @@ def _prediction(predictor, ws, disturbance, gp_rows):  # pragma: no cover (compi
         predictor.gp_input_mean[2], predictor.gp_input_scale[2]
     prior_variance, noise_variance = predictor.gp_prior_variance, predictor.gp_noise_variance
     n_variance, log_output, intercept = predictor.n_variance, predictor.log_output, predictor.intercept
+    has_feature, gp_points0 = predictor.has_feature, predictor.gp_points[0]
     w0s, mean_moments, slope_moments, variance_moments = ws.w0, ws.mean_moments, ws.slope_moments, \
         ws.variance_moments
     predicted, z, std, gp_slope, slopes = ws.predicted, ws.z, ws.std, ws.gp_slope, ws.slopes
@@ -447,6 +459,11 @@ def _prediction(predictor, ws, disturbance, gp_rows):  # pragma: no cover (compi
             for a in range(n_gp):
                 gp_mean += kern[row, a] * beta[a]
                 gp_moment += kern[row, a] * moment_weights[a]
+            if has_feature:                         # ∂r/∂ψ₀ (T ahead): Σ_a k_a β_a W_a0, less w₀ r
+                t_moment = 0.0
+                for a in range(n_gp):
+                    t_moment += kern[row, a] * beta[a] * gp_points0[a]
+                ws.gp_t_slope[row] = scale0 * (t_moment - (psi[row, 0] - mean0) * scale0 * gp_mean)
         else:                                       # the prepared sums, moved by ε in the scaled T input
             w0 = w0s[row]
             eps = (psi[row, 0] - mean0) * scale0 - w0
@@ -509,8 +526,10 @@ def _jacobian(predictor, planner, ws, to_end):  # pragma: no cover (compiled)
     feature_jac = predictor.feature_jac
     n_sources = feature_jac.shape[1]
     ws.width = n_p
-    if predictor.g.size and 1 <= to_end < h:        # F after the turn by the planned powers before it
-        ws.width = h
+    if predictor.has_feature and 1 <= to_end < h:    # F after the turn by the planned powers before it:
+        ws.width = h                                  # through T̂ (β ∂F) and the lagged features (M)
+        _feature_jacobian(predictor, ratio, ws, to_end)
+    if predictor.g.size and 1 <= to_end < h:
         for row in range(to_end, h):
             slope, r, du = slopes[row], row - to_end, 0.0
             for col in range(max(0, to_end - n_sources), to_end):
@@ -518,6 +537,39 @@ def _jacobian(predictor, planner, ws, to_end):  # pragma: no cover (compiled)
                 du += jac * u[col]
                 gamma[row, col] += jac * ratio
             jac_u[row] += du
+
+
+@njit(cache=True, nogil=True, fastmath=_REORDER)
+def _feature_jacobian(predictor, ratio, ws, to_end):  # pragma: no cover (compiled)
+    """Add to Γ (and ``jac_u``) the rows' derivative through the forecast T ahead after the turn
+    ahead: ``∂T̂[k+1+q]/∂ū_n = β K[q − e_k, e_k − 1 − n]`` (q ≥ e_k, n < e_k) times each T lag's
+    ∂z/∂T (``c_j + 2 d_j T + e_j p`` and, for T[k+m−1], the GP's ∂r/∂ψ₀)."""
+    cc, d, e, kernel, gain = predictor.cc, predictor.d, predictor.e, predictor.feature_kernel, predictor.feature_gain
+    n_p, n_t, n_tq, n_x = predictor.b.size, cc.size, d.size, e.size
+    n_targets, n_sources = kernel.shape
+    powers, temps, slopes, gamma, jac_u = ws.powers, ws.temps, ws.slopes, ws.gamma, ws.jac_u
+    u, h = powers[n_p:], ws.c.size
+    first_col = max(0, to_end - n_sources)
+    for row in range(to_end + 1, h):
+        last_p, last_t, du = n_p + row, n_t - 1 + row, 0.0
+        for lag in range(min(n_t, row - to_end)):   # T[k+m−1−lag] = T̂[k+1+q], q = row − 1 − lag ≥ e_k
+            s = row - 1 - lag - to_end
+            if s >= n_targets:
+                continue
+            t = temps[last_t - lag]
+            dz = cc[lag]
+            if lag < n_tq:
+                dz += 2.0 * d[lag] * t
+            if lag < n_x:
+                dz += e[lag] * powers[last_p - lag]
+            if lag == 0:
+                dz += ws.gp_t_slope[row]
+            w = slopes[row] * gain * dz
+            for col in range(first_col, to_end):
+                jac = w * kernel[s, to_end - 1 - col]
+                du += jac * u[col]
+                gamma[row, col] += jac * ratio
+        jac_u[row] += du
 
 
 # ---------------------------------------------------------------------------------------- plan
@@ -716,7 +768,7 @@ class Kernel:
                        "e": e.shape, "mean": (3,), "scale": (3,), "decay": (h,), "weights": (h,), "moves": (h, h),
                        "gp_points": (4, n_gp), "beta": (n_gp,), "slope_weights": (n_gp,), "var_f": (n_gp, n_gp),
                        "series_weights": (n_gp, 2 * MOMENTS), "g": g.shape, "feature_kernel": feature_kernel.shape,
-                       "feature_jac": (h, n_sources)})
+                       "feature_jac": (h, n_sources), "feature_mean": (max(model.feature_profile_k.size, 1),)})
         w0_powers = points[0][:, None] ** np.arange(MOMENTS)          # W_a0ʲ, (N, MOMENTS)
         for name, value in (("b", model.power_coefficients), ("q", model.power_square_coefficients),
                             ("cc", model.temperature_coefficients), ("d", model.temperature_square_coefficients),
@@ -727,7 +779,8 @@ class Kernel:
                             ("series_weights", np.hstack((points[4][:, None] * w0_powers,
                                                           points[5][:, None] * w0_powers))),
                             ("g", g), ("feature_kernel", feature_kernel),
-                            ("feature_jac", self._feature_jacobian(g, feature_kernel, h))):
+                            ("feature_jac", self._lag_feature_jacobian(g, feature_kernel, h)),
+                            ("feature_mean", model.feature_profile_k if model.turn_feature else np.zeros(1))):
             const[name][...] = value
         self.predictor = new_predictor(float(model.intercept), const["b"], const["q"], const["cc"], const["d"],
                                        const["e"], const["mean"], const["scale"], float(scalars[6]),
@@ -735,7 +788,8 @@ class Kernel:
                                        const["beta"], const["slope_weights"], const["var_f"],
                                        const["series_weights"], const["decay"], log_output, int(n_variance),
                                        float(STEPS_SINCE_START_CAP), const["g"], const["feature_kernel"],
-                                       const["feature_jac"])
+                                       const["feature_jac"], model.turn_feature is not None,
+                                       float(model.feature_temperature_gain), const["feature_mean"])
         self.planner = new_planner(float(qp.x_sp), float(qp.scale), float(qp.r), float(qp.v_lo), float(qp.v_hi),
                                    float(qp.e_lo), float(qp.e_hi), float(uncertainty_z), const["weights"],
                                    const["moves"])
@@ -767,7 +821,7 @@ class Kernel:
                                                                                     feedback_into))
 
     @staticmethod
-    def _feature_jacobian(g: np.ndarray, kernel: np.ndarray, h: int) -> np.ndarray:
+    def _lag_feature_jacobian(g: np.ndarray, kernel: np.ndarray, h: int) -> np.ndarray:
         """``M[r, e] = Σ_{l ≤ r, r − l < S} g_l K[r − l, e]``, shape (H, E): ∂z of the r-th state after a
         turn by the power e states before it, through the lagged turnaround features."""
         out = np.zeros((h, kernel.shape[1]))
@@ -791,7 +845,7 @@ class Kernel:
                    "slopes": (h,), "jac_u": (h,), "psi": (h, 3), "kern": (h, n_gp), "bits": (h * n_gp,),
                    "powers": (n_p + h,), "temps": (n_t + h - 1,), "forecast": (h,), "correction": (h,), "w0": (h,),
                    "mean_moments": (h, MOMENTS), "slope_moments": (h, MOMENTS), "variance_moments": (h, MOMENTS),
-                   "powers_of_w0": (n_gp, MOMENTS), "feats": (max(n_f, 1) - 1 + h,)})
+                   "powers_of_w0": (n_gp, MOMENTS), "feats": (max(n_f, 1) - 1 + h,), "gp_t_slope": (h,)})
         block = a["gamma"].base                     # the one block of the views
         a["bits"] = a["bits"].view(np.int64)
         ws = new_workspace(*a.values())

@@ -106,7 +106,8 @@ PREDICTOR = PredictorType([
     ("gp_noise_variance", types.float64), ("w0_max", types.float64), ("gp_points", _F2), ("gp_beta", _F1),
     ("gp_slope_weights", _F1), ("var_factor", _F2), ("series_weights", _F2), ("decay", _F1),
     ("log_output", types.boolean), ("n_variance", types.int64), ("steps_cap", types.float64), ("g", _F1),
-    ("feature_kernel", _F2), ("feature_jac", _F2)])
+    ("feature_kernel", _F2), ("feature_jac", _F2), ("has_feature", types.boolean), ("feature_gain", types.float64),
+    ("feature_mean", _F1)])
 PLANNER = PlannerType([
     ("set_point_m2", types.float64), ("power_scale_w", types.float64), ("move_weight", types.float64),
     ("v_lo", types.float64), ("v_hi", types.float64), ("e_lo", types.float64), ("e_hi", types.float64),
@@ -119,7 +120,7 @@ WORKSPACE = WorkspaceType([
     ("f", _F1), ("v", _F1), ("areas", _F1), ("gp_slope", _F1), ("inv_diag", _F1), ("slopes", _F1),
     ("jac_u", _F1), ("psi", _F2), ("kern", _F2), ("bits", _I1), ("powers", _F1), ("temps", _F1),
     ("forecast", _F1), ("correction", _F1), ("w0", _F1), ("mean_moments", _F2), ("slope_moments", _F2),
-    ("variance_moments", _F2), ("powers_of_w0", _F2), ("feats", _F1), ("has_step", types.boolean),
+    ("variance_moments", _F2), ("powers_of_w0", _F2), ("feats", _F1), ("gp_t_slope", _F1), ("has_step", types.boolean),
     ("width", types.int64)])
 
 
@@ -186,7 +187,9 @@ class Predictor(structref.StructRefProxy):
     input; the turnaround feature's (:mod:`gp_model.plan_feature`) coefficients ``g`` [z/K] (empty
     without it), kernel ``feature_kernel`` K[s, e] [K/W] and ``feature_jac``
     ``M[r, e] = Σ_{l ≤ r} g_l K[r − l, e]`` (∂z of the r-th state after a turn by the power e states
-    before it). Build with :func:`new_predictor`."""
+    before it); ``has_feature``, and the feature's part of the T-ahead forecast, ``feature_gain`` β
+    and ``feature_mean`` F̄[s] [K] (:func:`gp_model.narx.adjust_forecast`). Build with
+    :func:`new_predictor`."""
 
     __slots__ = ()
 
@@ -302,7 +305,8 @@ def _set_disturbance(st, value):  # pragma: no cover (compiled)
 @njit(cache=True)
 def new_predictor(intercept, b, q, cc, d, e, gp_input_mean, gp_input_scale, gp_prior_variance, gp_noise_variance,
                   w0_max, gp_points, gp_beta, gp_slope_weights, var_factor, series_weights, decay, log_output,
-                  n_variance, steps_cap, g, feature_kernel, feature_jac):  # pragma: no cover (compiled)
+                  n_variance, steps_cap, g, feature_kernel, feature_jac, has_feature, feature_gain,
+                  feature_mean):  # pragma: no cover (compiled)
     """A :class:`Predictor` of these constants."""
     st = structref.new(PREDICTOR)
     st.intercept, st.b, st.q, st.cc, st.d, st.e = intercept, b, q, cc, d, e
@@ -312,6 +316,7 @@ def new_predictor(intercept, b, q, cc, d, e, gp_input_mean, gp_input_scale, gp_p
         decay
     st.log_output, st.n_variance, st.steps_cap = log_output, n_variance, steps_cap
     st.g, st.feature_kernel, st.feature_jac = g, feature_kernel, feature_jac
+    st.has_feature, st.feature_gain, st.feature_mean = has_feature, feature_gain, feature_mean
     return st
 
 
@@ -341,7 +346,7 @@ def new_run(p_hist, t_hist, plan, profile, current, following, p_long, f_hist, p
 @njit(cache=True)
 def new_workspace(gamma, hess, chol, c, predicted, z, std, f, v, areas, gp_slope, inv_diag, slopes, jac_u, psi, kern,
                   bits, powers, temps, forecast, correction, w0, mean_moments, slope_moments, variance_moments,
-                  powers_of_w0, feats):  # pragma: no cover (compiled)
+                  powers_of_w0, feats, gp_t_slope):  # pragma: no cover (compiled)
     """A :class:`Workspace` of these arrays, with no step."""
     st = structref.new(WORKSPACE)
     st.gamma, st.hess, st.chol, st.c, st.predicted, st.z, st.std = gamma, hess, chol, c, predicted, z, std
@@ -351,6 +356,7 @@ def new_workspace(gamma, hess, chol, c, predicted, z, std, f, v, areas, gp_slope
     st.correction, st.w0, st.mean_moments, st.slope_moments = correction, w0, mean_moments, slope_moments
     st.variance_moments, st.powers_of_w0, st.feats, st.has_step, st.width = variance_moments, powers_of_w0, feats, \
         False, 0
+    st.gp_t_slope = gp_t_slope
     return st
 
 

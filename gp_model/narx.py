@@ -26,7 +26,9 @@ regressor, in lagged powers and temperatures only (no lagged areas):
   the interactions, the feature lags and the GP's length-scale floor by the 40-step rollout error on held-out runs.
 * Over a horizon the temperature ahead is forecast from the scan plan
   (:func:`forecast_t_ahead`): after a turnaround it follows the learned turnaround profile
-  (:attr:`NarxGPModel.turn_profile_k`), the rise of T ahead over the state before the turn.
+  (:attr:`NarxGPModel.turn_profile_k`), the rise of T ahead over the state before the turn; with
+  the turnaround feature, plus β times the feature's deviation from its mean after a turn
+  (:func:`adjust_forecast`), so the forecast follows the plan's powers before the turn.
 
 Everything is SI; the model file records the sample period and the definition of every input.
 """
@@ -308,6 +310,34 @@ def forecast_into(t_now, since, on_first, to_end, profile, has_base, t_base, dec
         out[i] = t_end + profile[max(min(i - to_end, last), 0)]
 
 
+@njit(cache=True, nogil=True)
+def adjust_forecast(out, f_future, f_now, f_mean, gain, since, on_first, to_end,
+                    decay):  # pragma: no cover (compiled)
+    """Add the turnaround feature's part to a T-ahead forecast of :func:`forecast_into`, in place.
+
+    With ``ΔF = F − F̄[s]`` (the feature [K] over its mean at s states after a turn, 0 on a layer's
+    first track and beyond F̄), the forecast's deviation from the profile becomes
+    ``β ΔF[k+j] + ρʲ (T[k] − T_b − P[s_k] − β ΔF[k])``: on the current track
+    ``β (ΔF[k+j] − ρʲ ΔF[k])`` is added, after the turn ahead (``to_end`` ≥ 0) ``β ΔF[k+j]`` plus
+    what the current track's last state got. ``f_future`` F[k+1..k+H], ``f_now`` F[k] [K], ``gain``
+    β [-], ``decay`` ρʲ."""
+    n_mean = f_mean.size
+    d_now = f_now - f_mean[since] if not on_first and since < n_mean else 0.0
+    at_end = 0.0
+    for i in range(out.size):
+        j = i + 1
+        if to_end < 0 or j <= to_end:
+            s = since + j
+            d = f_future[i] - f_mean[s] if not on_first and s < n_mean else 0.0
+            add = gain * (d - decay[i] * d_now)
+            if j == to_end:
+                at_end = add
+        else:
+            s = j - to_end - 1
+            add = at_end + gain * (f_future[i] - f_mean[s] if s < n_mean else 0.0)
+        out[i] += add
+
+
 def turn_bases(run: RunSeries) -> np.ndarray:
     """``T_b`` of every state: T ahead in the state before its track's first state (NaN on a layer's first track)."""
     base = np.full(len(run), np.nan)
@@ -455,7 +485,12 @@ class NarxGPModel:
     turn_feature : gp_model.plan_feature.TurnFeature or None
         Constants of the turnaround feature ``F`` (None: no feature).
     feature_coefficients : numpy.ndarray, shape (n_F,), optional
-        ``g_l`` [z/K] of the lagged features ``F[k+1−l]`` (empty without a feature).
+        ``g_l`` [z/K] of the lagged features ``F[k+1−l]`` (empty: none).
+    feature_temperature_gain : float
+        β [-]: T ahead's deviation from the turnaround profile per kelvin of the feature's deviation
+        from its mean ``feature_profile_k`` (the forecast's part, :func:`adjust_forecast`).
+    feature_profile_k : numpy.ndarray, shape (n_targets,), optional
+        F̄[s]: mean feature s states after a turn of the training runs [K] (with ``turn_feature``).
     turn_profile_k : numpy.ndarray, shape (S,)
         Mean rise of T ahead after a turnaround [K] (:func:`turn_profile`).
     forecast_persistence : float
@@ -480,6 +515,7 @@ class NarxGPModel:
                  temperature_square_coefficients: np.ndarray, output: str, residual: ResidualGP,
                  power_temperature_coefficients: np.ndarray | None = None,
                  turn_feature: TurnFeature | None = None, feature_coefficients: np.ndarray | None = None,
+                 feature_temperature_gain: float = 0.0, feature_profile_k: np.ndarray | None = None,
                  turn_profile_k: np.ndarray, forecast_persistence: float, speed_m_s: float,
                  provenance: Mapping[str, Any] | None = None) -> None:
         self.sample_period_s = float(sample_period_s)
@@ -493,6 +529,8 @@ class NarxGPModel:
         self.turn_feature = turn_feature
         self.feature_coefficients = np.asarray(() if feature_coefficients is None else feature_coefficients,
                                                dtype=float)
+        self.feature_temperature_gain = float(feature_temperature_gain)
+        self.feature_profile_k = np.asarray(() if feature_profile_k is None else feature_profile_k, dtype=float)
         self.output = output
         self.residual = residual
         self.turn_profile_k = np.asarray(turn_profile_k, dtype=float)
@@ -510,7 +548,7 @@ class NarxGPModel:
             raise ModelFormatError("NARX model: provenance.process.powder_layer_m must be a number in [0, 0.01) m")
         arrays = (self.power_coefficients, self.power_square_coefficients, self.temperature_coefficients,
                   self.temperature_square_coefficients, self.turn_profile_k, self.power_temperature_coefficients,
-                  self.feature_coefficients)
+                  self.feature_coefficients, self.feature_profile_k)
         if output not in OUTPUTS:
             raise ModelFormatError(f"NARX model: output must be one of {OUTPUTS}, got {output!r}")
         if not (self.sample_period_s > 0 and self.speed_m_s > 0 and all(a.ndim == 1 for a in arrays)
@@ -518,7 +556,9 @@ class NarxGPModel:
                 and 0 <= self.temperature_square_coefficients.size <= self.temperature_coefficients.size > 0
                 and self.power_temperature_coefficients.size <= min(self.power_coefficients.size,
                                                                     self.temperature_coefficients.size)
-                and (self.feature_coefficients.size > 0) == (turn_feature is not None)
+                and (turn_feature is not None or self.feature_coefficients.size == 0 == self.feature_profile_k.size)
+                and (turn_feature is None or self.feature_profile_k.size == turn_feature.n_targets)
+                and math.isfinite(self.feature_temperature_gain)
                 and self.turn_profile_k.size > 0 and 0.0 <= self.forecast_persistence <= 1.0
                 and all(np.all(np.isfinite(a)) for a in arrays) and math.isfinite(self.intercept)):
             raise ModelFormatError("NARX model: non-finite or inconsistent coefficients, or a period/speed <= 0")
@@ -582,6 +622,8 @@ class NarxGPModel:
                                     "powers of the previous track's last n_sources steps (superposed Gaussian "
                                     "moving sources, adiabatic half-space, constants in turn_feature; 0 on a "
                                     "layer's first track and n_targets states after a turn)",
+            "feature_temperature_gain": "beta: the T-ahead forecast after a turn adds beta (F - feature_profile_k[s]), "
+                                        "s the states since the turn (T ahead's rise over the profile per K of F)",
             "mean_power_w": "GP input: mean of p[k+1-i], i=0..n_p-1 [W]",
             "output": "melt-pool area x[k+1] [m2] (state[k+1].area_mm2 * 1e-6) "
                       "= exp(z) for output 'log', z for 'identity'",
@@ -628,10 +670,25 @@ class NarxGPModel:
         area, slope = self.area_and_slope(z)
         return area, slope * slope * var
 
+    def forecast(self, run: RunSeries, k: int, horizon: int) -> np.ndarray:
+        """T ahead ``T̂[k+1..k+H]`` [K] at state k of ``run`` (its track indices as the scan plan, its
+        powers as the applied and planned ones): :func:`run_forecast` and, with a turnaround feature,
+        its part (:func:`adjust_forecast`)."""
+        out = run_forecast(run, k, horizon, self.turn_profile_k, self.forecast_persistence)
+        if self.turn_feature is None:
+            return out
+        f = np.r_[self.features(run), np.zeros(horizon)]
+        last = bool(run.last_track_of_layer()[k])
+        adjust_forecast(out, f[k + 1:k + 1 + horizon], float(f[k]), self.feature_profile_k,
+                        self.feature_temperature_gain, int(run.steps_since_track_start()[k]),
+                        bool(run.first_track_of_layer()[k]), -1 if last else int(run.steps_to_track_end()[k]),
+                        self.forecast_persistence ** np.arange(1.0, horizon + 1))
+        return out
+
     def rollout(self, run: RunSeries, k: int, horizon: int) -> np.ndarray:
         """Predict ``x[k+1..k+H]`` [m²] from what is known at state k: the applied powers (as a
         perfect plan) and T ahead measured up to k, forecast after it (:func:`run_forecast`)."""
-        forecast = run_forecast(run, k, horizon, self.turn_profile_k, self.forecast_persistence)
+        forecast = self.forecast(run, k, horizon)
         n = k + horizon + 1
         future = RunSeries(run.name, run.area_m2[:n], np.r_[run.t_ahead_k[:k + 1], forecast][:n],
                            run.power_w[:n], run.track[:n], run.sample_period_s, run.layers()[:n])
@@ -675,9 +732,9 @@ class NarxGPModel:
         else:
             n_tq = n_temperature_square_lags
         n_x = min(n_power_lags, n_temperature_lags) if interaction else 0
-        if feature_lags < 0:
-            raise DatasetError(f"feature_lags must be >= 0, got {feature_lags}")
-        feature = (turn_feature or TurnFeature()) if feature_lags else None
+        if feature_lags < 0 or (feature_lags and turn_feature is None):
+            raise DatasetError(f"feature_lags must be >= 0, and 0 without a turn_feature, got {feature_lags}")
+        feature = turn_feature
         probe = cls._probe(n_power_lags, n_temperature_lags, n_tq, runs[0].sample_period_s, n_x, feature_lags,
                            feature, speed)
         X, Y, PSI = [], [], []
@@ -699,6 +756,7 @@ class NarxGPModel:
         pick = np.sort(np.random.default_rng(seed).choice(Y.size, size=n_train, replace=False))
         gp = ResidualGP.fit(PSI[pick], residual[pick], bounds=bounds, seed=seed, n_restarts=n_restarts)
         profile = turn_profile(runs, profile_length)
+        gain, feature_profile = probe._feature_forecast_fit(runs, profile) if feature else (0.0, None)
         record = dict(provenance or {})
         record.update(seed=seed, n_train=n_train, n_samples=int(Y.size), runs=[r.name for r in runs],
                       bounds={"signal_std": list(bounds.signal_std), "noise_std": list(bounds.noise_std),
@@ -711,9 +769,29 @@ class NarxGPModel:
                    temperature_coefficients=theta[1 + 2 * n_p:1 + 2 * n_p + n_t],
                    temperature_square_coefficients=theta[1 + 2 * n_p + n_t:1 + 2 * n_p + n_t + n_tq],
                    power_temperature_coefficients=theta[1 + 2 * n_p + n_t + n_tq:], turn_feature=feature,
-                   feature_coefficients=g, output=output, residual=gp,
+                   feature_coefficients=g, feature_temperature_gain=gain, feature_profile_k=feature_profile,
+                   output=output, residual=gp,
                    turn_profile_k=profile, forecast_persistence=fit_persistence(runs, profile), speed_m_s=speed,
                    provenance=record)
+
+    def _feature_forecast_fit(self, runs: Sequence[RunSeries], profile_k: np.ndarray) -> tuple[float, np.ndarray]:
+        """β and F̄ of the forecast's feature part: F̄[s] the mean feature s states after a turn, β the
+        least-squares slope of T ahead's rise over the profile, ``T[t₀+s] − T[t₀−1] − P[s]``, on
+        ``F[t₀+s] − F̄[s]``, over every turn of ``runs``."""
+        n = self.turn_feature.n_targets
+        rows = []
+        for run in runs:
+            f, ends = self.features(run), run._ends(run.layers(), run.track)
+            for start in run.turn_starts():
+                s = np.arange(min(n, ends[start] + 1 - start))
+                rows.append((s, f[start + s], run.t_ahead_k[start + s] - run.t_ahead_k[start - 1] - profile_k[s]))
+        if not rows:
+            return 0.0, np.zeros(n)
+        s, f, rise = (np.concatenate(c) for c in zip(*rows, strict=True))
+        counts = np.bincount(s, minlength=n)
+        mean = np.bincount(s, weights=f, minlength=n) / np.maximum(counts, 1)
+        d = f - mean[s]
+        return (float(d @ rise / (d @ d)) if d @ d > 0 else 0.0), mean
 
     @classmethod
     def _probe(cls, n_p: int, n_t: int, n_tq: int, period: float, n_x: int = 0, n_f: int = 0,
@@ -726,6 +804,7 @@ class NarxGPModel:
         obj.temperature_square_coefficients = np.zeros(n_tq)
         obj.power_temperature_coefficients = np.zeros(n_x)
         obj.feature_coefficients, obj.turn_feature = np.zeros(n_f), feature
+        obj.feature_temperature_gain, obj.feature_profile_k = 0.0, np.zeros(0)
         obj.sample_period_s, obj.speed_m_s = period, speed_m_s
         return obj
 
@@ -751,6 +830,8 @@ class NarxGPModel:
             "power_temperature_coefficients": self.power_temperature_coefficients.tolist(),
             "turn_feature": None if self.turn_feature is None else self.turn_feature.to_dict(),
             "feature_coefficients": self.feature_coefficients.tolist(),
+            "feature_temperature_gain": self.feature_temperature_gain,
+            "feature_profile_k": self.feature_profile_k.tolist(),
             "residual_gp": {"inputs_names": list(RESIDUAL_INPUTS), **self.residual.to_dict()},
             "turn_profile_k": self.turn_profile_k.tolist(),
             "forecast_persistence": self.forecast_persistence,
@@ -785,6 +866,8 @@ class NarxGPModel:
                        temperature_square_coefficients=np.array(doc["temperature_square_coefficients"]),
                        power_temperature_coefficients=np.array(doc["power_temperature_coefficients"]),
                        turn_feature=feature, feature_coefficients=np.array(doc.get("feature_coefficients", [])),
+                       feature_temperature_gain=doc.get("feature_temperature_gain", 0.0),
+                       feature_profile_k=np.array(doc.get("feature_profile_k", [])),
                        output=doc["output"], residual=residual, turn_profile_k=np.array(doc["turn_profile_k"]),
                        forecast_persistence=doc["forecast_persistence"], speed_m_s=doc["speed_m_s"],
                        provenance=doc.get("provenance") or {})

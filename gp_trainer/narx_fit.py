@@ -19,6 +19,7 @@ import numpy as np
 from controller_node.report import TURNAROUND_STEPS
 from gp_model.kernel import HyperBounds
 from gp_model.narx import BUILD_UP_STEPS, NarxGPModel, RunSeries
+from gp_model.plan_feature import TurnFeature
 
 ROLLOUT_HORIZON = 40
 STRUCTURES = ((24, 30), (32, 40))
@@ -26,8 +27,9 @@ STRUCTURES = ((24, 30), (32, 40))
 FORMS = (("log", True, True), ("log", True, False), ("log", False, False), ("identity", True, True),
          ("identity", True, False), ("identity", False, False))
 """Candidate (output map, squared lags, lag-matched power × temperature interactions) of the model selection."""
-FEATURE_LAGS = (0, 24)
-"""Candidate lags of the turnaround feature (:mod:`gp_model.plan_feature`; 0: without it)."""
+FEATURES = ((False, 0), (True, 0), (True, 24))
+"""Candidate uses of the turnaround feature (:mod:`gp_model.plan_feature`): (in the T-ahead forecast,
+lags in the regressor)."""
 LENGTH_SCALE_FLOORS = (0.5, 2.0)
 """Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
 
@@ -81,12 +83,13 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int =
 def _fit_candidate(train: Sequence[RunSeries], held_out: Sequence[RunSeries], candidate: tuple, seed: int,
                    n_train: int, provenance: Mapping[str, Any] | None) -> tuple[NarxGPModel, dict[str, Any]]:
     """Fit one candidate of :func:`select_and_fit` and score it on ``held_out``: the model and its row."""
-    (n_p, n_t), (output, quadratic, with_x), n_f, floor = candidate
+    (n_p, n_t), (output, quadratic, with_x), (with_f, n_f), floor = candidate
     model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
                             output=output, quadratic=quadratic, interaction=with_x, feature_lags=n_f,
+                            turn_feature=TurnFeature() if with_f else None,
                             bounds=HyperBounds(length_scale=(floor, 100.0)), provenance=provenance)
     row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
-           "interaction": with_x, "feature_lags": n_f, "length_scale_floor": floor,
+           "interaction": with_x, "turn_feature": with_f, "feature_lags": n_f, "length_scale_floor": floor,
            **evaluate_model(model, held_out)}
     return model, row
 
@@ -104,7 +107,7 @@ def select_and_fit(
     ``train``; keep the one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
     Returns it, its row and the whole table; ``provenance`` goes into every candidate's. ``workers`` > 1 fits
     the candidates in that many forked processes (each fit is deterministic: the same model either way)."""
-    candidates = list(itertools.product(STRUCTURES, FORMS, FEATURE_LAGS, LENGTH_SCALE_FLOORS))
+    candidates = list(itertools.product(STRUCTURES, FORMS, FEATURES, LENGTH_SCALE_FLOORS))
     fit = functools.partial(_fit_candidate, train, held_out, seed=seed, n_train=n_train, provenance=provenance)
     if workers > 1:
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:

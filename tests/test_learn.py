@@ -185,7 +185,7 @@ def test_selection_in_forked_workers_gives_the_same_model(monkeypatch):
     monkeypatch.setattr(narx_fit, "STRUCTURES", ((8, 5),))
     monkeypatch.setattr(narx_fit, "FORMS", (("identity", False, False), ("log", False, False)))
     monkeypatch.setattr(narx_fit, "LENGTH_SCALE_FLOORS", (2.0,))
-    monkeypatch.setattr(narx_fit, "FEATURE_LAGS", (0,))
+    monkeypatch.setattr(narx_fit, "FEATURES", ((False, 0),))
     runs = [dataclasses.replace(synthetic_run(s, n=200), speed_m_s=0.8) for s in range(4)]
     one = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40)
     two = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40, workers=2)

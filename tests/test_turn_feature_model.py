@@ -40,15 +40,15 @@ def _run(seed: int, n: int = 450, tracks: int = 3, area_of_feature: float = G_TR
     return RunSeries(f"turn-{seed}", x, t, p, track, DT, speed_m_s=SPEED)
 
 
-def _fit(runs, feature_lags):
+def _fit(runs, feature_lags, feature=FEATURE):
     return NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity",
-                           feature_lags=feature_lags, turn_feature=FEATURE, n_train=40, n_restarts=1,
+                           feature_lags=feature_lags, turn_feature=feature, n_train=40, n_restarts=1,
                            profile_length=50)
 
 
 def test_the_fit_takes_the_feature_and_the_file_records_it(tmp_path):
     runs = [_run(s) for s in range(3)]
-    with_feature, without = _fit(runs, 4), _fit(runs, 0)
+    with_feature, without = _fit(runs, 4), _fit(runs, 0, None)
     held_out = _run(9)
     error = [np.max(np.abs(m.predict_run(held_out)[0] - held_out.area_m2[1:])[20:]) for m in (with_feature, without)]
     assert error[0] < 1e-3 * 1e-8 < 1e-2 * 1e-8 < error[1]      # the plant's F term needs the feature
@@ -59,7 +59,8 @@ def test_the_fit_takes_the_feature_and_the_file_records_it(tmp_path):
     doc = json.loads(path.read_text())
     assert doc["format_version"] == 4 and doc["turn_feature"]["hatch_m"] == FEATURE.hatch_m
     old = dict(without.to_dict(), format_version=3)               # a format-3 file: no feature
-    del old["turn_feature"], old["feature_coefficients"]
+    for key in ("turn_feature", "feature_coefficients", "feature_temperature_gain", "feature_profile_k"):
+        del old[key]
     (tmp_path / "old.json").write_text(json.dumps(old))
     assert NarxGPModel.load(tmp_path / "old.json").turn_feature is None
     (tmp_path / "older.json").write_text(json.dumps(dict(old, format_version=2)))
@@ -69,9 +70,12 @@ def test_the_fit_takes_the_feature_and_the_file_records_it(tmp_path):
 
 @pytest.fixture(scope="module")
 def model() -> NarxGPModel:
-    """Every term visible: the fitted FIR and residual, and feature coefficients of a size that matters."""
+    """Every term visible: the fitted FIR and residual, squared T lags, p × T terms, the feature's
+    coefficients and its part of the T forecast of a size that matters (no turnaround profile, ρ = 1)."""
     fitted = _fit([_run(s) for s in range(3)], 6)
-    return NarxGPModel(**{**_constructor_args(fitted), "forecast_persistence": 1.0,
+    return NarxGPModel(**{**_constructor_args(fitted), "forecast_persistence": 1.0, "turn_profile_k": np.zeros(50),
+                          "temperature_square_coefficients": np.full(2, 3e-15),
+                          "power_temperature_coefficients": np.full(5, -5e-15), "feature_temperature_gain": 0.7,
                           "feature_coefficients": G_TRUE * np.array([1.0, 0.8, 0.6, 0.4, 0.3, 0.2])})
 
 
@@ -83,7 +87,6 @@ def _controller_at_turn(model, k=54, track_length=30, horizon=12):
                                                                              turn_learning_gain=0.0,
                                                                              learn_turn_profile=False))
     ctrl = PreviewMPC(settings, model)
-    ctrl._profile[:] = 0.0
     for j in range(k + 1):
         plan = np.r_[ctrl._plan[1:], ctrl._plan[-1:]]               # ū of this update
         remaining = ((j // track_length + 1) * track_length - 1 - j + 1) * DT
@@ -96,13 +99,14 @@ def _controller_at_turn(model, k=54, track_length=30, horizon=12):
 
 
 def _model_prediction(model, run, k, u):
-    """The model's own x̂[k+1..k+H] with the applied powers up to k, then ``u``, T held."""
+    """The model's own x̂[k+1..k+H] with the applied powers up to k, then ``u``, T forecast as the
+    model forecasts it from them (:meth:`NarxGPModel.forecast`)."""
     h = u.size
     p = np.r_[run.power_w[:k + 1], u]
-    t = np.r_[run.t_ahead_k[:k + 1], np.full(h, run.t_ahead_k[k])]
-    track = np.r_[run.track, np.full(h, run.track[-1])][:k + 1 + h]
-    future = RunSeries("f", np.ones(k + 1 + h), t, p, track, DT)
-    return model.predict_run(future)[0][k:k + h]
+    t = np.r_[run.t_ahead_k[:k + 1], np.zeros(h)]
+    track = run.track[:k + 1 + h]
+    t[k + 1:] = model.forecast(RunSeries("f", np.ones(k + 1 + h), t, p, track, DT), k, h)
+    return model.predict_run(RunSeries("f", np.ones(k + 1 + h), t, p, track, DT))[0][k:k + h]
 
 
 @pytest.mark.parametrize("k", [35, 54])
@@ -127,11 +131,13 @@ def test_the_controllers_prediction_and_jacobian_are_the_models_own_across_a_tur
 
 def test_a_power_cut_before_the_turn_lowers_the_predicted_area_after_it(model):
     """−20 W on the planned powers before the turn: the rows after it (beyond the power lags'
-    reach) predict a smaller area, with the feature; without it they do not move."""
+    reach) predict a smaller area, with the feature (in the T forecast and as lags); without it they
+    do not move."""
     delta = np.zeros(12)
     delta[:3] = -20.0                                               # p[k+1..k+3], the turn after k+5
     with_feature = _controller_at_turn(model)[1] @ delta
-    blind = NarxGPModel(**{**_constructor_args(model), "feature_coefficients": np.zeros(6)})
+    blind = NarxGPModel(**{**_constructor_args(model), "feature_coefficients": None, "turn_feature": None,
+                           "feature_temperature_gain": 0.0, "feature_profile_k": None})
     without = _controller_at_turn(blind)[1] @ delta
     assert np.all(with_feature[11:] < -1e-3 * 2e-8)                 # row 11: 8 lags after the last change
     assert np.all(without[11:] == 0.0)
@@ -144,5 +150,6 @@ def _constructor_args(model: NarxGPModel) -> dict:
                 temperature_square_coefficients=model.temperature_square_coefficients, output=model.output,
                 residual=model.residual, power_temperature_coefficients=model.power_temperature_coefficients,
                 turn_feature=model.turn_feature, feature_coefficients=model.feature_coefficients,
+                feature_temperature_gain=model.feature_temperature_gain, feature_profile_k=model.feature_profile_k,
                 turn_profile_k=model.turn_profile_k, forecast_persistence=model.forecast_persistence,
                 speed_m_s=model.speed_m_s, provenance=model.provenance)
