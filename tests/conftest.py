@@ -13,6 +13,30 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 
 
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+WARM_NUMBA = """
+from controller_node.node import load_model
+from controller_node.registry import CONTROLLERS, make_controller
+from controller_node.settings import ControllerSettings
+for name in CONTROLLERS:
+    make_controller(name, ControllerSettings(), load_model(name, None))
+"""
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist, before the workers start: BLAS on one thread in each process (the workers
+    already take both cores; OpenBLAS's spinning threads would fight them for the cores), and, for
+    the default run, every controller built once in a fresh interpreter, which compiles numba's
+    cached functions (about 35 s of CPU on a fresh clone, loaded in a few seconds after) so that no
+    two workers or nodes compile them at once."""
+    if not getattr(config.option, "numprocesses", None) or hasattr(config, "workerinput"):
+        return
+    for name in BLAS_THREAD_VARIABLES:  # inherited by the workers and everything they start
+        os.environ.setdefault(name, "1")
+    if config.args_source is pytest.Config.ArgsSource.TESTPATHS:
+        subprocess.run([sys.executable, "-c", WARM_NUMBA], cwd=REPO, check=True, timeout=600)
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Under pytest-xdist (``--dist loadgroup``), keep the tests that share one of this suite's
     module- or session-scoped fixtures on one worker, so that the fixture is built once: group

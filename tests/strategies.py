@@ -14,11 +14,16 @@ from hypothesis import strategies as st
 from messages.codec import json_schema
 from messages.topics import Topic
 
+NESTED_ITEMS = 3
+"""Most items drawn for an array inside an array (8 at the top level): a scene's entities, their
+primitives and their points stay every shape the schema allows without payloads of 8³ points."""
 
-def from_schema(schema: dict) -> st.SearchStrategy:
-    """A strategy for JSON values valid under ``schema`` (the subset the contract uses)."""
+
+def from_schema(schema: dict, depth: int = 0) -> st.SearchStrategy:
+    """A strategy for JSON values valid under ``schema`` (the subset the contract uses); ``depth``
+    counts the arrays it stands in."""
     if "anyOf" in schema:
-        return st.one_of([from_schema(s) for s in schema["anyOf"]])
+        return st.one_of([from_schema(s, depth) for s in schema["anyOf"]])
     if "enum" in schema:
         return st.sampled_from(schema["enum"])
     kind = schema.get("type")
@@ -40,17 +45,18 @@ def from_schema(schema: dict) -> st.SearchStrategy:
             return st.from_regex(schema["pattern"], fullmatch=True)
         return st.text(max_size=min(schema.get("maxLength", 32), 32))
     if kind == "array":
-        return st.lists(from_schema(schema["items"]), max_size=min(schema.get("maxItems", 8), 8))
+        most = 8 if depth == 0 else NESTED_ITEMS
+        return st.lists(from_schema(schema["items"], depth + 1), max_size=min(schema.get("maxItems", most), most))
     if kind == "object" and "properties" in schema:
         required = set(schema.get("required", ()))
         props = schema["properties"]
         return st.fixed_dictionaries(
-            {k: from_schema(v) for k, v in props.items() if k in required},
-            optional={k: from_schema(v) for k, v in props.items() if k not in required},
+            {k: from_schema(v, depth) for k, v in props.items() if k in required},
+            optional={k: from_schema(v, depth) for k, v in props.items() if k not in required},
         )
     if kind == "object":
         values = schema.get("additionalProperties", {"type": "integer", "minimum": 0})
-        return st.dictionaries(st.text(max_size=16), from_schema(values), max_size=4)
+        return st.dictionaries(st.text(max_size=16), from_schema(values, depth), max_size=4)
     raise NotImplementedError(f"schema construct not covered: {schema}")
 
 

@@ -62,7 +62,7 @@ def _compare(tmp_path: Path, jobs: list[Job], launch_args: tuple[str, ...]) -> N
 
 
 def test_two_worker_cluster_gives_the_sequential_dataset_bit_for_bit(tmp_path):
-    _compare(tmp_path, _jobs((40, 12, 12)), SHORT)
+    _compare(tmp_path, _jobs((30, 10)), SHORT)
 
 
 @pytest.mark.slow

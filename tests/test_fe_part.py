@@ -24,7 +24,7 @@ def test_example_part_slices_into_ten_hatched_layers():
 
 
 def test_part_scenario_builds_layer_by_layer():
-    sc = scenario("part", n_layers=2, hatch_m=0.3e-3, h_fine_m=40e-6, powder_layer_m=50e-6)
+    sc = scenario("part", n_layers=2, hatch_m=0.6e-3, h_fine_m=50e-6, powder_layer_m=50e-6)
     assert sc.settings.n_layers == 2 and len(sc.layer_plans) == 2 and sc.plan == sc.layer_plans[0]
     model = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
     layers, scenes = set(), {}

@@ -219,14 +219,14 @@ def test_cli_user_errors_exit_2(tmp_path, capsys):
 
 
 def test_identify_records_one_double_track_end_to_end(tmp_path):
-    """``python -m gp_trainer identify --runs ident-double-track-p250-s5``: 250 FE steps, on a coarse mesh and
-    without Dask (the Dask runner: tests/test_campaign_dask.py)."""
+    """``python -m gp_trainer identify --runs ident-double-track-p250-s5``: its first 120 FE steps, on a coarse
+    mesh and without Dask (the Dask runner: tests/test_campaign_dask.py)."""
     from gp_trainer.dataset import read_states
     from messages.recording import is_complete
 
     name = "ident-double-track-p250-s5"
     cmd = [sys.executable, "-m", "gp_trainer", "identify", "--runs", name, "--out-dir", str(tmp_path),
-           "--no-progress", "--json", "--timeout", "120", "--h-um", "50", "--sequential"]
+           "--no-progress", "--json", "--timeout", "120", "--h-um", "50", "--max-steps", "120", "--sequential"]
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -234,7 +234,7 @@ def test_identify_records_one_double_track_end_to_end(tmp_path):
     recording = tmp_path / f"{name}.mcap"
     assert is_complete(recording) and [p.name for p in tmp_path.iterdir()] == [recording.name]
     states = read_states(recording)
-    assert len(states) == 251 and states[-1].step == 250
+    assert len(states) == 121 and states[-1].step == 120
     power = np.array([s.power_w for s in states[1:]])  # state k carries the power of step k - 1
     expected = scenario("ident-double-track", ident_seed=5, ident_mean_w=250.0, ident_amplitude_w=60.0).profile
     np.testing.assert_allclose(power, [expected.command(s.step - 1)[0] for s in states[1:]])
