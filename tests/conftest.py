@@ -34,7 +34,8 @@ def pytest_configure(config: pytest.Config) -> None:
     for name in BLAS_THREAD_VARIABLES:  # inherited by the workers and everything they start
         os.environ.setdefault(name, "1")
     if config.args_source is pytest.Config.ArgsSource.TESTPATHS:
-        subprocess.run([sys.executable, "-c", WARM_NUMBA], cwd=REPO, check=True, timeout=600)
+        # (a controller that cannot be built fails its own tests; the run goes on)
+        subprocess.run([sys.executable, "-c", WARM_NUMBA], cwd=REPO, capture_output=True, timeout=600)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
