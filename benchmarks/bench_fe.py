@@ -1,8 +1,9 @@
 """Benchmark of the FE plant: the default 4 x 10 mm layer (1000 steps, IN625) vs the
 textbook scikit-fem approach on the same mesh.
 
-Usage: ``python benchmarks/bench_fe.py [--h-um 25] [--compare-steps 100] [--baseline-steps 5]
-[--baseline-mem-gb 16] [--baseline-timeout-s 600]``.  Last line of stdout is JSON.
+Usage: ``python benchmarks/bench_fe.py [--preset physical] [--h-um 25] [--compare-steps 100]
+[--baseline-steps 5] [--baseline-mem-gb 16] [--baseline-timeout-s 600]``.  Last line of stdout is
+JSON.  ``--preset`` (:mod:`fe_node.presets`, default the default plant's) sets the plant.
 
 Same scheme, two operators: the first ``--compare-steps`` steps of the layer are run with the
 explicit enthalpy scheme on the tensor-product operator (``fast_ms_per_step``) and on the
@@ -32,7 +33,7 @@ import time
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 
-def baseline(h_um: float, n_steps: int) -> dict:
+def baseline(preset: str, h_um: float, n_steps: int) -> dict:
     import numpy as np
     from scipy.sparse.linalg import splu
     from skfem import Basis, BilinearForm, ElementHex1
@@ -41,7 +42,7 @@ def baseline(h_um: float, n_steps: int) -> dict:
     from fe_node.scenarios import scenario
     from fe_node.solver import build_grid
 
-    sc = scenario("layer", h_fine_m=h_um * 1e-6)
+    sc = scenario("layer", preset=preset, h_fine_m=h_um * 1e-6)
     mesh, _ = build_grid(sc.settings, sc.plan).skfem_mesh()
     t0 = time.perf_counter()
     basis = Basis(mesh, ElementHex1(), intorder=2)
@@ -72,12 +73,12 @@ def baseline(h_um: float, n_steps: int) -> dict:
                 baseline_peak_rss_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6)
 
 
-def run_baseline(h_um: float, n_steps: int, mem_gb: float, timeout_s: float) -> dict:
+def run_baseline(preset: str, h_um: float, n_steps: int, mem_gb: float, timeout_s: float) -> dict:
     def limit():
         lim = int(mem_gb * 2**30)
         resource.setrlimit(resource.RLIMIT_AS, (lim, lim))
 
-    cmd = [sys.executable, os.path.abspath(__file__), "--child-baseline",
+    cmd = [sys.executable, os.path.abspath(__file__), "--child-baseline", "--preset", preset,
            "--h-um", str(h_um), "--baseline-steps", str(n_steps)]
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, preexec_fn=limit)
@@ -90,12 +91,12 @@ def run_baseline(h_um: float, n_steps: int, mem_gb: float, timeout_s: float) -> 
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def layer(h_um: float) -> dict:
+def layer(preset: str, h_um: float) -> dict:
     from fe_node.scenarios import scenario
     from fe_node.solver import ThermalModel
 
     t0 = time.perf_counter()
-    sc = scenario("layer", h_fine_m=h_um * 1e-6)
+    sc = scenario("layer", preset=preset, h_fine_m=h_um * 1e-6)
     model = ThermalModel(sc.settings, sc.plan)
     t1 = time.perf_counter()
     n = 0
@@ -109,14 +110,14 @@ def layer(h_um: float) -> dict:
                 final_area_mm2=obs.area_m2 * 1e6)
 
 
-def compare_operators(h_um: float, n_steps: int) -> dict:
+def compare_operators(preset: str, h_um: float, n_steps: int) -> dict:
     """Per-step wall time of the same explicit scheme with either operator (module docstring)."""
     import numpy as np
 
     from fe_node.scenarios import scenario
     from fe_node.solver import ThermalModel
 
-    sc = scenario("layer", h_fine_m=h_um * 1e-6)
+    sc = scenario("layer", preset=preset, h_fine_m=h_um * 1e-6)
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     csr = ThermalModel(dataclasses.replace(sc.settings, operator="csr"), sc.plan)
@@ -137,7 +138,10 @@ def compare_operators(h_um: float, n_steps: int) -> dict:
 
 
 def main() -> None:
+    from fe_node.presets import DEFAULT, NAMES
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--preset", choices=NAMES, default=DEFAULT, help="plant preset (default %(default)s)")
     ap.add_argument("--h-um", type=float, default=25.0)
     ap.add_argument("--compare-steps", type=int, default=100)
     ap.add_argument("--baseline-steps", type=int, default=5)
@@ -147,13 +151,13 @@ def main() -> None:
     ap.add_argument("--child-baseline", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.child_baseline:
-        print(json.dumps(baseline(a.h_um, a.baseline_steps)))
+        print(json.dumps(baseline(a.preset, a.h_um, a.baseline_steps)))
         return
-    res = layer(a.h_um)
+    res = layer(a.preset, a.h_um)
     print(f"layer: {res}", file=sys.stderr)
-    res.update(compare_operators(a.h_um, a.compare_steps))
+    res.update(compare_operators(a.preset, a.h_um, a.compare_steps))
     print(f"operators: {res}", file=sys.stderr)
-    res.update(run_baseline(a.h_um, a.baseline_steps, a.baseline_mem_gb, a.baseline_timeout_s))
+    res.update(run_baseline(a.preset, a.h_um, a.baseline_steps, a.baseline_mem_gb, a.baseline_timeout_s))
     b = res.get("baseline_ms_per_step")
     res["speedup_vs_baseline"] = b / res["ms_per_step"] if b else None
     print(json.dumps(res))

@@ -19,7 +19,7 @@ without preparation) and ``ratio_vs_full_update`` (of the medians), ``warm_media
 without preparation fed the same states: the real-time iteration's linearisation lag), the paths
 the QP took and the load.
 
-Usage: ``python benchmarks/bench_preview.py [--scenario double-track] [--rounds 2]``
+Usage: ``python benchmarks/bench_preview.py [--preset physical] [--scenario double-track] [--rounds 2]``
 """
 
 from __future__ import annotations
@@ -39,9 +39,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from controller_node import ControllerSettings, make_controller
 from controller_node.preview_qp import solve_reference
 from controller_node.types import Measurement
+from fe_node.presets import DEFAULT, NAMES
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
-from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel
+from gp_model.narx import NarxGPModel, default_model_path
 
 
 def measurement(obs) -> Measurement:
@@ -84,25 +85,27 @@ def closed_loop(sc, ctrl, settings: ControllerSettings, prepare: bool, shadow=No
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", choices=NAMES, default=DEFAULT, help="plant preset (default %(default)s)")
     parser.add_argument("--scenario", default="double-track")
     parser.add_argument("--rounds", type=int, default=2, help="alternated pairs of loops with and without prepare")
     args = parser.parse_args()
-    sc = scenario(args.scenario)
+    sc = scenario(args.scenario, preset=args.preset)
+    model_path = default_model_path(sc.settings.powder_layer_m)  # the shipped model of the plant's layer
     settings = ControllerSettings(set_point_m2=0.063e-6)
     load_at_start = os.getloadavg()[0]
     times, prepare_times, full_times, differences, feedback_updates = [], [], [], [], 0
     for _ in range(args.rounds):   # alternated: this host's speed drifts by tens of percent within minutes
-        ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
-        shadow = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
+        ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(model_path))
+        shadow = make_controller("preview-mpc", settings, NarxGPModel.load(model_path))
         round_times, round_prepare, seen, problems, plans, round_differences = closed_loop(sc, ctrl, settings, True,
                                                                                            shadow)
         differences += round_differences
         times += round_times
         prepare_times += round_prepare
         feedback_updates += ctrl.n_feedback
-        full_times += closed_loop(sc, make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH)),
+        full_times += closed_loop(sc, make_controller("preview-mpc", settings, NarxGPModel.load(model_path)),
                                   settings, prepare=False)[0]
-    warm = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
+    warm = make_controller("preview-mpc", settings, NarxGPModel.load(model_path))
     warm_times = []
     for m in seen:  # the same states back to back: nothing between the updates evicts their caches
         t0 = time.perf_counter()

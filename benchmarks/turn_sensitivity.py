@@ -15,8 +15,8 @@ snapshot, 1..H), ``states_after_turn``, ``plant_darea_pct``, ``model_darea_pct``
 the second over the first (1: the model sees the pre-turn power change as the plant does; null
 without a change of the plant's).
 
-Usage: ``python benchmarks/turn_sensitivity.py [--scenario layer] [--turn 2] [--before 12]
-[--steps 10] [--delta-w -20] [--model FILE] [--json]``
+Usage: ``python benchmarks/turn_sensitivity.py [--preset physical] [--scenario layer] [--turn 2]
+[--before 12] [--steps 10] [--delta-w -20] [--model FILE] [--json]``
 """
 
 from __future__ import annotations
@@ -34,29 +34,32 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench_preview import measurement  # noqa: E402
 
 from controller_node import ControllerSettings, make_controller  # noqa: E402
+from fe_node.presets import DEFAULT, NAMES  # noqa: E402
 from fe_node.scenarios import scenario  # noqa: E402
 from fe_node.solver import ThermalModel  # noqa: E402
-from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel  # noqa: E402
+from gp_model.narx import NarxGPModel, default_model_path  # noqa: E402
 
 SPEED_M_S = 0.8
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", choices=NAMES, default=DEFAULT, help="plant preset (default %(default)s)")
     parser.add_argument("--scenario", default="layer")
     parser.add_argument("--setpoint-mm2", type=float, default=0.063)
     parser.add_argument("--turn", type=int, default=2, help="which turnaround (0 = the first)")
     parser.add_argument("--before", type=int, default=12, help="states between the snapshot and the turn")
     parser.add_argument("--steps", type=int, default=10, help="commands changed after the snapshot")
     parser.add_argument("--delta-w", type=float, default=-20.0, help="change of those commands [W]")
-    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
-                        help="delay-aware model file (default: the shipped one)")
+    parser.add_argument("--model", type=Path,
+                        help="delay-aware model file (default: the shipped model of the plant's layer)")
     parser.add_argument("--json", action="store_true", help="print the JSON record as the last line")
     args = parser.parse_args()
-    sc = scenario(args.scenario)
+    sc = scenario(args.scenario, preset=args.preset)
     plant = ThermalModel(sc.settings, sc.plan)
     sp = args.setpoint_mm2 * 1e-6
-    ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=sp), NarxGPModel.load(args.model))
+    model = NarxGPModel.load(args.model or default_model_path(sc.settings.powder_layer_m))
+    ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=sp), model)
     horizon = ctrl.qp.horizon
     if not 1 <= args.steps <= horizon:
         parser.error(f"--steps must be in [1, {horizon}]")

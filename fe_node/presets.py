@@ -1,13 +1,15 @@
 """Named plant configurations, chosen with the ``preset`` key of ``[plant]`` (or ``preset=`` of
-:func:`fe_node.scenarios.scenario`); the table's other keys override the preset's values.
+:func:`fe_node.scenarios.scenario`; :data:`DEFAULT` without one); the table's other keys override
+the preset's values. A preset is a set of overrides of :class:`~fe_node.settings.Settings`, whose
+own defaults are the bare physics (the ``bare-plate`` preset).
 
-* ``bare-plate`` (the default): a dense IN625 plate, conduction only, the paper's Table 1
-  (absorptivity 0.4): the plant the shipped GP models were trained on.
-* ``physical``: a 40 µm powder layer that consolidates to dense metal, evaporative cooling,
+* ``physical`` (the default plant): a 40 µm powder layer that consolidates to dense metal, evaporative cooling,
   keyhole onset (:mod:`fe_node.keyhole`), absorptivity by surface (powder, dense, keyhole) and an
   anisotropic effective liquid conductivity for Marangoni flow, with the absorptivities and
   conductivity factors fitted to the AM-Bench tracks by ``python -m fe_node calibrate``
   (:data:`fe_node.calibrate.CALIBRATION_PATH`).
+* ``bare-plate``: a dense IN625 plate, conduction only, the paper's Table 1 (absorptivity 0.4):
+  :class:`~fe_node.settings.Settings` as it is, the plant the shipped GP models were trained on.
 """
 from __future__ import annotations
 
@@ -20,6 +22,8 @@ PHYSICAL = {"powder_layer_m": 40e-6, "evaporation": True, "keyhole": True, "fine
 thickness of 40 µm (the platform's drop per layer), and the fine band 250 µm deep, below the
 keyhole of the paper's process (as in the calibration runs, :data:`fe_node.am_bench.FINE_DEPTH_M`)."""
 NAMES = ("bare-plate", "physical")
+DEFAULT = "physical"
+"""The preset of every plant built without one (``launch.py``, ``python -m fe_node``, the campaigns)."""
 
 
 def calibrated() -> dict:

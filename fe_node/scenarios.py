@@ -32,8 +32,9 @@ same seed gives the same profile. The levels are not clipped to the 150-300 W wi
 
 ``part``: a real part built layer by layer, 100 W at 800 mm/s: the STL ``part_stl`` (default
 the shipped 1.5 mm x 0.5 mm cylinder, :data:`fe_node.part.EXAMPLE_STL`) sliced every
-``powder_layer_m`` (default 50 µm) and hatched every ``hatch_m`` (default 0.1 mm) by PySLM
-(:mod:`fe_node.part`, needs ``pythonslm``); ``n_layers`` defaults to all the part's layers.
+``powder_layer_m`` (the preset's: 40 µm on ``physical``; 50 µm on ``bare-plate``) and hatched every
+``hatch_m`` (default 0.1 mm) by PySLM (:mod:`fe_node.part`, needs ``pythonslm``); ``n_layers``
+defaults to all the part's layers.
 ``hatch_rotation_deg`` (default 67) turns the hatch from one layer to the next; ``contours``
 (default true) scans each slice's outline before its hatch; ``island_width_m`` > 0 hatches in
 square islands of that side (default 0: no islands).
@@ -51,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from fe_node.part import CONTOURS, EXAMPLE_STL, HATCH_ROTATION_DEG, ISLAND_WIDTH_M, part_plans
+from fe_node.presets import DEFAULT as DEFAULT_PRESET
 from fe_node.presets import preset
 from fe_node.scan import Profile, ScanPlan, Signal
 from fe_node.settings import Settings, check_type
@@ -170,8 +172,8 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
     name : str
         One of :data:`NAMES`.
     **overrides
-        ``preset`` (:mod:`fe_node.presets`) and any :class:`~fe_node.settings.Settings` field,
-        which overrides the preset's; ``n_tracks``, ``track_length_m``,
+        ``preset`` (:mod:`fe_node.presets`; default :data:`fe_node.presets.DEFAULT`) and any
+        :class:`~fe_node.settings.Settings` field, which overrides the preset's; ``n_tracks``, ``track_length_m``,
         ``hatch_m``, ``bidirectional`` for the plan; ``power_w`` and/or ``speed_m_s``
         replace the open-loop signal by a constant. ``ident_seed`` (int >= 0),
         ``ident_mean_w`` and ``ident_amplitude_w`` [W] shape the random power staircase of
@@ -182,8 +184,7 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
     ValueError
         Unknown name or override, or invalid values.
     """
-    if "preset" in overrides:
-        overrides = {**preset(overrides.pop("preset")), **overrides}
+    overrides = {**preset(overrides.pop("preset", DEFAULT_PRESET)), **overrides}
     if name in PART_NAMES:
         return _part(name, **overrides)
     if name not in _TABLE:

@@ -26,7 +26,9 @@ OPERATORS = ("tensor", "csr")
 
 @dataclass(frozen=True)
 class Settings:
-    """Thermal-model settings (SI units).  Defaults follow paper Table 1.
+    """Thermal-model settings (SI units).  Defaults follow paper Table 1: the bare physics (a dense
+    plate, conduction only), the ``bare-plate`` preset.  The default *plant* of the entry points is
+    the ``physical`` preset over these (:func:`fe_node.scenarios.scenario`, :mod:`fe_node.presets`).
 
     Parameters
     ----------
@@ -66,8 +68,8 @@ class Settings:
     emissivity : float
         Top-surface emissivity [-] (IN625 about 0.4-0.5).
     powder_layer_m : float
-        Thickness of a powder layer on top of the dense plate [m]; 0 (default) = bare plate,
-        the plant the shipped GP model was trained on.  Powder elements conduct
+        Thickness of a powder layer on top of the dense plate [m]; 0 (default) = bare plate
+        (the ``physical`` preset: 40 µm).  Powder elements conduct
         ``powder_k_w_mk`` at 500 °C (scaling with T like the dense metal) and hold
         ``powder_packing`` of the dense heat capacity; an element whose mean nodal temperature
         passes the liquidus consolidates (docs/fe.md).

@@ -82,10 +82,10 @@ def failures(report: dict) -> list[str]:
     return out
 
 
-def validate(settings: Settings | None = None, progress: bool = False) -> dict:
-    """Run the checks on the plant of ``settings`` (default :class:`Settings`); the JSON-ready
-    report: every :data:`CHECKS` figure, ``passed``, ``failed`` and the details of each check."""
-    s = settings or Settings()
+def validate(s: Settings, progress: bool = False) -> dict:
+    """Run the checks on the plant of settings ``s`` (``python -m fe_node validate``: the default
+    plant's, :data:`fe_node.presets.DEFAULT`); the JSON-ready report: every :data:`CHECKS` figure,
+    ``passed``, ``failed`` and the details of each check."""
     h = s.h_fine_m
     et = EagarTsaiCase()
     analytic = EagarTsai(et).geometry()["area_m2"]

@@ -47,6 +47,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from fe_node.presets import NAMES as PRESETS
+from fe_node.presets import preset
+from fe_node.scenarios import scenario
 from fe_node.settings import Settings
 from gp_model.narx import PART_MODEL_PATH, PLATE_MODEL_PATH
 from gp_trainer.distributed import check_scheduler_address, dask_client, run_on_dask
@@ -118,15 +121,31 @@ def requested_mesh_m(job: Job, settings: RunnerSettings) -> float:
     return float(dict(job.plant).get("h_fine_m", Settings().h_fine_m))
 
 
-def check_recorded_mesh(path: Path, job: Job, settings: RunnerSettings) -> None:
-    """:class:`CampaignError` if the complete recording ``path``, which a re-run would keep, was made on
-    another FE mesh than ``job`` asks for (e.g. an earlier ``--h-um 50`` run in the same ``--out-dir``)."""
+PLANT_KEYS = tuple(sorted({key for name in PRESETS for key in preset(name)}))
+"""The plant settings the presets set (:mod:`fe_node.presets`): a recording a re-run keeps has the job's."""
 
-    recorded = run_config(path).get("plant", {}).get("settings", {}).get("h_fine_m")
+
+def check_recorded_plant(path: Path, job: Job, settings: RunnerSettings) -> None:
+    """:class:`CampaignError` if the complete recording ``path``, which a re-run would keep, was made on
+    another FE mesh than ``job`` asks for (e.g. an earlier ``--h-um 50`` run in the same ``--out-dir``),
+    or on another plant (a :data:`PLANT_KEYS` setting differs, e.g. a bare-plate run kept by a run of
+    the default plant)."""
+
+    recorded_settings = run_config(path).get("plant", {}).get("settings", {})
+    recorded = recorded_settings.get("h_fine_m")
     wanted = requested_mesh_m(job, settings)
     if recorded is not None and not math.isclose(recorded, wanted, rel_tol=1e-9):
         raise CampaignError(f"{path} was recorded on a {recorded * 1e6:g} µm mesh, this run asks for "
                             f"{wanted * 1e6:g} µm: use another --out-dir, or delete it to record it again")
+    try:
+        plant = scenario(job.scenario, **dict(job.plant)).settings
+    except ValueError as err:
+        raise CampaignError(f"job {job.name}: [plant] {err}") from None
+    differs = [k for k in PLANT_KEYS if k in recorded_settings and recorded_settings[k] != getattr(plant, k)]
+    if differs:
+        key = differs[0]
+        raise CampaignError(f"{path} was recorded on another plant ({key} {recorded_settings[key]!r}, this run asks "
+                            f"for {getattr(plant, key)!r}): use another --out-dir, or delete it to record it again")
 
 
 def case_command(settings: CampaignSettings, case: int, out: Path) -> list[str]:
@@ -262,7 +281,7 @@ def run_jobs(jobs: list[Job] | tuple[Job, ...], settings: RunnerSettings, *, pro
     results = {j.name: JobResult(j.name, str(job_recording(settings, j)), "skipped", 0.0, "recording complete", 0)
                for j in jobs if recording_complete(job_recording(settings, j))}
     for job in (j for j in jobs if j.name in results):
-        check_recorded_mesh(Path(results[job.name].recording), job, settings)
+        check_recorded_plant(Path(results[job.name].recording), job, settings)
     pending = [j for j in jobs if j.name not in results]
     retries = getattr(settings, "retries", 1)
     with contextlib.ExitStack() as stack:

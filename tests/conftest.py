@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.plants import BARE_ARGS
+
 REPO = Path(__file__).resolve().parent.parent
 
 
@@ -78,8 +80,8 @@ def mpc_run(tmp_path_factory) -> tuple[int, str, Path]:
     tests that check a real run's recording in different ways: (exit status, output, recording)."""
     out = tmp_path_factory.mktemp("mpc_run") / "e2e.mcap"
     proc = subprocess.run([sys.executable, "launch.py", "--no-progress", "--controller", "mpc", "--max-steps", "200",
-                           "--h-um", "40", "--out", str(out), "--json"], cwd=REPO, capture_output=True, text=True,
-                          timeout=240)
+                           "--h-um", "40", *BARE_ARGS, "--out", str(out), "--json"], cwd=REPO, capture_output=True,
+                          text=True, timeout=240)
     return proc.returncode, proc.stdout + proc.stderr, out
 
 

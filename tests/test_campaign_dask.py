@@ -23,6 +23,7 @@ from gp_trainer.cli import main
 from gp_trainer.dataset import DatasetSettings, build_samples, concatenate, read_states
 from gp_trainer.jobs import Job
 from tests.conftest import REPO
+from tests.plants import BARE
 
 SHORT = ("--h-um", "50")  # the coarsest mesh the beam allows
 
@@ -41,9 +42,10 @@ def dataset_digest(recordings: list[Path]) -> str:
 
 
 def _jobs(steps: tuple[int, ...]) -> list[Job]:
-    """Table 2 cases 1..n with ``--max-steps`` per case: the first is the longest, so on two workers
-    the cases finish in another order than they were submitted."""
-    return [Job(f"table2-case{c}", f"table2-case{c}", args=("--max-steps", str(n))) for c, n in enumerate(steps, 1)]
+    """Table 2 cases 1..n on the bare plate with ``--max-steps`` per case: the first is the longest, so on
+    two workers the cases finish in another order than they were submitted."""
+    return [Job(f"table2-case{c}", f"table2-case{c}", plant=(("preset", BARE),), args=("--max-steps", str(n)))
+            for c, n in enumerate(steps, 1)]
 
 
 def _compare(tmp_path: Path, jobs: list[Job], launch_args: tuple[str, ...]) -> None:
@@ -210,11 +212,12 @@ def test_existing_cluster_via_scheduler_address(tmp_path):
 
 
 def test_a_rerun_on_another_mesh_does_not_keep_the_recordings_of_the_first(tmp_path):
-    """A complete recording is kept by a re-run only if it was made on the mesh the re-run asks for:
-    an earlier ``--h-um 50`` run in the same ``--out-dir`` is not silently taken as a 25 µm one."""
+    """A complete recording is kept by a re-run only if it was made on the mesh and the plant the re-run
+    asks for: an earlier ``--h-um 50`` run in the same ``--out-dir`` is not silently taken as a 25 µm
+    one, nor a bare-plate run as one of the default plant."""
     from gp_trainer.errors import CampaignError
 
-    jobs = [Job("table2-case1", "table2-case1", args=("--max-steps", "5"))]
+    jobs = [Job("table2-case1", "table2-case1", plant=(("preset", BARE),), args=("--max-steps", "5"))]
     coarse = CampaignSettings(out_dir=tmp_path, sequential=True, launch_args=SHORT)
     assert [r.status for r in run_jobs(jobs, coarse, progress=False)] == ["ok"]
     assert [r.status for r in run_jobs(jobs, coarse, progress=False)] == ["skipped"]
@@ -222,5 +225,9 @@ def test_a_rerun_on_another_mesh_does_not_keep_the_recordings_of_the_first(tmp_p
                                             r"25 µm: use another --out-dir"):
         run_jobs(jobs, dataclasses.replace(coarse, launch_args=()), progress=False)
     with pytest.raises(CampaignError, match="recorded on a 50 µm mesh, this run asks for 40 µm"):
-        run_jobs([Job("table2-case1", "table2-case1", plant=(("h_fine_m", 40e-6),), args=("--max-steps", "5"))],
+        run_jobs([Job("table2-case1", "table2-case1", plant=(("preset", BARE), ("h_fine_m", 40e-6)),
+                      args=("--max-steps", "5"))],
                  dataclasses.replace(coarse, launch_args=()), progress=False)
+    with pytest.raises(CampaignError, match=r"table2-case1\.mcap was recorded on another plant \(absorptivity 0\.4, "
+                                            r"this run asks for 0\.\d+\): use another --out-dir"):  # the default plant
+        run_jobs([Job("table2-case1", "table2-case1", args=("--max-steps", "5"))], coarse, progress=False)

@@ -7,9 +7,10 @@ then prepares its next update (the real-time iteration, as the controller node d
 command), and the plant takes the commanded power and speed for its next step. The metrics are the
 run report's (:func:`controller_node.report.metrics`, over the fixed window from 1 ms after laser-on).
 
-These are in-sample figures: the shipped model's identification runs include the default layer
-and the double track at and around the default set point. They guard against a regression of the
-model or the law; they say nothing about cases the model never saw.
+These are in-sample figures: the shipped model's identification runs include the layer and the
+double track at and around the default set point, on the plant :data:`tests.plants.MODEL_PRESET`,
+which these runs use. They guard against a regression of the model or the law; they say nothing
+about cases the model never saw.
 """
 
 from __future__ import annotations
@@ -26,13 +27,15 @@ from fe_node.node import fe_state, n_steps
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
 from gp_model.narx import NarxGPModel, default_model_path
+from tests.plants import MODEL_PRESET
 
 SETPOINT_MM2 = 0.063
 
 
 def closed_loop(name: str, setpoint_mm2: float = SETPOINT_MM2) -> Metrics:
-    """Run ``preview-mpc`` with the shipped model of the plant's layer on scenario ``name`` to its end; its metrics."""
-    sc = scenario(name)
+    """Run ``preview-mpc`` with the shipped model of the plant's layer on scenario ``name`` of the shipped
+    model's plant (:data:`tests.plants.MODEL_PRESET`) to its end; its metrics."""
+    sc = scenario(name, preset=MODEL_PRESET)
     plant = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
     ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=setpoint_mm2 * 1e-6),
                            NarxGPModel.load(default_model_path(sc.settings.powder_layer_m)))
@@ -63,7 +66,7 @@ def test_double_track_holds_the_area():
 
 @pytest.mark.slow
 def test_default_layer_meets_the_acceptance_figures():
-    """The default layer at 0.063 mm² (in sample), against the acceptance target ≤ 7 / 10 / 1.5 %
+    """The layer at 0.063 mm² (in sample), against the acceptance target ≤ 7 / 10 / 1.5 %
     (over / under / RMSE). Measured: 5.76 / 9.60 / 1.20 %."""
     m = closed_loop("layer")
     assert m.overshoot_pct <= 7.0 and m.undershoot_pct <= 10.0 and m.steady_rmse_pct <= 1.5, m

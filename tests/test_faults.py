@@ -12,8 +12,9 @@ from messages.bus import BusSettings, NodeBus, StopFlag
 from messages.recording import is_complete, metadata, read_messages
 from messages.topics import LOG, PLANT_DIAGNOSTICS, PLANT_STATE
 from tests.conftest import RECORDER_NODE, controller_node, finish, spawn, start_node_list
+from tests.plants import BARE_ARGS
 
-FE = ("--h-um", "40")
+FE = ("--h-um", "40", *BARE_ARGS)
 TIMEOUT_S = 2.0
 
 

@@ -6,6 +6,7 @@ from messages import LaserCommand
 from messages.bus import BusSettings, NodeBus
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
 from tests.conftest import finish, spawn
+from tests.plants import BARE_ARGS
 
 
 def command(run_id: str, step: int, power_w: float) -> LaserCommand:
@@ -13,8 +14,8 @@ def command(run_id: str, step: int, power_w: float) -> LaserCommand:
 
 
 def test_plant_applies_only_the_matching_in_bounds_command(hub, run_id):
-    plant = spawn("fe_node", "--scenario", "single-track", "--h-um", "40", "--max-steps", "6", "--power-max-w", "300",
-                  "--run-id", run_id, "--connect", hub)
+    plant = spawn("fe_node", "--scenario", "single-track", "--h-um", "40", *BARE_ARGS, "--max-steps", "6",
+                  "--power-max-w", "300", "--run-id", run_id, "--connect", hub)
     with NodeBus("controller", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         states, diags = bus.inbox(PLANT_STATE), bus.inbox(PLANT_DIAGNOSTICS)
         commands = bus.publisher(LASER_COMMAND)
@@ -40,7 +41,7 @@ def test_plant_applies_only_the_matching_in_bounds_command(hub, run_id):
 
 
 def test_missing_commands_trigger_the_safe_fallback_and_are_logged(hub, run_id):
-    plant = spawn("fe_node", "--scenario", "single-track", "--h-um", "40", "--max-steps", "3",
+    plant = spawn("fe_node", "--scenario", "single-track", "--h-um", "40", *BARE_ARGS, "--max-steps", "3",
                   "--command-timeout-s", "0.2", "--safe-power-w", "20", "--run-id", run_id, "--connect", hub)
     with NodeBus("controller", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         states = bus.inbox(PLANT_STATE)

@@ -8,6 +8,7 @@ from fe_node.scene import laser_pose, part_model, scene_update
 from fe_node.solver import ThermalModel
 from messages import decode, encode
 from messages.topics import PLANT_LASER, PLANT_SCENE
+from tests.plants import BARE, BARE_ARGS
 
 pytest.importorskip("pyslm")
 
@@ -24,7 +25,7 @@ def test_example_part_slices_into_ten_hatched_layers():
 
 
 def test_part_scenario_builds_layer_by_layer():
-    sc = scenario("part", n_layers=2, hatch_m=0.6e-3, h_fine_m=50e-6, powder_layer_m=50e-6)
+    sc = scenario("part", preset=BARE, n_layers=2, hatch_m=0.6e-3, h_fine_m=50e-6, powder_layer_m=50e-6)
     assert sc.settings.n_layers == 2 and len(sc.layer_plans) == 2 and sc.plan == sc.layer_plans[0]
     model = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
     layers, scenes = set(), {}
@@ -45,8 +46,10 @@ def test_part_scenario_builds_layer_by_layer():
 
 
 def test_part_scenario_errors():
-    with pytest.raises(ValueError, match="n_layers"):
-        scenario("part", n_layers=11)
+    with pytest.raises(ValueError, match=r"n_layers must be in \[1, 12\]"):   # 40 µm layers of the default plant
+        scenario("part", n_layers=13)
+    with pytest.raises(ValueError, match=r"n_layers must be in \[1, 10\]"):   # 50 µm layers of the bare plate
+        scenario("part", preset=BARE, n_layers=11)
     with pytest.raises(ValueError, match="no STL"):
         scenario("part", part_stl="/nonexistent.stl")
     with pytest.raises(ValueError, match="unknown scenario override"):
@@ -67,7 +70,7 @@ def test_part_model_sits_where_its_scan_paths_are():
 
 
 def test_laser_pose_heads_along_the_scan_direction():
-    sc = scenario("double-track", h_fine_m=40e-6)
+    sc = scenario("double-track", preset=BARE, h_fine_m=40e-6)
     model = ThermalModel(sc.settings, sc.plan)
     obs = model.step(250.0, 0.8)
     assert decode(PLANT_LASER, encode(laser_pose(obs))).pose.orientation.w == pytest.approx(1.0)   # +x
@@ -85,15 +88,15 @@ def test_launch_builds_a_part_and_shows_it(tmp_path):
 
     out = tmp_path / "part.mcap"
     status, output = run_launch("--scenario", "part", "--part", str(EXAMPLE_STL), "--layers", "3", "--max-steps",
-                                "20", "--h-um", "40", "--out", str(out))
+                                "20", "--h-um", "40", *BARE_ARGS, "--out", str(out))
     assert status == 0, output
     config = next(e for e in read_messages(out, "/run/events") if e.node == "plant" and e.event == "start")
     assert '"n_layers": 3' in config.config_json
     scene = next(iter(read_messages(out, "/plant/scene")))
     assert [e.id for e in scene.entities] == ["scan_plan", "part"] and scene.entities[1].models[0].data[:5] == b"\0" * 5
-    refused = forked_cli.run("launch.py", "--scenario", "part", "--layers", "11")
+    refused = forked_cli.run("launch.py", "--scenario", "part", "--layers", "13")   # the default plant: 40 µm layers
     assert refused.returncode == 2 and refused.stdout == "" and refused.stderr.strip() == (
-        "python launch.py: error: scenario part: n_layers must be in [1, 10] for this part, got 11")
+        "python launch.py: error: scenario part: n_layers must be in [1, 12] for this part, got 13")
 
 
 @pytest.mark.parametrize("content", [b"", b"solid x\nendsolid x\n", bytes(range(256)) * 12],

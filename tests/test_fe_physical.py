@@ -118,6 +118,20 @@ def test_presets():
         scenario("single-track", preset="rough")
 
 
+def test_the_default_plant_is_physical_and_the_bare_plate_is_the_bare_settings():
+    """Every plant built without a preset (launch.py, the plant node, ``python -m fe_node``) is the
+    physical one; ``preset = "bare-plate"`` (docs/bare-plate.toml) is ``Settings()`` exactly."""
+    from fe_node.cli import plant_table
+    from fe_node.presets import DEFAULT
+    from fe_node.settings import Settings
+    from tests.plants import BARE_CONFIG
+
+    assert DEFAULT == "physical"
+    for name in ("layer", "double-track", "ident-layer"):
+        assert scenario(name).settings == scenario(name, preset="physical").settings != Settings()
+        assert scenario(name, **plant_table(BARE_CONFIG)).settings == Settings()
+
+
 def test_validate_names_each_failed_check(monkeypatch, capsys):
     """``python -m fe_node validate`` exits 1 naming every figure outside its limit (0 when all hold)."""
     import fe_node.validate as v
@@ -136,7 +150,7 @@ def test_validate_names_each_failed_check(monkeypatch, capsys):
 
 
 def test_run_and_validate_take_the_plant_table(tmp_path, capsys):
-    """``run --config`` applies ``[plant]`` (a bare plate here) and reports width and depth; a bad key is
+    """``run --config`` applies ``[plant]`` (powder off here) and reports width and depth; a bad key is
     one line naming it, exit 2."""
     import json
 

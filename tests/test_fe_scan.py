@@ -8,6 +8,7 @@ from fe_node.node import preview_fields
 from fe_node.scan import ScanPlan
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
+from tests.plants import BARE
 
 
 class XOnlyPlan:
@@ -49,7 +50,7 @@ def test_plans_along_x_locate_and_preview_bit_identically_to_the_x_only_plan(pla
 
 
 def test_double_track_observations_are_bit_identical_to_the_x_only_plan():
-    sc = scenario("double-track", h_fine_m=40e-6)
+    sc = scenario("double-track", preset=BARE, h_fine_m=40e-6)
     runs = []
     for plan in (sc.plan, XOnlyPlan(sc.plan)):
         model = ThermalModel(sc.settings, plan)
@@ -172,7 +173,7 @@ def _path_firsts(plan):
 
 def test_the_plant_builds_a_rotated_layer_with_energy_conserved_and_a_consistent_preview():
     pytest.importorskip("pyslm")
-    sc = scenario("part", n_layers=2, hatch_m=0.3e-3, h_fine_m=40e-6, window_m=0.6e-3)
+    sc = scenario("part", preset=BARE, n_layers=2, hatch_m=0.3e-3, h_fine_m=40e-6, window_m=0.6e-3)
     model = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
     v = sc.profile.command(0)[1]
     hatch_seen, contour_steps = set(), 0

@@ -9,6 +9,7 @@ from fe_node.scenarios import scenario
 from fe_node.settings import Settings
 from fe_node.solver import ThermalModel
 from fe_node.window import ConsolidationLattice, conserve, transfer, window_axis
+from tests.plants import BARE
 
 COARSE = dict(h_fine_m=40e-6, margin_m=0.5e-3, depth_m=0.6e-3, fine_pad_m=120e-6, fine_depth_m=120e-6,
               h_max_m=0.2e-3)
@@ -99,7 +100,7 @@ def test_consolidation_lattice_and_energy_correction():
 
 
 def test_both_operators_follow_the_window_alike():
-    sc = scenario("layer", h_fine_m=40e-6)
+    sc = scenario("layer", preset=BARE, h_fine_m=40e-6)
     traces = {}
     for operator in ("tensor", "csr"):
         model = ThermalModel(replace(sc.settings, window_m=1.6e-3, operator=operator), sc.plan)

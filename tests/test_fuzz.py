@@ -15,6 +15,7 @@ import pytest
 
 from messages.recording import metadata, read_messages
 from tests.conftest import RECORDER_NODE, controller_node, finish, start_node_list
+from tests.plants import BARE_CONFIG
 
 STEPS = 150
 
@@ -31,7 +32,7 @@ args = ["--require", "recorder", "--count", "{count}", "--seed", "7",
 [[node]]
 name = "plant"
 module = "fe_node"
-args = ["--h-um", "40", "--max-steps", "{STEPS}", "--command-timeout-s", "30",
+args = ["--h-um", "40", "--max-steps", "{STEPS}", "--command-timeout-s", "30", "--config", "{BARE_CONFIG}",
         "--require", "recorder", "--require", "controller", "--require", "fuzzer"]
 main = true
 """

@@ -25,6 +25,7 @@ from messages.recorder import McapRecorder
 from messages.topics import PLANT_STATE, PLANT_TEMPERATURE, RUN_EVENTS, TOPICS
 from tests import forked_cli
 from tests.conftest import finish, spawn
+from tests.plants import BARE_ARGS
 
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]  # foxglove-sdk >= 0.x speaks the first
 N_STATES = 400
@@ -206,7 +207,7 @@ def test_launch_live_serves_the_default_nodes_run(tmp_path):
     port = int(free_endpoint().rsplit(":", 1)[1])
     out = tmp_path / "live.mcap"
     proc = subprocess.Popen([sys.executable, "launch.py", "--live", str(port), "--max-steps", "60", "--h-um", "40",
-                             "--controller", "pid", "--out", str(out), "--no-progress"], cwd=REPO,
+                             *BARE_ARGS, "--controller", "pid", "--out", str(out), "--no-progress"], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     steps = []
     try:

@@ -20,6 +20,7 @@ from messages.bus import BusSettings, NodeBus
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_STATE
 from messages.types import MAX_STEP
 from tests.conftest import finish, spawn
+from tests.plants import BARE_ARGS
 
 STEPS = 60
 SLACK = 10  # steps after the last burst, for the plant to read every forged command
@@ -45,7 +46,7 @@ def forgery(i: int, run_id: str, k: int) -> LaserCommand:
 def start(run_id: str, hub: str) -> tuple:
     common = ("--run-id", run_id, "--connect", hub)
     controller = spawn("controller_node", "--controller", "pid", "--setpoint-mm2", "0.063", *common)
-    plant = spawn("fe_node", "--scenario", "single-track", "--h-um", "40", "--max-steps", str(STEPS),
+    plant = spawn("fe_node", "--scenario", "single-track", "--h-um", "40", *BARE_ARGS, "--max-steps", str(STEPS),
                   "--command-timeout-s", "20", "--require", "controller", "--require", "observer", *common)
     return controller, plant
 

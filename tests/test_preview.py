@@ -328,7 +328,7 @@ def test_the_process_is_the_models(tmp_path):
     assert "sample period is 51 µs" in process_mismatch(shipped, sample_period_s=51e-6)
     assert process_mismatch(shipped, material="IN718") == ("the plant's material is IN718 but the model was "
                                                            "identified on IN625")
-    plate = scenario("layer")
+    plate = scenario("layer", preset="bare-plate")
     check_process(shipped, plate, ControllerSettings(), None)
     other = replace(plate, settings=replace(plate.settings, material=Material.constant(20.0, 8000.0, 500.0)))
     with pytest.raises(UsageError, match=r"^\[plant\] material: the plant's material is constant but"):

@@ -1,9 +1,10 @@
 """The preview MPC's control law is kept: a recorded sequence of states replayed through the
 controller gives the commands and plans recorded in ``tests/data/preview_replay.npz``.
 
-The states are those of a closed loop of the preview MPC on the FE double track (two 5 mm tracks,
-250 states), then the same states again as a second layer with one state missing (a gap); each
-replayed state carries the power the replaying controller commanded before it, as the plant would.
+The states are those of a closed loop of the preview MPC with the bare plate's model on its FE
+double track (two 5 mm tracks, 250 states), then the same states again as a second layer with one
+state missing (a gap); each replayed state carries the power the replaying controller commanded
+before it, as the plant would.
 Three controllers replay them: the node's (prepare after each command: the real-time iteration), one
 without preparation (every update full), and one with bound tightening and a tight upper area bound
 (variance of every row, DAQP where a bound binds). The recording is that of the controller before
@@ -22,7 +23,8 @@ import pytest
 from controller_node.preview import PreviewMPC
 from controller_node.settings import ControllerSettings
 from controller_node.types import Measurement
-from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel
+from gp_model.narx import PLATE_MODEL_PATH, NarxGPModel
+from tests.plants import BARE
 
 FIXTURE = Path(__file__).resolve().parent / "data" / "preview_replay.npz"
 SP = 0.063e-6
@@ -41,12 +43,12 @@ def _settings(variant: str) -> ControllerSettings:
 
 
 def _record_fe_states() -> dict[str, np.ndarray]:
-    """The states of a closed loop of the preview MPC on the FE double track (as arrays)."""
+    """The states of a closed loop of the preview MPC on the bare plate's FE double track (as arrays)."""
     from fe_node.scenarios import scenario
     from fe_node.solver import ThermalModel
 
-    sc = scenario("double-track")
-    ctrl = PreviewMPC(_settings("prepared"), NarxGPModel.load(DEFAULT_MODEL_PATH))
+    sc = scenario("double-track", preset=BARE)
+    ctrl = PreviewMPC(_settings("prepared"), NarxGPModel.load(PLATE_MODEL_PATH))
     plant = ThermalModel(sc.settings, sc.plan)
     obs, rows = plant.initial_observation(), []
     while not plant.done:
@@ -66,7 +68,7 @@ def _replay(states: dict[str, np.ndarray], variant: str) -> tuple[np.ndarray, np
     """The commands [W], plans (n, H) [W], QP iterations (0: the kernel's unconstrained step) and
     feedback updates of a controller fed ``states`` twice (layers 0 and 1, state ``GAP_AT`` of the
     sequence left out), each with its previous command."""
-    ctrl = PreviewMPC(_settings(variant), NarxGPModel.load(DEFAULT_MODEL_PATH))
+    ctrl = PreviewMPC(_settings(variant), NarxGPModel.load(PLATE_MODEL_PATH))
     n, period = states["time_s"].size, float(states["time_s"][1] - states["time_s"][0])
     power, commands, plans, iterations = 0.0, [], [], []
     for k in range(2 * n):

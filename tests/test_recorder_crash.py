@@ -33,6 +33,7 @@ from messages.recording import (
 from messages.topics import PLANT_STATE, RUN_EVENTS
 from tests import forked_cli
 from tests.conftest import finish, spawn
+from tests.plants import BARE_ARGS
 from tests.test_recorder_rules import RUN, FakeBus, FakeStop, event, plant_run, state
 
 
@@ -217,8 +218,8 @@ def test_recorder_killed_loses_at_most_a_second(tmp_path, hub, run_id):
         states = bus.inbox(PLANT_STATE)
         recorder = spawn("messages.recorder", "--out", str(out), "--expect", "plant", *common)
         bus.wait_for_nodes(["recorder"], StopFlag(), timeout_s=60)
-        plant = spawn("fe_node", "--h-um", "40", "--open-loop", "--max-steps", "3000", "--require", "recorder",
-                      "--image-every", "100000", *common)  # no images: chunks would fill up without a flush
+        plant = spawn("fe_node", "--h-um", "40", *BARE_ARGS, "--open-loop", "--max-steps", "3000", "--require",
+                      "recorder", "--image-every", "100000", *common)  # no images: chunks would fill up without a flush
         assert states.get(timeout=60) is not None, "plant did not start stepping"
         time.sleep(2.5)
         recorder.send_signal(signal.SIGKILL)

@@ -14,13 +14,15 @@ from messages.recording import read_messages
 from messages.topics import LASER_COMMAND, PLANT_STATE
 from tests import forked_cli
 from tests.conftest import REPO, finish, spawn
+from tests.plants import BARE_ARGS
 
 
 @pytest.fixture(scope="module")
 def fe_recording(tmp_path_factory):
     out = tmp_path_factory.mktemp("replay") / "fe.mcap"
-    run = subprocess.run([sys.executable, "launch.py", "--controller", "none", "--h-um", "40", "--max-steps", "12",
-                          "--out", str(out), "--no-progress"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    run = subprocess.run([sys.executable, "launch.py", "--controller", "none", "--h-um", "40", *BARE_ARGS,
+                          "--max-steps", "12", "--out", str(out), "--no-progress"], cwd=REPO, capture_output=True,
+                          text=True, timeout=120)
     assert run.returncode == 0, run.stdout + run.stderr
     return out
 

@@ -19,6 +19,7 @@ import pytest
 from messages.recording import metadata, read_messages
 from tests.conftest import RECORDER_NODE, controller_node, finish, start_node_list
 from tests.nodes.rogue import FORGED_POWER_W
+from tests.plants import BARE_CONFIG
 
 STEPS = 150
 COUNT = 10_000
@@ -35,7 +36,7 @@ args = ["--count", "{count}", "--require", "recorder"]
 [[node]]
 name = "plant"
 module = "fe_node"
-args = ["--h-um", "40", "--max-steps", "{STEPS}", "--command-timeout-s", "30",
+args = ["--h-um", "40", "--max-steps", "{STEPS}", "--command-timeout-s", "30", "--config", "{BARE_CONFIG}",
         "--require", "recorder", "--require", "controller", "--require", "rogue"]
 main = true
 """
