@@ -503,7 +503,7 @@ never show (the model's error after a turn came from it, ``docs/gp.md``)."""
 PLATE_STAGE1_MODEL = "gp_model/models/in625_plate_narx_gp_stage1.json"
 """The bare plate's stage-1 model: ``narx`` over every plate run but the ``ident-preview-mpc-*`` ones, the
 controller of those runs, so that the data do not depend on the model they train."""
-PLATE_DESIGN = ProcessDesign(250.0, 0.063, PLATE_STAGE1_MODEL, feedback_controller="mpc",
+PLATE_DESIGN = ProcessDesign(250.0, 0.063, PLATE_STAGE1_MODEL, (("preset", "bare-plate"),), feedback_controller="mpc",
                              feedforward_scenarios=("double-track", "layer"))
 """The bare plate's runs: 250 W, 0.063 mm², the one-step GP-MPC in closed loop (its model is the plate's)."""
 IDENT_RUNS = PLATE_DESIGN.runs()

@@ -13,12 +13,14 @@ import numpy as np
 import pytest
 
 from fe_node.scenarios import IDENT_DEFAULTS, IDENT_HOLD_STEPS, scenario
+from gp_model.narx import PLATE_MODEL_PATH
 from gp_trainer.campaign import (
     IDENT_RUNS,
     PLATE_STAGE1_MODEL,
     FeedbackRun,
     IdentifySettings,
     IdentRun,
+    ProcessDesign,
     identify_jobs,
     run_identification,
     select_ident_runs,
@@ -26,6 +28,7 @@ from gp_trainer.campaign import (
 from gp_trainer.cli import main
 from gp_trainer.errors import CampaignError
 from gp_trainer.jobs import job_command, job_recording, plant_toml
+from gp_trainer.learn import design_record
 from gp_trainer.provenance import REPO_ROOT
 
 REPO = Path(__file__).resolve().parent.parent
@@ -133,19 +136,23 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
         assert job_command(settings, job, out, config) == [
             "PY", "/repo/launch.py", "--scenario", run.scenario, "--controller", "none", "--config", str(config),
             "--no-progress", "--json", "--out", str(out), "--overwrite", "--run-id", run.name]
-        assert dict(job.plant) == {"ident_seed": run.seed, "ident_mean_w": run.mean_w, "ident_amplitude_w": 60.0}
+        assert dict(job.plant) == {"preset": "bare-plate", "ident_seed": run.seed, "ident_mean_w": run.mean_w,
+                                   "ident_amplitude_w": 60.0}
         assert tomllib.loads(plant_toml(job.plant)) == {"plant": dict(job.plant)}
     for run, job in zip(feedback[:7], jobs[6:]):
         out = tmp_path / f"{job.name}.partial.mcap"
         nominal = {"nominal_power_w": 250.0} if run.controller == "feedforward" else {}  # the plate's operating power
-        assert dict(job.controller_table) == nominal
-        assert job_command(settings, job, out) == [
+        assert dict(job.controller_table) == nominal and dict(job.plant) == {"preset": "bare-plate"}
+        config = tmp_path / "cfg.toml"
+        assert job_command(settings, job, out, config) == [
             "PY",
             "/repo/launch.py",
             "--scenario",
             run.scenario,
             "--controller",
             run.controller,
+            "--config",
+            str(config),
             "--setpoint-mm2",
             repr(run.setpoint_mm2),
             "--no-progress",
@@ -158,9 +165,10 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
         ]
     for run, job in zip(feedback[7:], jobs[13:]):  # the preview MPC (stage-1 model), some at another hatch/preheat
         out, config = tmp_path / f"{job.name}.partial.mcap", tmp_path / "cfg.toml"
-        command = job_command(settings, job, out, config if job.plant else None)
+        command = job_command(settings, job, out, config)
         assert command[command.index("--model") + 1] == str(REPO_ROOT / PLATE_STAGE1_MODEL)
-        assert dict(job.plant) == ({} if run.hatch_m is None else {"hatch_m": run.hatch_m, "t0_k": run.t0_k})
+        assert dict(job.plant) == {"preset": "bare-plate", **({} if run.hatch_m is None else
+                                                              {"hatch_m": run.hatch_m, "t0_k": run.t0_k})}
     assert (REPO_ROOT / PLATE_STAGE1_MODEL).is_file()
     assert [(r.scenario, r.mean_w, r.seed) for r in open_loop] == [
         ("ident-layer", 200.0, 1), ("ident-layer", 250.0, 2), ("ident-layer", 300.0, 3),
@@ -180,6 +188,7 @@ def test_per_run_toml_is_accepted_by_the_launcher_and_reproduces_the_profile(tmp
     plant = tomllib.loads(path.read_text())["plant"]
     assert scenario(run.scenario, **plant).profile == scenario(
         run.scenario, ident_seed=run.seed, ident_mean_w=run.mean_w, ident_amplitude_w=run.amplitude_w).profile
+    assert scenario(run.scenario, **plant).settings.powder_layer_m == 0.0  # the bare plate's runs pin their plant
 
 
 FAILING_LAUNCHER = '''
@@ -256,16 +265,26 @@ def test_evaluate_records_the_missing_held_out_runs_first(tmp_path, monkeypatch,
 
     def identify(settings, progress=True):
         asked.append(([r.name for r in settings.runs], settings.out_dir))
+        settings.out_dir.mkdir(exist_ok=True)
         for i, run in enumerate(settings.runs):
             _record(settings.out_dir / f"{run.name}.mcap", synthetic.table2_case(2, seed=2 + i))
         return []
 
     monkeypatch.setattr(cli, "run_identification", identify)
-    assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json"]) == 0
+    assert main(["evaluate", "--plant", "plate", "--recordings-dir", str(tmp_path), "--json"]) == 0
     assert asked == [(list(held_out[1:]), tmp_path)]
     out, err = capsys.readouterr()
     assert json.loads(out.strip().splitlines()[-1])["held_out"] == list(held_out)
     assert f"identify --plant plate --runs {' '.join(held_out[1:])} --out-dir {tmp_path}" in err.splitlines()[0]
+    # a model of `learn`: the held-out runs of the design its provenance records, whatever --plant says
+    design = ProcessDesign(133.0, 0.063, "stage1.json", (("preset", "physical"),))
+    doc = json.loads(PLATE_MODEL_PATH.read_text())
+    doc["provenance"]["design"] = design_record(design, tmp_path / "learned")
+    (tmp_path / "learned.json").write_text(json.dumps(doc))
+    asked.clear()
+    assert main(["evaluate", "--plant", "plate", "--model", str(tmp_path / "learned.json"), "--json"]) == 0
+    assert asked == [(list(design.held_out()), tmp_path / "learned")]
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["held_out"] == list(design.held_out())
 
 
 @pytest.mark.slow
