@@ -19,7 +19,8 @@ without preparation) and ``ratio_vs_full_update`` (of the medians), ``warm_media
 without preparation fed the same states: the real-time iteration's linearisation lag), the paths
 the QP took and the load.
 
-Usage: ``python benchmarks/bench_preview.py [--preset physical] [--scenario double-track] [--rounds 2]``
+Usage: ``python benchmarks/bench_preview.py [--preset physical] [--scenario double-track] [--rounds 2]
+[--model FILE]``
 """
 
 from __future__ import annotations
@@ -88,9 +89,10 @@ def main() -> None:
     parser.add_argument("--preset", choices=NAMES, default=DEFAULT, help="plant preset (default %(default)s)")
     parser.add_argument("--scenario", default="double-track")
     parser.add_argument("--rounds", type=int, default=2, help="alternated pairs of loops with and without prepare")
+    parser.add_argument("--model", type=Path, help="delay-aware model file (default: the shipped one of the plant)")
     args = parser.parse_args()
     sc = scenario(args.scenario, preset=args.preset)
-    model_path = default_model_path(sc.settings.powder_layer_m)  # the shipped model of the plant's layer
+    model_path = args.model or default_model_path(sc.settings.powder_layer_m)  # default: the shipped one of its layer
     settings = ControllerSettings(set_point_m2=0.063e-6)
     load_at_start = os.getloadavg()[0]
     times, prepare_times, full_times, differences, feedback_updates = [], [], [], [], 0

@@ -153,3 +153,21 @@ def _constructor_args(model: NarxGPModel) -> dict:
                 feature_temperature_gain=model.feature_temperature_gain, feature_profile_k=model.feature_profile_k,
                 turn_profile_k=model.turn_profile_k, forecast_persistence=model.forecast_persistence,
                 speed_m_s=model.speed_m_s, provenance=model.provenance)
+
+
+def test_the_forecast_adds_the_features_deviation_and_decays_the_rest():
+    """``adjust_forecast``: on the current track β (ΔF[k+j] − ρʲ ΔF[k]), after the turn ahead β ΔF[k+j]
+    plus what the track's last state got; nothing on a layer's first track."""
+    from gp_model.narx import adjust_forecast
+
+    f_mean = np.array([100.0, 90.0, 80.0, 70.0, 60.0, 50.0, 40.0, 30.0])
+    future = np.array([95.0, 85.0, 300.0, 250.0, 200.0])           # F[k+1..k+5]; the turn after k+2
+    decay = 0.5 ** np.arange(1.0, 6.0)
+    out = np.zeros(5)
+    adjust_forecast(out, future, 110.0, f_mean, 2.0, 1, False, 2, decay)   # k: 1 state after a turn
+    d_now = 110.0 - 90.0
+    on_track = 2.0 * (future[:2] - f_mean[2:4] - decay[:2] * d_now)
+    np.testing.assert_allclose(out, np.r_[on_track, on_track[1] + 2.0 * (future[2:] - f_mean[:3])])
+    first = np.zeros(5)
+    adjust_forecast(first, future, 110.0, f_mean, 2.0, 1, True, 2, decay)
+    np.testing.assert_allclose(first, np.r_[0.0, 0.0, 2.0 * (future[2:] - f_mean[:3])])
