@@ -26,7 +26,7 @@ RUN = "r"
 
 
 @pytest.mark.parametrize("topic", TOPICS.values(), ids=lambda t: t.suffix)
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=75, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
 def test_a_schema_valid_payload_decodes_or_is_rejected_by_the_codec(topic, data):
     payload = data.draw(payloads(topic))
