@@ -207,22 +207,26 @@ def test_campaign_runs_cases_and_skips_complete_ones(tmp_path):
         run_campaign(dataclasses.replace(settings, launcher=tmp_path / "nope.py"), progress=False)
 
 
-def test_the_delay_aware_model_records_the_material_of_its_recordings(tmp_path):
-    """``narx`` writes the material of the FE plant's recorded configuration into the model's process."""
-    from gp_trainer.cli import _material
+def test_the_delay_aware_model_records_the_process_of_its_recordings(tmp_path):
+    """``learn``/``narx`` write the material and powder layer of the FE plant's recorded
+    configuration into the model's process, and refuse recordings of different processes."""
+    from gp_trainer.learn import process_record
 
-    def recording(name, material):
+    def recording(name, material, layer_m=40e-6):
         from messages.recorder import McapRecorder
 
         path = tmp_path / f"{name}.mcap"
         recorder = McapRecorder(path, "gp-test", path.open("wb"))
         if material is not None:
-            recorder.attach("config/plant.json", json.dumps({"settings": {"material": {"name": material}}}).encode())
+            settings = {"material": {"name": material}, "powder_layer_m": layer_m}
+            recorder.attach("config/plant.json", json.dumps({"settings": settings}).encode())
         recorder.finish({"complete": "true"})
         return path
 
     a, b = recording("a", "IN625"), recording("b", "IN625")
-    assert _material([a, b]) == "IN625"
-    assert _material([recording("sensor", None)]) is None          # a plant that records none
-    with pytest.raises(DatasetError, match="different materials: IN625, IN718"):
-        _material([a, recording("c", "IN718")])
+    assert process_record([a, b]) == {"material": "IN625", "powder_layer_m": 40e-6}
+    assert process_record([recording("sensor", None)]) == {"material": None, "powder_layer_m": None}
+    with pytest.raises(DatasetError, match="different material: IN625, IN718"):
+        process_record([a, recording("c", "IN718")])
+    with pytest.raises(DatasetError, match="different powder_layer_m"):
+        process_record([a, recording("d", "IN625", 0.0)])
