@@ -15,15 +15,15 @@ from typing import ClassVar
 
 from .safety import FallbackPlan, clamp_power
 from .settings import ControllerSettings
-from .types import Command, ConfigurationError, Diagnostics, Measurement
+from .types import PLAN_REPORT_FIELDS, Command, ConfigurationError, Diagnostics, Measurement, PlanReport
 
 __all__ = ["Controller", "Proposal"]
 
 
-@dataclass(slots=True)
-class Proposal:
+@dataclass(frozen=True, slots=True)
+class Proposal(PlanReport):
     """A control law's answer to one measurement, before the safety layer (internal to
-    :meth:`Controller.update`; not frozen, which makes it cheaper to build).
+    :meth:`Controller.update`), with its :class:`~controller_node.types.PlanReport`.
 
     Attributes
     ----------
@@ -31,28 +31,10 @@ class Proposal:
         Proposed ``p[k]`` [W] (clamped afterwards).
     status : str
         ``"ok"``, or a failure reason that makes the safety layer fall back.
-    plan_w : tuple of float
-        Planned powers ``p[k..k+H-1]`` [W] kept for the fallback (may be empty).
-    predicted_area_m2 : tuple of float
-        Predicted ``x[k+1..k+H]`` [m²].
-    model_std_m2 : float or None
-        Model predictive std of ``x[k+1]`` [m²].
-    feedforward_w : float
-        Temperature feed-forward included in ``power_w`` [W].
-    reference_power_w : float or None
-        MPC steady-state reference power [W].
-    iterations : int
-        QP iterations.
     """
 
     power_w: float
     status: str = "ok"
-    plan_w: tuple[float, ...] = ()
-    predicted_area_m2: tuple[float, ...] = ()
-    model_std_m2: float | None = None
-    feedforward_w: float = 0.0
-    reference_power_w: float | None = None
-    iterations: int = 0
 
 
 class Controller(ABC):
@@ -139,21 +121,11 @@ class Controller(ABC):
             power = self._fallback.power_for(target)
         else:
             power = clamp_power(proposal.power_w, s.power_min_w, s.power_max_w, s.nominal_power_w)
-            self._fallback.store(target, proposal.plan_w)
+            self._fallback.store(target, proposal.predicted_power_w)
         self._fallback.last_power_w = power
         command = Command(step=target, power_w=power, speed_m_s=s.nominal_speed_m_s)
         elapsed = time.perf_counter() - t0
         if fallback:
             return command, Diagnostics(elapsed, status, fallback, self.n_fallbacks)
-        return command, Diagnostics(
-            solve_time_s=elapsed,
-            status=status,
-            fallback=False,
-            n_fallbacks=self.n_fallbacks,
-            predicted_area_m2=proposal.predicted_area_m2,
-            predicted_power_w=proposal.plan_w,
-            model_std_m2=proposal.model_std_m2,
-            feedforward_w=proposal.feedforward_w,
-            reference_power_w=proposal.reference_power_w,
-            solver_iterations=proposal.iterations,
-        )
+        plan = {name: getattr(proposal, name) for name in PLAN_REPORT_FIELDS}
+        return command, Diagnostics(elapsed, status, False, self.n_fallbacks, **plan)

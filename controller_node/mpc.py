@@ -142,10 +142,10 @@ class MPCController(Controller):
         std = math.sqrt(var) if var is not None and math.isfinite(var) and var >= 0.0 else None
         return Proposal(
             power_w=float(plan[0]),
-            plan_w=tuple(plan.tolist()),
+            predicted_power_w=tuple(plan.tolist()),
             predicted_area_m2=tuple(areas.tolist()),
             model_std_m2=std,
             feedforward_w=feedforward,
             reference_power_w=data.p_ref_w + feedforward,
-            iterations=sol.iterations,
+            solver_iterations=sol.iterations,
         )

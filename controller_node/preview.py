@@ -411,5 +411,5 @@ class PreviewMPC(Controller):
             areas = work.predicted + (work.gamma * (sp / self.qp.scale)) @ (new_plan - plan)  # ∂x̂/∂u times the move
             self._plan[:] = new_plan
         plan_w = tuple(self._plan.tolist())
-        return Proposal(power_w=plan_w[0], plan_w=plan_w, predicted_area_m2=tuple(areas.tolist()),
-                        model_std_m2=float(work.std[0]), iterations=0 if fast else 1)
+        return Proposal(power_w=plan_w[0], predicted_power_w=plan_w, predicted_area_m2=tuple(areas.tolist()),
+                        model_std_m2=float(work.std[0]), solver_iterations=0 if fast else 1)

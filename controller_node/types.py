@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ConfigurationError", "Measurement", "Command", "Diagnostics"]
+__all__ = ["ConfigurationError", "Measurement", "Command", "Diagnostics", "PlanReport"]
 
 
 def _real(name: str, value: object) -> float:
@@ -160,9 +160,44 @@ class Command:
         object.__setattr__(self, "speed_m_s", speed)
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PlanReport:
+    """What a control law planned, shared by its :class:`~controller_node.base.Proposal` and the
+    :class:`Diagnostics` of the update that used it.
+
+    Parameters
+    ----------
+    predicted_area_m2 : tuple of float
+        MPC predicted areas ``x[k+1..k+H]`` [m²] (empty for baselines/fallback).
+    predicted_power_w : tuple of float
+        MPC planned powers ``p[k..k+H-1]`` [W], kept for the fallback (empty for baselines).
+    model_std_m2 : float or None
+        GP predictive standard deviation of ``x[k+1]`` at the operating point [m²],
+        None when not computed.
+    feedforward_w : float
+        Temperature feed-forward included in the command [W] (0 when off).
+    reference_power_w : float or None
+        MPC steady-state reference power of the normalised problem [W].
+    solver_iterations : int
+        QP iterations (0 when no QP was solved).
+    """
+
+    predicted_area_m2: tuple[float, ...] = ()
+    predicted_power_w: tuple[float, ...] = ()
+    model_std_m2: float | None = None
+    feedforward_w: float = 0.0
+    reference_power_w: float | None = None
+    solver_iterations: int = 0
+
+
+PLAN_REPORT_FIELDS = tuple(PlanReport.__dataclass_fields__)
+"""The names of :class:`PlanReport`'s fields, in order."""
+
+
 @dataclass(frozen=True, slots=True)
-class Diagnostics:
-    """What the controller did in one ``update``.
+class Diagnostics(PlanReport):
+    """What the controller did in one ``update``: the :class:`PlanReport` of the control law it
+    used (defaults when it fell back) and these.
 
     Parameters
     ----------
@@ -175,28 +210,9 @@ class Diagnostics:
         True when the command is the safe fallback, not the controller's own output.
     n_fallbacks : int
         Fallbacks since construction/reset.
-    predicted_area_m2 : tuple of float
-        MPC predicted areas ``x[k+1..k+H]`` [m²] (empty for baselines/fallback).
-    predicted_power_w : tuple of float
-        MPC planned powers ``p[k..k+H-1]`` [W] (empty for baselines).
-    model_std_m2 : float or None
-        GP predictive standard deviation of ``x[k+1]`` at the operating point [m²],
-        None when not computed.
-    feedforward_w : float
-        Temperature feed-forward added to the command [W] (0 when off).
-    reference_power_w : float or None
-        MPC steady-state reference power of the normalised problem [W].
-    solver_iterations : int
-        QP iterations (0 when no QP was solved).
     """
 
     solve_time_s: float
     status: str
     fallback: bool
     n_fallbacks: int
-    predicted_area_m2: tuple[float, ...] = ()
-    predicted_power_w: tuple[float, ...] = ()
-    model_std_m2: float | None = None
-    feedforward_w: float = 0.0
-    reference_power_w: float | None = None
-    solver_iterations: int = 0
