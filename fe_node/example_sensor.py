@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass
 
 from fe_node.freerun import PlantSample, add_free_run_arguments, serve, settings_from_args
-from messages.bus import add_bus_arguments, bus_settings_from_args, single_threaded_blas
+from messages.bus import parse_node_arguments, single_threaded_blas
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 
 NODE_NAME = "plant"
@@ -95,11 +95,9 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m fe_node.example_sensor``."""
     parser = ArgumentParser(prog="python -m fe_node.example_sensor", description=__doc__.split("\n\n")[0])
     add_free_run_arguments(parser, rate_hz=1000.0)
-    add_bus_arguments(parser)
-    args = parser.parse_args(argv)
     single_threaded_blas()
     try:
-        bus_settings = bus_settings_from_args(args)
+        args, bus_settings = parse_node_arguments(parser, argv)
         settings, policy = settings_from_args(args)
         model = SyntheticSettings()
     except UsageError as err:

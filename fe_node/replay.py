@@ -16,7 +16,7 @@ from pathlib import Path
 import msgspec
 
 from messages import LogLevel, MeltPoolState
-from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
+from messages.bus import NodeBus, StopFlag, parse_node_arguments, run_node
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.recording import RecordingError, read_all
 from messages.topics import LASER_COMMAND, PLANT_STATE
@@ -64,10 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("recording", type=Path, help="MCAP recording with /plant/state")
     parser.add_argument("--rate-scale", type=float, default=1.0,
                         help="playback speed; 1 = real time (default: %(default)s)")
-    add_bus_arguments(parser)
-    args = parser.parse_args(argv)
     try:
-        bus_settings = bus_settings_from_args(args)
+        args, bus_settings = parse_node_arguments(parser, argv)
         if not (math.isfinite(args.rate_scale) and args.rate_scale > 0):
             raise UsageError(f"--rate-scale must be finite and > 0, got {args.rate_scale}")
         states = load_states(args.recording)

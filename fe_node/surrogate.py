@@ -21,7 +21,7 @@ import numpy as np
 from fe_node.freerun import PlantSample, add_free_run_arguments, serve, settings_from_args
 from gp_model.files import load_for_node
 from gp_model.model import DEFAULT_MODEL_PATH, GPModel
-from messages.bus import add_bus_arguments, bus_settings_from_args, single_threaded_blas
+from messages.bus import parse_node_arguments, single_threaded_blas
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 
 NODE_NAME = "plant"
@@ -89,11 +89,9 @@ def main(argv: list[str] | None = None) -> int:
     add_free_run_arguments(parser, rate_hz=2000.0)
     parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
                         help="GP model file (default: the shipped one)")
-    add_bus_arguments(parser)
-    args = parser.parse_args(argv)
     single_threaded_blas()
     try:
-        bus_settings = bus_settings_from_args(args)
+        args, bus_settings = parse_node_arguments(parser, argv)
         settings, policy = settings_from_args(args, dt_s=GP_STEP_S)
         model = load_model(args.model)
     except UsageError as err:

@@ -148,6 +148,21 @@ def bus_settings_from_args(args: argparse.Namespace) -> BusSettings:
     )
 
 
+def parse_node_arguments(parser: argparse.ArgumentParser,
+                         argv: list[str] | None) -> tuple[argparse.Namespace, BusSettings]:
+    """A node's command line: add the bus options (:func:`add_bus_arguments`) to ``parser``, parse
+    ``argv`` and build the :class:`BusSettings` (raises :class:`UsageError`).
+
+    Returns
+    -------
+    tuple[argparse.Namespace, BusSettings]
+        The parsed arguments and the bus settings.
+    """
+    add_bus_arguments(parser)
+    args = parser.parse_args(argv)
+    return args, bus_settings_from_args(args)
+
+
 def zenoh_config(settings: BusSettings, credentials: tuple[str, str] | None = None) -> zenoh.Config:
     """The zenoh configuration of a node.
 

@@ -58,7 +58,7 @@ from typing import Any, BinaryIO
 from mcap.writer import CompressionType, Writer
 
 from messages.auth import ROLES
-from messages.bus import NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
+from messages.bus import NodeBus, StopFlag, parse_node_arguments, run_node
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.codec import MessageError, decode, encode, json_schema
 from messages.foxglove import Log, LogLevel, Timestamp
@@ -761,10 +761,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--drain-s", type=float, default=3.0,
                         help="how long to wait for late messages and for an ending node's liveliness token to go")
-    add_bus_arguments(parser)
-    args = parser.parse_args(argv)
     try:
-        settings = bus_settings_from_args(args)
+        args, settings = parse_node_arguments(parser, argv)
         if not 0 <= args.drain_s <= 60:
             raise UsageError(f"--drain-s must be >= 0 and at most 60 s, got {args.drain_s}")
         if args.out is not None and args.out.suffix != ".mcap":
