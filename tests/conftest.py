@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.plants import BARE_ARGS
+from tests.plants import BARE_ARGS, BARE_CONFIG
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -127,6 +127,63 @@ name = "controller"
 module = "controller_node"
 args = ["--controller", "{controller}", "--setpoint-mm2", "0.063", "--require", "recorder"]
 """
+
+
+ATTACK_STEPS = 150
+"""Plant steps of the lockstep runs that a fuzzer or a rogue node attacks (tests/test_fuzz.py,
+tests/test_rogue.py) and of the clean run they are compared with."""
+ATTACK_COUNT = 10_000
+"""Messages the fuzzer or the rogue node sends in its run."""
+ATTACKERS = {
+    "fuzzed": ("fuzzer", f"""
+[[node]]
+name = "fuzzer"
+module = "tests.nodes.fuzzer"
+roles = ["plant", "controller"]  # authenticated, yet sending garbage: the nodes must cope
+args = ["--require", "recorder", "--count", "{ATTACK_COUNT}", "--seed", "7",
+        "--topic", "plant/state", "--topic", "controller/command", "--topic", "run/events"]
+"""),
+    "attacked": ("rogue", f"""
+[[node]]
+name = "rogue"
+module = "tests.nodes.rogue"
+roles = ["recorder"]  # it times its forgeries by the plant states
+args = ["--count", "{ATTACK_COUNT}", "--require", "recorder"]
+"""),
+}
+"""The attacking node of each attacked run, by run name: (node name, its ``[[node]]`` table)."""
+
+
+def attacked_plant_node(*require: str) -> str:
+    """The ``[[node]]`` table of the FE plant of those runs (bare plate, 40 µm mesh), which waits
+    for the recorder, the controller and the nodes ``require``."""
+    waits = "".join(f', "--require", "{name}"' for name in ("recorder", "controller", *require))
+    return f"""
+[[node]]
+name = "plant"
+module = "fe_node"
+args = ["--h-um", "40", "--max-steps", "{ATTACK_STEPS}", "--command-timeout-s", "30",
+        "--config", "{BARE_CONFIG}"{waits}]
+main = true
+"""
+
+
+@pytest.fixture(scope="session")
+def attack_runs(tmp_path_factory) -> dict[str, tuple[str, Path]]:
+    """Three lockstep runs of recorder, MPC controller and plant, side by side: ``clean``, and
+    ``fuzzed`` and ``attacked`` with the node of :data:`ATTACKERS` added (lockstep: the result does
+    not depend on timing). Each exits 0; by run name: (output, recording)."""
+    tmp = tmp_path_factory.mktemp("attack")
+    started = {}
+    for name, (node, table) in {"clean": (None, ""), **ATTACKERS}.items():
+        plant = attacked_plant_node(*([node] if node else []))
+        started[name] = start_node_list(tmp, name, RECORDER_NODE + controller_node("mpc") + table + plant)
+    runs = {}
+    for name, (proc, out) in started.items():
+        status, output = finish(proc, timeout=300)
+        assert status == 0, output
+        runs[name] = (output, out)
+    return runs
 
 
 def start_node_list(tmp_path: Path, name: str, nodes_toml: str, *extra: str) -> tuple[subprocess.Popen[str], Path]:

@@ -1,9 +1,9 @@
 """A rogue process in a run under launch.py's default access control (issue 13 acceptance).
 
-Two lockstep runs with the same nodes, side by side: a clean one, and one where a node that
-may read everything but publish no topic (role ``recorder``) forges 10 000 schema-valid messages
-of the plant and the controller (states, commands, end events, logs, liveliness tokens) and first
-tries the hub without credentials.
+A lockstep run compared with the clean one (the runs of ``attack_runs``, shared with
+tests/test_fuzz.py) where a node that may read everything but publish no topic (role
+``recorder``) forges 10 000 schema-valid messages of the plant and the controller (states,
+commands, end events, logs, liveliness tokens) and first tries the hub without credentials.
 Nothing forged may be applied or recorded: both runs exit 0 with identical plant traces,
 commands and Table-4 figures.
 """
@@ -12,58 +12,21 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-
-import pytest
 
 from messages.recording import metadata, read_messages
-from tests.conftest import RECORDER_NODE, controller_node, finish, start_node_list
+from tests.conftest import ATTACK_COUNT, ATTACK_STEPS
 from tests.nodes.rogue import FORGED_POWER_W
-from tests.plants import BARE_CONFIG
-
-STEPS = 150
-COUNT = 10_000
 
 
-def start_run(tmp_path, name: str, count: int) -> tuple[subprocess.Popen[str], object]:
-    rogue_and_plant = f"""
-[[node]]
-name = "rogue"
-module = "tests.nodes.rogue"
-roles = ["recorder"]  # it times its forgeries by the plant states
-args = ["--count", "{count}", "--require", "recorder"]
-
-[[node]]
-name = "plant"
-module = "fe_node"
-args = ["--h-um", "40", "--max-steps", "{STEPS}", "--command-timeout-s", "30", "--config", "{BARE_CONFIG}",
-        "--require", "recorder", "--require", "controller", "--require", "rogue"]
-main = true
-"""
-    return start_node_list(tmp_path, name, RECORDER_NODE + controller_node("pid") + rogue_and_plant)
-
-
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("rogue")
-    started = [start_run(tmp, "clean", 0), start_run(tmp, "attacked", COUNT)]
-    results = []
-    for proc, out in started:
-        status, output = finish(proc, timeout=300)
-        assert status == 0, output
-        results.append((output, out))
-    return results
-
-
-def test_the_hub_refuses_a_session_without_credentials(runs):
-    _, (output, _) = runs
+def test_the_hub_refuses_a_session_without_credentials(attack_runs):
+    output, _ = attack_runs["attacked"]
     assert "[rogue] unauthenticated session refused" in output, output
 
 
-def test_no_forgery_is_applied_or_recorded(runs):
-    (_, clean), (output, attacked) = runs
+def test_no_forgery_is_applied_or_recorded(attack_runs):
+    (output, attacked), clean = attack_runs["attacked"], attack_runs["clean"][1]
     m = re.search(r"rogue done: sent (\{.*\})", output)
-    assert m and sum(json.loads(m.group(1)).values()) == COUNT, output
+    assert m and sum(json.loads(m.group(1)).values()) == ATTACK_COUNT, output
     assert "Traceback" not in output
 
     def trace(path):
@@ -72,7 +35,7 @@ def test_no_forgery_is_applied_or_recorded(runs):
     def commands(path):
         return [(c.step, c.power_w, c.controller) for c in read_messages(path, "/controller/command")]
 
-    assert len(trace(clean)) == STEPS + 1
+    assert len(trace(clean)) == ATTACK_STEPS + 1
     assert trace(attacked) == trace(clean)
     assert commands(attacked) == commands(clean)
     assert all(power != FORGED_POWER_W for _, power, _ in commands(attacked))
@@ -85,10 +48,10 @@ def test_no_forgery_is_applied_or_recorded(runs):
     assert plant_diag.n_fallbacks == 0
 
 
-def test_the_table4_figures_are_those_of_the_clean_run(runs):
+def test_the_table4_figures_are_those_of_the_clean_run(attack_runs):
     from controller_node.summary import summarise
 
-    (_, clean), (_, attacked) = runs
-    figures = [{k: v for k, v in summarise(path, "layer", "pid", 0, 0.0).items()
-                if k.endswith("_pct") or k in ("steps", "complete")} for path in (clean, attacked)]
+    paths = (attack_runs["clean"][1], attack_runs["attacked"][1])
+    figures = [{k: v for k, v in summarise(path, "layer", "mpc", 0, 0.0).items()
+                if k.endswith("_pct") or k in ("steps", "complete")} for path in paths]
     assert figures[0] == figures[1] and figures[0]["complete"] is True
