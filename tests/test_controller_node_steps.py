@@ -99,13 +99,13 @@ def test_node_drops_impossible_and_duplicate_states_and_keeps_answering():
 def test_node_ends_with_a_logged_fault_on_a_state_at_another_speed_than_its_models(capsys):
     """The preview MPC's model was identified at 800 mm/s: a state at 1000 mm/s gets no command; the node
     logs the one-line reason, ends its run with it and returns exit status 2."""
-    from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel
+    from gp_model.narx import PLATE_MODEL_PATH, NarxGPModel
 
     stop = threading.Event()
     states = [_state(0), _state(1), replace(_state(2), speed_mm_s=1000.0), _state(3)]
     bus = _Bus(states, stop)
     settings = ControllerSettings(set_point_m2=0.063e-6)
-    controller = make_controller("preview-mpc", settings, NarxGPModel.load(DEFAULT_MODEL_PATH))
+    controller = make_controller("preview-mpc", settings, NarxGPModel.load(PLATE_MODEL_PATH))
     assert run(bus, controller, settings, stop, "plant", {}) == 2
     commands = [m for p in bus.pubs.values() for m in p.sent if type(m).__name__ == "LaserCommand"]
     assert [c.step for c in commands] == [1, 2]

@@ -384,11 +384,18 @@ def test_evaluate_of_the_delay_aware_model_names_the_command_when_data_are_missi
     from gp_trainer.cli import main
 
     assert is_model_file(DEFAULT_MODEL_PATH, FORMAT_NAME) and not is_model_file(tmp_path / "none.json", FORMAT_NAME)
-    assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json", "--no-identify"]) == 2
+    assert main(["evaluate", "--plant", "plate", "--recordings-dir", str(tmp_path), "--json", "--no-identify"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     command = ("python -m gp_trainer identify --plant plate --runs ident-layer-p250-s2 ident-double-track-p250-s5 "
                f"ident-mpc-double-track-a0.063 --out-dir {tmp_path}")
     assert len(err) == 1 and f"run `{command}`" in err[0]
+    # the shipped model was learned (`learn`): its held-out runs are its design's
+    from gp_trainer.learn import design_from_record
+
+    design, _ = design_from_record(NarxGPModel.load(DEFAULT_MODEL_PATH).provenance["design"])
+    assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json", "--no-identify"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"({', '.join(design.held_out())}): run `python -m gp_trainer learn" in err[0]
 
 
 def test_learning_state_round_trip_and_refusal(model):
@@ -536,9 +543,9 @@ def test_evaluate_splits_error_and_coverage_between_turnarounds_and_tracks():
 
 def test_a_new_controller_answers_as_one_reset_after_a_run():
     """Nothing of the compile warm-up or of a previous run reaches the next run's commands."""
-    from gp_model.narx import DEFAULT_MODEL_PATH
+    from gp_model.narx import PLATE_MODEL_PATH
 
-    model = NarxGPModel.load(DEFAULT_MODEL_PATH)
+    model = NarxGPModel.load(PLATE_MODEL_PATH)
     settings = ControllerSettings(set_point_m2=0.063e-6)
 
     def run(ctrl: PreviewMPC, n: int = 80) -> list[float]:
@@ -567,10 +574,10 @@ def test_launch_checks_the_learning_state_before_any_node_starts(tmp_path, conte
     """``launch.py --learning-state FILE``: a file the controller could not start from is a usage
     error of launch.py (the same checks as :meth:`PreviewMPC.load_learning_state`), a written one passes."""
     import launch
-    from gp_model.narx import DEFAULT_MODEL_PATH
+    from gp_model.narx import PLATE_MODEL_PATH
     from messages.cli import UsageError
 
-    model, settings = NarxGPModel.load(DEFAULT_MODEL_PATH), ControllerSettings()
+    model, settings = NarxGPModel.load(PLATE_MODEL_PATH), ControllerSettings()
     written = make_controller("preview-mpc", settings, model).learning_state()
     path = tmp_path / "learn.json"
     path.write_text(json.dumps(written))

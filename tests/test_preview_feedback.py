@@ -16,7 +16,7 @@ from controller_node.preview_qp import PreviewQP, solve_reference
 from controller_node.preview_stages import StateContext
 from controller_node.settings import ControllerSettings
 from controller_node.types import Measurement
-from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel
+from gp_model.narx import PLATE_MODEL_PATH, NarxGPModel
 
 H = 40
 SP = 0.063e-6
@@ -25,7 +25,7 @@ DT = 50e-6
 
 @pytest.fixture(scope="module")
 def model() -> NarxGPModel:
-    return NarxGPModel.load(DEFAULT_MODEL_PATH)
+    return NarxGPModel.load(PLATE_MODEL_PATH)
 
 
 def _kernels(model, seed: int, blind: int, z_sigma: float = 0.0) -> tuple[PreviewQP, list[Kernel]]:

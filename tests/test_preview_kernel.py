@@ -13,7 +13,7 @@ from controller_node import preview_kernel
 from controller_node.preview_kernel import Kernel, correction_into, exp_into
 from controller_node.preview_qp import PreviewQP
 from controller_node.preview_stages import StateContext
-from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel, forecast_t_ahead
+from gp_model.narx import PLATE_MODEL_PATH, NarxGPModel, forecast_t_ahead
 
 H = 40
 SP = 0.063e-6
@@ -21,7 +21,7 @@ SP = 0.063e-6
 
 @pytest.fixture(scope="module")
 def model() -> NarxGPModel:
-    return NarxGPModel.load(DEFAULT_MODEL_PATH)
+    return NarxGPModel.load(PLATE_MODEL_PATH)
 
 
 def _case(model: NarxGPModel, seed: int, *, r: float = 1.0, blind: int = 0, n_variance: int = H,
@@ -63,7 +63,8 @@ def test_nothing_a_previous_update_left_in_the_workspace_is_read(model, stale):
 def test_variance_is_the_gps_own(model, seed):
     _, _, psi, (_, _, _, z, std, *_) = _case(model, seed)
     _, var = model.residual.predict(psi)
-    assert np.allclose(std, np.exp(z) * np.sqrt(var + model.residual.noise_variance), rtol=1e-9, atol=0.0)
+    _, slope = model.area_and_slope(z)  # the output map's slope (exp(z) for the log output, 1 for identity)
+    assert np.allclose(std, slope * np.sqrt(var + model.residual.noise_variance), rtol=1e-9, atol=0.0)
 
 
 def test_variance_only_for_the_rows_asked(model):
@@ -142,8 +143,8 @@ def test_building_the_controller_compiles_every_compiled_function():
         "from controller_node.registry import make_controller\n"
         "from controller_node.settings import ControllerSettings\n"
         "from controller_node import preview_kernel as k, preview_stages as s\n"
-        "from gp_model.narx import DEFAULT_MODEL_PATH, NarxGPModel\n"
-        "model = NarxGPModel.load(DEFAULT_MODEL_PATH)\n"
+        "from gp_model.narx import PLATE_MODEL_PATH, NarxGPModel\n"
+        "model = NarxGPModel.load(PLATE_MODEL_PATH)\n"
         "make_controller('preview-mpc', ControllerSettings(set_point_m2=6.3e-8), model)\n"
         "print([len(f.signatures) for f in (k.update_into, k.prepare_into, k.feedback_into, s._has_step,\n"
         "                                    s.forget_prediction)])\n"
