@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from messages import in625
+
 from .types import Diagnostics, Measurement
 
 __all__ = ["AnalyticMeltPoolModel", "multitrack_temperature", "ClosedLoopResult", "run_closed_loop"]
@@ -46,7 +48,7 @@ class AnalyticMeltPoolModel:
     power_ref_w: float = 250.0
     speed_ref_m_s: float = 0.8
     t_ambient_k: float = 300.0
-    t_liquidus_k: float = 1623.0
+    t_liquidus_k: float = in625.T_LIQUIDUS_K
     n_p: float = 1.2
     n_t: float = 0.5
     n_v: float = 0.5

@@ -35,6 +35,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from messages.in625 import (
+    CP_0C_J_KGK,
+    CP_SLOPE_J_KGK2,
+    K_0C_W_MK,
+    K_SLOPE_W_MK2,
+    LATENT_J_KG,
+    RHO_KG_M3,
+    T_BOIL_K,
+    T_LIQUIDUS_K,
+    T_SOLIDUS_K,
+)
+
 _C0 = 273.15
 
 
@@ -65,15 +77,15 @@ class Material:
     """
 
     name: str = "IN625"
-    rho: float = 8440.0
-    cp_a: float = 405.0
-    cp_b: float = 0.247
-    k_a: float = 9.5
-    k_b: float = 0.0150
-    latent: float = 2.8e5
-    t_solidus: float = 1563.0
-    t_liquidus: float = 1623.0
-    t_boil: float = 3190.0
+    rho: float = RHO_KG_M3
+    cp_a: float = CP_0C_J_KGK
+    cp_b: float = CP_SLOPE_J_KGK2
+    k_a: float = K_0C_W_MK
+    k_b: float = K_SLOPE_W_MK2
+    latent: float = LATENT_J_KG
+    t_solidus: float = T_SOLIDUS_K
+    t_liquidus: float = T_LIQUIDUS_K
+    t_boil: float = T_BOIL_K
 
     def __post_init__(self):
         if not (self.rho > 0 and self.latent >= 0):
@@ -91,7 +103,7 @@ class Material:
 
     @classmethod
     def constant(cls, k: float, rho: float, cp: float, latent: float = 0.0,
-                 t_solidus: float = 1563.0, t_liquidus: float = 1623.0) -> Material:
+                 t_solidus: float = T_SOLIDUS_K, t_liquidus: float = T_LIQUIDUS_K) -> Material:
         """Constant k [W/(m K)], rho [kg/m³], cp [J/(kg K)]; optional latent heat [J/kg]."""
         return cls(name="constant", rho=rho, cp_a=cp, cp_b=0.0, k_a=k, k_b=0.0,
                    latent=latent, t_solidus=t_solidus, t_liquidus=t_liquidus)

@@ -30,24 +30,26 @@ from fe_node.material import Constitutive
 from fe_node.mesh import Grid, graded_axis
 from fe_node.operators import TensorOperator
 from fe_node.settings import Settings
+from messages import in625
 
 C0 = 273.15
-RHO, LATENT, T_SOL, T_LIQ = 8440.0, 2.8e5, 1563.0, 1623.0
+RHO, LATENT, T_SOL, T_LIQ = in625.RHO_KG_M3, in625.LATENT_J_KG, in625.T_SOLIDUS_K, in625.T_LIQUIDUS_K
+CP0, CP1, K0, K1 = in625.CP_0C_J_KGK, in625.CP_SLOPE_J_KGK2, in625.K_0C_W_MK, in625.K_SLOPE_W_MK2
 FLUX_W_M2, T_ON_S, T0_K, DEPTH_M = 4e8, 5e-3, 300.0, 1.5e-3
 
 
 def _cp(t):
-    return 405.0 + 0.247 * (np.minimum(t, T_LIQ) - C0)
+    return CP0 + CP1 * (np.minimum(t, T_LIQ) - C0)
 
 
 def _k(t):
-    return 9.5 + 0.015 * (np.minimum(t, T_SOL) - C0)
+    return K0 + K1 * (np.minimum(t, T_SOL) - C0)
 
 
 def enthalpy(t):
     """IN625 volumetric enthalpy [J/m³] at ``t`` [K] (closed form of the literal properties)."""
     tc = np.minimum(t, T_LIQ)
-    sensible = (405.0 - 0.247 * C0) * tc + 0.5 * 0.247 * tc**2 + np.maximum(t - T_LIQ, 0.0) * _cp(T_LIQ)
+    sensible = (CP0 - CP1 * C0) * tc + 0.5 * CP1 * tc**2 + np.maximum(t - T_LIQ, 0.0) * _cp(T_LIQ)
     return RHO * (sensible + LATENT * np.clip((t - T_SOL) / (T_LIQ - T_SOL), 0.0, 1.0))
 
 
@@ -58,7 +60,7 @@ def _d_enthalpy(t):
 def _psi(t):
     """``int_0^T k`` [W/m]."""
     tc = np.minimum(t, T_SOL)
-    return (9.5 - 0.015 * C0) * tc + 0.5 * 0.015 * tc**2 + np.maximum(t - T_SOL, 0.0) * _k(T_SOL)
+    return (K0 - K1 * C0) * tc + 0.5 * K1 * tc**2 + np.maximum(t - T_SOL, 0.0) * _k(T_SOL)
 
 
 def implicit_column(h_m: float = 2e-6, dt_s: float = 2e-6, flux_w_m2: float = FLUX_W_M2,

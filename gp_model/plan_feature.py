@@ -42,14 +42,16 @@ from typing import Any
 
 import numpy as np
 
+from messages import in625
+
 __all__ = ["TurnFeature", "turn_feature_series"]
 
 
 def _rho_cp(t_k: float) -> tuple[float, float]:
-    """ρc [J/(m³ K)] and α [m²/s] of the plant's IN625 (:class:`fe_node.material.Material`'s linear
-    set, restated here: the model does not import the plant) at ``t_k`` [K]."""
+    """ρc [J/(m³ K)] and α [m²/s] of the plant's IN625 (:mod:`messages.in625`) at ``t_k`` [K]."""
     t_c = t_k - 273.15
-    rho, cp, k = 8440.0, 405.0 + 0.247 * t_c, 9.5 + 0.0150 * t_c
+    rho, cp = in625.RHO_KG_M3, in625.CP_0C_J_KGK + in625.CP_SLOPE_J_KGK2 * t_c
+    k = in625.K_0C_W_MK + in625.K_SLOPE_W_MK2 * t_c
     return rho * cp, k / (rho * cp)
 
 

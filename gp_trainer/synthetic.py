@@ -19,7 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-T_LIQUIDUS_K = 1623.0
+from messages.in625 import T_LIQUIDUS_K
+
 T_AMBIENT_K = 300.0
 DT_S = 50e-6
 TRACK_LENGTH_M = 5e-3
