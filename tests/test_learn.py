@@ -159,13 +159,13 @@ def test_launch_picks_the_model_of_the_plants_layer(tmp_path):
 def test_learn_end_to_end_on_a_short_coarse_case(tmp_path, capsys):
     """``learn`` on the bare plate, every run cut to 80 steps on a 50 µm mesh: operating point, both
     stages, the model with its stage-1 model, the report and the plots; a re-run skips every run."""
-    config = _config(tmp_path, "[plant]\n")
+    config = _config(tmp_path, '[plant]\npreset = "bare-plate"\n')
     argv = ["learn", "--config", str(config), "--out", str(tmp_path / "m.json"), "--out-dir", str(tmp_path / "rec"),
             "--h-um", "50", "--max-steps", "80", "--no-progress", "--json"]
     assert main(argv) == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert report["status"] == "ok" and 150.0 < report["operating_point"]["power_w"] < 350.0
-    assert len(report["runs"]) == 21 and all(r["status"] == "ok" for r in report["runs"])
+    assert len(report["runs"]) == 20 and all(r["status"] == "ok" for r in report["runs"])
     model = NarxGPModel.load(tmp_path / "m.json")
     assert model.powder_layer_m == 0.0 and model.provenance["design"]["held_out"] == report["held_out"]
     assert NarxGPModel.load(tmp_path / "m_stage1.json").provenance["runs"] != model.provenance["runs"]
