@@ -40,6 +40,7 @@ def pytest_configure(config: pytest.Config) -> None:
         subprocess.run([sys.executable, "-c", WARM_NUMBA], cwd=REPO, capture_output=True, timeout=600)
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups into the node ids
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Under pytest-xdist (``--dist loadgroup``), keep the tests that share one of this suite's
     module- or session-scoped fixtures on one worker, so that the fixture is built once: group
