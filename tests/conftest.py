@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import tempfile
+import time
 import uuid
 from pathlib import Path
 
@@ -17,34 +19,75 @@ REPO = Path(__file__).resolve().parent.parent
 
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 WARM_NUMBA = """
-from controller_node.node import load_model
-from controller_node.registry import CONTROLLERS, make_controller
-from controller_node.settings import ControllerSettings
-for name in CONTROLLERS:
-    make_controller(name, ControllerSettings(), load_model(name, None))
+import pathlib, sys
+try:
+    from controller_node.node import load_model
+    from controller_node.registry import CONTROLLERS, make_controller
+    from controller_node.settings import ControllerSettings
+    for name in CONTROLLERS:
+        make_controller(name, ControllerSettings(), load_model(name, None))
+finally:
+    pathlib.Path(sys.argv[1]).touch()
 """
+WARM_DONE_VARIABLE = "MELTLOOP_TEST_NUMBA_WARM"
+"""Environment variable naming the file that :data:`WARM_NUMBA` creates when it ends."""
+NUMBA_FREE_MODULES = frozenset({
+    "test_bench_loop_metrics.py", "test_fe_cases.py", "test_fe_core.py", "test_fe_layers.py", "test_fe_operators.py",
+    "test_fe_physics.py", "test_fe_powder_evaporation.py", "test_fe_window.py", "test_messages.py",
+    "test_recorder_property.py", "test_recorder_rules.py", "test_resources.py", "test_spare_core.py",
+})
+"""Test modules that build no controller or GP model (no numba function): they run first, while the
+warm-up compiles; every other test waits for it."""
+WARM_TIMEOUT_S = 600.0
 
 
 def pytest_configure(config: pytest.Config) -> None:
     """Under pytest-xdist, before the workers start: BLAS on one thread in each process (the workers
     already take both cores; OpenBLAS's spinning threads would fight them for the cores), and, for
-    the default run, every controller built once in a fresh interpreter, which compiles numba's
-    cached functions (about 35 s of CPU on a fresh clone, loaded in a few seconds after) so that no
-    two workers or nodes compile them at once."""
+    the default run, every controller built once in a fresh interpreter started in the background,
+    which compiles numba's cached functions (about 35 s of CPU on a fresh clone, loaded in a few
+    seconds after). The workers run the :data:`NUMBA_FREE_MODULES` meanwhile; every other test waits
+    for it (:func:`pytest_runtest_setup`), so that no two workers or nodes compile at once."""
     if not getattr(config.option, "numprocesses", None) or hasattr(config, "workerinput"):
         return
     for name in BLAS_THREAD_VARIABLES:  # inherited by the workers and everything they start
         os.environ.setdefault(name, "1")
     if config.args_source is pytest.Config.ArgsSource.TESTPATHS:
+        done = Path(tempfile.mkdtemp(prefix="meltloop-warm-")) / "done"
+        os.environ[WARM_DONE_VARIABLE] = str(done)
         # (a controller that cannot be built fails its own tests; the run goes on)
-        subprocess.run([sys.executable, "-c", WARM_NUMBA], cwd=REPO, capture_output=True, timeout=600)
+        config.stash[WARM_PROCESS] = subprocess.Popen([sys.executable, "-c", WARM_NUMBA, str(done)], cwd=REPO,
+                                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+WARM_PROCESS = pytest.StashKey[subprocess.Popen]()
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """End the warm-up process of :func:`pytest_configure`, if any (a run cut short)."""
+    process = config.stash.get(WARM_PROCESS, None)
+    if process is not None and process.poll() is None:
+        process.kill()
+        process.wait()
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Outside :data:`NUMBA_FREE_MODULES`, wait for the warm-up of :func:`pytest_configure`, if it runs."""
+    done = os.environ.get(WARM_DONE_VARIABLE)
+    if done is None or item.path.name in NUMBA_FREE_MODULES:
+        return
+    deadline = time.monotonic() + WARM_TIMEOUT_S
+    while not os.path.exists(done) and time.monotonic() < deadline:
+        time.sleep(0.2)
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups into the node ids
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Under pytest-xdist (``--dist loadgroup``), keep the tests that share one of this suite's
     module- or session-scoped fixtures on one worker, so that the fixture is built once: group
-    ``<file>`` for a module fixture, ``<fixture name>`` for a session fixture (e.g. ``mpc_run``)."""
+    ``<file>`` for a module fixture, ``<fixture name>`` for a session fixture (e.g. ``mpc_run``).
+    The :data:`NUMBA_FREE_MODULES` come first (they run during the numba warm-up)."""
+    items.sort(key=lambda item: item.path.name not in NUMBA_FREE_MODULES)  # (stable: in file order otherwise)
     tests_dir = Path(__file__).resolve().parent
     for item in items:
         info = getattr(item, "_fixtureinfo", None)
