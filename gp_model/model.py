@@ -267,19 +267,9 @@ class GPModel:
         return out
 
     def variance_and_jacobian(self, z: np.ndarray) -> tuple[float, np.ndarray]:
-        """Posterior latent variance and its gradient with respect to ``z``.
-
-        Parameters
-        ----------
-        z : np.ndarray, shape (d,)
-            As in :meth:`predict`.
-
-        Returns
-        -------
-        tuple[float, np.ndarray]
-            Variance [m⁴] and its gradient, shape (d,): ``[m², m⁴/K, m⁴/W, m⁴/(m/s)[, m²]]``. Where the
-            variance is clipped at 0 (numerically, at a training point) the gradient is 0.
-        """
+        """Posterior latent variance [m⁴] at ``z`` (shape (d,), as in :meth:`predict`) and its gradient
+        with respect to ``z``, shape (d,): ``[m², m⁴/K, m⁴/W, m⁴/(m/s)[, m²]]``. Where the variance is
+        clipped at 0 (numerically, at a training point) the gradient is 0."""
         k, w = self._kernel_row(z)
         v = self._variance_factor @ k
         variance = self._prior_variance - float(v @ v)

@@ -44,11 +44,10 @@ def farthest_point_indices(Z: np.ndarray, n_select: int, *, seed: int = 0) -> np
         Distinct row indices in the order they were chosen.
     """
     Z = _candidates(Z, n_select)
-    n = Z.shape[0]
     std = Z.std(axis=0)
     U = (Z - Z.mean(axis=0)) / np.where(std > 0.0, std, 1.0)
     chosen = np.empty(n_select, dtype=np.intp)
-    chosen[0] = np.random.default_rng(seed).integers(n)
+    chosen[0] = np.random.default_rng(seed).integers(Z.shape[0])
     nearest = np.sum((U - U[chosen[0]]) ** 2, axis=1)
     for i in range(1, n_select):
         chosen[i] = int(np.argmax(nearest))
