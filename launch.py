@@ -18,10 +18,11 @@ from typing import Any
 
 from controller_node.node import load_model
 from controller_node.preview import parse_learning_state, process_mismatch
+from controller_node.process import process_table
 from controller_node.registry import CONTROLLERS
 from controller_node.report import WINDOW_START_S, plot, read_trace
 from controller_node.report import main as report_main
-from controller_node.settings import ControllerSettings
+from controller_node.settings import ControllerSettings, merged_over
 from controller_node.summary import comparison_table, summarise, table_line
 from fe_node.commands import CommandPolicy
 from fe_node.scenarios import NAMES, PART_NAMES, PART_POWER_W, scenario
@@ -125,6 +126,8 @@ def check_config(opts: RunOptions) -> None:
     except (ValueError, TypeError) as err:
         raise UsageError(f"{opts.config} [plant]: {err}" if opts.config else str(err)) from None
     table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
+    process = process_model(opts) if opts.closed_loop else None
+    table = merged_over(process_table(process), table) if process else table  # as the controller node merges them
     settings = build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint_mm2 * 1e-6)
     model = load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
     if opts.closed_loop:
@@ -178,21 +181,29 @@ def check_within_plant(settings: ControllerSettings, where: str) -> None:
                          f"[{plant.speed_min_m_s:g}, {plant.speed_max_m_s:g}] m/s")
 
 
-def default_model(opts: RunOptions) -> Path | None:
-    """The model of the run's plant if it is not the controller's default, for ``preview-mpc``: the part
-    model (``gp_model.narx.PART_MODEL_PATH``) on a part scenario, the bare plate's
-    (``gp_model.narx.default_model_path``) on a plate without powder."""
-    if opts.controller != "preview-mpc":
-        return None
+def process_model(opts: RunOptions) -> Path | None:
+    """The learned model of the run's process: ``--model``, else the part model
+    (``gp_model.narx.PART_MODEL_PATH``) on a part scenario, else the shipped model of the plate's powder
+    layer (``gp_model.narx.default_model_path``); ``None`` when the configuration is bad (check_config
+    names the key)."""
+    if opts.model is not None:
+        return opts.model
     if opts.scenario in PART_NAMES:
         return PART_MODEL_PATH
     if opts.scenario not in NAMES:
-        return None  # check_config names the unknown scenario
+        return None
     try:
         plant = scenario(opts.scenario, **{**load_toml(opts.config).get("plant", {}), **opts.plant_overrides})
     except (ValueError, TypeError):
-        return None  # check_config names the bad key
-    path = default_model_path(plant.settings.powder_layer_m)
+        return None
+    return default_model_path(plant.settings.powder_layer_m)
+
+
+def default_model(opts: RunOptions) -> Path | None:
+    """The ``preview-mpc``'s model if it is not the controller's default: :func:`process_model`."""
+    if opts.controller != "preview-mpc":
+        return None
+    path = process_model(opts)
     return None if path == DEFAULT_MODEL_PATH else path
 
 
@@ -220,6 +231,8 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
                       "recorder", *common]
         model = opts.model or default_model(opts)
         controller += ["--model", str(model)] if model else []
+        process = process_model(opts)
+        controller += ["--process", str(process)] if process else []
         controller += ["--preset", "part"] if opts.scenario in PART_NAMES else []
         nominal = part_nominal_power(opts)
         controller += ["--nominal-power-w", repr(nominal)] if nominal is not None else []

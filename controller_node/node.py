@@ -24,8 +24,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from controller_node.process import process_table
 from controller_node.registry import CONTROLLERS, MODELS, make_controller
-from controller_node.settings import PLANT_PRESETS, ControllerSettings, with_preset
+from controller_node.settings import PLANT_PRESETS, ControllerSettings, merged_over, with_preset
 from controller_node.types import ConfigurationError, Measurement
 from gp_model.atomic import atomic_write_bytes
 from gp_model.files import load_for_node
@@ -360,6 +361,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--preset", choices=tuple(PLANT_PRESETS),
                         help="settings for another plant than the bare plate, under --config's "
                              "(launch.py passes 'part' on a part scenario)")
+    parser.add_argument("--process", type=Path, metavar="MODEL",
+                        help="a model learned by `python -m gp_trainer learn`: its recorded operating power and PID "
+                             "tuning (controller_node.process) under --config's [controller] values (launch.py passes "
+                             "the model of the run's plant)")
     parser.add_argument("--plant", default="plant", help="name of the plant node to follow (default: %(default)s)")
     parser.add_argument("--busy-wait", action="store_true",
                         help="poll for the plant's states instead of sleeping until one arrives: keeps one core "
@@ -372,12 +377,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
-    """The ``[controller]`` table of ``--config`` over ``--preset``, then ``--setpoint-mm2`` and
-    ``--nominal-power-w`` (:class:`UsageError` naming a bad key)."""
+    """The ``[controller]`` table of ``--config`` over ``--preset`` over ``--process``'s record, then
+    ``--setpoint-mm2`` and ``--nominal-power-w`` (:class:`UsageError` naming a bad key)."""
     table = dict(load_toml(args.config).get("controller", {}))
     table.pop("name", None)  # the controller's name is a launch option
+    table = with_preset(table, args.preset)
+    if args.process is not None:
+        table = merged_over(process_table(args.process), table)
     set_point = None if args.setpoint_mm2 is None else args.setpoint_mm2 * 1e-6
-    return build(ControllerSettings, with_preset(table, args.preset), "[controller]", set_point_m2=set_point,
+    return build(ControllerSettings, table, "[controller]", set_point_m2=set_point,
                  nominal_power_w=args.nominal_power_w)
 
 

@@ -417,9 +417,12 @@ Chosen by the sweep in CHANGELOG.md ("Parts: the preset sweep"), at the move wei
 
 def with_preset(table: dict, preset: str | None) -> dict:
     """``table`` (a ``[controller]`` TOML table) over ``PLANT_PRESETS[preset]``, nested tables merged."""
-    if preset is None:
-        return dict(table)
-    merged = {k: dict(v) if isinstance(v, dict) else v for k, v in PLANT_PRESETS[preset].items()}
+    return dict(table) if preset is None else merged_over(PLANT_PRESETS[preset], table)
+
+
+def merged_over(base: dict, table: dict) -> dict:
+    """``table`` (a ``[controller]`` TOML table) over ``base``, nested tables merged (``table`` wins)."""
+    merged = {k: dict(v) if isinstance(v, dict) else v for k, v in base.items()}
     for key, value in table.items():
         if isinstance(value, dict) and isinstance(merged.get(key), dict):
             merged[key] = {**merged[key], **value}

@@ -34,6 +34,7 @@ from gp_model import narx
 from gp_model.errors import DatasetError, GPError
 from gp_model.files import is_model_file
 from gp_model.model import DEFAULT_MODEL_PATH, DEFAULT_RESTARTS, GPModel
+from gp_model.narx import DEFAULT_MODEL_PATH as NARX_MODEL_PATH
 from gp_model.narx import NarxGPModel, series_from_states
 from gp_trainer import dataset, synthetic
 from gp_trainer.campaign import (
@@ -49,7 +50,7 @@ from gp_trainer.dataset import load_samples, read_states
 from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.evaluate import evaluate, plot_narx
 from gp_trainer.jobs import JobResult
-from gp_trainer.learn import LearnSettings, design_from_record, learn, process_record
+from gp_trainer.learn import LearnSettings, design_from_record, learn, process_record, retune
 from gp_trainer.narx_fit import ROLLOUT_HORIZON, evaluate_model, select_and_fit
 from gp_trainer.provenance import REPO_ROOT
 from gp_trainer.train import TrainSettings, train
@@ -176,6 +177,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recordings, report and plots (a re-run skips complete recordings)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fits")
     _runner_options(p, "run")
+
+    p = sub.add_parser(
+        "tune-pid", formatter_class=fmt, help="tune the PID baseline of a learned model on its training staircases",
+        description="Fit a first-order-plus-dead-time model to the training power staircases of a model learned "
+        "by `learn` (its provenance.design names them and their directory) and write the SIMC PI gains and the "
+        "operating power into its provenance.controller, which launch.py gives every controller on that process "
+        "(`learn` writes the same record).")
+    p.add_argument("--model", type=Path, default=NARX_MODEL_PATH,
+                   help="model file (JSON), rewritten (default: the shipped model of the physical plant)")
+    p.add_argument("--json", action="store_true", help="print the record as JSON")
     return parser
 
 
@@ -456,6 +467,17 @@ def _narx(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tune_pid(args: argparse.Namespace) -> int:
+    record = retune(args.model)
+    pid = record["pid"]
+    print(f"PID kp_w = {pid['kp_w']:.4g} W, ki_w = {pid['ki_w']:.4g} W/step, kd_w = 0 W from "
+          f"{len(pid['runs'])} staircases; nominal power {record['nominal_power_w']:g} W -> {args.model}",
+          file=sys.stderr)
+    if args.json:
+        print(json.dumps(record))
+    return 0
+
+
 def _learn(args: argparse.Namespace) -> int:
     try:
         data = load_toml(args.config)
@@ -501,7 +523,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     command = {"dataset": _dataset, "train": _train, "evaluate": _evaluate, "campaign": _campaign, "narx": _narx,
-               "identify": _identify, "learn": _learn}[args.command]
+               "identify": _identify, "learn": _learn, "tune-pid": _tune_pid}[args.command]
     try:
         return command(args)
     except GPError as exc:

@@ -13,6 +13,9 @@ delay-aware model of it:
    Dask, partial/complete recordings, a re-run skips complete ones).
 3. **Fit** (:func:`gp_trainer.narx_fit.select_and_fit`: selection by the held-out 40-step rollout)
    after each stage, the held-out metrics and plots of the final model, and a JSON report.
+4. **Controller record** (:func:`controller_record`, in the model's ``provenance.controller``): the
+   operating power, from which every controller starts, and the PID baseline's gains tuned on the
+   training staircases (:mod:`gp_trainer.pid_tuning`).
 
 The functional core (:func:`find_operating_power`, :class:`~gp_trainer.campaign.ProcessDesign`) is
 free of FE runs; :func:`learn` is the shell that runs them.
@@ -30,12 +33,13 @@ from typing import Any
 
 from gp_model.atomic import atomic_write
 from gp_model.narx import NarxGPModel, RunSeries, series_from_states
-from gp_trainer.campaign import ProcessDesign, run_jobs
+from gp_trainer.campaign import IdentRun, ProcessDesign, run_jobs
 from gp_trainer.dataset import read_states, recording_info
 from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.evaluate import plot_narx
 from gp_trainer.jobs import JobResult, RunnerSettings, job_recording
 from gp_trainer.narx_fit import select_and_fit
+from gp_trainer.pid_tuning import pid_record
 from gp_trainer.provenance import REPO_ROOT
 
 SEARCH_SCENARIO = "single-track"
@@ -180,8 +184,19 @@ class LearnSettings(RunnerSettings):
         return self.out_dir / "learn.json"
 
 
-def _series(settings: RunnerSettings, runs) -> list[RunSeries]:
-    return [series_from_states(read_states(job_recording(settings, r.job())), r.name) for r in runs]
+def _series(recordings_dir: Path, runs) -> list[RunSeries]:
+    return [series_from_states(read_states(recordings_dir / f"{r.name}.mcap"), r.name) for r in runs]
+
+
+def controller_record(recordings_dir: Path, design: ProcessDesign) -> dict[str, Any]:
+    """The model's ``provenance.controller``: ``nominal_power_w``, the operating power [W] (the power
+    at laser-on and during the build-up of every controller on this process), and ``pid``, the PID
+    baseline tuned on the design's training staircases (not the held-out ones) by
+    :func:`gp_trainer.pid_tuning.pid_record`."""
+    held = set(design.held_out())
+    staircases = [r for r in design.stage1_runs() if isinstance(r, IdentRun) and r.name not in held]
+    return {"nominal_power_w": design.operating_power_w,
+            "pid": pid_record(_series(recordings_dir, staircases), design.setpoint_mm2 * 1e-6)}
 
 
 def process_record(paths: list[Path]) -> dict[str, Any]:
@@ -205,11 +220,22 @@ def process_record(paths: list[Path]) -> dict[str, Any]:
     return record
 
 
+def retune(model_path: Path) -> dict[str, Any]:
+    """Write :func:`controller_record` into the model at ``model_path`` from the recordings and design its
+    ``provenance.design`` names (``python -m gp_trainer tune-pid``); the record."""
+    model = NarxGPModel.load(model_path)
+    design, recordings_dir = design_from_record(model.provenance.get("design") or {})
+    recordings_dir = recordings_dir if recordings_dir.is_absolute() else REPO_ROOT / recordings_dir
+    model.provenance["controller"] = controller_record(recordings_dir, design)
+    model.save(model_path)
+    return model.provenance["controller"]
+
+
 def _fit(settings: LearnSettings, design: ProcessDesign, runs, out: Path, provenance: dict[str, Any]
          ) -> tuple[NarxGPModel, dict[str, Any], list[RunSeries]]:
     """Select and fit the model on ``runs`` but the design's held-out ones, write it to ``out``; the model,
     its held-out row and the held-out runs."""
-    series = _series(settings, runs)
+    series = _series(settings.out_dir, runs)
     held_names = set(design.held_out())
     held = [r for r in series if r.name in held_names]
     train = [r for r in series if r.name not in held_names]
@@ -284,6 +310,8 @@ def learn(settings: LearnSettings, *, progress: bool = True,
             report.update(status="failed", failed=failed)
             _write_report(settings.report_out, report)
             return report
+        if stage == 1:
+            provenance["controller"] = controller_record(settings.out_dir, design)
         log(f"stage {stage}: selecting and fitting the model on {len(fit_on)} runs")
         model, report[key], held = _fit(settings, design, fit_on, out, provenance)
         log(f"stage {stage}: held-out 40-step rollout {report[key]['rollout_h40_mape_pct']:.2f} % -> {out}")

@@ -1,0 +1,147 @@
+"""The PID baseline tuned by a documented method on training runs only: SIMC rules on a
+first-order-plus-dead-time (FOPDT) model fitted to the open-loop power staircases of ``learn``.
+
+The FOPDT model, in discrete time along the tracks (the states at least
+:data:`~controller_node.report.TURNAROUND_STEPS` after a track's start, so the turnarounds, which a
+FOPDT cannot represent, do not bias it):
+
+    x[k+1] = a x[k] + b p[k+1−d] + c,
+
+is fitted by least squares for each delay d = 0 … :data:`MAX_DELAY_STEPS` (``p[j]`` is the power
+applied during step j−1 → j, so ``d = 0`` already is one step of transport), keeping the delay of
+the smallest residual. Then ``K = b/(1−a)`` [m²/W], ``τ = −Δt/ln a`` [s] and the dead time
+``θ = (d + ½) Δt`` [s] (half a sample for the zero-order hold).
+
+The SIMC PI rules (Skogestad 2003) with the tight closed-loop time constant ``τ_c = θ``:
+
+    K_c = τ / (K (τ_c + θ)),   τ_I = min(τ, 4 (τ_c + θ)),
+
+in the units of :class:`~controller_node.settings.PIDSettings` (relative error
+``e = (x_sp − x)/x_sp``): ``kp_w = K_c x_sp``, ``ki_w = kp_w Δt/τ_I`` per step, ``kd_w = 0``.
+
+Reference: S. Skogestad, "Simple analytic rules for model reduction and PID controller tuning",
+J. Process Control 13 (2003) 291–309, doi:10.1016/S0959-1524(02)00062-8.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from controller_node.report import TURNAROUND_STEPS
+from gp_model.errors import DatasetError
+from gp_model.narx import RunSeries
+
+__all__ = ["Fopdt", "MAX_DELAY_STEPS", "METHOD", "fit_fopdt", "pid_record", "simc_gains"]
+
+MAX_DELAY_STEPS = 10
+"""Largest delay d [steps] the FOPDT fit tries."""
+METHOD = ("SIMC PI rules (Skogestad, J. Process Control 13 (2003) 291-309), tau_c = theta, on a FOPDT model "
+          "fitted to the training power staircases along the tracks")
+"""How the gains were found, as the model's record states it."""
+
+
+@dataclass(frozen=True)
+class Fopdt:
+    """A first-order-plus-dead-time model of the area's response to power (module docstring).
+
+    Attributes
+    ----------
+    gain_m2_per_w : float
+        Steady gain K [m²/W] (> 0).
+    time_constant_s : float
+        Time constant τ [s] (> 0).
+    dead_time_s : float
+        Dead time θ = (d + ½) Δt [s].
+    delay_steps : int
+        The delay d [steps] of the best fit.
+    sample_period_s : float
+        Δt [s].
+    residual_rms_m2 : float
+        One-step residual of the fit [m²].
+    n_samples : int
+        Samples of the fit.
+    """
+
+    gain_m2_per_w: float
+    time_constant_s: float
+    dead_time_s: float
+    delay_steps: int
+    sample_period_s: float
+    residual_rms_m2: float
+    n_samples: int
+
+
+def _along_track(run: RunSeries, skip_steps: int) -> np.ndarray:
+    """Mask, shape (n,), of the states at least ``skip_steps`` after their track's (or layer's) start."""
+    new_track = np.r_[True, (np.diff(run.track) != 0) | (np.diff(run.layers()) != 0)]
+    start = np.maximum.accumulate(np.where(new_track, np.arange(len(run)), 0))
+    return np.arange(len(run)) - start >= skip_steps
+
+
+def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int = TURNAROUND_STEPS) -> Fopdt:
+    """The FOPDT model of ``runs`` (open-loop power staircases of one process), module docstring.
+
+    Parameters
+    ----------
+    runs : sequence of RunSeries
+        The runs, of one sample period.
+    skip_steps : int
+        States after a track's start left out of the fit.
+
+    Raises
+    ------
+    DatasetError
+        Runs of different sample periods, too few samples, or a fit that is not a stable positive
+        gain (0 < a < 1, b > 0): the staircases do not excite the process.
+    """
+    periods = {round(r.sample_period_s, 12) for r in runs}
+    if len(periods) != 1:
+        raise DatasetError(f"the staircases have different sample periods: {sorted(periods)} s")
+    dt = periods.pop()
+    best = None
+    for delay in range(MAX_DELAY_STEPS + 1):
+        rows, targets = [], []
+        for run in runs:
+            keep = _along_track(run, skip_steps)
+            k = np.arange(max(delay, 1), len(run) - 1)
+            k = k[keep[k] & keep[k + 1]]
+            rows.append(np.column_stack([run.area_m2[k], run.power_w[k + 1 - delay], np.ones(k.size)]))
+            targets.append(run.area_m2[k + 1])
+        X, y = np.vstack(rows), np.concatenate(targets)
+        if y.size < 10 * X.shape[1]:
+            raise DatasetError(f"the staircases give {y.size} samples along the tracks, too few for a FOPDT fit")
+        theta, *_ = np.linalg.lstsq(X, y, rcond=None)
+        rms = float(np.sqrt(np.mean((X @ theta - y) ** 2)))
+        if best is None or rms < best[0]:
+            best = (rms, delay, theta, y.size)
+    rms, delay, (a, b, _), n = best
+    if not (0.0 < a < 1.0 and b > 0.0):
+        raise DatasetError(f"the FOPDT fit is not a stable positive gain (a = {a:.4g}, b = {b:.4g} m²/W)")
+    return Fopdt(gain_m2_per_w=float(b / (1.0 - a)), time_constant_s=float(-dt / math.log(a)),
+                 dead_time_s=(delay + 0.5) * dt, delay_steps=int(delay), sample_period_s=dt,
+                 residual_rms_m2=rms, n_samples=int(n))
+
+
+def simc_gains(model: Fopdt, set_point_m2: float) -> dict[str, float]:
+    """SIMC PI gains (module docstring) as ``kp_w``, ``ki_w`` (per step) and ``kd_w`` [W per unit
+    relative error] at the set point ``set_point_m2`` [m²]."""
+    if not set_point_m2 > 0:
+        raise ValueError(f"set_point_m2 must be > 0, got {set_point_m2}")
+    tau_c = model.dead_time_s
+    kc = model.time_constant_s / (model.gain_m2_per_w * (tau_c + model.dead_time_s))
+    tau_i = min(model.time_constant_s, 4.0 * (tau_c + model.dead_time_s))
+    kp_w = kc * set_point_m2
+    return {"kp_w": float(kp_w), "ki_w": float(kp_w * model.sample_period_s / tau_i), "kd_w": 0.0}
+
+
+def pid_record(runs: Sequence[RunSeries], set_point_m2: float) -> dict[str, Any]:
+    """The ``pid`` entry of a model's ``provenance.controller``: the gains, the method, the FOPDT
+    model and the runs it was fitted on."""
+    model = fit_fopdt(runs)
+    return {**simc_gains(model, set_point_m2), "method": METHOD, "fopdt": asdict(model),
+            "runs": [r.name for r in runs]}
