@@ -7,10 +7,13 @@ FOPDT cannot represent, do not bias it):
 
     x[k+1] = a x[k] + b p[k+1−d] + c,
 
-is fitted by least squares for each delay d = 0 … :data:`MAX_DELAY_STEPS` (``p[j]`` is the power
-applied during step j−1 → j, so ``d = 0`` already is one step of transport), keeping the delay of
-the smallest residual. Then ``K = b/(1−a)`` [m²/W], ``τ = −Δt/ln a`` [s] and the dead time
-``θ = (d + ½) Δt`` [s] (half a sample for the zero-order hold).
+is fitted for each delay d = 0 … :data:`MAX_DELAY_STEPS` (``p[j]`` is the power applied during step
+j−1 → j, so ``d = 0`` already is one step of transport) by output-error least squares: the model is
+simulated over each stretch along a track from the stretch's first measured area, and its
+simulated areas are fitted to the measured ones (the one-step, equation-error fit starts it; it
+trades the delay for a slower pole and gave a PID that oscillated on the FE plant). The delay of the
+smallest simulation error is kept. Then ``K = b/(1−a)`` [m²/W], ``τ = −Δt/ln a`` [s] and the dead
+time ``θ = (d + ½) Δt`` [s] (half a sample for the zero-order hold).
 
 The SIMC PI rules (Skogestad 2003) with the tight closed-loop time constant ``τ_c = θ``:
 
@@ -31,6 +34,8 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import lfilter
 
 from controller_node.report import TURNAROUND_STEPS
 from gp_model.errors import DatasetError
@@ -62,7 +67,7 @@ class Fopdt:
     sample_period_s : float
         Δt [s].
     residual_rms_m2 : float
-        One-step residual of the fit [m²].
+        Simulation error of the fit along the tracks [m²].
     n_samples : int
         Samples of the fit.
     """
@@ -81,6 +86,33 @@ def _along_track(run: RunSeries, skip_steps: int) -> np.ndarray:
     new_track = np.r_[True, (np.diff(run.track) != 0) | (np.diff(run.layers()) != 0)]
     start = np.maximum.accumulate(np.where(new_track, np.arange(len(run)), 0))
     return np.arange(len(run)) - start >= skip_steps
+
+
+def _stretches(runs: Sequence[RunSeries], skip_steps: int, delay: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(area [m²], power [W] acting on each step)`` of every stretch of consecutive states at least
+    ``skip_steps`` after their track's start: ``power[j]`` drives ``area[j] → area[j+1]``."""
+    out = []
+    for run in runs:
+        keep = _along_track(run, skip_steps)
+        keep[:max(delay, 1)] = False
+        edges = np.flatnonzero(np.diff(np.r_[0, keep.astype(int), 0]))
+        for start, stop in zip(edges[::2], edges[1::2]):
+            if stop - start >= 2:
+                k = np.arange(start, stop - 1)
+                out.append((run.area_m2[start:stop], run.power_w[k + 1 - delay]))
+    return out
+
+
+def _simulated(theta: np.ndarray, stretches: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Simulation errors [m²] of ``x[k+1] = a x[k] + b p + c`` over every stretch, from its first area."""
+    a, b, c = theta
+    errors = [lfilter([1.0], [1.0, -a], b * power + c, zi=[a * area[0]])[0] - area[1:] for area, power in stretches]
+    return np.concatenate(errors)
+
+
+def _scaled_errors(q: np.ndarray, scale: np.ndarray, stretches: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """:func:`_simulated` at ``θ = q · scale`` in units of ``scale[2]`` (well-conditioned for the solver)."""
+    return _simulated(q * scale, stretches) / scale[2]
 
 
 def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int = TURNAROUND_STEPS) -> Fopdt:
@@ -105,23 +137,25 @@ def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int = TURNAROUND_STEPS) -> 
     dt = periods.pop()
     best = None
     for delay in range(MAX_DELAY_STEPS + 1):
-        rows, targets = [], []
-        for run in runs:
-            keep = _along_track(run, skip_steps)
-            k = np.arange(max(delay, 1), len(run) - 1)
-            k = k[keep[k] & keep[k + 1]]
-            rows.append(np.column_stack([run.area_m2[k], run.power_w[k + 1 - delay], np.ones(k.size)]))
-            targets.append(run.area_m2[k + 1])
-        X, y = np.vstack(rows), np.concatenate(targets)
-        if y.size < 10 * X.shape[1]:
-            raise DatasetError(f"the staircases give {y.size} samples along the tracks, too few for a FOPDT fit")
-        theta, *_ = np.linalg.lstsq(X, y, rcond=None)
-        rms = float(np.sqrt(np.mean((X @ theta - y) ** 2)))
+        stretches = _stretches(runs, skip_steps, delay)
+        n = sum(area.size - 1 for area, _ in stretches)
+        if n < 30:
+            raise DatasetError(f"the staircases give {n} samples along the tracks, too few for a FOPDT fit")
+        X = np.vstack([np.column_stack([area[:-1], power, np.ones(power.size)]) for area, power in stretches])
+        y = np.concatenate([area[1:] for area, _ in stretches])
+        start, *_ = np.linalg.lstsq(X, y, rcond=None)                  # equation error: the initial guess
+        if not 0.0 < start[0] < 1.0:
+            continue
+        scale = np.abs(start) + 1e-30
+        fit = least_squares(_scaled_errors, np.ones(3), args=(scale, stretches),
+                            bounds=([1e-6 / scale[0], -np.inf, -np.inf], [(1 - 1e-9) / scale[0], np.inf, np.inf]))
+        theta = fit.x * scale
+        rms = float(np.sqrt(np.mean(_simulated(theta, stretches) ** 2)))
         if best is None or rms < best[0]:
-            best = (rms, delay, theta, y.size)
+            best = (rms, delay, theta, n)
+    if best is None or not best[2][1] > 0.0:
+        raise DatasetError("the FOPDT fit is not a stable positive gain: the staircases do not excite the process")
     rms, delay, (a, b, _), n = best
-    if not (0.0 < a < 1.0 and b > 0.0):
-        raise DatasetError(f"the FOPDT fit is not a stable positive gain (a = {a:.4g}, b = {b:.4g} m²/W)")
     return Fopdt(gain_m2_per_w=float(b / (1.0 - a)), time_constant_s=float(-dt / math.log(a)),
                  dead_time_s=(delay + 0.5) * dt, delay_steps=int(delay), sample_period_s=dt,
                  residual_rms_m2=rms, n_samples=int(n))
