@@ -1,16 +1,17 @@
-"""Closed-loop regression guard: the shipped preview-MPC model on the FE plant, with thresholds.
+"""Closed-loop regression guard: the shipped preview-MPC models on the FE plant, with thresholds.
 
 The loop runs in process (no zenoh) as the nodes run it: every plant observation becomes the
 contract's ``MeltPoolState`` (:func:`fe_node.node.fe_state`) and the controller's
 ``Measurement`` (:func:`controller_node.node.measurement_from_state`); the controller answers it,
 then prepares its next update (the real-time iteration, as the controller node does after every
-command), and the plant takes the commanded power and speed for its next step. The metrics are the
-run report's (:func:`controller_node.report.metrics`, over the fixed window from 1 ms after laser-on).
+command), and the plant takes the commanded power and speed for its next step. The controller's
+settings are those ``launch.py`` gives it: the defaults under the model's recorded process
+(:func:`controller_node.process.process_table`). The metrics are the run report's
+(:func:`controller_node.report.metrics`, over the fixed window from 1 ms after laser-on).
 
-These are in-sample figures: the shipped model's identification runs include the layer and the
-double track at and around the default set point, on the plant :data:`tests.plants.MODEL_PRESET`,
-which these runs use. They guard against a regression of the model or the law; they say nothing
-about cases the model never saw.
+In sample, or next to it: each shipped model's identification runs include the double track at and
+around the default set point on its plant (the bare plate's and the physical plant's). They guard
+against a regression of the model or the law; they say nothing about cases the model never saw.
 """
 
 from __future__ import annotations
@@ -22,23 +23,26 @@ import pytest
 
 from controller_node import ControllerSettings, make_controller
 from controller_node.node import measurement_from_state
+from controller_node.process import process_table
 from controller_node.report import Metrics, Trace, metrics
 from fe_node.node import fe_state, n_steps
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
 from gp_model.narx import NarxGPModel, default_model_path
-from tests.plants import MODEL_PRESET
+from messages.config import build
+from tests.plants import BARE
 
 SETPOINT_MM2 = 0.063
 
 
-def closed_loop(name: str, setpoint_mm2: float = SETPOINT_MM2) -> Metrics:
-    """Run ``preview-mpc`` with the shipped model of the plant's layer on scenario ``name`` of the shipped
-    model's plant (:data:`tests.plants.MODEL_PRESET`) to its end; its metrics."""
-    sc = scenario(name, preset=MODEL_PRESET)
+def closed_loop(name: str, preset: str, setpoint_mm2: float = SETPOINT_MM2) -> Metrics:
+    """Run ``preview-mpc`` with the shipped model of the plant's layer on scenario ``name`` of plant
+    ``preset`` to its end, with the settings of that model's process; its metrics."""
+    sc = scenario(name, preset=preset)
     plant = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
-    ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=setpoint_mm2 * 1e-6),
-                           NarxGPModel.load(default_model_path(sc.settings.powder_layer_m)))
+    path = default_model_path(sc.settings.powder_layer_m)
+    settings = build(ControllerSettings, process_table(path), "[controller]", set_point_m2=setpoint_mm2 * 1e-6)
+    ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(path))
     total = n_steps(sc)
     obs = dataclasses.replace(plant.initial_observation(), speed_m_s=sc.profile.command(0)[1])  # as fe_node
     seen = []
@@ -60,7 +64,7 @@ def closed_loop(name: str, setpoint_mm2: float = SETPOINT_MM2) -> Metrics:
 def test_double_track_holds_the_area():
     """The double track at 0.063 mm² (in sample, 250 steps). Measured: 5.71 / 9.64 / 1.44 % (over / under /
     RMSE); the thresholds are a little above."""
-    m = closed_loop("double-track")
+    m = closed_loop("double-track", BARE)
     assert m.overshoot_pct <= 6.0 and m.undershoot_pct <= 10.0 and m.steady_rmse_pct <= 1.5, m
 
 
@@ -68,5 +72,5 @@ def test_double_track_holds_the_area():
 def test_default_layer_meets_the_acceptance_figures():
     """The layer at 0.063 mm² (in sample), against the acceptance target ≤ 7 / 10 / 1.5 %
     (over / under / RMSE). Measured: 5.76 / 9.60 / 1.20 %."""
-    m = closed_loop("layer")
+    m = closed_loop("layer", BARE)
     assert m.overshoot_pct <= 7.0 and m.undershoot_pct <= 10.0 and m.steady_rmse_pct <= 1.5, m
