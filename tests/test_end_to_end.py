@@ -66,11 +66,15 @@ def test_open_loop_profile_run(tmp_path):
 
 
 def test_same_config_gives_the_same_recording(tmp_path):
+    """Two runs of one configuration, side by side (each on its own hub), record the same states."""
+    outs = [tmp_path / f"{name}.mcap" for name in ("a", "b")]
+    procs = [subprocess.Popen([sys.executable, "launch.py", "--no-progress", "--controller", "pid", "--max-steps", "40",
+                               "--h-um", "40", "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True) for out in outs]
     traces = []
-    for name in ("a", "b"):
-        out = tmp_path / f"{name}.mcap"
-        status, output = run_launch("--controller", "pid", "--max-steps", "40", "--h-um", "40", "--out", str(out))
-        assert status == 0, output
+    for proc, out in zip(procs, outs):
+        output, _ = proc.communicate(timeout=240)
+        assert proc.returncode == 0, output
         traces.append([(s.step, s.area_mm2, s.power_w, s.t_ahead_k) for s in read_messages(out, "/plant/state")])
     assert traces[0] == traces[1]
 
