@@ -125,11 +125,11 @@ def check_config(opts: RunOptions) -> None:
         plant = scenario(opts.scenario, **{**data.get("plant", {}), **opts.plant_overrides})
     except (ValueError, TypeError) as err:
         raise UsageError(f"{opts.config} [plant]: {err}" if opts.config else str(err)) from None
+    model = load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
     table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
     process = process_model(opts) if opts.closed_loop else None
     table = merged_over(process_table(process), table) if process else table  # as the controller node merges them
     settings = build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint_mm2 * 1e-6)
-    model = load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
     if opts.closed_loop:
         check_within_plant(settings, f"{opts.config} [controller]")
     if opts.controller == "preview-mpc":
