@@ -65,6 +65,7 @@ class RunOptions:
     max_steps: int | None = None
     h_um: float | None = None
     model: Path | None = None
+    process: Path | None = None
     learning_state: Path | None = None
     fallback: str | None = None
     command_timeout_s: float | None = None
@@ -85,6 +86,7 @@ class RunOptions:
             (self.config is None or self.config.is_file(), f"--config: file not found: {self.config}"),
             (self.live is None or 1 <= self.live <= 65535, "--live: the port must be in 1..65535"),
             (self.model is None or self.model.is_file(), f"--model: file not found: {self.model}"),
+            (self.process is None or self.process.is_file(), f"--process: file not found: {self.process}"),
             (self.learning_state is None or self.controller == "preview-mpc",
              "--learning-state needs --controller preview-mpc"),
             (self.controller != "none" or (self.fallback is None and self.command_timeout_s is None),
@@ -182,12 +184,12 @@ def check_within_plant(settings: ControllerSettings, where: str) -> None:
 
 
 def process_model(opts: RunOptions) -> Path | None:
-    """The learned model of the run's process: ``--model``, else the part model
+    """The learned model of the run's process: ``--process``, else ``--model``, else the part model
     (``gp_model.narx.PART_MODEL_PATH``) on a part scenario, else the shipped model of the plate's powder
     layer (``gp_model.narx.default_model_path``); ``None`` when the configuration is bad (check_config
     names the key)."""
-    if opts.model is not None:
-        return opts.model
+    if opts.process is not None or opts.model is not None:
+        return opts.process or opts.model
     if opts.scenario in PART_NAMES:
         return PART_MODEL_PATH
     if opts.scenario not in NAMES:
@@ -267,6 +269,9 @@ def build_parser() -> argparse.ArgumentParser:
     add("--learning-state", type=Path, metavar="FILE", help="preview-mpc: start from FILE's learning, write this run's")
     add("--model", type=Path, help="model file of mpc, feedforward or preview-mpc (default: the controller's shipped "
                                    "model in gp_model/models/; refused with --compare)")
+    add("--process", type=Path, metavar="MODEL",
+        help="a model learned by `python -m gp_trainer learn` whose recorded operating power and PID tuning every "
+             "controller starts from (default: --model, else the shipped model of the plant)")
     add("--max-steps", type=int, help="end the run after this many plant steps")
     add("--h-um", type=float, help="fine FE element size [µm]")
     add("--fallback", help="what the plant applies when the controller is gone or late: safe (default) or hold")

@@ -38,6 +38,8 @@ CASES = [
     (["launch.py", "--controller", "pid", "--model", "gp_model/models/in625_gp.json"],
      "--model: the pid controller uses no model"),
     (["launch.py", "--model", "README.md"], "cannot load GP model README.md"),
+    (["launch.py", "--process", "missing.json"], "--process: file not found: missing.json"),
+    (["launch.py", "--controller", "pid", "--process", "README.md"], "--process: model file README.md is not valid"),
     (["launch.py", "--controller", "mpc", "--model", "gp_model/models/in625_narx_gp.json"],
      "is not a meltloop-gp-model file"),
     (["launch.py", "--compare", "--controller", "pid"], "--controller cannot be combined with --compare"),

@@ -113,3 +113,6 @@ def test_launch_gives_every_controller_the_process_of_the_plants_model(tmp_path,
     bare.write_text('[plant]\npreset = "bare-plate"\n')
     assert process_of(None) == str(DEFAULT_MODEL_PATH)
     assert process_of(bare) == str(PLATE_MODEL_PATH)
+    opts = RunOptions(controller=controller, config=bare, process=DEFAULT_MODEL_PATH)  # a learned process, chosen
+    args = list({n.name: n for n in default_nodes(opts, tmp_path / "r.mcap")}["controller"].args)
+    assert args[args.index("--process") + 1] == str(DEFAULT_MODEL_PATH)
