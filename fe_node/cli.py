@@ -37,7 +37,8 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--h-um", type=float, help="fine element size [µm] (default 25)")
     v.add_argument("--config", type=Path, help=config_help)
     v.add_argument("--json", action="store_true", help="print JSON only")
-    c = sub.add_parser("calibrate", help="fit absorptivities and liquid conductivity factors to the AM-Bench tracks")
+    c = sub.add_parser("calibrate", help="fit absorptivity, keyhole radius and liquid conductivity factors "
+                       "to the AM-Bench tracks")
     c.add_argument("--config", type=Path, help=config_help + " over the physical preset; its values start the fit")
     c.add_argument("--max-evaluations", type=int, default=40, help="plant evaluations of the fit (default 40)")
     c.add_argument("--out", type=Path, help="write the calibration record here (default: print only); "
@@ -119,6 +120,7 @@ def main(argv=None) -> int:
                 raise ValueError(f"--max-evaluations must be >= 1, got {args.max_evaluations}")
             res = calibrate(_settings(args, preset="physical"), args.max_evaluations,
                             log=(lambda m: None) if args.json else (lambda m: print(m, file=sys.stderr)))
+            res["command"] = " ".join(["python -m fe_node", *(sys.argv[1:] if argv is None else argv)])
             if args.out:
                 args.out.write_text(json.dumps(res, indent=1) + "\n")
     except ValueError as e:

@@ -1,4 +1,5 @@
-"""Keyhole onset: the surface temperature limit of the plant and where the beam's excess energy goes.
+"""Keyhole onset: the surface temperature limit of the plant, where the beam's excess energy goes,
+and the keyhole's absorptivity.
 
 Above the boiling point the vapour's recoil pressure, ``p_r = 0.54 p_sat(T)`` (Anisimov, Sov.
 Phys. JETP 27 (1968) 182), pushes the melt surface down once it beats the ambient pressure plus
@@ -11,11 +12,23 @@ surface tension of the melt and ``w`` the beam's 1/e² radius.  A hotter surface
 where the beam is absorbed: the keyhole opens and the beam drills down.  The plant models this
 without moving its surface: the enthalpy that would heat a top node above ``T_kh`` is carried
 down its vertical column and deposited in the first nodes below ``T_kh`` (the keyhole's
-bottom), so the absorbed energy is conserved and the surface never exceeds ``T_kh``.  Inside the
-keyhole's opening the beam is reflected several times before it leaves, so it is absorbed with
-the higher ``keyhole_absorptivity`` of :class:`~fe_node.settings.Settings` (the rise of
-absorptance at keyhole onset measured by Trapp et al., "In situ absorptivity measurements of
-metallic powders and substrates exposed to a laser beam", Appl. Mater. Today 9 (2017) 341).
+bottom), so the absorbed energy is conserved and the surface never exceeds ``T_kh``.
+
+The keyhole is a cavity: the beam is reflected several times inside before it leaves, so the
+molten metal under it absorbs more, the deeper the keyhole (the rise of absorptance with keyhole
+depth measured by Trapp et al., "In situ absorptivity measurements of metallic powders and
+substrates exposed to a laser beam", Appl. Mater. Today 9 (2017) 341).  The plant takes the
+cavity absorptance of Gouffé (Rev. Opt. 24 (1945) 1) without its second-order correction, for a
+cylinder of the beam's radius ``w`` and depth ``d`` with walls of absorptivity ``a``:
+
+    a_cav = a / (a (1 - s/S) + s/S),    s/S = w / (w + 2 d),
+
+``s`` the opening and ``S`` the cavity's inner surface (``a_cav = a`` without a keyhole, -> 1
+for a deep one).  The depth follows from the energy balance of the drilled field, not from a node
+count: ``d = V / (pi w²)``, ``V`` the vapour volume, each node counting with the share of its
+enthalpy between boiling and ``T_kh`` (:func:`vapour_volume_m3`).  One absorptivity for the
+whole beam, set once per step: a per-node switch to the keyhole's absorptivity at the opening's
+nodes made the absorbed power follow the mesh (docs/fe.md, "Measured").
 """
 from __future__ import annotations
 
@@ -87,3 +100,35 @@ def drill(h: np.ndarray, m: np.ndarray, h_cap: float, n_heated: int = 1) -> np.n
             break
     h[j, 0, i] += excess / m[j, 0, i]
     return opening
+
+
+def cavity_absorptivity(a, depth_m: float, radius_m: float):
+    """Gouffé's absorptance [-] of a cylindrical keyhole (module docstring) with walls of
+    absorptivity ``a`` [-] (any shape), depth ``depth_m`` >= 0 and radius ``radius_m`` > 0 [m]."""
+    opening = radius_m / (radius_m + 2.0 * depth_m)
+    return a / (a * (1.0 - opening) + opening)
+
+
+def vapour_depth_m(h: np.ndarray, m: np.ndarray, a_top: np.ndarray, h_boil: float, h_cap: float,
+                   weights: np.ndarray) -> float:
+    """Depth [m] of the keyhole's vapour under the beam: each column's vapour volume over its top
+    area, averaged with ``weights``.
+
+    A node counts with the share of its enthalpy between ``h_boil`` (boiling) and ``h_cap``
+    (keyhole onset), clipped to [0, 1].
+
+    Parameters
+    ----------
+    h : ndarray, shape (ny, nz, nx)
+        Nodal enthalpy [J/m³] of a block of whole columns.
+    m : ndarray, shape (ny, nz, nx)
+        Lumped nodal volumes [m³] (heat-capacity weight 1).
+    a_top : ndarray, shape (ny, nx)
+        Lumped top areas of the columns [m²].
+    h_boil, h_cap : float
+        Enthalpies [J/m³] at boiling and at keyhole onset.
+    weights : ndarray, shape (ny, nx)
+        Weight of each column [-] (the beam's relative intensity).
+    """
+    share = np.clip((h - h_boil) / (h_cap - h_boil), 0.0, 1.0)
+    return float(np.sum(weights * np.einsum("ikj,ikj->ij", m, share)) / np.sum(weights * a_top))

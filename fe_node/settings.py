@@ -89,9 +89,12 @@ class Settings:
     keyhole : bool
         Keyhole onset (:mod:`fe_node.keyhole`): the surface never exceeds the temperature at
         which the vapour's recoil pressure opens a keyhole; the excess energy is deposited at
-        the keyhole's bottom, down the node's column.
-    keyhole_absorptivity : float
-        Absorptivity [-] of the top nodes in the keyhole's opening (``keyhole`` on).
+        the keyhole's bottom, down the node's column, and dense metal absorbs with the
+        keyhole's cavity absorptance (multiple reflections, rising with its depth).
+    keyhole_radius_factor : float
+        Radius of the keyhole's opening over the beam's 1/e² radius [-] (``keyhole`` on): sets
+        the keyhole's depth from its vapour volume and its cavity absorptance
+        (:mod:`fe_node.keyhole`).
     n_layers : int
         Layers built one on top of the other (default 1): after each pass over the scan plan
         a new ``powder_layer_m`` of powder is spread and the plan restarts
@@ -144,7 +147,7 @@ class Settings:
     powder_absorptivity: float = 0.65
     evaporation: bool = False
     keyhole: bool = False
-    keyhole_absorptivity: float = 0.7
+    keyhole_radius_factor: float = 1.0
     n_layers: int = 1
     dwell_s: float = 0.0
     dwell_step_s: float = 0.05
@@ -165,9 +168,11 @@ class Settings:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"settings: {name} must be > 0, got {getattr(self, name)}")
-        for name in ("absorptivity", "powder_absorptivity", "keyhole_absorptivity"):
+        for name in ("absorptivity", "powder_absorptivity"):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f"settings: {name} must be in (0, 1], got {getattr(self, name)}")
+        if not 0.1 <= self.keyhole_radius_factor <= 2:
+            raise ValueError(f"settings: keyhole_radius_factor must be in [0.1, 2], got {self.keyhole_radius_factor}")
         if not 0 <= self.penetration_depth_m <= self.fine_depth_m:
             raise ValueError(f"settings: penetration_depth_m must be in [0, fine_depth_m], "
                              f"got {self.penetration_depth_m}")

@@ -25,7 +25,7 @@ import numpy as np
 
 from fe_node.boundary import evaporate, loss_flux, loss_flux_slope
 from fe_node.dwell import implicit_step
-from fe_node.keyhole import drill, keyhole_temperature_k
+from fe_node.keyhole import beam_1e2_radius_m, cavity_absorptivity, drill, keyhole_temperature_k, vapour_depth_m
 from fe_node.material import Constitutive
 from fe_node.mesh import Grid, graded_axis, graded_axis_size
 from fe_node.observe import Observation, bilinear, interp_matrix, pool_geometry, trailing_edge
@@ -232,8 +232,9 @@ class ThermalModel:
         self.t_keyhole_k = (keyhole_temperature_k(settings.beam_radius_m, settings.material.t_boil)
                             if settings.keyhole else math.inf)
         self._h_keyhole = float(self.law.enthalpy(self.t_keyhole_k)) if settings.keyhole else None
-        self._keyhole = np.zeros(self._a_top.shape, dtype=bool)
-        """Top nodes in the keyhole's opening after the last sub-step (:func:`fe_node.keyhole.drill`)."""
+        self._h_boil = float(self.law.enthalpy(settings.material.t_boil))
+        self.keyhole_radius_m = settings.keyhole_radius_factor * beam_1e2_radius_m(settings.beam_radius_m)
+        """Radius [m] of the keyhole's opening (``keyhole_radius_factor`` of the beam's 1/e² radius)."""
         self._s = 0.0
         self.step_index = 0
         self._absorbed = 0.0
@@ -469,7 +470,7 @@ class ThermalModel:
             if np.any(on) and power_w > 0:
                 _, xy, _ = self.plan.locate(s_pos[on])
                 load = surface_load(self.grid.xs, self.grid.ys, xy, power_w * on.mean(), 1.0, s.beam_radius_m)
-                load *= np.where(self._keyhole, s.keyhole_absorptivity, absorptivity).T
+                load *= absorptivity.T
             self._substep(load)
             self._s = min(self._s + ds, total)
         if self.powder is not None:
@@ -477,15 +478,33 @@ class ThermalModel:
         self.step_index += 1
         return self._observe(power_w, speed_m_s)
 
+    def keyhole_depth_m(self) -> float:
+        """Depth [m] of the keyhole now: the vapour depth of the columns within three 1/e² radii
+        ``w`` of the laser, weighted by the beam's relative intensity ``exp(-2 rho² / w²)``
+        (:func:`fe_node.keyhole.vapour_depth_m`); 0 without keyhole onset."""
+        if self._h_keyhole is None:
+            return 0.0
+        g, w = self.grid, beam_1e2_radius_m(self.settings.beam_radius_m)
+        _, (x, y), _ = self.plan.locate(self._s)
+        i = slice(*np.searchsorted(g.xs, [x - 3 * w, x + 3 * w]))
+        j = slice(*np.searchsorted(g.ys, [y - 3 * w, y + 3 * w]))
+        weights = np.exp(-2.0 * ((g.xs[i][None, :] - x) ** 2 + (g.ys[j][:, None] - y) ** 2) / w**2)
+        return vapour_depth_m(self._h[j, :, i], self._m[j, :, i], self._a_top[j, i], self._h_boil, self._h_keyhole,
+                              weights)
+
     def absorptivity_map(self) -> np.ndarray:
-        """Absorptivity [-] of each top node, shape (ny, nx): ``absorptivity`` on dense metal,
-        ``powder_absorptivity`` on powder, weighted by the consolidated share of the top elements
-        around the node (:meth:`fe_node.powder.PowderBed.surface_fraction`)."""
+        """Absorptivity [-] of each top node, shape (ny, nx): on dense metal ``absorptivity``, raised
+        by the keyhole's multiple reflections (:func:`fe_node.keyhole.cavity_absorptivity` at
+        :meth:`keyhole_depth_m`), ``powder_absorptivity`` on powder, weighted by the consolidated
+        share of the top elements around the node (:meth:`fe_node.powder.PowderBed.surface_fraction`)."""
         s = self.settings
+        dense_a = s.absorptivity
+        if self._h_keyhole is not None:
+            dense_a = float(cavity_absorptivity(dense_a, self.keyhole_depth_m(), self.keyhole_radius_m))
         if self.powder is None:
-            return np.full(self._a_top.shape, s.absorptivity)
+            return np.full(self._a_top.shape, dense_a)
         dense = self.powder.surface_fraction()
-        return s.powder_absorptivity + (s.absorptivity - s.powder_absorptivity) * dense
+        return s.powder_absorptivity + (dense_a - s.powder_absorptivity) * dense
 
     def _follow(self, travel_m: float) -> None:
         """Move the fine window ahead of the laser if this step would take it near the edge: ahead of
@@ -520,7 +539,6 @@ class ThermalModel:
         self.grid = new
         self.operator = self._build_operator(kw, rho_w)
         self._a_top, self._a_bottom = self._face_areas()
-        self._keyhole = np.zeros(self._a_top.shape, dtype=bool)
         self._set_time_step()
         tol = 1e-6 * self.settings.h_fine_m
         interpolated = ~(kept(old.ys, new.ys, tol)[:, None, None] & kept(old.xs, new.xs, tol)[None, None, :])
@@ -547,7 +565,7 @@ class ThermalModel:
         self._absorbed += float(np.sum(load)) * self._dt_sub
         self._lost += float(q.sum()) * self._dt_sub
         if self._h_keyhole is not None:
-            self._keyhole = drill(self._h, self._m, self._h_keyhole, len(self._depth_w))
+            drill(self._h, self._m, self._h_keyhole, len(self._depth_w))
         if self.settings.evaporation:
             self._evaporate()
 

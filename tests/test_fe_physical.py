@@ -1,12 +1,13 @@
 """The physical plant's models: consolidation in mass coordinates, keyhole onset, absorptivity by
 surface, thermal-history outputs, the AM-Bench cases and the presets."""
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from fe_node.am_bench import CASES
-from fe_node.keyhole import beam_1e2_radius_m, drill, keyhole_temperature_k
+from fe_node.keyhole import beam_1e2_radius_m, cavity_absorptivity, drill, keyhole_temperature_k, vapour_depth_m
 from fe_node.observe import bilinear_at, interp_matrix, trailing_edge
 from fe_node.presets import PHYSICAL, calibrated, preset
 from fe_node.scan import ScanPlan
@@ -47,6 +48,42 @@ def test_drill_conserves_energy_and_caps_the_surface():
     assert np.all(h[:, -1, :] <= 6e9) and opening.any() and np.all(h[:, 1:, :] <= 6e9 * (1 + 1e-12))
 
 
+def test_cavity_absorptivity_rises_with_keyhole_depth():
+    # Gouffé without its correction term: a / (a (1 - s/S) + s/S), s/S = r / (r + 2 d)
+    r = 40e-6
+    assert cavity_absorptivity(0.3, 0.0, r) == pytest.approx(0.3)               # no keyhole: the flat surface
+    assert cavity_absorptivity(0.3, r, r) == pytest.approx(0.3 / (0.3 * 2 / 3 + 1 / 3))
+    a = cavity_absorptivity(0.3, np.array([0.0, 0.5, 1.0, 2.0, 5.0, 50.0]) * r, r)
+    assert np.all(np.diff(a) > 0) and 0.97 < a[-1] < 1.0                       # -> 1 for a deep cavity
+    assert cavity_absorptivity(1.0, 3 * r, r) == pytest.approx(1.0)
+
+
+def test_vapour_depth_counts_the_share_between_boiling_and_onset():
+    h = np.array([[1.0, 2.0, 3.0, 4.0, 9.0], [9.0, 9.0, 9.0, 9.0, 9.0]]).T[None]     # (1, 5, 2): two columns
+    m = np.full(h.shape, 4.0)
+    a_top = np.array([[2.0, 2.0]])
+    # boiling at 2, onset at 4: shares 0, 0, 0.5, 1, 1 (clipped) of 4 m³ over 2 m²
+    assert vapour_depth_m(h, m, a_top, 2.0, 4.0, np.array([[1.0, 0.0]])) == pytest.approx(2.5 * 4.0 / 2.0)
+    assert vapour_depth_m(h, m, a_top, 2.0, 4.0, np.array([[1.0, 1.0]])) == pytest.approx((5.0 + 10.0) / 2)
+    assert vapour_depth_m(h, m, a_top, 10.0, 12.0, np.array([[1.0, 1.0]])) == 0.0
+
+
+def test_keyhole_depth_raises_the_absorbed_power(keyhole_run):
+    """The keyhole's depth follows its vapour under the beam, and dense metal absorbs the cavity's
+    absorptance (one value for the whole beam); below keyhole onset both are the flat surface's."""
+    model, obs = keyhole_run
+    s = model.settings
+    d = model.keyhole_depth_m()
+    assert 20e-6 < d < 400e-6
+    a = model.absorptivity_map()
+    assert np.all(a == a[0, 0])
+    assert a[0, 0] == pytest.approx(cavity_absorptivity(s.absorptivity, d, model.keyhole_radius_m))
+    assert a[0, 0] > 1.2 * s.absorptivity
+    cold, cold_obs = run(power_w=60.0, keyhole=True)
+    assert cold.keyhole_depth_m() == 0.0 and np.all(cold.absorptivity_map() == s.absorptivity)
+    assert obs[-1].energy_absorbed_j > 1.2 * s.absorptivity * 250.0 * model.time_s
+
+
 def test_keyhole_caps_the_surface_and_drills_deeper(keyhole_run):
     model, obs = keyhole_run
     _, bare = run()
@@ -72,12 +109,14 @@ def test_consolidation_to_dense_metal_in_mass_coordinates():
     assert np.all(kw[pb.consolidated] == 1.0) and np.all(kw[~pb.consolidated] == pytest.approx(pb.kw_powder))
     assert np.all(model.operator.rho_w == 1.0)                # powder holds the dense mass
     assert max(abs(o.energy_error_pct) for o in obs) < 1e-6
-    # the track is dense behind the laser, powder elsewhere: absorptivity by surface
+    # the track is dense behind the laser, powder elsewhere: absorptivity by surface (dense metal
+    # with the keyhole's cavity absorptance)
     a = model.absorptivity_map()
     s = model.settings
-    assert sorted((a.min(), a.max())) == pytest.approx(sorted((s.absorptivity, s.powder_absorptivity)))
+    dense = cavity_absorptivity(s.absorptivity, model.keyhole_depth_m(), model.keyhole_radius_m)
+    assert sorted((a.min(), a.max())) == pytest.approx(sorted((dense, s.powder_absorptivity)))
     ny, nx = a.shape
-    assert a[ny // 2, nx // 2] == pytest.approx(s.absorptivity)             # on the track, behind the laser
+    assert a[ny // 2, nx // 2] == pytest.approx(dense)             # on the track, behind the laser
 
 
 def test_thermal_history_outputs(keyhole_run):
@@ -218,3 +257,37 @@ def test_liquid_factors_on_the_mushy_box_equal_the_full_arrays(operator):
     h = h0.copy()
     explicit_update(h, op, law, model._c, top, model._c_top, (f_xy, f_z))
     assert np.max(np.abs(h - ref)) <= 1e-13 * np.max(np.abs(ref - h0))
+
+
+def physical_track_area(h_fine_m: float, track_m: float) -> float:
+    """Top-surface pool area [m²] (mean of the last 5 steps) of a single track (250 W, 800 mm/s) on
+    the physical preset at fine size ``h_fine_m`` [m], on a small domain."""
+    s = replace(scenario("single-track", preset="physical").settings, h_fine_m=h_fine_m, margin_m=0.3e-3,
+                depth_m=0.5e-3)
+    model = ThermalModel(s, ScanPlan.single(track_m))
+    obs = []
+    while not model.done:
+        obs.append(model.step(250.0, 0.8))
+    return float(np.mean([o.area_m2 for o in obs[-5:]]))
+
+
+@pytest.mark.xfail(strict=True, reason="open (issue 33): at the fitted keyhole radius the pool follows the mesh, "
+                   "-4.8 % here, -3.8 % in validate (docs/fe.md, Measured)")
+def test_the_physical_surface_physics_converges_with_the_mesh():
+    """Evaporation, keyhole onset, cavity absorptance, powder: the pool of a 1 mm track at 25 µm within
+    1.5 % of the one at 12.5 µm (validate's ``mesh_convergence_pct`` limit).  Fails today; with a
+    per-node keyhole absorptivity (the former model) it was 5.7 % off."""
+    a_h, a_h2 = physical_track_area(25e-6, 1e-3), physical_track_area(12.5e-6, 1e-3)
+    assert abs(a_h / a_h2 - 1) < 0.015, (a_h, a_h2)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="open (issue 33): -3.8 % (docs/fe.md, Measured)")
+def test_the_physical_plant_passes_mesh_convergence_of_validate():
+    """The full check: validate's 3 mm track on the physical preset at 25 and 12.5 µm."""
+    from fe_node.validate import CHECKS, track
+
+    s = scenario("single-track", preset="physical").settings
+    a_h, a_h2 = track(s)[0], track(replace(s, h_fine_m=s.h_fine_m / 2))[0]
+    lo, hi = CHECKS["mesh_convergence_pct"]
+    assert lo <= 100 * (a_h - a_h2) / a_h2 <= hi
