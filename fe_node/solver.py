@@ -462,7 +462,7 @@ class ThermalModel:
         ds = speed_m_s * self._dt_sub
         n_pos = max(1, math.ceil(ds / (s.beam_radius_m / 20)))
         total = self.plan.total_length
-        absorptivity = self.absorptivity_map()
+        wall, depth_m = self.surface_absorptivity(), self.keyhole_depth_m()
         for _ in range(self.n_substeps):
             s_pos = self._s + (np.arange(n_pos) + 0.5) / n_pos * ds
             on = s_pos < total
@@ -470,7 +470,7 @@ class ThermalModel:
             if np.any(on) and power_w > 0:
                 _, xy, _ = self.plan.locate(s_pos[on])
                 load = surface_load(self.grid.xs, self.grid.ys, xy, power_w * on.mean(), 1.0, s.beam_radius_m)
-                load *= absorptivity.T
+                load *= self._beam_absorptivity(load, wall, depth_m)
             self._substep(load)
             self._s = min(self._s + ds, total)
         if self.powder is not None:
@@ -492,19 +492,32 @@ class ThermalModel:
         return vapour_depth_m(self._h[j, :, i], self._m[j, :, i], self._a_top[j, i], self._h_boil, self._h_keyhole,
                               weights)
 
-    def absorptivity_map(self) -> np.ndarray:
-        """Absorptivity [-] of each top node, shape (ny, nx): on dense metal ``absorptivity``, raised
-        by the keyhole's multiple reflections (:func:`fe_node.keyhole.cavity_absorptivity` at
-        :meth:`keyhole_depth_m`), ``powder_absorptivity`` on powder, weighted by the consolidated
-        share of the top elements around the node (:meth:`fe_node.powder.PowderBed.surface_fraction`)."""
+    def surface_absorptivity(self) -> np.ndarray:
+        """Absorptivity [-] of the surface at each top node, shape (ny, nx): ``absorptivity`` on
+        dense metal, ``powder_absorptivity`` on powder, weighted by the node's dense share: the
+        larger of the consolidated share of the top elements around it
+        (:meth:`fe_node.powder.PowderBed.surface_fraction`) and its own liquid fraction (a molten
+        surface is melt before its elements consolidate)."""
         s = self.settings
-        dense_a = s.absorptivity
-        if self._h_keyhole is not None:
-            dense_a = float(cavity_absorptivity(dense_a, self.keyhole_depth_m(), self.keyhole_radius_m))
         if self.powder is None:
-            return np.full(self._a_top.shape, dense_a)
-        dense = self.powder.surface_fraction()
-        return s.powder_absorptivity + (dense_a - s.powder_absorptivity) * dense
+            return np.full(self._a_top.shape, s.absorptivity)
+        m = s.material
+        melt = np.clip((self.law.temperature(self._h[:, -1, :]) - m.t_solidus) / (m.t_liquidus - m.t_solidus), 0, 1)
+        dense = np.maximum(self.powder.surface_fraction(), melt)
+        return s.powder_absorptivity + (s.absorptivity - s.powder_absorptivity) * dense
+
+    def _beam_absorptivity(self, load: np.ndarray, wall: np.ndarray, depth_m: float) -> float:
+        """Absorptivity [-] of the whole beam: the surface's (``wall``, shape (ny, nx)) averaged
+        with the beam's nodal load ``load`` (shape (nx, ny), any scale), raised by the keyhole's
+        cavity absorptance at depth ``depth_m`` [m] (:func:`fe_node.keyhole.cavity_absorptivity`)."""
+        a = float(np.einsum("ij,ji->", load, wall) / load.sum())
+        return float(cavity_absorptivity(a, depth_m, self.keyhole_radius_m))
+
+    def absorptivity(self) -> float:
+        """Absorptivity [-] of the beam at the laser's position now (:meth:`_beam_absorptivity`)."""
+        _, xy, _ = self.plan.locate(np.array([self._s]))
+        load = surface_load(self.grid.xs, self.grid.ys, xy, 1.0, 1.0, self.settings.beam_radius_m)
+        return self._beam_absorptivity(load, self.surface_absorptivity(), self.keyhole_depth_m())
 
     def _follow(self, travel_m: float) -> None:
         """Move the fine window ahead of the laser if this step would take it near the edge: ahead of
