@@ -80,8 +80,10 @@ class Settings:
         140(11):111008).
     powder_absorptivity : float
         Absorptivity of the powder bed [-], on top nodes over unconsolidated powder
-        (``absorptivity`` applies on dense metal; a node between both takes the share of its
-        consolidated top elements).  Powder layers absorb about twice as much as a flat surface
+        (``absorptivity`` applies on dense metal; a node is dense by the larger of its top
+        elements' consolidated share and its liquid fraction, and the beam absorbs the average
+        under its load, :meth:`fe_node.solver.ThermalModel.absorptivity`).  Powder layers absorb
+        about twice as much as a flat surface
         of the same metal at conduction-mode powers (Trapp et al., Appl. Mater. Today 9 (2017)
         341, for 316L): 0.65 against the calibrated dense value.
     evaporation : bool
@@ -89,8 +91,8 @@ class Settings:
     keyhole : bool
         Keyhole onset (:mod:`fe_node.keyhole`): the surface never exceeds the temperature at
         which the vapour's recoil pressure opens a keyhole; the excess energy is deposited at
-        the keyhole's bottom, down the node's column, and dense metal absorbs with the
-        keyhole's cavity absorptance (multiple reflections, rising with its depth).
+        the keyhole's bottom, down the node's column, and the beam absorbs the keyhole's cavity
+        absorptance (multiple reflections, rising with its depth).
     keyhole_radius_factor : float
         Radius of the keyhole's opening over the beam's 1/e² radius [-] (``keyhole`` on): sets
         the keyhole's depth from its vapour volume and its cavity absorptance
