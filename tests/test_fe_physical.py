@@ -114,6 +114,10 @@ def test_consolidation_to_dense_metal_in_mass_coordinates():
     assert sorted((a.min(), a.max())) == pytest.approx(sorted((s.absorptivity, s.powder_absorptivity)))
     ny, nx = a.shape
     assert a[ny // 2, nx // 2] == pytest.approx(s.absorptivity)     # on the track, behind the laser
+    # a molten top node is melt before its elements consolidate
+    j, i = np.unravel_index(np.argmax(a == s.powder_absorptivity), a.shape)
+    model._h[j, -1, i] = model.law.enthalpy(s.material.t_liquidus + 1.0)
+    assert model.surface_absorptivity()[j, i] == pytest.approx(s.absorptivity)
     # the beam absorbs the surface's absorptivity averaged under it, raised by the keyhole's cavity
     d, r = model.keyhole_depth_m(), model.keyhole_radius_m
     beam = model.absorptivity()
