@@ -17,7 +17,7 @@ import json
 
 from fe_node.calibrate import CALIBRATION_PATH
 
-PHYSICAL = {"powder_layer_m": 40e-6, "evaporation": True, "keyhole": True, "fine_depth_m": 250e-6}
+PHYSICAL = {"powder_layer_m": 25e-6, "evaporation": True, "keyhole": True, "fine_depth_m": 250e-6}
 """The physics of the ``physical`` preset besides the calibrated values: a typical IN625 layer
 thickness of 40 µm (the platform's drop per layer), and the fine band 250 µm deep, below the
 keyhole of the paper's process (as in the calibration runs, :data:`fe_node.am_bench.FINE_DEPTH_M`)."""
