@@ -3,7 +3,7 @@
 the preset's values. A preset is a set of overrides of :class:`~fe_node.settings.Settings`, whose
 own defaults are the bare physics (the ``bare-plate`` preset).
 
-* ``physical`` (the default plant): a 40 µm powder layer that consolidates to dense metal, evaporative cooling,
+* ``physical`` (the default plant): a 25 µm powder layer that consolidates to dense metal, evaporative cooling,
   keyhole onset (:mod:`fe_node.keyhole`), absorptivity by surface (powder, dense, keyhole) and an
   anisotropic effective liquid conductivity for Marangoni flow, with the absorptivities and
   conductivity factors fitted to the AM-Bench tracks by ``python -m fe_node calibrate``
@@ -18,9 +18,13 @@ import json
 from fe_node.calibrate import CALIBRATION_PATH
 
 PHYSICAL = {"powder_layer_m": 25e-6, "evaporation": True, "keyhole": True, "fine_depth_m": 250e-6}
-"""The physics of the ``physical`` preset besides the calibrated values: a typical IN625 layer
-thickness of 40 µm (the platform's drop per layer), and the fine band 250 µm deep, below the
-keyhole of the paper's process (as in the calibration runs, :data:`fe_node.am_bench.FINE_DEPTH_M`)."""
+"""The physics of the ``physical`` preset besides the calibrated values: a layer thickness (the
+platform's drop per layer) of 25 µm, an assumption within the 20-50 µm of LPBF practice, chosen for
+the explicit step's cost and the mesh check: 40 µm meshes as two 20 µm elements, whose stability
+limit with the fitted vertical liquid factor needs 5 sub-steps instead of 3 (1.67x the step cost),
+and 50 µm (two 25 µm elements) is 3 % off at half the element size (``validate``'s
+``mesh_convergence_pct``); and the fine band 250 µm deep, below the keyhole of the paper's process
+(as in the calibration runs, :data:`fe_node.am_bench.FINE_DEPTH_M`)."""
 NAMES = ("bare-plate", "physical")
 DEFAULT = "physical"
 """The preset of every plant built without one (``launch.py``, ``python -m fe_node``, the campaigns)."""

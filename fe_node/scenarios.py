@@ -32,7 +32,7 @@ same seed gives the same profile. The levels are not clipped to the 150-300 W wi
 
 ``part``: a real part built layer by layer, 100 W at 800 mm/s: the STL ``part_stl`` (default
 the shipped 1.5 mm x 0.5 mm cylinder, :data:`fe_node.part.EXAMPLE_STL`) sliced every
-``powder_layer_m`` (the preset's: 40 µm on ``physical``; 50 µm on ``bare-plate``) and hatched every
+``powder_layer_m`` (the preset's: 25 µm on ``physical``; 50 µm on ``bare-plate``) and hatched every
 ``hatch_m`` (default 0.1 mm) by PySLM (:mod:`fe_node.part`, needs ``pythonslm``); ``n_layers``
 defaults to all the part's layers.
 ``hatch_rotation_deg`` (default 67) turns the hatch from one layer to the next; ``contours``

@@ -69,7 +69,7 @@ class Settings:
         Top-surface emissivity [-] (IN625 about 0.4-0.5).
     powder_layer_m : float
         Thickness of a powder layer on top of the dense plate [m]; 0 (default) = bare plate
-        (the ``physical`` preset: 40 µm).  Powder elements conduct
+        (the ``physical`` preset: 25 µm).  Powder elements conduct
         ``powder_k_w_mk`` at 500 °C (scaling with T like the dense metal) and hold
         ``powder_packing`` of the dense heat capacity; an element whose mean nodal temperature
         passes the liquidus consolidates (docs/fe.md).

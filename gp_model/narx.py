@@ -78,7 +78,7 @@ BUILD_UP_STEPS = 20
 """Samples whose target lies in the first 20 steps after laser-on (pool build-up) are not fitted."""
 DEFAULT_BOUNDS = HyperBounds()
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_narx_gp.json"
-"""The shipped delay-aware model of the physical plant (``[plant] preset = "physical"``, a 40 µm powder layer;
+"""The shipped delay-aware model of the physical plant (``[plant] preset = "physical"``, a 25 µm powder layer;
 ``python -m gp_trainer learn`` writes it, docs/gp.md; the preview MPC loads it)."""
 PLATE_MODEL_PATH = DEFAULT_MODEL_PATH.with_name("in625_plate_narx_gp.json")
 """The delay-aware model of the bare plate (no powder; ``python -m gp_trainer narx --plant plate``)."""

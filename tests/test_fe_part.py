@@ -46,8 +46,8 @@ def test_part_scenario_builds_layer_by_layer():
 
 
 def test_part_scenario_errors():
-    with pytest.raises(ValueError, match=r"n_layers must be in \[1, 12\]"):   # 40 µm layers of the default plant
-        scenario("part", n_layers=13)
+    with pytest.raises(ValueError, match=r"n_layers must be in \[1, 20\]"):   # 25 µm layers of the default plant
+        scenario("part", n_layers=21)
     with pytest.raises(ValueError, match=r"n_layers must be in \[1, 10\]"):   # 50 µm layers of the bare plate
         scenario("part", preset=BARE, n_layers=11)
     with pytest.raises(ValueError, match="no STL"):
@@ -94,9 +94,9 @@ def test_launch_builds_a_part_and_shows_it(tmp_path):
     assert '"n_layers": 3' in config.config_json
     scene = next(iter(read_messages(out, "/plant/scene")))
     assert [e.id for e in scene.entities] == ["scan_plan", "part"] and scene.entities[1].models[0].data[:5] == b"\0" * 5
-    refused = forked_cli.run("launch.py", "--scenario", "part", "--layers", "13")   # the default plant: 40 µm layers
+    refused = forked_cli.run("launch.py", "--scenario", "part", "--layers", "21")   # the default plant: 25 µm layers
     assert refused.returncode == 2 and refused.stdout == "" and refused.stderr.strip() == (
-        "python launch.py: error: scenario part: n_layers must be in [1, 12] for this part, got 13")
+        "python launch.py: error: scenario part: n_layers must be in [1, 20] for this part, got 21")
 
 
 @pytest.mark.parametrize("content", [b"", b"solid x\nendsolid x\n", bytes(range(256)) * 12],

@@ -156,7 +156,7 @@ def test_presets():
     phys = preset("physical")
     assert phys == {**PHYSICAL, **calibrated()}
     s = scenario("single-track", preset="physical", n_tracks=1).settings
-    assert s.keyhole and s.evaporation and s.powder_layer_m == 40e-6
+    assert s.keyhole and s.evaporation and s.powder_layer_m == 25e-6
     assert s.liquid_k_factor_xy == calibrated()["liquid_k_factor_xy"]
     assert scenario("single-track", preset="physical", evaporation=False).settings.evaporation is False
     with pytest.raises(ValueError, match="preset must be one of"):

@@ -152,7 +152,7 @@ def test_launch_picks_the_model_of_the_plants_layer(tmp_path):
     assert default_model(RunOptions(controller="preview-mpc", config=bare)) == PLATE_MODEL_PATH
     assert default_model(RunOptions(controller="preview-mpc", config=physical)) is None  # the shipped default
     assert default_model(RunOptions(controller="pid", config=bare)) is None
-    assert NarxGPModel.load(DEFAULT_MODEL_PATH).powder_layer_m == 40e-6  # the shipped model: the physical layer
+    assert NarxGPModel.load(DEFAULT_MODEL_PATH).powder_layer_m == 25e-6  # the shipped model: the physical layer
 
 
 @pytest.mark.slow
