@@ -35,9 +35,12 @@ NUMBA_FREE_MODULES = frozenset({
     "test_bench_loop_metrics.py", "test_fe_cases.py", "test_fe_core.py", "test_fe_layers.py", "test_fe_operators.py",
     "test_fe_physics.py", "test_fe_powder_evaporation.py", "test_fe_window.py", "test_messages.py",
     "test_recorder_property.py", "test_recorder_rules.py", "test_resources.py", "test_spare_core.py",
+    "test_fe_physical.py", "test_fe_node_lockstep.py", "test_bus.py", "test_recorder.py", "test_constraints.py",
+    "test_contract_schemas.py", "test_plant_commands.py", "test_stop_flag.py",  # no controller at all
+    "test_hub.py", "test_security.py", "test_plant_flood.py",  # the PID controller node only
 })
-"""Test modules that build no controller or GP model (no numba function): they run first, while the
-warm-up compiles; every other test waits for it."""
+"""Test modules that build no controller but the PID and no GP model (no numba function): they run
+first, while the warm-up compiles; every other test waits for it."""
 WARM_TIMEOUT_S = 600.0
 
 
