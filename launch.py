@@ -183,13 +183,10 @@ def check_within_plant(settings: ControllerSettings, where: str) -> None:
                          f"[{plant.speed_min_m_s:g}, {plant.speed_max_m_s:g}] m/s")
 
 
-def process_model(opts: RunOptions) -> Path | None:
-    """The learned model of the run's process: ``--process``, else ``--model``, else the part model
-    (``gp_model.narx.PART_MODEL_PATH``) on a part scenario, else the shipped model of the plate's powder
-    layer (``gp_model.narx.default_model_path``); ``None`` when the configuration is bad (check_config
-    names the key)."""
-    if opts.process is not None or opts.model is not None:
-        return opts.process or opts.model
+def plant_model(opts: RunOptions) -> Path | None:
+    """The shipped model of the run's plant: the part model (``gp_model.narx.PART_MODEL_PATH``) on a
+    part scenario, else the model of the plate's powder layer (``gp_model.narx.default_model_path``);
+    ``None`` when the configuration is bad (check_config names the key)."""
     if opts.scenario in PART_NAMES:
         return PART_MODEL_PATH
     if opts.scenario not in NAMES:
@@ -201,11 +198,17 @@ def process_model(opts: RunOptions) -> Path | None:
     return default_model_path(plant.settings.powder_layer_m)
 
 
+def process_model(opts: RunOptions) -> Path | None:
+    """The learned model of the run's process, whose record every controller starts from: ``--process``,
+    else ``--model``, else :func:`plant_model`."""
+    return opts.process or opts.model or plant_model(opts)
+
+
 def default_model(opts: RunOptions) -> Path | None:
-    """The ``preview-mpc``'s model if it is not the controller's default: :func:`process_model`."""
+    """The ``preview-mpc``'s model if it is not the controller's default: :func:`plant_model`."""
     if opts.controller != "preview-mpc":
         return None
-    path = process_model(opts)
+    path = plant_model(opts)
     return None if path == DEFAULT_MODEL_PATH else path
 
 

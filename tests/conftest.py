@@ -43,6 +43,8 @@ NUMBA_FREE_MODULES = frozenset({
 """Test modules that build no controller but the PID and no GP model (no numba function): they run
 first, while the warm-up compiles; every other test waits for it."""
 WARM_TIMEOUT_S = 600.0
+WARM_PROCESS = pytest.StashKey[subprocess.Popen]()
+"""The warm-up process of :func:`pytest_configure`, in the run's stash."""
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -62,9 +64,6 @@ def pytest_configure(config: pytest.Config) -> None:
         # (a controller that cannot be built fails its own tests; the run goes on)
         config.stash[WARM_PROCESS] = subprocess.Popen([sys.executable, "-c", WARM_NUMBA, str(done)], cwd=REPO,
                                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-
-
-WARM_PROCESS = pytest.StashKey[subprocess.Popen]()
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
