@@ -16,9 +16,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from controller_node.learning_state import parse_learning_state
 from controller_node.node import load_model
-from controller_node.preview import parse_learning_state, process_mismatch
-from controller_node.process import process_table
+from controller_node.process import process_mismatch, process_table
 from controller_node.registry import CONTROLLERS
 from controller_node.report import WINDOW_START_S, plot, read_trace
 from controller_node.report import main as report_main
@@ -26,7 +26,7 @@ from controller_node.settings import ControllerSettings, merged_over
 from controller_node.summary import comparison_table, summarise, table_line
 from fe_node.commands import CommandPolicy
 from fe_node.scenarios import NAMES, PART_NAMES, PART_POWER_W, scenario
-from gp_model.narx import DEFAULT_MODEL_PATH, PART_MODEL_PATH, default_model_path
+from gp_model.shipped import DEFAULT_MODEL_PATH, PART_MODEL_PATH, default_model_path
 from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 from messages.config import build, load_toml
@@ -142,7 +142,7 @@ def check_config(opts: RunOptions) -> None:
 
 def check_learning_state(path: Path, model, settings: ControllerSettings) -> None:
     """:class:`UsageError` unless ``path`` holds learning the preview MPC on ``model`` can start from
-    (:func:`controller_node.preview.parse_learning_state`; a missing file starts afresh)."""
+    (:func:`controller_node.learning_state.parse_learning_state`; a missing file starts afresh)."""
     try:
         parse_learning_state(json.loads(path.read_bytes()), model.sample_period_s,
                              settings.preview.turn_learning_steps, len(model.turn_profile_k))
@@ -154,7 +154,7 @@ def check_learning_state(path: Path, model, settings: ControllerSettings) -> Non
 
 def check_process(model, plant, settings: ControllerSettings, config: Path | None) -> None:
     """:class:`UsageError` naming the setting unless the plant is the process the preview MPC's
-    ``model`` was identified on (:func:`controller_node.preview.process_mismatch`): the speed of its
+    ``model`` was identified on (:func:`controller_node.process.process_mismatch`): the speed of its
     first state (the scenario's), the speed the controller commands after it, its sample period, its
     material and its powder layer thickness."""
 
@@ -184,8 +184,8 @@ def check_within_plant(settings: ControllerSettings, where: str) -> None:
 
 
 def plant_model(opts: RunOptions) -> Path | None:
-    """The shipped model of the run's plant: the part model (``gp_model.narx.PART_MODEL_PATH``) on a
-    part scenario, else the model of the plate's powder layer (``gp_model.narx.default_model_path``);
+    """The shipped model of the run's plant: the part model (``gp_model.shipped.PART_MODEL_PATH``) on a
+    part scenario, else the model of the plate's powder layer (``gp_model.shipped.default_model_path``);
     ``None`` when the configuration is bad (check_config names the key)."""
     if opts.scenario in PART_NAMES:
         return PART_MODEL_PATH

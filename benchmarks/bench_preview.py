@@ -43,7 +43,8 @@ from controller_node.types import Measurement
 from fe_node.presets import DEFAULT, NAMES
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
-from gp_model.narx import NarxGPModel, default_model_path
+from gp_model.narx import NarxGPModel
+from gp_model.shipped import default_model_path
 
 
 def measurement(obs) -> Measurement:

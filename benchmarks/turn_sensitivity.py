@@ -37,7 +37,8 @@ from controller_node import ControllerSettings, make_controller  # noqa: E402
 from fe_node.presets import DEFAULT, NAMES  # noqa: E402
 from fe_node.scenarios import scenario  # noqa: E402
 from fe_node.solver import ThermalModel  # noqa: E402
-from gp_model.narx import NarxGPModel, default_model_path  # noqa: E402
+from gp_model.narx import NarxGPModel  # noqa: E402
+from gp_model.shipped import default_model_path  # noqa: E402
 
 SPEED_M_S = 0.8
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from controller_node.process import process_table
-from controller_node.registry import CONTROLLERS, MODELS, make_controller
+from controller_node.registry import CONTROLLERS, MODELS, make_controller, model_class
 from controller_node.settings import PLANT_PRESETS, ControllerSettings, merged_over, with_preset
 from controller_node.types import ConfigurationError, Measurement
 from gp_model.atomic import atomic_write_bytes
@@ -81,8 +81,7 @@ def load_model(name: str, path: Path | None):
         if path is not None:
             raise UsageError(f"--model: the {name} controller uses no model")
         return None
-    model_class, default = MODELS[name]
-    return load_for_node(model_class, path or default)
+    return load_for_node(model_class(name), path or MODELS[name][1])
 
 
 def inadmissible(step: int, last_step: int | None) -> str | None:

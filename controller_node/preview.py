@@ -42,8 +42,9 @@ learned correction; in the next layer (of the same build, or through :meth:`lear
 turn j starts from what turn j learned, since a later turn of a layer is on a hotter plate.
 
 A state whose sample period or scan speed differs from the model's by more than 1 % is refused
-(:class:`~controller_node.types.ConfigurationError` with :func:`process_mismatch`'s line: the node
-logs it and ends with exit status 2); ``launch.py`` refuses them, and another material, before a run.
+(:class:`~controller_node.types.ConfigurationError` with the line of
+:func:`~controller_node.process.process_mismatch`: the node logs it and ends with exit status 2);
+``launch.py`` refuses them, and another material, before a run.
 """
 
 from __future__ import annotations
@@ -53,72 +54,15 @@ import math
 import numpy as np
 
 from .base import Controller, Proposal
+from .learning_state import LEARNING_FORMAT, parse_learning_state
 from .preview_kernel import Kernel
 from .preview_qp import PreviewQP
 from .preview_stages import StateContext
+from .process import SPEED_TOLERANCE, process_mismatch
 from .settings import ControllerSettings
 from .types import ConfigurationError, Measurement
 
-__all__ = ["PreviewMPC", "parse_learning_state", "process_mismatch"]
-
-LEARNING_FORMAT = "meltloop-preview-learning-2"
-PERIOD_TOLERANCE = 0.01
-"""Relative difference between the plant's and the model's sample period that is refused."""
-SPEED_TOLERANCE = 0.01
-"""Relative difference between the plant's and the model's scan speed that is refused."""
-
-
-def process_mismatch(model, speed_m_s: float | None = None, sample_period_s: float | None = None,
-                     material: str | None = None, powder_layer_m: float | None = None) -> str | None:
-    """Why a plant scanning at ``speed_m_s`` [m/s] with the sample period ``sample_period_s`` [s],
-    ``material`` and a powder layer of ``powder_layer_m`` [m] is not the process ``model`` was identified
-    on (one line), or None. A value not given, or a material or layer the model does not record, is not
-    compared."""
-    if speed_m_s is not None and not abs(speed_m_s / model.speed_m_s - 1.0) <= SPEED_TOLERANCE:
-        return (f"the plant scans at {speed_m_s * 1e3:.4g} mm/s but the model was identified at "
-                f"{model.speed_m_s * 1e3:.4g} mm/s; retrain at the plant's speed")
-    if sample_period_s is not None and not abs(sample_period_s / model.sample_period_s - 1.0) <= PERIOD_TOLERANCE:
-        return (f"the plant's sample period is {sample_period_s * 1e6:.4g} µs but the model was identified at "
-                f"{model.sample_period_s * 1e6:.4g} µs; retrain at the plant's period")
-    if material is not None and model.material is not None and material != model.material:
-        return f"the plant's material is {material} but the model was identified on {model.material}"
-    recorded = model.powder_layer_m
-    if powder_layer_m is not None and recorded is not None and not math.isclose(powder_layer_m, recorded,
-                                                                                rel_tol=1e-6, abs_tol=1e-9):
-        return (f"the plant's powder layer is {powder_layer_m * 1e6:.4g} µm but the model was identified on "
-                f"{recorded * 1e6:.4g} µm; retrain on the plant's layer")
-    return None
-
-
-def parse_learning_state(doc: object, sample_period_s: float, n_correction: int, n_profile: int
-                         ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
-    """The learned turnaround correction (n_correction,), the corrections by turn and the T-rise
-    profile (n_profile,) of a :meth:`PreviewMPC.learning_state` document, checked against the
-    model's sample period [s] and the controller's lengths (``ValueError`` with one line if it
-    does not fit: ``launch.py`` checks a file before any node starts, the controller when it loads it)."""
-    if not isinstance(doc, dict) or doc.get("format") != LEARNING_FORMAT:
-        found = doc.get("format") if isinstance(doc, dict) else None
-        hint = " (written by an older meltloop: delete it to start learning afresh)" if isinstance(found, str) \
-            and found.startswith("meltloop-preview-learning-") else ""
-        raise ValueError(f"not a {LEARNING_FORMAT} document{hint}")
-    try:
-        correction = np.asarray(doc.get("turn_correction_m2"), dtype=float)
-        by_turn = [np.asarray(c, dtype=float) for c in doc.get("turn_corrections_by_turn_m2") or []]
-        profile = np.asarray(doc.get("turn_profile_k"), dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError("turn_correction_m2, turn_corrections_by_turn_m2 and turn_profile_k must be lists of "
-                         "numbers") from None
-    if any(c.shape != correction.shape or not np.all(np.isfinite(c)) for c in by_turn):
-        raise ValueError("turn_corrections_by_turn_m2 does not fit turn_correction_m2")
-    if doc.get("sample_period_s") != sample_period_s:
-        raise ValueError(f"learned at a sample period of {doc.get('sample_period_s')} s, the model's is "
-                         f"{sample_period_s} s")
-    if correction.shape != (n_correction,) or profile.shape != (n_profile,):
-        raise ValueError("learned with another turn_learning_steps or turnaround profile length")
-    if not (np.all(np.isfinite(correction)) and np.all(np.isfinite(profile))):
-        raise ValueError("non-finite values")
-    return correction, [c.copy() for c in by_turn], profile
-
+__all__ = ["PreviewMPC"]
 
 class PreviewMPC(Controller):
     """Preview MPC (module docstring).

@@ -10,6 +10,7 @@ preview MPC on a learned process start from what was learned of it, not from the
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +18,34 @@ from gp_model.errors import ModelFormatError
 from gp_model.files import read_document
 from messages.cli import UsageError
 
-__all__ = ["PID_KEYS", "process_table"]
+__all__ = ["PID_KEYS", "process_mismatch", "process_table"]
+
+PERIOD_TOLERANCE = 0.01
+"""Relative difference between the plant's and the model's sample period that is refused."""
+SPEED_TOLERANCE = 0.01
+"""Relative difference between the plant's and the model's scan speed that is refused."""
+
+
+def process_mismatch(model, speed_m_s: float | None = None, sample_period_s: float | None = None,
+                     material: str | None = None, powder_layer_m: float | None = None) -> str | None:
+    """Why a plant scanning at ``speed_m_s`` [m/s] with the sample period ``sample_period_s`` [s],
+    ``material`` and a powder layer of ``powder_layer_m`` [m] is not the process ``model`` was identified
+    on (one line), or None. A value not given, or a material or layer the model does not record, is not
+    compared."""
+    if speed_m_s is not None and not abs(speed_m_s / model.speed_m_s - 1.0) <= SPEED_TOLERANCE:
+        return (f"the plant scans at {speed_m_s * 1e3:.4g} mm/s but the model was identified at "
+                f"{model.speed_m_s * 1e3:.4g} mm/s; retrain at the plant's speed")
+    if sample_period_s is not None and not abs(sample_period_s / model.sample_period_s - 1.0) <= PERIOD_TOLERANCE:
+        return (f"the plant's sample period is {sample_period_s * 1e6:.4g} µs but the model was identified at "
+                f"{model.sample_period_s * 1e6:.4g} µs; retrain at the plant's period")
+    if material is not None and model.material is not None and material != model.material:
+        return f"the plant's material is {material} but the model was identified on {model.material}"
+    recorded = model.powder_layer_m
+    if powder_layer_m is not None and recorded is not None and not math.isclose(powder_layer_m, recorded,
+                                                                                rel_tol=1e-6, abs_tol=1e-9):
+        return (f"the plant's powder layer is {powder_layer_m * 1e6:.4g} µm but the model was identified on "
+                f"{recorded * 1e6:.4g} µm; retrain on the plant's layer")
+    return None
 
 PID_KEYS = ("kp_w", "ki_w", "kd_w")
 """The gains of ``provenance.controller.pid`` that become ``[controller.pid]`` values."""

@@ -2,30 +2,46 @@
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
-from gp_model import model as one_step
-from gp_model import narx
+from gp_model.shipped import DEFAULT_MODEL_PATH, ONE_STEP_MODEL_PATH
 
 from .base import Controller
-from .baselines import OpenLoopController
-from .feedforward import FeedForwardController
 from .model import DynamicsModel
-from .mpc import MPCController
-from .pid import PIDController
-from .preview import PreviewMPC
 from .settings import ControllerSettings
 
-__all__ = ["CONTROLLERS", "MODELS", "make_controller"]
+__all__ = ["CONTROLLERS", "MODELS", "make_controller", "model_class"]
 
-CONTROLLERS: tuple[str, ...] = ("open-loop", "pid", "feedforward", "mpc", "preview-mpc")
-"""Every controller by name, in the order of launch.py's comparison."""
-MODELS: dict[str, tuple[type, Path]] = {
-    "feedforward": (one_step.GPModel, one_step.DEFAULT_MODEL_PATH),
-    "mpc": (one_step.GPModel, one_step.DEFAULT_MODEL_PATH),
-    "preview-mpc": (narx.NarxGPModel, narx.DEFAULT_MODEL_PATH),
+CLASSES: dict[str, str] = {
+    "open-loop": "controller_node.baselines:OpenLoopController",
+    "pid": "controller_node.pid:PIDController",
+    "feedforward": "controller_node.feedforward:FeedForwardController",
+    "mpc": "controller_node.mpc:MPCController",
+    "preview-mpc": "controller_node.preview:PreviewMPC",
 }
-"""The model class and shipped model file of each controller that runs a model (the others run none)."""
+"""Every controller by name (``module:class``), in the order of launch.py's comparison. A class is
+imported when it is built, so a node loads only its own controller's numerics (a PID node loads no
+scipy, numba or cvxpy)."""
+CONTROLLERS: tuple[str, ...] = tuple(CLASSES)
+MODELS: dict[str, tuple[str, Path]] = {
+    "feedforward": ("gp_model.model:GPModel", ONE_STEP_MODEL_PATH),
+    "mpc": ("gp_model.model:GPModel", ONE_STEP_MODEL_PATH),
+    "preview-mpc": ("gp_model.narx:NarxGPModel", DEFAULT_MODEL_PATH),
+}
+"""The model class (``module:class``) and shipped model file of each controller that runs a model (the
+others run none)."""
+
+
+def _resolve(spec: str) -> type:
+    """The class named by ``spec`` (``module:class``), importing its module."""
+    module, _, name = spec.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def model_class(name: str) -> type:
+    """The model class of controller ``name`` (a key of :data:`MODELS`)."""
+    return _resolve(MODELS[name][0])
 
 
 def make_controller(
@@ -53,18 +69,13 @@ def make_controller(
         Unknown name or missing model.
     """
     settings = ControllerSettings() if settings is None else settings
-    if name == "open-loop":
-        return OpenLoopController(settings)
-    if name == "pid":
-        return PIDController(settings)
-    if name == "feedforward":
-        return FeedForwardController(settings, model)
-    if name == "mpc":
-        if model is None:
-            raise ValueError("the 'mpc' controller needs a model")
-        return MPCController(settings, model)
-    if name == "preview-mpc":
-        if model is None or not hasattr(model, "turn_profile_k"):
-            raise ValueError("the 'preview-mpc' controller needs a delay-aware model (gp_model.narx.NarxGPModel)")
-        return PreviewMPC(settings, model)
-    raise ValueError(f"unknown controller {name!r}; choose one of {', '.join(CONTROLLERS)}")
+    if name not in CLASSES:
+        raise ValueError(f"unknown controller {name!r}; choose one of {', '.join(CONTROLLERS)}")
+    controller_class = _resolve(CLASSES[name])
+    if name in ("open-loop", "pid"):
+        return controller_class(settings)
+    if name == "mpc" and model is None:
+        raise ValueError("the 'mpc' controller needs a model")
+    if name == "preview-mpc" and (model is None or not hasattr(model, "turn_profile_k")):
+        raise ValueError("the 'preview-mpc' controller needs a delay-aware model (gp_model.narx.NarxGPModel)")
+    return controller_class(settings, model)

@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from gp_model.narx import BUILD_UP_STEPS
+from gp_model.build_up import BUILD_UP_STEPS
 from messages.types import LASER_POWER_MAX_W
 
 __all__ = ["ControllerSettings", "SoftAreaBounds", "MPCSettings", "PreviewSettings", "PIDSettings",
@@ -282,7 +282,7 @@ class PreviewSettings(SoftAreaBounds):
         ``L`` in (0, 1] of the output-disturbance observer ``d̂ += L (x − x̂ − d̂)``.
     observer_start_steps : int
         States of the pool build-up after laser-on, of the run and of every layer (the model is
-        not fitted on them, ``gp_model.narx.BUILD_UP_STEPS``): the observer starts after them
+        not fitted on them, ``gp_model.build_up.BUILD_UP_STEPS``): the observer starts after them
         and the QP does not track them.
     learn_turn_profile : bool
         Forecast the next turnaround with the rise of T ahead seen at the last one in this run.

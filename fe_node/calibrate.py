@@ -6,14 +6,13 @@ and the penetration depth of the absorbed power ``penetration_depth_m`` (c of eq
 :class:`~fe_node.settings.Settings` to the measured widths and depths of
 :data:`fe_node.am_bench.CASES`: Nelder-Mead on :func:`objective`, each evaluation the six tracks
 on the bare plate with evaporation and keyhole onset on.  The record it
-writes (:data:`CALIBRATION_PATH`) holds the fitted values, the data source, the per-case
+writes (:data:`fe_node.presets.CALIBRATION_PATH`) holds the fitted values, the data source, the per-case
 residuals and the command; :class:`~fe_node.settings.Settings` takes its defaults from it.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
@@ -21,8 +20,6 @@ from scipy.optimize import minimize
 from fe_node.am_bench import CASES, TrackCase, track_geometry
 from fe_node.settings import Settings
 
-CALIBRATION_PATH = Path(__file__).with_name("calibration.json")
-"""The shipped calibration record."""
 FIT_BOUNDS = {"absorptivity": (0.15, 0.7), "keyhole_radius_factor": (0.1, 1.0),
               "liquid_k_factor_xy": (1.0, 6.0), "liquid_k_factor_z": (1.0, 6.0),
               "penetration_depth_m": (0.0, 60e-6)}

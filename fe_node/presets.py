@@ -7,15 +7,17 @@ own defaults are the bare physics (the ``bare-plate`` preset).
   keyhole onset (:mod:`fe_node.keyhole`), absorptivity by surface (powder, dense, keyhole) and an
   anisotropic effective liquid conductivity for Marangoni flow, with the absorptivities and
   conductivity factors fitted to the AM-Bench tracks by ``python -m fe_node calibrate``
-  (:data:`fe_node.calibrate.CALIBRATION_PATH`).
+  (:data:`CALIBRATION_PATH`).
 * ``bare-plate``: a dense IN625 plate, conduction only, the paper's Table 1 (absorptivity 0.4):
   :class:`~fe_node.settings.Settings` as it is, the plant the shipped GP models were trained on.
 """
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
-from fe_node.calibrate import CALIBRATION_PATH
+CALIBRATION_PATH = Path(__file__).with_name("calibration.json")
+"""The shipped calibration record (written by ``python -m fe_node calibrate``, :mod:`fe_node.calibrate`)."""
 
 PHYSICAL = {"powder_layer_m": 25e-6, "evaporation": True, "keyhole": True, "fine_depth_m": 250e-6}
 """The physics of the ``physical`` preset besides the calibrated values: a layer thickness (the

@@ -20,7 +20,8 @@ import numpy as np
 
 from fe_node.freerun import PlantSample, add_free_run_arguments, serve, settings_from_args
 from gp_model.files import load_for_node
-from gp_model.model import DEFAULT_MODEL_PATH, GPModel
+from gp_model.model import GPModel
+from gp_model.shipped import ONE_STEP_MODEL_PATH
 from messages.bus import parse_node_arguments, single_threaded_blas
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 
@@ -87,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m fe_node.surrogate``."""
     parser = ArgumentParser(prog="python -m fe_node.surrogate", description=__doc__.split("\n\n")[0])
     add_free_run_arguments(parser, rate_hz=2000.0)
-    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
+    parser.add_argument("--model", type=Path, default=ONE_STEP_MODEL_PATH,
                         help="GP model file (default: the shipped one)")
     single_threaded_blas()
     try:

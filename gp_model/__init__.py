@@ -7,8 +7,9 @@ They are trained by :mod:`gp_trainer`, which sits above the plant and the contro
 imports neither.
 
 >>> import numpy as np
->>> from gp_model.model import DEFAULT_MODEL_PATH, GPModel
->>> model = GPModel.load(DEFAULT_MODEL_PATH)
+>>> from gp_model.model import GPModel
+>>> from gp_model.shipped import ONE_STEP_MODEL_PATH
+>>> model = GPModel.load(ONE_STEP_MODEL_PATH)
 >>> z = np.array([0.06e-6, 600.0, 200.0, 0.8, 0.0])  # area [m²], T ahead [K], power [W], speed [m/s], area change [m²]
 >>> mean_m2, variance_m4 = model.predict(z)           # the next state's area
 >>> 0 < mean_m2 < 1e-6 and variance_m4 > 0

@@ -57,8 +57,6 @@ HISTORY_INPUT_NAMES = (*INPUT_NAMES, "area_change_m2")
 """The paper's inputs plus the last area change ``x_k − x_{k-1}`` (the shipped model)."""
 INPUT_SETS = (INPUT_NAMES, HISTORY_INPUT_NAMES)
 DEFAULT_RESTARTS = 8
-DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_gp.json"
-"""The shipped model (``python -m gp_trainer train`` writes it; ``launch.py`` loads it)."""
 
 
 def _safe_scale(values: np.ndarray, axis: int | None = None) -> np.ndarray:

@@ -47,6 +47,7 @@ import numpy as np
 import scipy.linalg
 from numba import njit
 
+from gp_model.build_up import BUILD_UP_STEPS
 from gp_model.errors import DatasetError, ModelFormatError, ModelVersionError
 from gp_model.files import is_format, read_document, write_document
 from gp_model.kernel import (
@@ -74,23 +75,7 @@ def steps_since_start_feature(steps: np.ndarray) -> np.ndarray:
     """The GP's track-position input ``log(1 + min(s, 100))``: resolves the first states after a
     turnaround, where the area changes fastest, as finely as the GP's length-scales allow."""
     return np.log1p(np.minimum(steps, STEPS_SINCE_START_CAP))
-BUILD_UP_STEPS = 20
-"""Samples whose target lies in the first 20 steps after laser-on (pool build-up) are not fitted."""
 DEFAULT_BOUNDS = HyperBounds()
-DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "in625_narx_gp.json"
-"""The shipped delay-aware model of the physical plant (``[plant] preset = "physical"``, a 25 µm powder layer;
-``python -m gp_trainer learn`` writes it, docs/gp.md; the preview MPC loads it)."""
-PLATE_MODEL_PATH = DEFAULT_MODEL_PATH.with_name("in625_plate_narx_gp.json")
-"""The delay-aware model of the bare plate (no powder; ``python -m gp_trainer narx --plant plate``)."""
-PART_MODEL_PATH = DEFAULT_MODEL_PATH.with_name("in625_part_narx_gp.json")
-"""The delay-aware model of the ``part`` scenario (``python -m gp_trainer narx --plant part``)."""
-
-
-def default_model_path(powder_layer_m: float) -> Path:
-    """The shipped model of a plate plant with a powder layer of ``powder_layer_m`` [m]: the bare plate's
-    (:data:`PLATE_MODEL_PATH`) without powder, else :data:`DEFAULT_MODEL_PATH` (which refuses a plant whose
-    layer is not the one it was identified on)."""
-    return PLATE_MODEL_PATH if powder_layer_m == 0 else DEFAULT_MODEL_PATH
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,7 @@ from fe_node.presets import NAMES as PRESETS
 from fe_node.presets import preset
 from fe_node.scenarios import scenario
 from fe_node.settings import Settings
-from gp_model.narx import PART_MODEL_PATH, PLATE_MODEL_PATH
+from gp_model.shipped import PART_MODEL_PATH, PLATE_MODEL_PATH
 from gp_trainer.distributed import check_scheduler_address, dask_client, run_on_dask
 from gp_trainer.errors import CampaignError
 from gp_trainer.jobs import (

@@ -33,9 +33,9 @@ from fe_node.scenarios import scenario
 from gp_model import narx
 from gp_model.errors import DatasetError, GPError
 from gp_model.files import is_model_file
-from gp_model.model import DEFAULT_MODEL_PATH, DEFAULT_RESTARTS, GPModel
-from gp_model.narx import DEFAULT_MODEL_PATH as NARX_MODEL_PATH
+from gp_model.model import DEFAULT_RESTARTS, GPModel
 from gp_model.narx import NarxGPModel, series_from_states
+from gp_model.shipped import DEFAULT_MODEL_PATH, ONE_STEP_MODEL_PATH
 from gp_trainer import dataset, synthetic
 from gp_trainer.campaign import (
     IDENT_SETS,
@@ -94,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", formatter_class=fmt, help="select training points and fit the GP")
     p.add_argument("--dataset", type=Path, default=DEFAULT_DATASET, help="dataset file from `dataset`")
-    p.add_argument("--out", type=Path, default=DEFAULT_MODEL_PATH, help="model file (JSON)")
+    p.add_argument("--out", type=Path, default=ONE_STEP_MODEL_PATH, help="model file (JSON)")
     p.add_argument("--seed", type=int, default=0, help="seed of the point selection and optimiser restarts")
     p.add_argument("--n-train", type=int, default=100, help="training points")
     p.add_argument("--restarts", type=int, default=DEFAULT_RESTARTS, help="optimiser starts")
@@ -184,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
         "by `learn` (its provenance.design names them and their directory) and write the SIMC PI gains and the "
         "operating power into its provenance.controller, which launch.py gives every controller on that process "
         "(`learn` writes the same record).")
-    p.add_argument("--model", type=Path, default=NARX_MODEL_PATH,
+    p.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
                    help="model file (JSON), rewritten (default: the shipped model of the physical plant)")
     p.add_argument("--json", action="store_true", help="print the record as JSON")
     return parser
@@ -380,7 +380,7 @@ def _identify_held_out(runs: tuple, names: list[str], out_dir: Path, command: st
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    args.model = args.model or (narx.DEFAULT_MODEL_PATH if args.plant is None else IDENT_SETS[args.plant].model_path)
+    args.model = args.model or (DEFAULT_MODEL_PATH if args.plant is None else IDENT_SETS[args.plant].model_path)
     if is_model_file(args.model, narx.FORMAT_NAME):
         return _evaluate_narx(args)
     model = GPModel.load(args.model)

@@ -38,7 +38,7 @@ NUMBA_FREE_MODULES = frozenset({
     "test_fe_physical.py", "test_fe_node_lockstep.py", "test_bus.py", "test_recorder.py", "test_constraints.py",
     "test_contract_schemas.py", "test_plant_commands.py", "test_stop_flag.py",  # no controller at all
     "test_hub.py", "test_security.py", "test_plant_flood.py", "test_plant_fallback.py", "test_example_sensor.py",
-    "test_live.py",  # the PID controller node only
+    "test_live.py", "test_light_imports.py",  # the PID controller node only
 })
 """Test modules that build no controller but the PID and no GP model (no numba function): they run
 first, while the warm-up compiles; every other test waits for it."""

@@ -28,7 +28,8 @@ from controller_node.report import Metrics, Trace, metrics
 from fe_node.node import fe_state, n_steps
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
-from gp_model.narx import NarxGPModel, default_model_path
+from gp_model.narx import NarxGPModel
+from gp_model.shipped import default_model_path
 from messages.config import build
 from tests.plants import BARE
 

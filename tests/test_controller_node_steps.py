@@ -99,7 +99,8 @@ def test_node_drops_impossible_and_duplicate_states_and_keeps_answering():
 def test_node_ends_with_a_logged_fault_on_a_state_at_another_speed_than_its_models(capsys):
     """The preview MPC's model was identified at 800 mm/s: a state at 1000 mm/s gets no command; the node
     logs the one-line reason, ends its run with it and returns exit status 2."""
-    from gp_model.narx import PLATE_MODEL_PATH, NarxGPModel
+    from gp_model.narx import NarxGPModel
+    from gp_model.shipped import PLATE_MODEL_PATH
 
     stop = threading.Event()
     states = [_state(0), _state(1), replace(_state(2), speed_mm_s=1000.0), _state(3)]

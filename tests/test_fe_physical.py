@@ -237,7 +237,8 @@ def test_the_shipped_calibration_record_is_what_the_plant_computes():
     ``python -m fe_node calibrate`` is run again."""
     import json
 
-    from fe_node.calibrate import CALIBRATION_PATH, case_errors
+    from fe_node.calibrate import case_errors
+    from fe_node.presets import CALIBRATION_PATH
 
     record = json.loads(CALIBRATION_PATH.read_text())
     case = next(c for c in CASES if c.name == "AMMT-C")

@@ -84,8 +84,9 @@ def test_the_compiled_evaluation_is_ready_when_the_model_is():
     code = (
         "import numpy as np\n"
         "from gp_model.gp_eval import evaluate_into\n"
-        "from gp_model.model import DEFAULT_MODEL_PATH, GPModel\n"
-        "model = GPModel.load(DEFAULT_MODEL_PATH)\n"
+        "from gp_model.model import GPModel\n"
+        "from gp_model.shipped import ONE_STEP_MODEL_PATH\n"
+        "model = GPModel.load(ONE_STEP_MODEL_PATH)\n"
         "known = len(evaluate_into.signatures)\n"
         "z = np.array([0.07e-6, 600.0, 200.0, 0.8, 1e-9])\n"
         "model.mean_jacobian_and_variance(z)\n"

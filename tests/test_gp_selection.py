@@ -110,9 +110,9 @@ def test_cli_synthetic_model_says_synthetic(tmp_path, capsys):
 
 
 def test_shipped_model_is_trained_on_the_fe_campaign():
-    from gp_model.model import DEFAULT_MODEL_PATH
+    from gp_model.shipped import ONE_STEP_MODEL_PATH
 
-    model = GPModel.load(DEFAULT_MODEL_PATH)
+    model = GPModel.load(ONE_STEP_MODEL_PATH)
     prov = model.provenance
     assert prov["data_source"] == FE_SOURCE and model.n_train == 100
     assert "integrated-variance" in prov["selection"]["method"]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from fe_node.scenarios import IDENT_DEFAULTS, IDENT_HOLD_STEPS, scenario
-from gp_model.narx import PLATE_MODEL_PATH
+from gp_model.shipped import PLATE_MODEL_PATH
 from gp_trainer.campaign import (
     IDENT_RUNS,
     PLATE_STAGE1_MODEL,

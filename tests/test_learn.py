@@ -8,8 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from controller_node.preview import process_mismatch
-from gp_model.narx import DEFAULT_MODEL_PATH, PLATE_MODEL_PATH, NarxGPModel
+from controller_node.process import process_mismatch
+from gp_model.narx import NarxGPModel
+from gp_model.shipped import DEFAULT_MODEL_PATH, PLATE_MODEL_PATH
 from gp_trainer.campaign import IDENT_RUNS, PLATE_DESIGN, FeedbackRun, IdentRun, ProcessDesign
 from gp_trainer.cli import main
 from gp_trainer.errors import CampaignError, LearnError

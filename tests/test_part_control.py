@@ -8,7 +8,8 @@ import pytest
 
 from controller_node.settings import PLANT_PRESETS, ControllerSettings, with_preset
 from fe_node.scenarios import PART_POWER_W, scenario
-from gp_model.narx import PART_MODEL_PATH, PLATE_MODEL_PATH, NarxGPModel
+from gp_model.narx import NarxGPModel
+from gp_model.shipped import PART_MODEL_PATH, PLATE_MODEL_PATH
 from gp_trainer.campaign import IDENT_PART_RUNS, IDENT_RUNS, IDENT_SETS, FeedbackRun, IdentRun
 from gp_trainer.cli import main as gp_main
 from gp_trainer.jobs import plant_toml

@@ -13,7 +13,8 @@ import pytest
 from controller_node.node import build_parser, settings_from_args
 from controller_node.process import process_table
 from gp_model.errors import DatasetError
-from gp_model.narx import DEFAULT_MODEL_PATH, RunSeries
+from gp_model.narx import RunSeries
+from gp_model.shipped import DEFAULT_MODEL_PATH
 from gp_trainer.pid_tuning import Fopdt, fit_fopdt, simc_gains
 from messages.cli import UsageError
 
@@ -101,7 +102,7 @@ def _write(path: Path, doc: dict) -> Path:
 
 @pytest.mark.parametrize("controller", ["pid", "feedforward", "preview-mpc"])
 def test_launch_gives_every_controller_the_process_of_the_plants_model(tmp_path, controller):
-    from gp_model.narx import PLATE_MODEL_PATH
+    from gp_model.shipped import PLATE_MODEL_PATH
     from launch import RunOptions, default_nodes
 
     def process_of(config: Path | None) -> str | None:

@@ -313,10 +313,10 @@ def test_the_process_is_the_models(tmp_path):
     """The bare plate's shipped model records its process; :func:`process_mismatch` names each difference."""
     from dataclasses import replace
 
-    from controller_node.preview import process_mismatch
+    from controller_node.process import process_mismatch
     from fe_node.material import Material
     from fe_node.scenarios import scenario
-    from gp_model.narx import PLATE_MODEL_PATH
+    from gp_model.shipped import PLATE_MODEL_PATH
     from launch import check_process
     from messages.cli import UsageError
 
@@ -380,7 +380,8 @@ def test_a_recorded_run_carries_its_speed():
 
 def test_evaluate_of_the_delay_aware_model_names_the_command_when_data_are_missing(tmp_path, capsys):
     from gp_model.files import is_model_file
-    from gp_model.narx import DEFAULT_MODEL_PATH, FORMAT_NAME
+    from gp_model.narx import FORMAT_NAME
+    from gp_model.shipped import DEFAULT_MODEL_PATH
     from gp_trainer.cli import main
 
     assert is_model_file(DEFAULT_MODEL_PATH, FORMAT_NAME) and not is_model_file(tmp_path / "none.json", FORMAT_NAME)
@@ -543,7 +544,7 @@ def test_evaluate_splits_error_and_coverage_between_turnarounds_and_tracks():
 
 def test_a_new_controller_answers_as_one_reset_after_a_run():
     """Nothing of the compile warm-up or of a previous run reaches the next run's commands."""
-    from gp_model.narx import PLATE_MODEL_PATH
+    from gp_model.shipped import PLATE_MODEL_PATH
 
     model = NarxGPModel.load(PLATE_MODEL_PATH)
     settings = ControllerSettings(set_point_m2=0.063e-6)
@@ -574,7 +575,7 @@ def test_launch_checks_the_learning_state_before_any_node_starts(tmp_path, conte
     """``launch.py --learning-state FILE``: a file the controller could not start from is a usage
     error of launch.py (the same checks as :meth:`PreviewMPC.load_learning_state`), a written one passes."""
     import launch
-    from gp_model.narx import PLATE_MODEL_PATH
+    from gp_model.shipped import PLATE_MODEL_PATH
     from messages.cli import UsageError
 
     model, settings = NarxGPModel.load(PLATE_MODEL_PATH), ControllerSettings()

@@ -16,7 +16,8 @@ from controller_node.preview_qp import PreviewQP, solve_reference
 from controller_node.preview_stages import StateContext
 from controller_node.settings import ControllerSettings
 from controller_node.types import Measurement
-from gp_model.narx import PLATE_MODEL_PATH, NarxGPModel
+from gp_model.narx import NarxGPModel
+from gp_model.shipped import PLATE_MODEL_PATH
 
 H = 40
 SP = 0.063e-6

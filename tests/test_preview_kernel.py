@@ -13,7 +13,8 @@ from controller_node import preview_kernel
 from controller_node.preview_kernel import Kernel, correction_into, exp_into
 from controller_node.preview_qp import PreviewQP
 from controller_node.preview_stages import StateContext
-from gp_model.narx import PLATE_MODEL_PATH, NarxGPModel, forecast_t_ahead
+from gp_model.narx import NarxGPModel, forecast_t_ahead
+from gp_model.shipped import PLATE_MODEL_PATH
 
 H = 40
 SP = 0.063e-6
@@ -143,7 +144,8 @@ def test_building_the_controller_compiles_every_compiled_function():
         "from controller_node.registry import make_controller\n"
         "from controller_node.settings import ControllerSettings\n"
         "from controller_node import preview_kernel as k, preview_stages as s\n"
-        "from gp_model.narx import PLATE_MODEL_PATH, NarxGPModel\n"
+        "from gp_model.narx import NarxGPModel\n"
+        "from gp_model.shipped import PLATE_MODEL_PATH\n"
         "model = NarxGPModel.load(PLATE_MODEL_PATH)\n"
         "make_controller('preview-mpc', ControllerSettings(set_point_m2=6.3e-8), model)\n"
         "print([len(f.signatures) for f in (k.update_into, k.prepare_into, k.feedback_into, s._has_step,\n"
@@ -232,7 +234,7 @@ def test_one_update_pushes_forecasts_and_lays_out_the_correction_as_the_referenc
 def test_each_turn_of_a_layer_predicts_with_the_previous_layers_correction_of_that_turn(model):
     """Learning over layers: after turn j the kernel holds what the previous layer learned at turn j
     (and at turn j + 1 for the states after the next turn)."""
-    from controller_node.preview import LEARNING_FORMAT
+    from controller_node.learning_state import LEARNING_FORMAT
     from controller_node.registry import make_controller
     from controller_node.settings import ControllerSettings
     from controller_node.types import Measurement

@@ -23,7 +23,8 @@ import pytest
 from controller_node.preview import PreviewMPC
 from controller_node.settings import ControllerSettings
 from controller_node.types import Measurement
-from gp_model.narx import PLATE_MODEL_PATH, NarxGPModel
+from gp_model.narx import NarxGPModel
+from gp_model.shipped import PLATE_MODEL_PATH
 from tests.plants import BARE
 
 FIXTURE = Path(__file__).resolve().parent / "data" / "preview_replay.npz"
