@@ -180,7 +180,8 @@ def control_step(predictor, planner, run, ws, context, t_ahead_k, area_m2, obser
     ``relinearise`` False is the feedback phase of the real-time iteration (:func:`feedback_into`):
     the GP's kernel sums come from the moments :func:`prepare_into` left in ``ws``, and the
     Jacobian, the Hessian and its factor and the learned correction stay the prepared ones.
-    ``observe``: run the estimator with ``area_m2`` [m²]."""
+    ``observe``: run the estimator with ``area_m2`` [m²]. Callers pass both flags as ``np.bool_``
+    (a run-time boolean, not a literal ``True``), so that it compiles once, not once per value."""
     _forecast(predictor, run, context, t_ahead_k, ws)   # the plan position (and with the feature, the plan)
     if not relinearise and not _within_series(predictor, ws, t_ahead_k):
         return -1
@@ -202,7 +203,7 @@ def control_step(predictor, planner, run, ws, context, t_ahead_k, area_m2, obser
 def update_into(predictor, planner, run, ws, context, t_ahead_k, area_m2):  # pragma: no cover (compiled)
     """The full update of a state (:func:`control_step`) at its measured T ahead [K] and area [m²];
     the status of :meth:`Kernel.update`."""
-    return control_step(predictor, planner, run, ws, context, t_ahead_k, area_m2, context.observe, True)
+    return control_step(predictor, planner, run, ws, context, t_ahead_k, area_m2, context.observe, np.bool_(True))
 
 
 @njit(cache=True, nogil=True)
@@ -220,7 +221,7 @@ def feedback_into(predictor, planner, run, ws, context, t_ahead_k, area_m2):  # 
     and the bound checks are those of the new prediction. Returns :func:`update_into`'s status, or
     −1, changing nothing in ``run``, when a shift is outside :data:`SERIES_RADIUS` (the caller then
     runs the full update)."""
-    return control_step(predictor, planner, run, ws, context, t_ahead_k, area_m2, context.observe, False)
+    return control_step(predictor, planner, run, ws, context, t_ahead_k, area_m2, context.observe, np.bool_(False))
 
 
 @njit(cache=True, nogil=True)
@@ -235,7 +236,7 @@ def prepare_into(predictor, planner, run, scratch, ws, context, t_ahead_k):  # p
     ``A = (σ_f L⁻¹)ᵀ σ_f L⁻¹`` (for :func:`feedback_into`). True if the prepared step exists
     (finite prediction, positive definite Hessian)."""
     _copy_run(run, scratch)
-    status = control_step(predictor, planner, scratch, ws, context, t_ahead_k, 0.0, False, True)
+    status = control_step(predictor, planner, scratch, ws, context, t_ahead_k, 0.0, np.bool_(False), np.bool_(True))
     kern, psi, w0 = ws.kern, ws.psi, ws.w0
     mean_moments, slope_moments, variance_moments = ws.mean_moments, ws.slope_moments, ws.variance_moments
     powers_of_w0, gp_points, var_factor = ws.powers_of_w0, predictor.gp_points, predictor.var_factor
@@ -264,14 +265,22 @@ def prepare_into(predictor, planner, run, scratch, ws, context, t_ahead_k):  # p
 
 
 @njit(cache=True, nogil=True)
+def _copy(target, source):  # pragma: no cover (compiled)
+    """``target[:] = source`` for two 1-D arrays of one length, as a loop (numpy's slice assignment
+    compiles a formatted shape error, seconds of compilation in each process that builds the kernel)."""
+    for i in range(source.size):
+        target[i] = source[i]
+
+
+@njit(cache=True, nogil=True)
 def _copy_run(run, scratch):  # pragma: no cover (compiled)
     """What an update changes in a run (histories, plan, the estimator's d̂ and held prediction),
     copied into ``scratch`` (which shares the run's profile and corrections)."""
-    scratch.p_hist[:] = run.p_hist
-    scratch.t_hist[:] = run.t_hist
-    scratch.p_long[:] = run.p_long
-    scratch.f_hist[:] = run.f_hist
-    scratch.plan[:] = run.plan
+    _copy(scratch.p_hist, run.p_hist)
+    _copy(scratch.t_hist, run.t_hist)
+    _copy(scratch.p_long, run.p_long)
+    _copy(scratch.f_hist, run.f_hist)
+    _copy(scratch.plan, run.plan)
     source, target = run.estimator, scratch.estimator
     target.disturbance_m2, target.has_prediction = source.disturbance_m2, source.has_prediction
     target.z_base, target.t_ahead_k, target.correction_m2 = source.z_base, source.t_ahead_k, source.correction_m2
@@ -365,8 +374,10 @@ def _regressors(predictor, run, ws, context, n_rows):  # pragma: no cover (compi
     for i in range(h - 1):
         powers[n_p + i] = plan[i + 1]
     powers[n_p + h - 1] = plan[h - 1]
-    temps[:n_t] = t_hist                            # T[k−n_T+1 .. k], T̂[k+1 .. k+H−1]
-    temps[n_t:] = forecast[:h - 1]
+    for i in range(n_t):                            # T[k−n_T+1 .. k], T̂[k+1 .. k+H−1]
+        temps[i] = t_hist[i]
+    for i in range(h - 1):
+        temps[n_t + i] = forecast[i]
     mean_power = 0.0
     for i in range(n_p):
         mean_power += powers[n_p - 1 - i]
@@ -610,7 +621,8 @@ def _factor(planner, ws, blind, width):  # pragma: no cover (compiled)
     Hessian is not positive definite."""
     gamma, hess, chol, inv_diag, weights = ws.gamma, ws.hess, ws.chol, ws.inv_diag, planner.weights
     h = gamma.shape[0]
-    hess[:] = planner.moves                         # + 2 Γᵀ W Γ over the tracked rows
+    for a in range(h):                              # + 2 Γᵀ W Γ over the tracked rows
+        _copy(hess[a], planner.moves[a])
     for m in range(blind, h):                       # Γ is banded (width powers per row), so is the Hessian:
         w, first = 2.0 * weights[m], max(0, m + 1 - width)   # square blocks (equal-length loops vectorise)
         for a in range(first, m + 1):
