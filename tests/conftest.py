@@ -39,6 +39,9 @@ NUMBA_FREE_MODULES = frozenset({
     "test_contract_schemas.py", "test_plant_commands.py", "test_stop_flag.py",  # no controller at all
     "test_hub.py", "test_security.py", "test_plant_flood.py", "test_plant_fallback.py", "test_example_sensor.py",
     "test_live.py", "test_light_imports.py",  # the PID controller node only
+    "test_fe_scan.py", "test_fe_config.py", "test_contract_nodes.py", "test_launch.py", "test_recorder_crash.py",
+    "test_report.py", "test_layering.py", "test_plan_feature.py", "test_low_latency.py", "test_hostile_input.py",
+    "test_controller_types.py", "test_controller_node.py", "test_blas_threads.py", "test_turn_sensitivity.py",
 })
 """Test modules that build no controller but the PID and no GP model (no numba function): they run
 first, while the warm-up compiles; every other test waits for it."""
