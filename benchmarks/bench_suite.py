@@ -1,0 +1,215 @@
+"""Off-design suite: each controller on cases of geometry, speed, preheat, plant mismatch and set point.
+
+Every case is one ``python launch.py --config CASE.toml --controller C --json`` run on the default
+(physical) plant, with the case's ``[plant]`` overrides; the figures are launch's, on its common
+window (from 1 ms after laser-on). A case is *in-sample* when one of the model's training runs
+(``provenance.runs`` of the model) scanned the same plan (tracks, track length, hatch) on the same
+process (no speed, preheat or absorptivity override): its figure is then not a test of
+generalisation, and the record says so.
+
+The cases (:data:`CASES`):
+
+* ``default-layer``: 4 x 10 mm at 100 µm hatch, 0.063 mm² (the shipped model's training includes
+  runs on this plan: in-sample);
+* geometry: ``tight-6x4mm-h80``, ``short-8x2mm``, ``wide-2x10mm-h120``;
+* speed: ``speed-0.6``, ``speed-1.0`` (a model learned at another speed refuses them, exit 2; the
+  record carries the refusal);
+* preheat: ``preheat-500K``;
+* plant mismatch: ``absorptivity+10pct``, ``absorptivity-10pct`` (dense and powder absorptivity
+  both scaled; the model was learned on the calibrated plant);
+* set point: ``setpoint-0.05``, ``setpoint-0.09``;
+* ``part-2-layers``: the example part's first two layers (``--scenario part --layers 2``).
+
+Prints one table, writes one JSON record per case and controller to ``--out-dir`` and, as the last
+line, ``{"cases": [{"case", "controller", "status", "overshoot_pct", "undershoot_pct", "rmse_pct",
+"rmse_turnaround_pct", "rmse_along_pct", "in_sample", "layers", "track_length_m", "hatch_m",
+"speed_m_s", "setpoint_mm2", "wall_s", "refused"}, ...]}``.
+
+Usage: ``python benchmarks/bench_suite.py [--cases NAME ...] [--controllers preview-mpc pid]
+[--max-steps N] [--out-dir DIR] [--json]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from fe_node.scenarios import scenario  # noqa: E402
+from gp_model.files import read_document  # noqa: E402
+from gp_model.shipped import DEFAULT_MODEL_PATH  # noqa: E402
+
+LAYER_PLAN = (4, 10e-3, 1e-4)
+"""(tracks, track length [m], hatch [m]) of the ``layer`` scenario."""
+SCENARIO_PLANS = {"layer": LAYER_PLAN, "double-track": (2, 5e-3, 1e-4)}
+"""The plans of the scenarios the identification runs use (``ident-<scenario>`` and controller runs)."""
+CONTROLLERS = ("preview-mpc", "pid")
+"""The controllers the suite runs by default (the scan-plan feed-forward baseline is not built yet)."""
+
+
+@dataclass(frozen=True)
+class Case:
+    """One off-design case: the ``layer`` scenario (or the part) with ``[plant]`` overrides.
+
+    Attributes
+    ----------
+    name : str
+        Case name (the record's ``case``).
+    plant : dict
+        ``[plant]`` overrides of the case (SI: ``track_length_m`` [m], ``speed_m_s`` [m/s], ``t0_k`` [K]).
+    setpoint_mm2 : float
+        Area set point [mm²].
+    scenario : str
+        ``layer`` or ``part``.
+    layers : int
+        Layers built (``part``; 1 otherwise).
+    """
+
+    name: str
+    plant: dict[str, Any] = field(default_factory=dict)
+    setpoint_mm2: float = 0.063
+    scenario: str = "layer"
+    layers: int = 1
+
+    def plan(self) -> tuple[int, float, float] | None:
+        """(tracks, track length [m], hatch [m]) of the case's plan; None for a part."""
+        if self.scenario != "layer":
+            return None
+        n, length, hatch = LAYER_PLAN
+        return (int(self.plant.get("n_tracks", n)), float(self.plant.get("track_length_m", length)),
+                float(self.plant.get("hatch_m", hatch)))
+
+
+def _absorptivity(scale: float) -> dict[str, float]:
+    """The ``[plant]`` absorptivities (dense and powder) of the default plant scaled by ``scale``."""
+    settings = scenario("layer").settings
+    return {"absorptivity": round(settings.absorptivity * scale, 4),
+            "powder_absorptivity": round(settings.powder_absorptivity * scale, 4)}
+
+
+CASES = (
+    Case("default-layer"),
+    Case("tight-6x4mm-h80", {"n_tracks": 6, "track_length_m": 4e-3, "hatch_m": 80e-6}),
+    Case("short-8x2mm", {"n_tracks": 8, "track_length_m": 2e-3}),
+    Case("wide-2x10mm-h120", {"n_tracks": 2, "hatch_m": 120e-6}),
+    Case("speed-0.6", {"speed_m_s": 0.6}),
+    Case("speed-1.0", {"speed_m_s": 1.0}),
+    Case("preheat-500K", {"t0_k": 500.0}),
+    Case("absorptivity+10pct", _absorptivity(1.1)),
+    Case("absorptivity-10pct", _absorptivity(0.9)),
+    Case("setpoint-0.05", setpoint_mm2=0.05),
+    Case("setpoint-0.09", setpoint_mm2=0.09),
+    Case("part-2-layers", scenario="part", layers=2),
+)
+
+
+def training_plans(runs: list[str]) -> set[tuple[int, float, float]]:
+    """The plans (tracks, length [m], hatch [m]) the named training runs scanned, from their names
+    (``ident-layer-p174-s2``, ``ident-preview-mpc-layer-a0.061-h110um-450K``, ``ident-layer-8x5mm-p174-s7``)."""
+    plans = set()
+    for run in runs:
+        scenario = next((s for s in SCENARIO_PLANS if re.search(rf"-{s}(-|$)", run)), None)
+        if scenario is None:
+            continue
+        n, length, hatch = SCENARIO_PLANS[scenario]
+        if (m := re.search(r"-(\d+)x([\d.]+)mm", run)) is not None:
+            n, length = int(m.group(1)), float(m.group(2)) * 1e-3
+        if (m := re.search(r"-h(\d+)um", run)) is not None:
+            hatch = int(m.group(1)) * 1e-6
+        plans.add((n, round(length, 9), round(hatch, 9)))
+    return plans
+
+
+PROCESS_KEYS = ("speed_m_s", "t0_k", "absorptivity", "powder_absorptivity")
+"""``[plant]`` keys that change the process away from the one the model was learned on."""
+
+
+def in_sample(case: Case, plans: set[tuple[int, float, float]]) -> bool:
+    """Whether a training run scanned the case's plan on the model's own process (no :data:`PROCESS_KEYS`
+    override; a part is never in a plate model's training)."""
+    plan = case.plan()
+    return (plan is not None and (plan[0], round(plan[1], 9), round(plan[2], 9)) in plans
+            and not any(key in case.plant for key in PROCESS_KEYS))
+
+
+def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None) -> dict[str, Any]:
+    """One launch.py run of ``case`` under ``controller``; launch's JSON summary (or the refusal)."""
+    config = out_dir / f"{case.name}.toml"
+    lines = ["[plant]"] + [f"{k} = {json.dumps(v)}" for k, v in sorted(case.plant.items())]
+    config.write_text("\n".join(lines) + "\n")
+    cmd = [sys.executable, "launch.py", "--config", str(config), "--scenario", case.scenario,
+           "--controller", controller, "--setpoint-mm2", str(case.setpoint_mm2), "--json", "--no-progress",
+           "--out", str(out_dir / f"{case.name}-{controller}.mcap"), "--overwrite"]
+    if case.scenario == "part":
+        cmd += ["--layers", str(case.layers)]
+    if max_steps is not None:
+        cmd += ["--max-steps", str(max_steps)]
+    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    last = (done.stdout.strip().splitlines() or [""])[-1]
+    try:
+        summary = json.loads(last)
+    except json.JSONDecodeError:
+        error = (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
+        return {"status": done.returncode, "refused": error}
+    return summary
+
+
+def record(case: Case, controller: str, summary: dict[str, Any], plans: set) -> dict[str, Any]:
+    """The suite's record of one run (launch's figures, the case's plan and whether it is in-sample)."""
+    plan = case.plan() or (None, None, float(case.plant.get("hatch_m", 1e-4)))
+    return {"case": case.name, "controller": controller, "status": summary.get("status"),
+            "overshoot_pct": summary.get("overshoot_pct"), "undershoot_pct": summary.get("undershoot_pct"),
+            "rmse_pct": summary.get("steady_rmse_pct"), "rmse_turnaround_pct": summary.get("rmse_turnaround_pct"),
+            "rmse_along_pct": summary.get("rmse_along_pct"), "in_sample": in_sample(case, plans),
+            "layers": case.layers, "track_length_m": plan[1], "hatch_m": plan[2],
+            "speed_m_s": float(case.plant.get("speed_m_s", 0.8)), "setpoint_mm2": case.setpoint_mm2,
+            "wall_s": summary.get("wall_s"), "refused": summary.get("refused")}
+
+
+def _cell(value: Any) -> str:
+    return "-" if value is None else f"{value:.2f}" if isinstance(value, float) else str(value)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", nargs="+", choices=[c.name for c in CASES], help="cases to run (default: all)")
+    parser.add_argument("--controllers", nargs="+", default=list(CONTROLLERS), choices=CONTROLLERS)
+    parser.add_argument("--max-steps", type=int, help="end each run after this many plant steps (a quick check)")
+    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
+                        help="the preview MPC's model, whose training runs decide in_sample (default: the shipped)")
+    parser.add_argument("--out-dir", type=Path, help="recordings, configs and JSON records (default: a temp folder)")
+    parser.add_argument("--json", action="store_true", help="print the records as JSON on the last line")
+    args = parser.parse_args()
+    cases = [c for c in CASES if args.cases is None or c.name in args.cases]
+    plans = training_plans(list(read_document(args.model).get("provenance", {}).get("runs", [])))
+    with tempfile.TemporaryDirectory() as tmp:
+        out_dir = args.out_dir or Path(tmp)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        records = []
+        print(f"{'case':22s} {'controller':12s} {'over %':>7s} {'under %':>7s} {'RMSE %':>7s} {'turn %':>7s} "
+              f"{'along %':>7s}  in-sample", flush=True)
+        for case in cases:
+            for controller in args.controllers:
+                rec = record(case, controller, run_case(case, controller, out_dir, args.max_steps), plans)
+                (out_dir / f"{case.name}-{controller}.json").write_text(json.dumps(rec, indent=1) + "\n")
+                records.append(rec)
+                figures = " ".join(f"{_cell(rec[k]):>7s}" for k in ("overshoot_pct", "undershoot_pct", "rmse_pct",
+                                                                      "rmse_turnaround_pct", "rmse_along_pct"))
+                note = f"  refused: {rec['refused']}" if rec["refused"] else ""
+                print(f"{case.name:22s} {controller:12s} {figures}  {rec['in_sample']}{note}", flush=True)
+    if args.json:
+        print(json.dumps({"cases": records}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,45 @@
+"""The off-design suite (``benchmarks/bench_suite.py``): which cases are in-sample, and one short run
+through ``launch.py`` giving the records it prints and writes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from tests.conftest import REPO
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+import bench_suite  # noqa: E402
+
+RUNS = ["ident-layer-p139-s1", "ident-pid-double-track-a0.055", "ident-preview-mpc-layer-a0.061-h110um-450K",
+        "ident-layer-8x5mm-p174-s7", "ident-part-p100-s1"]
+
+
+def test_training_plans_are_read_from_the_run_names():
+    assert bench_suite.training_plans(RUNS) == {(4, 0.01, 0.0001), (2, 0.005, 0.0001), (4, 0.01, 0.00011),
+                                                (8, 0.005, 0.0001)}
+
+
+def test_a_case_is_in_sample_only_on_a_trained_plan_and_process():
+    plans = bench_suite.training_plans(RUNS)
+    cases = {c.name: c for c in bench_suite.CASES}
+    assert bench_suite.in_sample(cases["default-layer"], plans)
+    assert bench_suite.in_sample(cases["setpoint-0.09"], plans)  # another reference on a trained plan
+    assert not bench_suite.in_sample(cases["default-layer"], bench_suite.training_plans(RUNS[1:2]))
+    for name in ("tight-6x4mm-h80", "speed-1.0", "preheat-500K", "absorptivity-10pct", "part-2-layers"):
+        assert not bench_suite.in_sample(cases[name], plans), name
+
+
+def test_a_short_case_runs_through_launch_and_is_recorded(tmp_path):
+    out = subprocess.run([sys.executable, "benchmarks/bench_suite.py", "--cases", "short-8x2mm", "--controllers",
+                          "pid", "--max-steps", "40", "--out-dir", str(tmp_path), "--json"],
+                         cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    (record,) = json.loads(out.stdout.strip().splitlines()[-1])["cases"]
+    assert record["case"] == "short-8x2mm" and record["controller"] == "pid" and record["status"] == 0
+    assert record["track_length_m"] == 2e-3 and record["hatch_m"] == 1e-4 and record["in_sample"] is False
+    assert all(record[k] is not None and record[k] >= 0 for k in ("overshoot_pct", "undershoot_pct", "rmse_pct"))
+    assert json.loads((tmp_path / "short-8x2mm-pid.json").read_text()) == record
+    assert "short-8x2mm" in out.stdout.splitlines()[1]
