@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from dataclasses import dataclass, fields, replace
@@ -131,9 +132,16 @@ def check_config(opts: RunOptions) -> None:
     table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
     process = process_model(opts) if opts.closed_loop else None
     table = merged_over(process_table(process), table) if process else table  # as the controller node merges them
-    settings = build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint_mm2 * 1e-6)
+    plant_speed = float(plant.profile.command(0)[1])
+    settings = build(ControllerSettings, table, f"{opts.config} [controller]", set_point_m2=opts.setpoint_mm2 * 1e-6,
+                     nominal_speed_m_s=None if "nominal_speed_m_s" in table else plant_speed)
     if opts.closed_loop:
         check_within_plant(settings, f"{opts.config} [controller]")
+        if not math.isclose(settings.nominal_speed_m_s, plant_speed, rel_tol=0.01):
+            raise UsageError(f"{opts.config} [controller] nominal_speed_m_s: {settings.nominal_speed_m_s:g} m/s, but "
+                             f"the plant scans at {plant_speed:g} m/s ([plant] speed_m_s); a controller commands its "
+                             "nominal speed, so the plant would change speed after its first step (leave it out: "
+                             "launch.py passes the plant's)")
     if opts.controller == "preview-mpc":
         check_process(model, plant, settings, opts.config)
     if opts.learning_state is not None and opts.learning_state.is_file():
@@ -212,6 +220,20 @@ def default_model(opts: RunOptions) -> Path | None:
     return None if path == DEFAULT_MODEL_PATH else path
 
 
+def plant_speed(opts: RunOptions) -> float | None:
+    """The scan speed [m/s] of the plant's first step (the scenario's, or ``[plant] speed_m_s``), which every
+    controller commands (power-only control) unless ``[controller] nominal_speed_m_s`` is set (check_config
+    refuses one that differs); ``None`` when the configuration is bad (check_config names the key)."""
+    data = load_toml(opts.config)
+    if "nominal_speed_m_s" in data.get("controller", {}) or opts.scenario not in NAMES:
+        return None
+    try:
+        plant = scenario(opts.scenario, **{**data.get("plant", {}), **opts.plant_overrides})
+    except (ValueError, TypeError):
+        return None
+    return float(plant.profile.command(0)[1])
+
+
 def part_nominal_power(opts: RunOptions) -> float | None:
     """On a part scenario, every controller starts from the part's open-loop power (the scenario's,
     ``fe_node.scenarios.PART_POWER_W`` or ``[plant] power_w``) unless ``[controller]
@@ -241,6 +263,8 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
         controller += ["--preset", "part"] if opts.scenario in PART_NAMES else []
         nominal = part_nominal_power(opts)
         controller += ["--nominal-power-w", repr(nominal)] if nominal is not None else []
+        speed = plant_speed(opts)
+        controller += ["--nominal-speed-m-s", repr(speed)] if speed is not None else []
         controller += ["--learning-state", str(opts.learning_state)] if opts.learning_state else []
         nodes.append(NodeSpec("controller", "controller_node", tuple(controller)))
         plant += ["--require", "controller"]

@@ -355,6 +355,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--nominal-power-w", type=float,
                         help="power at laser-on and during the pool build-up [W] (default: [controller] "
                              "nominal_power_w, else 250 W)")
+    parser.add_argument("--nominal-speed-m-s", type=float,
+                        help="scan speed every command carries [m/s] (default: [controller] nominal_speed_m_s, else "
+                             "0.8 m/s; launch.py passes the plant's)")
     parser.add_argument("--config", type=Path,
                         help="TOML run configuration; its [controller] table holds ControllerSettings fields")
     parser.add_argument("--preset", choices=tuple(PLANT_PRESETS),
@@ -377,7 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
     """The ``[controller]`` table of ``--config`` over ``--preset`` over ``--process``'s record, then
-    ``--setpoint-mm2`` and ``--nominal-power-w`` (:class:`UsageError` naming a bad key)."""
+    ``--setpoint-mm2``, ``--nominal-power-w`` and ``--nominal-speed-m-s`` (:class:`UsageError` naming a bad key)."""
     table = dict(load_toml(args.config).get("controller", {}))
     table.pop("name", None)  # the controller's name is a launch option
     table = with_preset(table, args.preset)
@@ -385,7 +388,7 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         table = merged_over(process_table(args.process), table)
     set_point = None if args.setpoint_mm2 is None else args.setpoint_mm2 * 1e-6
     return build(ControllerSettings, table, "[controller]", set_point_m2=set_point,
-                 nominal_power_w=args.nominal_power_w)
+                 nominal_power_w=args.nominal_power_w, nominal_speed_m_s=args.nominal_speed_m_s)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -153,3 +153,27 @@ def test_stop_ends_the_children_of_a_wrapper_script_node(tmp_path):
     node.stop()
     assert node.poll() is not None
     assert not running(child), lines
+
+
+def test_every_controller_commands_the_plants_scan_speed(tmp_path):
+    """Power-only control: a controller commands its nominal speed, so launch.py gives it the plant's
+    (``[plant] speed_m_s``) and refuses a ``[controller] nominal_speed_m_s`` that differs from it."""
+    from controller_node.node import build_parser, settings_from_args
+    from launch import RunOptions, check_config, default_nodes
+    from messages.cli import UsageError
+
+    config = tmp_path / "slow.toml"
+    config.write_text("[plant]\nspeed_m_s = 0.6\n")
+    for controller in ("pid", "preview-mpc"):
+        opts = RunOptions(controller=controller, config=config)
+        args = list({n.name: n for n in default_nodes(opts, tmp_path / "r.mcap")}["controller"].args)
+        assert float(args[args.index("--nominal-speed-m-s") + 1]) == 0.6
+    assert settings_from_args(build_parser().parse_args(args)).nominal_speed_m_s == 0.6
+    check_config(RunOptions(controller="pid", config=config))
+    config.write_text("[plant]\nspeed_m_s = 0.6\n[controller]\nnominal_speed_m_s = 0.8\n")
+    with pytest.raises(UsageError, match=r"\[controller\] nominal_speed_m_s: 0.8 m/s, but the plant scans at 0.6"):
+        check_config(RunOptions(controller="pid", config=config))
+    config.write_text("[plant]\nspeed_m_s = 0.6\n[controller]\nnominal_speed_m_s = 0.6\n")
+    check_config(RunOptions(controller="pid", config=config))
+    nodes = {n.name: n for n in default_nodes(RunOptions(controller="pid", config=config), tmp_path / "r.mcap")}
+    assert "--nominal-speed-m-s" not in nodes["controller"].args  # the user's own, read by the node
