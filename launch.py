@@ -20,7 +20,7 @@ from typing import Any
 from controller_node.learning_state import parse_learning_state
 from controller_node.node import load_model
 from controller_node.process import process_mismatch, process_table
-from controller_node.registry import CONTROLLERS
+from controller_node.registry import CONTROLLERS, PREVIEW_CONTROLLERS
 from controller_node.report import WINDOW_START_S, plot, read_trace
 from controller_node.report import main as report_main
 from controller_node.settings import ControllerSettings, merged_over
@@ -142,7 +142,7 @@ def check_config(opts: RunOptions) -> None:
                              f"the plant scans at {plant_speed:g} m/s ([plant] speed_m_s); a controller commands its "
                              "nominal speed, so the plant would change speed after its first step (leave it out: "
                              "launch.py passes the plant's)")
-    if opts.controller == "preview-mpc":
+    if opts.controller in PREVIEW_CONTROLLERS:
         check_process(model, plant, settings, opts.config)
     if opts.learning_state is not None and opts.learning_state.is_file():
         check_learning_state(opts.learning_state, model, settings)
@@ -213,8 +213,8 @@ def process_model(opts: RunOptions) -> Path | None:
 
 
 def default_model(opts: RunOptions) -> Path | None:
-    """The ``preview-mpc``'s model if it is not the controller's default: :func:`plant_model`."""
-    if opts.controller != "preview-mpc":
+    """The model of a controller on the delay-aware model if it is not its default: :func:`plant_model`."""
+    if opts.controller not in PREVIEW_CONTROLLERS:
         return None
     path = plant_model(opts)
     return None if path == DEFAULT_MODEL_PATH else path

@@ -25,7 +25,7 @@ line, ``{"cases": [{"case", "controller", "status", "overshoot_pct", "undershoot
 "rmse_turnaround_pct", "rmse_along_pct", "in_sample", "layers", "track_length_m", "hatch_m",
 "speed_m_s", "setpoint_mm2", "wall_s", "refused"}, ...]}``.
 
-Usage: ``python benchmarks/bench_suite.py [--cases NAME ...] [--controllers preview-mpc pid]
+Usage: ``python benchmarks/bench_suite.py [--cases NAME ...] [--controllers preview-mpc pid scan-feedforward]
 [--max-steps N] [--out-dir DIR] [--json]``
 """
 
@@ -52,8 +52,10 @@ LAYER_PLAN = (4, 10e-3, 1e-4)
 """(tracks, track length [m], hatch [m]) of the ``layer`` scenario."""
 SCENARIO_PLANS = {"layer": LAYER_PLAN, "double-track": (2, 5e-3, 1e-4)}
 """The plans of the scenarios the identification runs use (``ident-<scenario>`` and controller runs)."""
-CONTROLLERS = ("preview-mpc", "pid")
-"""The controllers the suite runs by default (the scan-plan feed-forward baseline is not built yet)."""
+CONTROLLERS = ("preview-mpc", "pid", "scan-feedforward")
+"""The controllers the suite runs: the preview MPC and its two baselines, PID (tuned on the model's
+training staircases, ``gp_trainer.pid_tuning``) and the scan-plan feed-forward (the same model and
+plan with no feedback, :mod:`controller_node.scan_feedforward`)."""
 
 
 @dataclass(frozen=True)

@@ -81,6 +81,9 @@ class PreviewMPC(Controller):
     """
 
     name = "preview-mpc"
+    feedback = True
+    """Whether the observer runs on the measured area (:class:`~controller_node.scan_feedforward.ScanFeedForward`:
+    never)."""
 
     def __init__(self, settings: ControllerSettings, model) -> None:
         self.model = model
@@ -272,7 +275,7 @@ class PreviewMPC(Controller):
             return
         ps, step = self.settings.preview, self._prev.step + 1
         built_up = step - self._layer_start_step >= ps.observer_start_steps
-        nxt = StateContext(1, self._fallback.last_power_w, 1, built_up, last.since + 1, last.on_first,
+        nxt = StateContext(1, self._fallback.last_power_w, 1, built_up and self.feedback, last.since + 1, last.on_first,
                            max(last.to_end - 1, -1), last.has_turn_base, last.turn_base_k, last.learned,
                            0 if built_up else ps.observer_start_steps - (step - self._layer_start_step) - 1)
         if self._kernel.prepare(nxt, float(self._kernel.forecast[0])):
@@ -324,8 +327,8 @@ class PreviewMPC(Controller):
         work = self._kernel
         has_base = self._turn_base_k is not None
         context = tuple.__new__(StateContext, (   # (not the class's constructor: a Python call on this path)
-            self._p_fill, m.power_w, self._t_fill, consecutive and built_up, since, on_first, to_end, has_base,
-            self._turn_base_k if has_base else 0.0, self._learned, blind))
+            self._p_fill, m.power_w, self._t_fill, consecutive and built_up and self.feedback, since, on_first,
+            to_end, has_base, self._turn_base_k if has_base else 0.0, self._learned, blind))
         # estimate, predict, plan in one compiled call (preview_kernel.control_step); the feedback
         # phase of the real-time iteration when this is the state prepared for, else the full update
         status = -1

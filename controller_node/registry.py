@@ -11,7 +11,7 @@ from .base import Controller
 from .model import DynamicsModel
 from .settings import ControllerSettings
 
-__all__ = ["CONTROLLERS", "MODELS", "make_controller", "model_class"]
+__all__ = ["CONTROLLERS", "MODELS", "PREVIEW_CONTROLLERS", "make_controller", "model_class"]
 
 CLASSES: dict[str, str] = {
     "open-loop": "controller_node.baselines:OpenLoopController",
@@ -19,15 +19,19 @@ CLASSES: dict[str, str] = {
     "feedforward": "controller_node.feedforward:FeedForwardController",
     "mpc": "controller_node.mpc:MPCController",
     "preview-mpc": "controller_node.preview:PreviewMPC",
+    "scan-feedforward": "controller_node.scan_feedforward:ScanFeedForward",
 }
 """Every controller by name (``module:class``), in the order of launch.py's comparison. A class is
 imported when it is built, so a node loads only its own controller's numerics (a PID node loads no
 scipy, numba or cvxpy)."""
 CONTROLLERS: tuple[str, ...] = tuple(CLASSES)
+PREVIEW_CONTROLLERS = ("preview-mpc", "scan-feedforward")
+"""The controllers on the delay-aware model and the scan-plan preview (checked against its process)."""
 MODELS: dict[str, tuple[str, Path]] = {
     "feedforward": ("gp_model.model:GPModel", ONE_STEP_MODEL_PATH),
     "mpc": ("gp_model.model:GPModel", ONE_STEP_MODEL_PATH),
     "preview-mpc": ("gp_model.narx:NarxGPModel", DEFAULT_MODEL_PATH),
+    "scan-feedforward": ("gp_model.narx:NarxGPModel", DEFAULT_MODEL_PATH),
 }
 """The model class (``module:class``) and shipped model file of each controller that runs a model (the
 others run none)."""
@@ -51,13 +55,13 @@ def make_controller(
 
     Parameters
     ----------
-    name : {"open-loop", "pid", "feedforward", "mpc", "preview-mpc"}
+    name : {"open-loop", "pid", "feedforward", "mpc", "preview-mpc", "scan-feedforward"}
         Controller kind.
     settings : ControllerSettings, optional
         Defaults to ``ControllerSettings()``.
     model : DynamicsModel or gp_model.narx.NarxGPModel, optional
-        Required by ``"mpc"`` (one-step model), by ``"preview-mpc"`` (delay-aware model), and by
-        ``"feedforward"`` unless ``settings.feedforward.gain_w_per_k`` is set; ignored otherwise.
+        Required by ``"mpc"`` (one-step model), by ``"preview-mpc"`` and ``"scan-feedforward"`` (delay-aware
+        model), and by ``"feedforward"`` unless ``settings.feedforward.gain_w_per_k`` is set; ignored otherwise.
 
     Returns
     -------
@@ -76,6 +80,6 @@ def make_controller(
         return controller_class(settings)
     if name == "mpc" and model is None:
         raise ValueError("the 'mpc' controller needs a model")
-    if name == "preview-mpc" and (model is None or not hasattr(model, "turn_profile_k")):
-        raise ValueError("the 'preview-mpc' controller needs a delay-aware model (gp_model.narx.NarxGPModel)")
+    if name in PREVIEW_CONTROLLERS and (model is None or not hasattr(model, "turn_profile_k")):
+        raise ValueError(f"the {name!r} controller needs a delay-aware model (gp_model.narx.NarxGPModel)")
     return controller_class(settings, model)

@@ -14,6 +14,7 @@ from controller_node import (
     make_controller,
 )
 from controller_node.model import linearise
+from controller_node.registry import PREVIEW_CONTROLLERS
 from controller_node.synthetic import AnalyticMeltPoolModel, multitrack_temperature, run_closed_loop
 
 MODEL = AnalyticMeltPoolModel()
@@ -28,7 +29,7 @@ def test_registry_builds_every_controller_with_its_name() -> None:
     from tests.test_controller_safety import DELAY_MODEL
 
     for name in CONTROLLERS:
-        controller = make_controller(name, ControllerSettings(), DELAY_MODEL if name == "preview-mpc" else MODEL)
+        controller = make_controller(name, ControllerSettings(), DELAY_MODEL if name in PREVIEW_CONTROLLERS else MODEL)
         assert controller.name == name
         cmd, diag = controller.update(_m(0))
         assert cmd.step == 1 and not diag.fallback and cmd.speed_m_s == 0.8

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from controller_node import CONTROLLERS, ControllerSettings, Measurement, MPCSettings, make_controller
 from controller_node.mpc import MPCController
 from controller_node.qp import QPSolution
+from controller_node.registry import PREVIEW_CONTROLLERS
 from controller_node.synthetic import AnalyticMeltPoolModel
 from controller_node.types import ConfigurationError
 
@@ -74,7 +75,7 @@ def measurements(draw) -> Measurement:
 )
 def test_power_never_leaves_bounds(name, sequence, scripted) -> None:
     model = MODEL if scripted is None else scripted
-    if name == "preview-mpc":
+    if name in PREVIEW_CONTROLLERS:
         model = DELAY_MODEL
     try:
         controller = make_controller(name, SETTINGS, model)
@@ -87,7 +88,7 @@ def test_power_never_leaves_bounds(name, sequence, scripted) -> None:
         try:
             command, diag = controller.update(measurement, now_step)
         except ConfigurationError:  # another sample period than the model's: the run is refused
-            assert name == "preview-mpc"
+            assert name in PREVIEW_CONTROLLERS
             return
         assert math.isfinite(command.power_w)
         assert SETTINGS.power_min_w <= command.power_w <= SETTINGS.power_max_w
