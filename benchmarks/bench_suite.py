@@ -23,10 +23,13 @@ The cases (:data:`CASES`):
 Prints one table, writes one JSON record per case and controller to ``--out-dir`` and, as the last
 line, ``{"cases": [{"case", "controller", "status", "overshoot_pct", "undershoot_pct", "rmse_pct",
 "rmse_turnaround_pct", "rmse_along_pct", "in_sample", "layers", "track_length_m", "hatch_m",
-"speed_m_s", "setpoint_mm2", "wall_s", "refused"}, ...]}``.
+"speed_m_s", "setpoint_mm2", "wall_s", "refused"}, ...]}``; with ``--bound`` each record also carries
+the case's learning bound, ``bound_rmse_pct`` and ``bound_iteration`` (:mod:`learning_bound`: iterative
+learning control of the open-loop power against the FE plant, the best that power alone reached).
+The bound needs ``provenance.controller.pid.fopdt`` in the model (``python -m gp_trainer tune-pid``).
 
 Usage: ``python benchmarks/bench_suite.py [--cases NAME ...] [--controllers preview-mpc pid scan-feedforward]
-[--max-steps N] [--out-dir DIR] [--json]``
+[--max-steps N] [--out-dir DIR] [--bound [--bound-iterations 8] [--bound-gain 0.5]] [--json]``
 """
 
 from __future__ import annotations
@@ -43,6 +46,9 @@ from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from learning_bound import BoundSettings, learning_bound  # noqa: E402
 
 from fe_node.scenarios import scenario  # noqa: E402
 from gp_model.files import read_document  # noqa: E402
@@ -177,6 +183,31 @@ def record(case: Case, controller: str, summary: dict[str, Any], plans: set) -> 
             "wall_s": summary.get("wall_s"), "refused": summary.get("refused")}
 
 
+def bound_from(provenance: dict[str, Any], args: argparse.Namespace) -> BoundSettings:
+    """The learning bound's settings: the process's FOPDT gain and dead time (``provenance.controller.pid.fopdt``
+    of the model, ``python -m gp_trainer tune-pid``) and operating power; exits 2 naming what is missing."""
+    controller = provenance.get("controller") or {}
+    fopdt = (controller.get("pid") or {}).get("fopdt") or {}
+    needed = ("gain_m2_per_w", "delay_steps", "time_constant_s", "sample_period_s")
+    if any(key not in fopdt for key in needed) or "nominal_power_w" not in controller:
+        sys.exit(f"bench_suite.py: error: --bound: {args.model} records no provenance.controller.pid.fopdt "
+                 "(run python -m gp_trainer tune-pid --model on it)")
+    try:
+        return BoundSettings(iterations=args.bound_iterations, gain=args.bound_gain,
+                             gain_m2_per_w=float(fopdt["gain_m2_per_w"]), dead_time_steps=int(fopdt["delay_steps"]),
+                             time_constant_steps=float(fopdt["time_constant_s"]) / float(fopdt["sample_period_s"]),
+                             start_power_w=float(controller["nominal_power_w"]), max_steps=args.max_steps)
+    except ValueError as err:
+        sys.exit(f"bench_suite.py: error: --bound: {err}")
+
+
+def case_bound(case: Case, settings: BoundSettings) -> dict[str, Any]:
+    """``bound_rmse_pct`` and ``bound_iteration`` of ``case`` (:func:`learning_bound.learning_bound`)."""
+    overrides = dict(case.plant) | ({"n_layers": case.layers} if case.scenario == "part" else {})
+    result = learning_bound(scenario(case.scenario, **overrides), case.setpoint_mm2 * 1e-6, settings)
+    return {"bound_rmse_pct": result["bound_rmse_pct"], "bound_iteration": result["bound_iteration"]}
+
+
 def _cell(value: Any) -> str:
     return "-" if value is None else f"{value:.2f}" if isinstance(value, float) else str(value)
 
@@ -190,9 +221,15 @@ def main() -> int:
                         help="the preview MPC's model, whose training runs decide in_sample (default: the shipped)")
     parser.add_argument("--out-dir", type=Path, help="recordings, configs and JSON records (default: a temp folder)")
     parser.add_argument("--json", action="store_true", help="print the records as JSON on the last line")
+    parser.add_argument("--bound", action="store_true",
+                        help="also each case's learning bound (ILC of the open-loop power, learning_bound.py)")
+    parser.add_argument("--bound-iterations", type=int, default=8, help="FE runs of the bound (default %(default)s)")
+    parser.add_argument("--bound-gain", type=float, default=0.5, help="its learning gain (default %(default)s)")
     args = parser.parse_args()
     cases = [c for c in CASES if args.cases is None or c.name in args.cases]
-    plans = training_plans(list(read_document(args.model).get("provenance", {}).get("runs", [])))
+    provenance = read_document(args.model).get("provenance", {})
+    plans = training_plans(list(provenance.get("runs", [])))
+    bound_settings = bound_from(provenance, args) if args.bound else None
     with tempfile.TemporaryDirectory() as tmp:
         out_dir = args.out_dir or Path(tmp)
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -200,8 +237,9 @@ def main() -> int:
         print(f"{'case':22s} {'controller':12s} {'over %':>7s} {'under %':>7s} {'RMSE %':>7s} {'turn %':>7s} "
               f"{'along %':>7s}  in-sample", flush=True)
         for case in cases:
+            bound = {} if bound_settings is None else case_bound(case, bound_settings)
             for controller in args.controllers:
-                rec = record(case, controller, run_case(case, controller, out_dir, args.max_steps), plans)
+                rec = record(case, controller, run_case(case, controller, out_dir, args.max_steps), plans) | bound
                 (out_dir / f"{case.name}-{controller}.json").write_text(json.dumps(rec, indent=1) + "\n")
                 records.append(rec)
                 figures = " ".join(f"{_cell(rec[k]):>7s}" for k in ("overshoot_pct", "undershoot_pct", "rmse_pct",

@@ -4,14 +4,18 @@ through ``launch.py`` giving the records it prints and writes."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
+
+import numpy as np
 
 from tests.conftest import REPO
 
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 import bench_suite  # noqa: E402
+import learning_bound  # noqa: E402
 
 RUNS = ["ident-layer-p139-s1", "ident-pid-double-track-a0.055", "ident-preview-mpc-layer-a0.061-h110um-450K",
         "ident-layer-8x5mm-p174-s7", "ident-part-p100-s1"]
@@ -34,7 +38,8 @@ def test_a_case_is_in_sample_only_on_a_trained_plan_and_process():
 
 def test_a_short_case_runs_through_launch_and_is_recorded(tmp_path):
     out = subprocess.run([sys.executable, "benchmarks/bench_suite.py", "--cases", "short-8x2mm", "--controllers",
-                          "pid", "--max-steps", "40", "--out-dir", str(tmp_path), "--json"],
+                          "pid", "--max-steps", "40", "--out-dir", str(tmp_path), "--json", "--bound",
+                          "--bound-iterations", "2"],
                          cwd=REPO, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     (record,) = json.loads(out.stdout.strip().splitlines()[-1])["cases"]
@@ -42,4 +47,32 @@ def test_a_short_case_runs_through_launch_and_is_recorded(tmp_path):
     assert record["track_length_m"] == 2e-3 and record["hatch_m"] == 1e-4 and record["in_sample"] is False
     assert all(record[k] is not None and record[k] >= 0 for k in ("overshoot_pct", "undershoot_pct", "rmse_pct"))
     assert json.loads((tmp_path / "short-8x2mm-pid.json").read_text()) == record
+    assert record["bound_iteration"] in (0, 1) and 0 < record["bound_rmse_pct"] < 100
     assert "short-8x2mm" in out.stdout.splitlines()[1]
+
+
+BOUND = learning_bound.BoundSettings(iterations=3, gain=0.5, gain_m2_per_w=5e-10, time_constant_steps=14.3,
+                                     dead_time_steps=2, start_power_w=174.0, max_steps=60)
+
+
+def test_the_norm_optimal_step_solves_the_lifted_problem():
+    """The banded solve equals ``(GᵀG + λI)⁻¹ Gᵀ e`` with the dense lifted impulse response."""
+    n, rng = 200, np.random.default_rng(0)
+    error = rng.normal(size=n) * 1e-9
+    a = math.exp(-1 / BOUND.time_constant_steps)
+    one_step = BOUND.gain_m2_per_w * (1 - a)
+    lifted = np.zeros((n, n))
+    for k in range(n):
+        j = np.arange(n - k)
+        lifted[k:, k] = np.where(j >= BOUND.dead_time_steps, one_step * a ** (j - BOUND.dead_time_steps), 0.0)
+    expected = np.linalg.solve(lifted.T @ lifted + one_step ** 2 * np.eye(n), lifted.T @ error)
+    np.testing.assert_allclose(learning_bound.norm_optimal_step(error, BOUND), expected, rtol=1e-6,
+                               atol=1e-9 * np.abs(expected).max())
+
+
+def test_the_learning_iterations_lower_the_error_on_the_fe_plant():
+    from fe_node.scenarios import scenario
+
+    result = learning_bound.learning_bound(scenario("layer", n_tracks=8, track_length_m=2e-3), 0.063e-6, BOUND)
+    first, *later = result["rmse_by_iteration_pct"]
+    assert later[-1] < later[0] < first and result["bound_rmse_pct"] == min(later)
