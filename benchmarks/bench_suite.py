@@ -53,6 +53,7 @@ from learning_bound import BoundSettings, learning_bound  # noqa: E402
 from fe_node.scenarios import scenario  # noqa: E402
 from gp_model.files import read_document  # noqa: E402
 from gp_model.shipped import DEFAULT_MODEL_PATH  # noqa: E402
+from gp_trainer.pid_tuning import Fopdt  # noqa: E402
 
 LAYER_PLAN = (4, 10e-3, 1e-4)
 """(tracks, track length [m], hatch [m]) of the ``layer`` scenario."""
@@ -193,18 +194,16 @@ def bound_from(provenance: dict[str, Any], args: argparse.Namespace) -> BoundSet
         sys.exit(f"bench_suite.py: error: --bound: {args.model} records no provenance.controller.pid.fopdt "
                  "(run python -m gp_trainer tune-pid --model on it)")
     try:
-        return BoundSettings(iterations=args.bound_iterations, gain=args.bound_gain,
-                             gain_m2_per_w=float(fopdt["gain_m2_per_w"]), dead_time_steps=int(fopdt["delay_steps"]),
-                             time_constant_steps=float(fopdt["time_constant_s"]) / float(fopdt["sample_period_s"]),
-                             start_power_w=float(controller["nominal_power_w"]), max_steps=args.max_steps)
-    except ValueError as err:
+        return BoundSettings(iterations=args.bound_iterations, gain=args.bound_gain, process=Fopdt(**fopdt),
+                             start_power_w=float(controller["nominal_power_w"]))
+    except (TypeError, ValueError) as err:
         sys.exit(f"bench_suite.py: error: --bound: {err}")
 
 
-def case_bound(case: Case, settings: BoundSettings) -> dict[str, Any]:
+def case_bound(case: Case, settings: BoundSettings, max_steps: int | None) -> dict[str, Any]:
     """``bound_rmse_pct`` and ``bound_iteration`` of ``case`` (:func:`learning_bound.learning_bound`)."""
     overrides = dict(case.plant) | ({"n_layers": case.layers} if case.scenario == "part" else {})
-    result = learning_bound(scenario(case.scenario, **overrides), case.setpoint_mm2 * 1e-6, settings)
+    result = learning_bound(scenario(case.scenario, **overrides), case.setpoint_mm2 * 1e-6, settings, max_steps)
     return {"bound_rmse_pct": result["bound_rmse_pct"], "bound_iteration": result["bound_iteration"]}
 
 
@@ -237,7 +236,7 @@ def main() -> int:
         print(f"{'case':22s} {'controller':12s} {'over %':>7s} {'under %':>7s} {'RMSE %':>7s} {'turn %':>7s} "
               f"{'along %':>7s}  in-sample", flush=True)
         for case in cases:
-            bound = {} if bound_settings is None else case_bound(case, bound_settings)
+            bound = {} if bound_settings is None else case_bound(case, bound_settings, args.max_steps)
             for controller in args.controllers:
                 rec = record(case, controller, run_case(case, controller, out_dir, args.max_steps), plans) | bound
                 (out_dir / f"{case.name}-{controller}.json").write_text(json.dumps(rec, indent=1) + "\n")

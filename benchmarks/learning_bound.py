@@ -28,6 +28,7 @@ import scipy.linalg
 from controller_node.report import Trace, metrics, window_mask
 from fe_node.scenarios import Scenario
 from fe_node.solver import ThermalModel
+from gp_trainer.pid_tuning import Fopdt
 from messages.types import LASER_POWER_MAX_W
 
 __all__ = ["BoundSettings", "learning_bound"]
@@ -35,48 +36,26 @@ __all__ = ["BoundSettings", "learning_bound"]
 
 @dataclass(frozen=True)
 class BoundSettings:
-    """The learning bound's iteration (SI).
-
-    Attributes
-    ----------
-    iterations : int
-        FE runs of the case (each a full run).
-    gain : float
-        Learning gain γ in (0, 1].
-    gain_m2_per_w : float
-        Process gain K [m²/W] (> 0).
-    time_constant_steps : float
-        Process time constant τ / Δt [steps] (> 0).
-    dead_time_steps : int
-        Dead time θ [steps] (>= 0).
-    regularisation : float
-        ρ (> 0): the update's penalty on power changes, relative to the model's one-step gain.
-    start_power_w : float
-        Power of the first iteration's profile [W].
-    max_steps : int or None
-        End each run after this many steps (None: the whole case).
-    """
+    """The learning bound's iteration (SI)."""
 
     iterations: int
+    """FE runs of the case (each a full run)."""
     gain: float
-    gain_m2_per_w: float
-    time_constant_steps: float
-    dead_time_steps: int
+    """Learning gain γ in (0, 1]."""
+    process: Fopdt
+    """The process's first-order-plus-dead-time model (``gp_trainer.pid_tuning``)."""
     start_power_w: float
+    """Power of the first iteration's profile [W]."""
     regularisation: float = 1.0
-    max_steps: int | None = None
+    """ρ (> 0): the update's penalty on power changes, relative to the model's one-step gain."""
 
     def __post_init__(self) -> None:
         if not (isinstance(self.iterations, int) and self.iterations >= 1):
             raise ValueError(f"iterations must be an int >= 1, got {self.iterations!r}")
         if not 0 < self.gain <= 1:
             raise ValueError(f"gain must be in (0, 1], got {self.gain}")
-        if not self.gain_m2_per_w > 0:
-            raise ValueError(f"gain_m2_per_w must be > 0, got {self.gain_m2_per_w}")
-        if not (self.time_constant_steps > 0 and self.regularisation > 0):
-            raise ValueError("time_constant_steps and regularisation must be > 0")
-        if not (isinstance(self.dead_time_steps, int) and self.dead_time_steps >= 0):
-            raise ValueError(f"dead_time_steps must be an int >= 0, got {self.dead_time_steps!r}")
+        if not self.regularisation > 0:
+            raise ValueError(f"regularisation must be > 0, got {self.regularisation}")
         if not 0 <= self.start_power_w <= LASER_POWER_MAX_W:
             raise ValueError(f"start_power_w must be in [0, {LASER_POWER_MAX_W}] W, got {self.start_power_w}")
 
@@ -97,16 +76,17 @@ def run_profile(sc: Scenario, powers_w: np.ndarray, max_steps: int | None) -> Tr
 def norm_optimal_step(error_m2: np.ndarray, settings: BoundSettings) -> np.ndarray:
     """``(GᵀG + λI)⁻¹ Gᵀ e`` [W], shape (n,), for the errors ``e`` [m²] of the states 1..n (module docstring;
     ``GᵀG`` is banded, solved with :func:`scipy.linalg.solveh_banded`)."""
-    a = math.exp(-1.0 / settings.time_constant_steps)
-    theta, n = settings.dead_time_steps, error_m2.size
+    fopdt = settings.process
+    a = math.exp(-fopdt.sample_period_s / fopdt.time_constant_s)
+    theta, n = fopdt.delay_steps, error_m2.size
     length = min(n, theta + 1 + math.ceil(math.log(1e-6) / math.log(a)))
     h = np.zeros(length)                         # h[j]: ∂x[k+1+j] / ∂p[k]
-    h[theta:] = settings.gain_m2_per_w * (1 - a) * a ** np.arange(length - theta)
+    h[theta:] = fopdt.gain_m2_per_w * (1 - a) * a ** np.arange(length - theta)
     gt_e = np.array([h[: n - k] @ error_m2[k:k + length][: n - k] for k in range(n)])
     bands = np.zeros((length, n))                # upper form of GᵀG: (GᵀG)[k, k+d] = Σ_j h[j] h[j+d]
     for d in range(length):
         bands[length - 1 - d, d:] = _band(h, d, n)
-    bands[length - 1] += settings.regularisation * (settings.gain_m2_per_w * (1 - a)) ** 2
+    bands[length - 1] += settings.regularisation * (fopdt.gain_m2_per_w * (1 - a)) ** 2
     return scipy.linalg.solveh_banded(bands, gt_e)
 
 
@@ -120,7 +100,7 @@ def _band(h: np.ndarray, d: int, n: int) -> np.ndarray:
     return cumulative[np.minimum(rows_left, m - d)]
 
 
-def learning_bound(sc: Scenario, setpoint_m2: float, settings: BoundSettings) -> dict:
+def learning_bound(sc: Scenario, setpoint_m2: float, settings: BoundSettings, max_steps: int | None = None) -> dict:
     """The case's learning bound (module docstring).
 
     Parameters
@@ -130,6 +110,8 @@ def learning_bound(sc: Scenario, setpoint_m2: float, settings: BoundSettings) ->
     setpoint_m2 : float
         Area set point [m²].
     settings : BoundSettings
+    max_steps : int or None
+        End each run after this many steps (None: the whole case).
 
     Returns
     -------
@@ -140,7 +122,7 @@ def learning_bound(sc: Scenario, setpoint_m2: float, settings: BoundSettings) ->
     powers = np.full(1, settings.start_power_w)
     rmse = []
     for _ in range(settings.iterations):
-        trace = run_profile(sc, powers, settings.max_steps)
+        trace = run_profile(sc, powers, max_steps)
         rmse.append(metrics(trace, setpoint_m2 * 1e6).steady_rmse_pct)
         n = trace.area_mm2.size - 1                  # steps run: p[0 .. n−1] move x[1 .. n]
         if powers.size < n:

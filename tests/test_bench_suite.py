@@ -17,6 +17,8 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 import bench_suite  # noqa: E402
 import learning_bound  # noqa: E402
 
+from gp_trainer.pid_tuning import Fopdt  # noqa: E402
+
 RUNS = ["ident-layer-p139-s1", "ident-pid-double-track-a0.055", "ident-preview-mpc-layer-a0.061-h110um-450K",
         "ident-layer-8x5mm-p174-s7", "ident-part-p100-s1"]
 
@@ -51,20 +53,21 @@ def test_a_short_case_runs_through_launch_and_is_recorded(tmp_path):
     assert "short-8x2mm" in out.stdout.splitlines()[1]
 
 
-BOUND = learning_bound.BoundSettings(iterations=3, gain=0.5, gain_m2_per_w=5e-10, time_constant_steps=14.3,
-                                     dead_time_steps=2, start_power_w=174.0, max_steps=60)
+PROCESS = Fopdt(gain_m2_per_w=5e-10, time_constant_s=0.715e-3, dead_time_s=0.125e-3, delay_steps=2,
+                sample_period_s=50e-6, residual_rms_m2=0.0, n_samples=1)
+BOUND = learning_bound.BoundSettings(iterations=3, gain=0.5, process=PROCESS, start_power_w=174.0)
 
 
 def test_the_norm_optimal_step_solves_the_lifted_problem():
     """The banded solve equals ``(GᵀG + λI)⁻¹ Gᵀ e`` with the dense lifted impulse response."""
     n, rng = 200, np.random.default_rng(0)
     error = rng.normal(size=n) * 1e-9
-    a = math.exp(-1 / BOUND.time_constant_steps)
-    one_step = BOUND.gain_m2_per_w * (1 - a)
+    a = math.exp(-PROCESS.sample_period_s / PROCESS.time_constant_s)
+    one_step = PROCESS.gain_m2_per_w * (1 - a)
     lifted = np.zeros((n, n))
     for k in range(n):
         j = np.arange(n - k)
-        lifted[k:, k] = np.where(j >= BOUND.dead_time_steps, one_step * a ** (j - BOUND.dead_time_steps), 0.0)
+        lifted[k:, k] = np.where(j >= PROCESS.delay_steps, one_step * a ** (j - PROCESS.delay_steps), 0.0)
     expected = np.linalg.solve(lifted.T @ lifted + one_step ** 2 * np.eye(n), lifted.T @ error)
     np.testing.assert_allclose(learning_bound.norm_optimal_step(error, BOUND), expected, rtol=1e-6,
                                atol=1e-9 * np.abs(expected).max())
@@ -73,6 +76,7 @@ def test_the_norm_optimal_step_solves_the_lifted_problem():
 def test_the_learning_iterations_lower_the_error_on_the_fe_plant():
     from fe_node.scenarios import scenario
 
-    result = learning_bound.learning_bound(scenario("layer", n_tracks=8, track_length_m=2e-3), 0.063e-6, BOUND)
+    result = learning_bound.learning_bound(scenario("layer", n_tracks=8, track_length_m=2e-3), 0.063e-6, BOUND,
+                                           max_steps=60)
     first, *later = result["rmse_by_iteration_pct"]
     assert later[-1] < later[0] < first and result["bound_rmse_pct"] == min(later)
