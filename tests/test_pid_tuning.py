@@ -50,9 +50,9 @@ def test_simc_gains_follow_the_rules():
     model = Fopdt(gain_m2_per_w=6e-10, time_constant_s=1e-3, dead_time_s=1e-4, delay_steps=1, sample_period_s=DT,
                   residual_rms_m2=0.0, n_samples=100)
     gains = simc_gains(model, 0.063e-6)
-    kc = 1e-3 / (6e-10 * 2e-4)  # τ / (K (τc + θ)), τc = θ
+    kc = 1e-3 / (6e-10 * 1.1e-3)  # τ / (K (τc + θ)), τc = τ
     assert gains["kp_w"] == pytest.approx(kc * 0.063e-6)
-    assert gains["ki_w"] == pytest.approx(gains["kp_w"] * DT / 8e-4)  # τI = min(τ, 4 (τc + θ)) = 0.8 ms
+    assert gains["ki_w"] == pytest.approx(gains["kp_w"] * DT / 1e-3)  # τI = min(τ, 4 (τc + θ)) = τ
     assert gains["kd_w"] == 0.0
 
 
