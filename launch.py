@@ -17,7 +17,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from controller_node.learning_state import parse_learning_state
+from controller_node.learning_state import parse_learning_state, plan_mismatch
 from controller_node.node import load_model
 from controller_node.process import process_mismatch, process_table
 from controller_node.registry import CONTROLLERS, PREVIEW_CONTROLLERS
@@ -145,15 +145,20 @@ def check_config(opts: RunOptions) -> None:
     if opts.controller in PREVIEW_CONTROLLERS:
         check_process(model, plant, settings, opts.config)
     if opts.learning_state is not None and opts.learning_state.is_file():
-        check_learning_state(opts.learning_state, model, settings)
+        check_learning_state(opts.learning_state, model, settings,
+                             plant.layer_plans[0] if plant.layer_plans else plant.plan)
 
 
-def check_learning_state(path: Path, model, settings: ControllerSettings) -> None:
+def check_learning_state(path: Path, model, settings: ControllerSettings, plan) -> None:
     """:class:`UsageError` unless ``path`` holds learning the preview MPC on ``model`` can start from
-    (:func:`controller_node.learning_state.parse_learning_state`; a missing file starts afresh)."""
+    (:func:`controller_node.learning_state.parse_learning_state`; a missing file starts afresh) on the
+    scan plan ``plan`` (the run's first layer: :func:`~controller_node.learning_state.plan_mismatch`)."""
     try:
-        parse_learning_state(json.loads(path.read_bytes()), model.sample_period_s,
-                             settings.preview.turn_learning_steps, len(model.turn_profile_k))
+        doc = json.loads(path.read_bytes())
+        parse_learning_state(doc, model.sample_period_s, settings.preview.turn_learning_steps,
+                             len(model.turn_profile_k))
+        if (reason := plan_mismatch(doc, plan.path_lengths)) is not None:
+            raise ValueError(reason)
     except json.JSONDecodeError as err:
         raise UsageError(f"--learning-state {path}: not JSON ({err})") from None
     except (OSError, ValueError) as err:

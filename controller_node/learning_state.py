@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LEARNING_FORMAT", "parse_learning_state"]
+__all__ = ["LEARNING_FORMAT", "PATH_TOLERANCE_M", "parse_learning_state", "plan_mismatch"]
 
-LEARNING_FORMAT = "meltloop-preview-learning-2"
-"""The format name of a learning-state document."""
+LEARNING_FORMAT = "meltloop-preview-learning-3"
+"""The format name of a learning-state document (``-3``: it records the plan it was learned on)."""
+PATH_TOLERANCE_M = 1e-6
+"""Two path lengths [m] closer than this are the same path."""
 
 
 def parse_learning_state(doc: object, sample_period_s: float, n_correction: int, n_profile: int
@@ -40,3 +42,30 @@ def parse_learning_state(doc: object, sample_period_s: float, n_correction: int,
     if not (np.all(np.isfinite(correction)) and np.all(np.isfinite(profile))):
         raise ValueError("non-finite values")
     return correction, [c.copy() for c in by_turn], profile
+
+
+def plan_mismatch(doc: dict, path_lengths_m) -> str | None:
+    """Why a learning-state document (checked by :func:`parse_learning_state`) was learned on another
+    scan plan than one whose paths have the lengths ``path_lengths_m`` [m] (its turns would be another
+    plan's turns; one line), or None."""
+    learned = doc.get("path_lengths_m")
+    try:
+        learned = [float(v) for v in learned]
+    except (TypeError, ValueError):
+        return "path_lengths_m must be a list of numbers"
+    planned = [float(v) for v in path_lengths_m]
+    if len(learned) == len(planned) and all(abs(a - b) <= PATH_TOLERANCE_M for a, b in zip(learned, planned)):
+        return None
+    return (f"learned on a plan of {_describe(learned)}; this run's plan has {_describe(planned)} "
+            "(delete it to start learning afresh)")
+
+
+def _describe(lengths: list[float]) -> str:
+    """``4 paths, 10 mm each`` or ``3 paths of 2, 4, 6 mm``."""
+    if not lengths:
+        return "no paths"
+    mm = [round(v * 1e3, 4) for v in lengths]
+    if len(set(mm)) == 1:
+        return f"{len(mm)} path{'s' * (len(mm) > 1)} of {mm[0]:g} mm"
+    shown = ", ".join(f"{v:g}" for v in mm[:6]) + (", ..." if len(mm) > 6 else "")
+    return f"{len(mm)} paths of {shown} mm"

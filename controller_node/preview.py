@@ -119,6 +119,7 @@ class PreviewMPC(Controller):
         self._p, self._t = k.p_hist, k.t_hist     # p[k], p[k−1], ... and T[k−n_T+1 .. k], in the kernel
         self._p[:] = 0.0
         self._t_known = False                    # T history filled with the first state's
+        self.path_lengths_m: list[float] = []   # the paths of the current layer's plan, as the states show them
         self._p_fill = self._t_fill = 0          # copies of p[k], T[k] that the next update pushes
         self._prev: Measurement | None = None
         self._first: Measurement | None = None
@@ -167,6 +168,10 @@ class PreviewMPC(Controller):
             self._observe_jump(m, prev)
         if m.track_elapsed_s is not None:
             self._track_start_step = m.step - round(m.track_elapsed_s / self.model.sample_period_s)
+        new_path = prev is None or m.track != prev.track or m.layer != prev.layer
+        if new_path and m.track_remaining_s is not None and m.track_elapsed_s is not None \
+                and m.track_elapsed_s <= 1.5 * self.model.sample_period_s:   # the first state of a path
+            self.path_lengths_m.append((m.track_elapsed_s + m.track_remaining_s) * m.speed_m_s)
         if self._turn_base_k is not None:
             self._observed.append(m.t_ahead_k - self._turn_base_k)
 
@@ -186,6 +191,7 @@ class PreviewMPC(Controller):
         new_layer = prev is not None and m.layer is not None and m.layer != prev.layer
         if new_layer:  # a new pool on fresh powder: no turnaround to learn from or forecast
             self._layer_start_step = self._track_start_step = m.step
+            self.path_lengths_m = []
             self._first_track, self._turn_base_k, self._observed = m.track, None, []
             self._kernel.start_track(False)
             self._learn_turn_correction()
@@ -235,12 +241,13 @@ class PreviewMPC(Controller):
         self._learn_turn_correction()
 
     def learning_state(self) -> dict:
-        """What the controller learned in this run (turnaround correction and T-rise profile),
-        JSON-able, to start the next layer with (:meth:`load_learning_state`)."""
+        """What the controller learned in this run (turnaround correction and T-rise profile) and the
+        paths of the last layer's plan it learned on, JSON-able, to start the next layer with
+        (:meth:`load_learning_state`; ``launch.py`` refuses it for a run on another plan)."""
         return {"format": LEARNING_FORMAT, "sample_period_s": self.model.sample_period_s,
                 "turn_correction_m2": self.turn_correction_m2.tolist(),
                 "turn_corrections_by_turn_m2": [c.tolist() for c in self.turn_corrections_by_turn_m2],
-                "turn_profile_k": self._profile.tolist()}
+                "turn_profile_k": self._profile.tolist(), "path_lengths_m": list(self.path_lengths_m)}
 
     def load_learning_state(self, doc: object) -> None:
         """Start from a previous run's :meth:`learning_state` (``ValueError`` with one line if it does not fit)."""

@@ -99,6 +99,14 @@ class ScanPlan:
         return self._geometry.lengths.copy()
 
     @property
+    def path_lengths(self) -> np.ndarray:
+        """Length of each path [m], in scan order (a path: tracks each starting where the one before
+        ends, :meth:`preview`; a hatch line is a path of one track)."""
+        g = self._geometry
+        starts = np.flatnonzero(g.first == np.arange(len(g.lengths)))
+        return g.ends_m[g.last[starts]] - (g.ends_m[starts] - g.lengths[starts])
+
+    @property
     def angles_deg(self) -> np.ndarray:
         """Direction of each track [deg], counter-clockwise from +x, in (-180, 180]."""
         d = self._geometry.directions

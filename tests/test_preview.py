@@ -293,7 +293,7 @@ def test_jacobian_of_lag_matched_interactions_uses_each_powers_own_temperature()
 @pytest.mark.parametrize("table, message", [
     ("[plant]\ndt_s = 1e-4", "[plant] dt_s: the plant's sample period is 100 µs but the model was identified at 50 µs"),
     ("[plant]\nspeed_m_s = 1.0", "[plant] speed_m_s: the plant scans at 1000 mm/s but the model was identified at 800"),
-    ("[controller]\nnominal_speed_m_s = 0.6", "[controller] nominal_speed_m_s: the plant scans at 600 mm/s"),
+    ("[controller]\nnominal_speed_m_s = 0.6", "[controller] nominal_speed_m_s: 0.6 m/s, but the plant scans at 0.8 m/s"),
 ])
 def test_launch_refuses_a_plant_of_another_process(tmp_path, table, message):
     """The FE plant at another sample period or speed than the shipped model's is refused before any
@@ -397,6 +397,21 @@ def test_evaluate_of_the_delay_aware_model_names_the_command_when_data_are_missi
     assert main(["evaluate", "--recordings-dir", str(tmp_path), "--json", "--no-identify"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"({', '.join(design.held_out())}): run `python -m gp_trainer learn" in err[0]
+
+
+def test_the_learning_state_records_the_paths_the_states_show(model):
+    """The plan a learning state was learned on: each path's length, from the first state of each path
+    (``track_elapsed_s + track_remaining_s`` times the speed), the last layer's only."""
+    ctrl = PreviewMPC(ControllerSettings(set_point_m2=6.3e-8), model)
+    dt, k = 50e-6, 0
+    for layer, steps in ((0, (30, 30)), (1, (20, 40, 20))):
+        for track, n in enumerate(steps):
+            for j in range(n):
+                ctrl.update(Measurement(step=k, time_s=k * dt, area_m2=6.3e-8, t_ahead_k=900.0, power_w=250.0,
+                                        speed_m_s=0.8, track=track, layer=layer, track_elapsed_s=j * dt,
+                                        track_remaining_s=(n - j) * dt, next_track=track < len(steps) - 1))
+                k += 1
+    assert ctrl.learning_state()["path_lengths_m"] == pytest.approx([20 * dt * 0.8, 40 * dt * 0.8, 20 * dt * 0.8])
 
 
 def test_learning_state_round_trip_and_refusal(model):
@@ -567,27 +582,31 @@ def test_a_new_controller_answers_as_one_reset_after_a_run():
 @pytest.mark.parametrize("content, message", [
     ("{not json", "not JSON (Expecting property name"),
     ('{"format": "meltloop-preview-learning-1"}', "written by an older meltloop"),
-    ("[]", "not a meltloop-preview-learning-2 document"),
+    ("[]", "not a meltloop-preview-learning-3 document"),
     (None, "learned at a sample period of 0.0001 s"),
     ("short", "another turn_learning_steps"),
+    ("plan", "learned on a plan of 4 paths of 10 mm; this run's plan has 2 paths of 5 mm"),
 ])
 def test_launch_checks_the_learning_state_before_any_node_starts(tmp_path, content, message):
     """``launch.py --learning-state FILE``: a file the controller could not start from is a usage
     error of launch.py (the same checks as :meth:`PreviewMPC.load_learning_state`), a written one passes."""
     import launch
+    from fe_node.scenarios import scenario
     from gp_model.shipped import PLATE_MODEL_PATH
     from messages.cli import UsageError
 
     model, settings = NarxGPModel.load(PLATE_MODEL_PATH), ControllerSettings()
-    written = make_controller("preview-mpc", settings, model).learning_state()
-    path = tmp_path / "learn.json"
+    written = {**make_controller("preview-mpc", settings, model).learning_state(), "path_lengths_m": [0.01] * 4}
+    path, plan = tmp_path / "learn.json", scenario("layer").plan
     path.write_text(json.dumps(written))
-    launch.check_learning_state(path, model, settings)                  # what a run wrote is accepted
-    if content is None:
+    launch.check_learning_state(path, model, settings, plan)            # what a run wrote is accepted
+    if content == "plan":
+        content, plan = json.dumps(written), scenario("double-track").plan
+    elif content is None:
         content = json.dumps({**written, "sample_period_s": 1e-4})
     elif content == "short":
         content = json.dumps({**written, "turn_correction_m2": written["turn_correction_m2"][:-1],
                               "turn_corrections_by_turn_m2": []})
     path.write_text(content)
     with pytest.raises(UsageError, match=f"^--learning-state {path}: .*" + message.replace("(", r"\(")):
-        launch.check_learning_state(path, model, settings)
+        launch.check_learning_state(path, model, settings, plan)
