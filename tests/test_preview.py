@@ -293,7 +293,7 @@ def test_jacobian_of_lag_matched_interactions_uses_each_powers_own_temperature()
 @pytest.mark.parametrize("table, message", [
     ("[plant]\ndt_s = 1e-4", "[plant] dt_s: the plant's sample period is 100 µs but the model was identified at 50 µs"),
     ("[plant]\nspeed_m_s = 1.0", "[plant] speed_m_s: the plant scans at 1000 mm/s but the model was identified at 800"),
-    ("[controller]\nnominal_speed_m_s = 0.6", "[controller] nominal_speed_m_s: 0.6 m/s, but the plant scans at 0.8 m/s"),
+    ("[controller]\nnominal_speed_m_s = 0.6", "[controller] nominal_speed_m_s: 0.6 m/s, but the plant scans at 0.8"),
 ])
 def test_launch_refuses_a_plant_of_another_process(tmp_path, table, message):
     """The FE plant at another sample period or speed than the shipped model's is refused before any
