@@ -208,6 +208,26 @@ def _common_speed(runs: Sequence[RunSeries], speed_m_s: float | None) -> float:
     return speed
 
 
+def smoothing_rows(sizes: Sequence[int], smoothing: float) -> np.ndarray:
+    """Rows ``√λ (θ_{i+1} − θ_i)`` over consecutive lags within each group of ``sizes`` consecutive
+    coefficients (after the intercept), appended to the scaled least squares of :meth:`NarxGPModel.fit`:
+    a smoothness prior on each lag kernel, ``λ`` = ``smoothing`` ≥ 0 relative to the unit-norm columns
+    (0: no rows)."""
+    if not (math.isfinite(smoothing) and smoothing >= 0):
+        raise DatasetError(f"smoothing must be a finite number >= 0, got {smoothing}")
+    n = 1 + sum(sizes)
+    if smoothing == 0:
+        return np.zeros((0, n))
+    rows, start = [], 1
+    for size in sizes:
+        for i in range(start, start + size - 1):
+            row = np.zeros(n)
+            row[i], row[i + 1] = -1.0, 1.0
+            rows.append(row)
+        start += size
+    return math.sqrt(smoothing) * np.array(rows).reshape(-1, n)
+
+
 def turn_profile(runs: Iterable[RunSeries], length: int) -> np.ndarray:
     """Mean rise of T ahead after a turnaround, ``T[start+s] − T[start−1]`` for s = 0..length−1 [K].
 
@@ -344,11 +364,18 @@ def run_forecast(run: RunSeries, k: int, horizon: int, profile_k: np.ndarray, pe
 def fit_persistence(runs: Sequence[RunSeries], profile_k: np.ndarray, horizon: int = 40, stride: int = 5) -> float:
     """ρ of :func:`forecast_t_ahead` with the smallest mean absolute forecast error on ``runs``."""
     grid = (0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 1.0)
+    plans = []  # per run: (run, s, e, T_b, first track, last track), computed once
+    for run in runs:
+        plans.append((run, run.steps_since_track_start(), run.steps_to_track_end(), turn_bases(run),
+                      run.first_track_of_layer(), run.last_track_of_layer(), run.steps_since_layer_start()))
     errors = []
     for rho in grid:
-        err = [np.mean(np.abs(run_forecast(run, k, horizon, profile_k, rho) - run.t_ahead_k[k + 1:k + horizon + 1]))
-               for run in runs for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride)
-               if run.steps_since_layer_start()[k] >= BUILD_UP_STEPS]
+        err = [np.mean(np.abs(forecast_t_ahead(run.t_ahead_k[k], int(s[k]), bool(first[k]),
+                                               None if last[k] else int(e[k]), profile_k, horizon,
+                                               None if np.isnan(base[k]) else float(base[k]), rho)
+                              - run.t_ahead_k[k + 1:k + horizon + 1]))
+               for run, s, e, base, first, last, since in plans
+               for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride) if since[k] >= BUILD_UP_STEPS]
         errors.append(np.mean(err) if err else 0.0)
     return float(grid[int(np.argmin(errors))])
 
@@ -677,13 +704,18 @@ class NarxGPModel:
         n = k + horizon + 1
         future = RunSeries(run.name, run.area_m2[:n], np.r_[run.t_ahead_k[:k + 1], forecast][:n],
                            run.power_w[:n], run.track[:n], run.sample_period_s, run.layers()[:n])
-        return self.predict_run(future)[0][k:k + horizon]
+        rows = slice(k, k + horizon)
+        P, T, F = (a[rows] for a in self._lagged(future))
+        z = self.design(P, T, F) @ self.coefficients() + self.residual.predict(
+            self.residual_inputs(future)[rows], n_variance=0)[0]
+        return self.area_and_slope(z)[0]
 
     # ------------------------------------------------------------------ fitting
     @classmethod
     def fit(cls, runs: Sequence[RunSeries], *, n_power_lags: int, n_temperature_lags: int,
             n_temperature_square_lags: int | None = None, quadratic: bool = True, interaction: bool = False,
-            feature_lags: int = 0, turn_feature: TurnFeature | None = None, output: str = "log",
+            feature_lags: int = 0, turn_feature: TurnFeature | None = None,
+            smoothing: float = 0.0, output: str = "log",
             n_train: int = 150, bounds: HyperBounds = DEFAULT_BOUNDS, seed: int = 0, n_restarts: int = 4,
             profile_length: int = 200, speed_m_s: float | None = None,
             provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
@@ -693,7 +725,8 @@ class NarxGPModel:
         pool (area 0), are not fitted (the lags still see their powers). ``quadratic=False``
         leaves out the squared lags (a plain FIR part); ``interaction`` adds the lag-matched
         p × T terms; ``feature_lags`` > 0 the lagged turnaround features ``F[k+1−l]``, l < feature_lags,
-        of ``turn_feature`` (default :class:`~gp_model.plan_feature.TurnFeature()`). The model's scan
+        of ``turn_feature``; ``smoothing`` λ > 0 the smoothness prior on every lag kernel
+        (:func:`smoothing_rows`). The model's scan
         speed is the runs' (:attr:`RunSeries.speed_m_s`), or ``speed_m_s``
         [m/s] for runs that record none.
 
@@ -736,14 +769,18 @@ class NarxGPModel:
         target = np.log(Y) if output == "log" else Y
         scale = np.linalg.norm(X, axis=0)
         scale[scale == 0] = 1.0
-        theta = np.linalg.lstsq(X / scale, target, rcond=None)[0] / scale
+        sizes = (n_power_lags, n_power_lags, n_temperature_lags, n_tq, n_x, feature_lags)
+        rows = smoothing_rows(sizes, smoothing)
+        theta = np.linalg.lstsq(np.vstack([X / scale, rows]), np.r_[target, np.zeros(rows.shape[0])],
+                                rcond=None)[0] / scale
         residual = target - X @ theta
         pick = np.sort(np.random.default_rng(seed).choice(Y.size, size=n_train, replace=False))
         gp = ResidualGP.fit(PSI[pick], residual[pick], bounds=bounds, seed=seed, n_restarts=n_restarts)
         profile = turn_profile(runs, profile_length)
         gain, feature_profile = probe._feature_forecast_fit(runs, profile) if feature else (0.0, None)
         record = dict(provenance or {})
-        record.update(seed=seed, n_train=n_train, n_samples=int(Y.size), runs=[r.name for r in runs],
+        record.update(seed=seed, n_train=n_train, smoothing=smoothing, n_samples=int(Y.size),
+                      runs=[r.name for r in runs],
                       bounds={"signal_std": list(bounds.signal_std), "noise_std": list(bounds.noise_std),
                               "length_scale": list(bounds.length_scale)})
         n_p, n_t = n_power_lags, n_temperature_lags

@@ -340,18 +340,23 @@ class IdentRun:
     """Layers to build (``ident-part``; None: the scenario's default)."""
     plant: tuple[tuple[str, Any], ...] = ()
     """``[plant]`` table of the process (e.g. ``preset``), before the run's own keys."""
+    tracks: tuple[int, float] | None = None
+    """(tracks, track length [m]) of the plan (None: the scenario's)."""
 
     @property
     def name(self) -> str:
-        """Run id and recording stem, e.g. ``ident-layer-p250-s2``."""
-        return f"{self.scenario}-p{self.mean_w:g}-s{self.seed}"
+        """Run id and recording stem, e.g. ``ident-layer-p250-s2``, ``ident-layer-8x5mm-p174-s7``."""
+        plan = "" if self.tracks is None else f"-{self.tracks[0]}x{self.tracks[1] * 1e3:g}mm"
+        return f"{self.scenario}{plan}-p{self.mean_w:g}-s{self.seed}"
 
     def job(self) -> Job:
-        """The launcher job: the scenario with its ``[plant]`` ``ident_*`` (and ``n_layers``) overrides."""
+        """The launcher job: the scenario with its ``[plant]`` ``ident_*`` (and ``n_layers``, plan) overrides."""
         layers = () if self.n_layers is None else (("n_layers", int(self.n_layers)),)
+        plan = () if self.tracks is None else (("n_tracks", int(self.tracks[0])),
+                                               ("track_length_m", float(self.tracks[1])))
         return Job(self.name, self.scenario, plant=_merged(self.plant, (
             ("ident_seed", int(self.seed)), ("ident_mean_w", float(self.mean_w)),
-            ("ident_amplitude_w", float(self.amplitude_w)), *layers)))
+            ("ident_amplitude_w", float(self.amplitude_w)), *layers, *plan)))
 
 
 def _merged(process: tuple[tuple[str, Any], ...], run: tuple[tuple[str, Any], ...]) -> tuple[tuple[str, Any], ...]:
@@ -409,7 +414,9 @@ class ProcessDesign:
     """The identification runs of a plate process, designed around its operating point.
 
     Stage 1: seeded random power staircases on the layer and the double track about the operating
-    power (means ``power_ratios`` × it, amplitude ``amplitude_ratio`` × it), a closed-loop controller
+    power (means ``power_ratios`` × it, amplitude ``amplitude_ratio`` × it), and with ``turn_tracks``
+    on a layer of that many shorter tracks (more turnarounds, each after its own random pre-turn
+    powers: what tells the model how power before a turn acts after it), a closed-loop controller
     on the double track and the layer at set points about the target (``*_setpoint_ratios`` × it) and
     the feed-forward baseline at the target. Stage 2: the preview MPC with the stage-1 model on the
     double track and the layer at set points about the target, at the default hatch and preheat and
@@ -430,6 +437,8 @@ class ProcessDesign:
         The stage-1 closed-loop controller (``pid``: needs no model of the process).
     feedforward_scenarios : tuple[str, ...]
         Scenarios of the feed-forward baseline's runs at the target.
+    turn_tracks : tuple[int, float] or None
+        (tracks, track length [m]) of the turnaround staircases (seeds 7-9; None: none).
     """
 
     operating_power_w: float
@@ -442,6 +451,7 @@ class ProcessDesign:
     amplitude_ratio: float = 0.24
     double_track_setpoint_ratios: tuple[float, ...] = (55 / 63, 1.0, 70 / 63)
     layer_setpoint_ratios: tuple[float, ...] = (58 / 63, 68 / 63)
+    turn_tracks: tuple[int, float] | None = (8, 5e-3)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.operating_power_w) and self.operating_power_w > 0):
@@ -458,10 +468,13 @@ class ProcessDesign:
         return float(round(self.operating_power_w * ratio))
 
     def stage1_runs(self) -> tuple[IdentRun | FeedbackRun, ...]:
-        """Open-loop staircases (seeds 1-3 on the layer, 4-6 on the double track), then the closed-loop runs."""
+        """Open-loop staircases (seeds 1-3 on the layer, 4-6 on the double track, 7-9 on the
+        ``turn_tracks`` layer), then the closed-loop runs."""
         amplitude = self._power(self.amplitude_ratio)
-        staircases = tuple(IdentRun(scenario, self._power(ratio), amplitude, seed, plant=self.plant)
-                           for scenario, first in (("ident-layer", 1), ("ident-double-track", 4))
+        plans = (("ident-layer", 1, None), ("ident-double-track", 4, None)) + (
+            () if self.turn_tracks is None else (("ident-layer", 7, self.turn_tracks),))
+        staircases = tuple(IdentRun(scenario, self._power(ratio), amplitude, seed, plant=self.plant, tracks=tracks)
+                           for scenario, first, tracks in plans
                            for seed, ratio in enumerate(self.power_ratios, first))
         feedback = tuple(FeedbackRun(scenario, self.feedback_controller, self._setpoint(ratio), plant=self.plant)
                          for scenario, ratios in (("double-track", self.double_track_setpoint_ratios),
@@ -504,7 +517,7 @@ PLATE_STAGE1_MODEL = "gp_model/models/in625_plate_narx_gp_stage1.json"
 """The bare plate's stage-1 model: ``narx`` over every plate run but the ``ident-preview-mpc-*`` ones, the
 controller of those runs, so that the data do not depend on the model they train."""
 PLATE_DESIGN = ProcessDesign(250.0, 0.063, PLATE_STAGE1_MODEL, (("preset", "bare-plate"),), feedback_controller="mpc",
-                             feedforward_scenarios=("double-track", "layer"))
+                             feedforward_scenarios=("double-track", "layer"), turn_tracks=None)
 """The bare plate's runs: 250 W, 0.063 mm², the one-step GP-MPC in closed loop (its model is the plate's)."""
 IDENT_RUNS = PLATE_DESIGN.runs()
 PREVIEW_RUNS = PLATE_DESIGN.stage2_runs()

@@ -454,7 +454,8 @@ def _narx(args: argparse.Namespace) -> int:
     out = model.save(args.out or ident.model_path)
     for row in table:
         print(f"lags p {row['n_power_lags']:2d}, T {row['n_temperature_lags']:2d}, output {row['output']:8s}, "
-              f"squares {row['quadratic']!s:5s}, p×T {row['interaction']!s:5s}, ℓ >= {row['length_scale_floor']}: "
+              f"squares {row['quadratic']!s:5s}, p×T {row['interaction']!s:5s}, ℓ >= {row['length_scale_floor']}, "
+              f"λ {row['smoothing']:g}: "
               f"{ROLLOUT_HORIZON}-step rollout {row[f'rollout_h{ROLLOUT_HORIZON}_mape_pct']:.2f} %, "
               f"one-step MAPE {row['mape_pct']:.2f} %, coverage {row['coverage_95_pct']:.1f} %")
     print(

@@ -191,10 +191,12 @@ def _series(recordings_dir: Path, runs) -> list[RunSeries]:
 def controller_record(recordings_dir: Path, design: ProcessDesign) -> dict[str, Any]:
     """The model's ``provenance.controller``: ``nominal_power_w``, the operating power [W] (the power
     at laser-on and during the build-up of every controller on this process), and ``pid``, the PID
-    baseline tuned on the design's training staircases (not the held-out ones) by
+    baseline tuned on the design's training staircases of the scenarios' own plans (not the held-out
+    ones, nor the turnaround staircases, whose short tracks are mostly turnarounds) by
     :func:`gp_trainer.pid_tuning.pid_record`."""
     held = set(design.held_out())
-    staircases = [r for r in design.stage1_runs() if isinstance(r, IdentRun) and r.name not in held]
+    staircases = [r for r in design.stage1_runs()
+                  if isinstance(r, IdentRun) and r.tracks is None and r.name not in held]
     return {"nominal_power_w": design.operating_power_w,
             "pid": pid_record(_series(recordings_dir, staircases), design.setpoint_mm2 * 1e-6)}
 
@@ -252,7 +254,9 @@ def design_record(design: ProcessDesign, recordings_dir: Path) -> dict[str, Any]
     return {"operating_power_w": design.operating_power_w, "setpoint_mm2": design.setpoint_mm2,
             "stage1_model": design.stage1_model, "plant": dict(design.plant),
             "feedback_controller": design.feedback_controller,
-            "feedforward_scenarios": list(design.feedforward_scenarios), "held_out": list(design.held_out()),
+            "feedforward_scenarios": list(design.feedforward_scenarios),
+            "turn_tracks": None if design.turn_tracks is None else list(design.turn_tracks),
+            "held_out": list(design.held_out()),
             "recordings_dir": str(recordings_dir)}
 
 
@@ -261,7 +265,9 @@ def design_from_record(record: dict[str, Any]) -> tuple[ProcessDesign, Path]:
     try:
         design = ProcessDesign(float(record["operating_power_w"]), float(record["setpoint_mm2"]),
                                str(record["stage1_model"]), tuple(dict(record["plant"]).items()),
-                               str(record["feedback_controller"]), tuple(record["feedforward_scenarios"]))
+                               str(record["feedback_controller"]), tuple(record["feedforward_scenarios"]),
+                               turn_tracks=None if record.get("turn_tracks") is None
+                               else (int(record["turn_tracks"][0]), float(record["turn_tracks"][1])))
         return design, Path(record["recordings_dir"])
     except (KeyError, TypeError, ValueError) as err:
         raise CampaignError(f"the model's provenance.design is incomplete ({err})") from None

@@ -32,6 +32,10 @@ FEATURES = ((False, 0), (True, 0), (True, 24))
 lags in the regressor)."""
 LENGTH_SCALE_FLOORS = (0.5, 2.0)
 """Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
+SMOOTHINGS = (0.0, 0.01, 0.1, 1.0)
+"""Candidate weights λ of the smoothness prior on each lag kernel (:func:`gp_model.narx.smoothing_rows`):
+without it the lags of one signal, nearly collinear, are fitted with alternating signs that cancel along a
+track and give a wrong response to power before a turn (``benchmarks/turn_sensitivity.py``)."""
 
 
 def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int = ROLLOUT_HORIZON,
@@ -83,14 +87,14 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int =
 def _fit_candidate(train: Sequence[RunSeries], held_out: Sequence[RunSeries], candidate: tuple, seed: int,
                    n_train: int, provenance: Mapping[str, Any] | None) -> tuple[NarxGPModel, dict[str, Any]]:
     """Fit one candidate of :func:`select_and_fit` and score it on ``held_out``: the model and its row."""
-    (n_p, n_t), (output, quadratic, with_x), (with_f, n_f), floor = candidate
+    (n_p, n_t), (output, quadratic, with_x), (with_f, n_f), floor, smoothing = candidate
     model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
                             output=output, quadratic=quadratic, interaction=with_x, feature_lags=n_f,
-                            turn_feature=TurnFeature() if with_f else None,
+                            turn_feature=TurnFeature() if with_f else None, smoothing=smoothing,
                             bounds=HyperBounds(length_scale=(floor, 100.0)), provenance=provenance)
     row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
            "interaction": with_x, "turn_feature": with_f, "feature_lags": n_f, "length_scale_floor": floor,
-           **evaluate_model(model, held_out)}
+           "smoothing": smoothing, **evaluate_model(model, held_out)}
     return model, row
 
 
@@ -103,11 +107,12 @@ def select_and_fit(
     provenance: Mapping[str, Any] | None = None,
     workers: int = 1,
 ) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
-    """Fit every candidate (lags, output map, squared lags, interactions, feature lags, length-scale floor) on
+    """Fit every candidate (lags, output map, squared lags, interactions, feature lags, length-scale floor,
+    smoothness prior) on
     ``train``; keep the one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
     Returns it, its row and the whole table; ``provenance`` goes into every candidate's. ``workers`` > 1 fits
     the candidates in that many forked processes (each fit is deterministic: the same model either way)."""
-    candidates = list(itertools.product(STRUCTURES, FORMS, FEATURES, LENGTH_SCALE_FLOORS))
+    candidates = list(itertools.product(STRUCTURES, FORMS, FEATURES, LENGTH_SCALE_FLOORS, SMOOTHINGS))
     fit = functools.partial(_fit_candidate, train, held_out, seed=seed, n_train=n_train, provenance=provenance)
     if workers > 1:
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:

@@ -66,7 +66,13 @@ def test_design_scales_the_runs_to_the_operating_point_and_the_set_point():
     assert [(r.scenario, r.mean_w, r.amplitude_w, r.seed) for r in staircases] == [
         ("ident-layer", 104.0, 31.0, 1), ("ident-layer", 130.0, 31.0, 2), ("ident-layer", 156.0, 31.0, 3),
         ("ident-double-track", 104.0, 31.0, 4), ("ident-double-track", 130.0, 31.0, 5),
-        ("ident-double-track", 156.0, 31.0, 6)]
+        ("ident-double-track", 156.0, 31.0, 6), ("ident-layer", 104.0, 31.0, 7), ("ident-layer", 130.0, 31.0, 8),
+        ("ident-layer", 156.0, 31.0, 9)]
+    turns = staircases[6:]   # the turnaround staircases: 8 tracks of 5 mm, 7 turns each
+    assert [r.name for r in turns] == ["ident-layer-8x5mm-p104-s7", "ident-layer-8x5mm-p130-s8",
+                                       "ident-layer-8x5mm-p156-s9"]
+    assert all(dict(r.job().plant)["n_tracks"] == 8 and dict(r.job().plant)["track_length_m"] == 5e-3 for r in turns)
+    assert all("n_tracks" not in dict(r.job().plant) for r in staircases[:6])
     closed = [r for r in stage1 if isinstance(r, FeedbackRun)]
     assert [(r.controller, r.scenario, r.setpoint_mm2) for r in closed] == [
         ("pid", "double-track", 0.0611), ("pid", "double-track", 0.07), ("pid", "double-track", 0.0778),
@@ -80,12 +86,15 @@ def test_design_scales_the_runs_to_the_operating_point_and_the_set_point():
     assert closed[-1].job().controller_table == (("nominal_power_w", 130.0),)
     assert all(r.job().args[-2:] == ("--model", str(REPO_ROOT / "models/stage1.json")) for r in stage2)
     held = design.held_out()
-    assert held == ("ident-layer-p130-s2", "ident-double-track-p130-s5", "ident-pid-double-track-a0.07")
+    assert held == ("ident-layer-p130-s2", "ident-double-track-p130-s5", "ident-layer-8x5mm-p130-s8",
+                    "ident-pid-double-track-a0.07")
     assert set(held) < {r.name for r in stage1}
     # the default layer at the target set point is in no run (the closed-loop figure there is off the training set)
     assert not [r for r in design.runs() if isinstance(r, FeedbackRun) and r.scenario == "layer"
                 and r.setpoint_mm2 == design.setpoint_mm2]
     assert design_from_record(json.loads(json.dumps(design_record(design, Path("rec"))))) == (design, Path("rec"))
+    older = {k: v for k, v in design_record(design, Path("rec")).items() if k != "turn_tracks"}
+    assert design_from_record(older)[0].turn_tracks is None      # a record from before the turnaround staircases
     with pytest.raises(CampaignError, match="operating_power_w"):
         ProcessDesign(0.0, 0.063, "m.json")
 
@@ -166,7 +175,7 @@ def test_learn_end_to_end_on_a_short_coarse_case(tmp_path, capsys):
     assert main(argv) == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert report["status"] == "ok" and 150.0 < report["operating_point"]["power_w"] < 350.0
-    assert len(report["runs"]) == 20 and all(r["status"] == "ok" for r in report["runs"])
+    assert len(report["runs"]) == 23 and all(r["status"] == "ok" for r in report["runs"])
     model = NarxGPModel.load(tmp_path / "m.json")
     assert model.powder_layer_m == 0.0 and model.provenance["design"]["held_out"] == report["held_out"]
     assert NarxGPModel.load(tmp_path / "m_stage1.json").provenance["runs"] != model.provenance["runs"]
@@ -187,9 +196,24 @@ def test_selection_in_forked_workers_gives_the_same_model(monkeypatch):
     monkeypatch.setattr(narx_fit, "FORMS", (("identity", False, False), ("log", False, False)))
     monkeypatch.setattr(narx_fit, "LENGTH_SCALE_FLOORS", (2.0,))
     monkeypatch.setattr(narx_fit, "FEATURES", ((False, 0),))
+    monkeypatch.setattr(narx_fit, "SMOOTHINGS", (0.0, 0.1))
     runs = [dataclasses.replace(synthetic_run(s, n=200), speed_m_s=0.8) for s in range(4)]
     one = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40)
     two = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40, workers=2)
-    assert len(one[2]) == 2 and one[1] == two[1] and one[2] == two[2]
+    assert len(one[2]) == 4 and one[1] == two[1] and one[2] == two[2]
     assert one[0].to_dict() == two[0].to_dict()
     assert one[1]["rollout_h40_mape_pct"] == min(r["rollout_h40_mape_pct"] for r in one[2])
+
+
+def test_the_pid_is_tuned_on_the_training_staircases_of_the_scenarios_own_plans(monkeypatch):
+    """Not on the held-out staircases, nor on the turnaround staircases (8 tracks of 5 mm: mostly turns,
+    where a first-order model of the power's response along a track fits nothing)."""
+    from gp_trainer import learn as learn_module
+
+    seen = {}
+    monkeypatch.setattr(learn_module, "_series", lambda directory, runs: [r.name for r in runs])
+    monkeypatch.setattr(learn_module, "pid_record", lambda series, set_point_m2: seen.setdefault("runs", series))
+    record = learn_module.controller_record(Path("rec"), ProcessDesign(130.0, 0.07, "m.json"))
+    assert seen["runs"] == ["ident-layer-p104-s1", "ident-layer-p156-s3", "ident-double-track-p104-s4",
+                            "ident-double-track-p156-s6"]
+    assert record["nominal_power_w"] == 130.0
