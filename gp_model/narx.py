@@ -22,8 +22,13 @@ regressor, in lagged powers and temperatures only (no lagged areas):
   seeded random samples, :mod:`gp_model.kernel`) learns the residual in z on
   ``ψ_k = (T[k] [K], log(1 + min(s_k, 100)), mean(p[k+2−n_p..k+1]) [W])`` with ``s_k`` the states
   since the current track started, and gives the predictive variance.
+* The lag part's least squares may carry a smoothness prior ``λ Σ (θ_{i+1} − θ_i)²`` over the
+  consecutive lags of T ahead, its square, p × T and F (:func:`smoothing_rows`,
+  :data:`SMOOTHED_GROUPS`): nearly collinear lags otherwise take alternating signs that cancel
+  along a track but not across a turnaround.
 * :func:`gp_trainer.narx_fit.select_and_fit` chooses the lags, the output map, the squared lags,
-  the interactions, the feature lags and the GP's length-scale floor by the 40-step rollout error on held-out runs.
+  the interactions, the feature lags, the GP's length-scale floor and λ by the 40-step rollout error
+  on held-out runs.
 * Over a horizon the temperature ahead is forecast from the scan plan
   (:func:`forecast_t_ahead`): after a turnaround it follows the learned turnaround profile
   (:attr:`NarxGPModel.turn_profile_k`), the rise of T ahead over the state before the turn; with
@@ -75,6 +80,11 @@ def steps_since_start_feature(steps: np.ndarray) -> np.ndarray:
     """The GP's track-position input ``log(1 + min(s, 100))``: resolves the first states after a
     turnaround, where the area changes fastest, as finely as the GP's length-scales allow."""
     return np.log1p(np.minimum(steps, STEPS_SINCE_START_CAP))
+SMOOTHED_GROUPS = (False, False, True, True, True, True)
+"""Which lag kernels the smoothness prior of :meth:`NarxGPModel.fit` acts on, in the order power, power²,
+T, T², p × T, F: not the power's, the ramp over one pool length that the staircases excite step by step
+(smoothed, it spreads over the 32 lags and the preview MPC over-corrects), but the kernels of the slow,
+nearly collinear T ahead and turnaround feature."""
 DEFAULT_BOUNDS = HyperBounds()
 
 
@@ -208,19 +218,20 @@ def _common_speed(runs: Sequence[RunSeries], speed_m_s: float | None) -> float:
     return speed
 
 
-def smoothing_rows(sizes: Sequence[int], smoothing: float) -> np.ndarray:
+def smoothing_rows(sizes: Sequence[int], smoothing: float, smoothed: Sequence[bool] | None = None) -> np.ndarray:
     """Rows ``√λ (θ_{i+1} − θ_i)`` over consecutive lags within each group of ``sizes`` consecutive
-    coefficients (after the intercept), appended to the scaled least squares of :meth:`NarxGPModel.fit`:
-    a smoothness prior on each lag kernel, ``λ`` = ``smoothing`` ≥ 0 relative to the unit-norm columns
-    (0: no rows)."""
+    coefficients (after the intercept) whose ``smoothed`` flag is set (default: every group), appended
+    to the scaled least squares of :meth:`NarxGPModel.fit`: a smoothness prior on those lag kernels,
+    ``λ`` = ``smoothing`` ≥ 0 relative to the unit-norm columns (0: no rows)."""
     if not (math.isfinite(smoothing) and smoothing >= 0):
         raise DatasetError(f"smoothing must be a finite number >= 0, got {smoothing}")
     n = 1 + sum(sizes)
+    flags = [True] * len(sizes) if smoothed is None else list(smoothed)
     if smoothing == 0:
         return np.zeros((0, n))
     rows, start = [], 1
-    for size in sizes:
-        for i in range(start, start + size - 1):
+    for size, flag in zip(sizes, flags, strict=True):
+        for i in range(start, start + size - 1 if flag else start):
             row = np.zeros(n)
             row[i], row[i + 1] = -1.0, 1.0
             rows.append(row)
@@ -770,7 +781,7 @@ class NarxGPModel:
         scale = np.linalg.norm(X, axis=0)
         scale[scale == 0] = 1.0
         sizes = (n_power_lags, n_power_lags, n_temperature_lags, n_tq, n_x, feature_lags)
-        rows = smoothing_rows(sizes, smoothing)
+        rows = smoothing_rows(sizes, smoothing, SMOOTHED_GROUPS)
         theta = np.linalg.lstsq(np.vstack([X / scale, rows]), np.r_[target, np.zeros(rows.shape[0])],
                                 rcond=None)[0] / scale
         residual = target - X @ theta

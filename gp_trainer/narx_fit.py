@@ -32,8 +32,8 @@ FEATURES = ((False, 0), (True, 0), (True, 24))
 lags in the regressor)."""
 LENGTH_SCALE_FLOORS = (0.5, 2.0)
 """Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
-SMOOTHINGS = (0.0, 0.01, 0.1, 1.0)
-"""Candidate weights λ of the smoothness prior on each lag kernel (:func:`gp_model.narx.smoothing_rows`):
+SMOOTHINGS = (0.0, 0.1)
+"""Candidate weights λ of the smoothness prior on the lag kernels (:func:`gp_model.narx.smoothing_rows`):
 without it the lags of one signal, nearly collinear, are fitted with alternating signs that cancel along a
 track and give a wrong response to power before a turn (``benchmarks/turn_sensitivity.py``)."""
 
