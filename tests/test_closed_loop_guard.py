@@ -80,7 +80,7 @@ def test_default_layer_meets_the_acceptance_figures():
 def test_double_track_holds_the_area_on_the_physical_plant():
     """The double track at 0.063 mm² on the physical plant with its shipped model (next to in sample: its
     training runs include preview-MPC double tracks at 0.058 and 0.068 mm² and the feed-forward one at
-    0.063 mm²). Measured: 7.90 / 25.27 / 5.44 % (over / under / RMSE, turnarounds 11.1 %, along the
-    tracks 1.9 %); the thresholds are a little above."""
+    0.063 mm²). Measured: 7.55 / 19.16 / 3.94 % (over / under / RMSE, turnarounds 7.2 %, along the
+    tracks 2.3 %); the thresholds are a little above."""
     m = closed_loop("double-track", "physical")
-    assert m.overshoot_pct <= 9.0 and m.undershoot_pct <= 27.0 and m.steady_rmse_pct <= 6.0, m
+    assert m.overshoot_pct <= 8.5 and m.undershoot_pct <= 21.0 and m.steady_rmse_pct <= 4.5, m
