@@ -8,6 +8,7 @@ the Table-4 line over the fixed window.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -26,7 +27,7 @@ from controller_node.report import main as report_main
 from controller_node.settings import ControllerSettings, merged_over
 from controller_node.summary import comparison_table, summarise, table_line
 from fe_node.commands import CommandPolicy
-from fe_node.scenarios import NAMES, PART_NAMES, PART_POWER_W, scenario
+from fe_node.scenarios import NAMES, PART_NAMES, PART_POWER_W, Scenario, scenario
 from gp_model.shipped import DEFAULT_MODEL_PATH, PART_MODEL_PATH, default_model_path
 from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
@@ -125,7 +126,7 @@ def check_config(opts: RunOptions) -> None:
         raise UsageError(f"{opts.config}: unknown table(s) {', '.join(sorted(unknown))}; expected [plant], "
                          "[controller]")
     try:
-        plant = scenario(opts.scenario, **{**data.get("plant", {}), **opts.plant_overrides})
+        plant = run_scenario(opts)
     except (ValueError, TypeError) as err:
         raise UsageError(f"{opts.config} [plant]: {err}" if opts.config else str(err)) from None
     model = load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts
@@ -196,6 +197,18 @@ def check_within_plant(settings: ControllerSettings, where: str) -> None:
                          f"[{plant.speed_min_m_s:g}, {plant.speed_max_m_s:g}] m/s")
 
 
+def run_scenario(opts: RunOptions) -> Scenario:
+    """The run's plant scenario (``--scenario``, ``[plant]`` and the node options), built once for the
+    same values (a part's is sliced by PySLM); ``ValueError``/``TypeError`` for a bad configuration."""
+    overrides = {**load_toml(opts.config).get("plant", {}), **opts.plant_overrides}
+    return _scenario(opts.scenario, json.dumps(overrides, sort_keys=True))
+
+
+@functools.cache
+def _scenario(name: str, overrides_json: str) -> Scenario:
+    return scenario(name, **json.loads(overrides_json))
+
+
 def plant_model(opts: RunOptions) -> Path | None:
     """The shipped model of the run's plant: the part model (``gp_model.shipped.PART_MODEL_PATH``) on a
     part scenario, else the model of the plate's powder layer (``gp_model.shipped.default_model_path``);
@@ -205,7 +218,7 @@ def plant_model(opts: RunOptions) -> Path | None:
     if opts.scenario not in NAMES:
         return None
     try:
-        plant = scenario(opts.scenario, **{**load_toml(opts.config).get("plant", {}), **opts.plant_overrides})
+        plant = run_scenario(opts)
     except (ValueError, TypeError):
         return None
     return default_model_path(plant.settings.powder_layer_m)
@@ -229,11 +242,10 @@ def plant_speed(opts: RunOptions) -> float | None:
     """The scan speed [m/s] of the plant's first step (the scenario's, or ``[plant] speed_m_s``), which every
     controller commands (power-only control) unless ``[controller] nominal_speed_m_s`` is set (check_config
     refuses one that differs); ``None`` when the configuration is bad (check_config names the key)."""
-    data = load_toml(opts.config)
-    if "nominal_speed_m_s" in data.get("controller", {}) or opts.scenario not in NAMES:
+    if "nominal_speed_m_s" in load_toml(opts.config).get("controller", {}) or opts.scenario not in NAMES:
         return None
     try:
-        plant = scenario(opts.scenario, **{**data.get("plant", {}), **opts.plant_overrides})
+        plant = run_scenario(opts)
     except (ValueError, TypeError):
         return None
     return float(plant.profile.command(0)[1])

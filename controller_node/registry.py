@@ -76,7 +76,7 @@ def make_controller(
     if name not in CLASSES:
         raise ValueError(f"unknown controller {name!r}; choose one of {', '.join(CONTROLLERS)}")
     controller_class = _resolve(CLASSES[name])
-    if name in ("open-loop", "pid"):
+    if name not in MODELS:                      # a controller that runs no model
         return controller_class(settings)
     if name == "mpc" and model is None:
         raise ValueError("the 'mpc' controller needs a model")
