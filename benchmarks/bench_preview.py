@@ -140,7 +140,7 @@ def main() -> None:
         "loadavg_1min_at_start": round(load_at_start, 2),
         "qp_paths": dict(paths),
         "scenario": args.scenario,
-        "model": "gp_model/models/in625_narx_gp.json",
+        "model": str(model_path),
     }
     print(f"{result['n_updates']} updates on {args.scenario}: "
           f"median {result['median_us']} us, p99 {result['p99_us']} us; "
