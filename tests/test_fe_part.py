@@ -12,6 +12,9 @@ from tests.plants import BARE, BARE_ARGS
 
 pytest.importorskip("pyslm")
 
+BLOCK_STL = EXAMPLE_STL.parent / "block_5mm.stl"
+"""The shipped 5 x 5 x 1.5 mm block (the 50-layer build)."""
+
 
 def test_example_part_slices_into_ten_hatched_layers():
     plans = part_plans(EXAMPLE_STL, 50e-6, 100e-6, hatch_rotation_deg=0.0, contours=False)   # hatch along x only
@@ -22,6 +25,27 @@ def test_example_part_slices_into_ten_hatched_layers():
         ys = np.array([t[0][1] for t in plan.tracks])
         assert np.allclose(np.diff(ys), 100e-6, atol=1e-8)               # hatch distance
         assert len(plan.tracks) == 15 and plan.total_length == pytest.approx(17.6e-3, rel=0.01)
+
+
+def test_shipped_block_builds_50_layers_of_5_by_5_mm_contoured_and_turning_67_degrees():
+    """The default plant on ``--part fe_node/parts/block_5mm.stl --layers 50``: 25 µm layers, each a contour
+    around the 5 mm square, then a hatch turned by 67° from the layer below's (the part defaults)."""
+    sc = scenario("part", part_stl=str(BLOCK_STL), n_layers=50)
+    assert sc.settings.powder_layer_m == 25e-6 and len(sc.layer_plans) == 50
+    angles_deg = []
+    for plan in sc.layer_plans[:3]:
+        tracks = np.array(plan.tracks)
+        closes = next(k for k, t in enumerate(tracks) if np.array_equal(t[1], tracks[0, 0]))   # the contour's end
+        contour, hatch = tracks[:closes + 1], tracks[closes + 1:]
+        assert np.hypot(*(contour[:, 1] - contour[:, 0]).T).sum() == pytest.approx(20e-3, rel=1e-3)
+        assert contour.min(axis=(0, 1)) == pytest.approx([-2.5e-3] * 2, abs=2e-6)
+        assert contour.max(axis=(0, 1)) == pytest.approx([2.5e-3] * 2, abs=2e-6)
+        assert np.all(np.abs(hatch) <= 2.5e-3 - 40e-6)                          # inset half a hatch
+        d = hatch[:, 1] - hatch[:, 0]
+        along = np.degrees(np.arctan2(d[:, 1], d[:, 0])) % 180.0
+        assert np.ptp(along) < 0.05 or np.ptp((along + 90.0) % 180.0) < 0.05     # one direction (0° ~ 180°)
+        angles_deg.append(along[0])
+    assert np.diff(angles_deg) % 180.0 == pytest.approx([67.0, 67.0], abs=0.05)
 
 
 def test_part_scenario_builds_layer_by_layer():
