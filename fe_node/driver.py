@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 from tqdm import tqdm
 
+from fe_node.multilevel import plant_model
 from fe_node.observe import Observation
 from fe_node.scenarios import Scenario
-from fe_node.solver import ThermalModel
 
 
 def run_open_loop(sc: Scenario, progress: bool = False) -> list[Observation]:
@@ -15,7 +15,7 @@ def run_open_loop(sc: Scenario, progress: bool = False) -> list[Observation]:
     Returns the observations after each step (step 1 ... N).  ``progress`` shows a tqdm
     bar on stderr.
     """
-    model = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
+    model = plant_model(sc.settings, sc.plan, sc.layer_plans)
     plans = sc.layer_plans or (sc.plan,) * sc.settings.n_layers
     n_est = int(np.ceil(sum(p.total_length for p in plans) / (sc.profile.speed_m_s.range()[0] * sc.settings.dt_s)))
     out = []

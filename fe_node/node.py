@@ -25,6 +25,7 @@ from pathlib import Path
 from fe_node.commands import FALLBACKS, CommandGate, CommandPolicy, Verdict
 from fe_node.freerun import state_message
 from fe_node.image import temperature_image
+from fe_node.multilevel import plant_model
 from fe_node.observe import Observation
 from fe_node.scenarios import NAMES, PART_NAMES, Scenario
 from fe_node.scenarios import scenario as build_scenario
@@ -289,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
         return exit_usage(parser.prog, err)
     stop = StopFlag()
     t0 = time.perf_counter()
-    model = ThermalModel(scenario.settings, scenario.plan, scenario.layer_plans)
+    model = plant_model(scenario.settings, scenario.plan, scenario.layer_plans)
     setup_s = time.perf_counter() - t0
     return run_node(parser.prog, NODE_NAME, bus_settings,
                     lambda bus: run(bus, scenario, model, settings, stop, setup_s))

@@ -22,6 +22,7 @@ def check_type(what: str, value: object, kind: str) -> None:
 
 
 OPERATORS = ("tensor", "csr")
+MESHES = ("uniform", "multilevel")
 
 
 @dataclass(frozen=True)
@@ -122,6 +123,18 @@ class Settings:
         Least explicit sub-steps per step (default 3; more if stability needs them).  Three
         keep the area within 1 % of the time-converged one at 25 µm (``dt_convergence_pct`` of
         ``python -m fe_node validate``; one sub-step, which stability allows, is 2.7 % low).
+    mesh : str
+        ``"uniform"`` (default): one graded grid, fine over the whole plan (or the ``window_m``
+        around the laser); ``"multilevel"``: three nested grids that move with the laser
+        (:mod:`fe_node.multilevel`, docs/fe-scale.md): the fine box below, an intermediate box of
+        ``mid_h_m`` elements and the part at ``coarse_h_m``, each stepped at its own time step.
+    fine_box_m, fine_box_depth_m : float
+        Side of the fine level's square box around the laser, and its depth below the plate's
+        top [m] (``mesh = "multilevel"``).
+    mid_h_m, mid_box_m : float
+        Element size and box side [m] of the intermediate level.
+    coarse_h_m : float
+        Element size [m] of the part level (the whole domain).
     operator : str
         Implementation of the forms (:mod:`fe_node.operators`): ``"tensor"`` (the fast
         tensor-product path, default) or ``"csr"`` (scikit-fem-assembled CSR matrix, same result).
@@ -158,6 +171,12 @@ class Settings:
     liquid_k_factor_z: float = 1.0
     window_m: float = 0.0
     min_substeps: int = 3
+    mesh: str = "uniform"
+    fine_box_m: float = 2.4e-3
+    fine_box_depth_m: float = 0.5e-3
+    mid_h_m: float = 50e-6
+    mid_box_m: float = 5e-3
+    coarse_h_m: float = 200e-6
     operator: str = "tensor"
 
     def __post_init__(self):
@@ -202,6 +221,10 @@ class Settings:
                 raise ValueError(f"settings: {name} must be in [1, 20], got {getattr(self, name)}")
         if self.operator not in OPERATORS:
             raise ValueError(f"settings: operator must be one of {', '.join(OPERATORS)}, got {self.operator!r}")
+        if self.mesh not in MESHES:
+            raise ValueError(f"settings: mesh must be one of {', '.join(MESHES)}, got {self.mesh!r}")
+        if self.mesh == "multilevel":
+            self._check_levels()
         if self.h_conv_w_m2k < 0:
             raise ValueError(f"settings: h_conv_w_m2k must be >= 0, got {self.h_conv_w_m2k}")
         if not 1 <= self.growth <= 2:
@@ -215,6 +238,23 @@ class Settings:
             raise ValueError(f"settings: window_m must be 0 (off) or >= 8 h_fine_m, got {self.window_m}")
         if self.fine_pad_m > self.margin_m or self.fine_depth_m > self.depth_m:
             raise ValueError("settings: refined band must lie inside the domain")
+
+    def _check_levels(self) -> None:
+        """The multi-level mesh's sizes nest: fine box < intermediate box, fine < mid < coarse elements."""
+        if self.operator != "tensor" or self.window_m != 0:
+            raise ValueError("settings: mesh = 'multilevel' needs operator = 'tensor' and window_m = 0")
+        if self.n_layers != 1:
+            raise ValueError("settings: mesh = 'multilevel' builds one layer (n_layers = 1) so far")
+        if not 16 * self.h_fine_m <= self.fine_box_m:
+            raise ValueError(f"settings: fine_box_m must be >= 16 h_fine_m, got {self.fine_box_m}")
+        if not self.fine_depth_m <= self.fine_box_depth_m <= self.depth_m:
+            raise ValueError(f"settings: fine_box_depth_m must be in [fine_depth_m, depth_m], "
+                             f"got {self.fine_box_depth_m}")
+        if not self.h_fine_m < self.mid_h_m < self.coarse_h_m:
+            raise ValueError(f"settings: need h_fine_m < mid_h_m < coarse_h_m, got {self.h_fine_m}, {self.mid_h_m}, "
+                             f"{self.coarse_h_m}")
+        if not self.mid_box_m >= self.fine_box_m + 4 * self.mid_h_m:
+            raise ValueError(f"settings: mid_box_m must be >= fine_box_m + 4 mid_h_m, got {self.mid_box_m}")
 
     @classmethod
     def field_names(cls) -> set[str]:

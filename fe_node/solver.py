@@ -72,14 +72,49 @@ def grid_shape(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, 
     return counts[0], counts[1], nz
 
 
+def level_nodes(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None) -> int:
+    """Upper bound of the nodes of the multi-level mesh's three grids (``mesh = "multilevel"``,
+    :mod:`fe_node.multilevel`): the fine box at most ``fine_box_m`` square at ``h_fine_m`` (as deep
+    as the uniform grid's top ``fine_box_depth_m``), the intermediate box and the part level."""
+    s = settings
+    ax = dict(growth=s.growth, h_max=max(s.h_max_m, s.coarse_h_m))
+    (x, _), (y, _) = plan_bands(settings, plan, layer_plans)
+    nz_fine = grid_shape(settings, plan, layer_plans)[2]
+    fine = (math.ceil(s.fine_box_m / s.h_fine_m) + 2) ** 2 * nz_fine
+    top = s.powder_layer_m
+    nz = [graded_axis_size(-s.depth_m, top, max(-s.depth_m, top - 2 * h), top, h=h, **ax)
+          for h in (s.mid_h_m, s.coarse_h_m)]
+    mid = (math.ceil(s.mid_box_m / s.mid_h_m) + 2) ** 2 * nz[0]
+    part = (math.ceil((x[1] - x[0]) / s.coarse_h_m) + 1) * (math.ceil((y[1] - y[0]) / s.coarse_h_m) + 1) * nz[1]
+    return fine + mid + part
+
+
 def check_grid_size(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None) -> None:
-    """Raise ValueError (one line, naming what to change) if the plant's grid would have more than
+    """Raise ValueError (one line, naming what to change) if the plant's grid (or, with the
+    multi-level mesh, its three grids, :func:`level_nodes`) would have more than
     :data:`MAX_GRID_NODES` nodes."""
+    if settings.mesh == "multilevel":
+        n = level_nodes(settings, plan, layer_plans)
+        if n > MAX_GRID_NODES:
+            raise ValueError(f"the multi-level mesh would have {n:,} nodes, more than {MAX_GRID_NODES:,}: "
+                             "coarsen coarse_h_m or mid_h_m, or shrink fine_box_m or mid_box_m")
+        return
     nx, ny, nz = grid_shape(settings, plan, layer_plans)
     if nx * ny * nz > MAX_GRID_NODES:
         raise ValueError(f"the FE grid would have {nx * ny * nz:,} nodes ({nx} x {ny} x {nz}), more than "
                          f"{MAX_GRID_NODES:,}: shorten the scan plan (n_tracks, track_length_m, hatch_m), coarsen "
                          "h_fine_m, or let a fine window follow the laser (window_m)")
+
+
+def depth_axis(settings: Settings) -> np.ndarray:
+    """Node heights [m] of the plant's grid: graded from ``-depth_m`` to the plate's top, fine over
+    ``fine_depth_m``, and a powder layer (``powder_layer_m``, elements <= ``h_fine_m``) above it."""
+    s = settings
+    zs = graded_axis(-s.depth_m, 0.0, -s.fine_depth_m, 0.0, h=s.h_fine_m, growth=s.growth, h_max=s.h_max_m)
+    if s.powder_layer_m > 0:
+        n = math.ceil(s.powder_layer_m / s.h_fine_m - 1e-9)
+        zs = np.concatenate([zs, np.linspace(0.0, s.powder_layer_m, n + 1)[1:]])
+    return zs
 
 
 def build_grid(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None,
@@ -97,11 +132,7 @@ def build_grid(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, 
             axes.append(window_axis(*domain, *band, float(window_centre[k]), s.window_m, **ax))
         else:
             axes.append(graded_axis(*domain, *band, **ax))
-    zs = graded_axis(-s.depth_m, 0.0, -s.fine_depth_m, 0.0, **ax)
-    if s.powder_layer_m > 0:
-        n = math.ceil(s.powder_layer_m / s.h_fine_m - 1e-9)
-        zs = np.concatenate([zs, np.linspace(0.0, s.powder_layer_m, n + 1)[1:]])
-    return Grid(axes[0], axes[1], zs)
+    return Grid(axes[0], axes[1], depth_axis(settings))
 
 
 def check_command(power_w: float, speed_m_s: float) -> None:
@@ -211,15 +242,14 @@ class ThermalModel:
         if layer_plans is not None and (len(layer_plans) != settings.n_layers or layer_plans[0] != plan):
             raise ValueError("thermal model: layer_plans must hold n_layers plans, the first being plan")
         self.settings, self.plan, self._layer_plans = settings, plan, layer_plans
-        _, start, direction = plan.locate(0.0)
-        self.grid = build_grid(settings, plan, layer_plans, ahead(start, direction, settings.window_m))
+        self.grid = self._initial_grid()
         self.n_remeshes, self.remesh_energy_j = 0, 0.0
         self._bands = tuple(band for _, band in plan_bands(settings, plan, layer_plans))
         self.law = Constitutive(settings.material)
         ny, nz, nx = self.grid.solver_shape
         self.powder = PowderBed(settings, self.grid.zs, (ny - 1, nx - 1)) if settings.powder_layer_m > 0 else None
         self._lattice = None
-        if self.powder is not None and settings.window_m > 0:
+        if self.powder is not None and (settings.window_m > 0 or settings.mesh == "multilevel"):
             self._lattice = ConsolidationLattice(*self._bands, settings.h_fine_m, self.powder.consolidated.shape[1])
         self.operator = self._build_operator(*self._initial_weights())
         self._a_top, self._a_bottom = self._face_areas()
@@ -239,6 +269,11 @@ class ThermalModel:
         self.step_index = 0
         self._absorbed = 0.0
         self._lost = 0.0
+
+    def _initial_grid(self) -> Grid:
+        """The grid at the start (:func:`build_grid`, its window ahead of the plan's start)."""
+        _, start, direction = self.plan.locate(0.0)
+        return build_grid(self.settings, self.plan, self._layer_plans, ahead(start, direction, self.settings.window_m))
 
     def _initial_weights(self):
         """Per-element (kw, rho_w) [-] in solver element order: dense plate, powder above (``None``: all 1)."""

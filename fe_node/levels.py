@@ -1,0 +1,321 @@
+"""Coarser levels of the multi-level plant and the energy-conserving transfers between levels.
+
+With ``Settings.mesh = "multilevel"`` (:mod:`fe_node.multilevel`) the plant is three nested grids:
+the fine level (the full physics of :class:`fe_node.solver.ThermalModel`) on a box around the
+laser, an intermediate level of ``mid_h_m`` on a box of ``mid_box_m`` around the fine one, and the
+part at ``coarse_h_m``.  A coarser level here (:class:`ConductionLevel`) solves the same
+enthalpy equation with the same forms (:func:`fe_node.solver.explicit_update`) but only with
+conduction, the top-face losses and the laser energy the fine level absorbed, at its own stable
+time step; near the laser its field is overwritten by its finer level's (:func:`restrict`).
+
+Transfers.  A box's side and bottom nodes take their coarser level's field (Dirichlet, held
+between the coarser level's steps).  :func:`restrict` averages the fine field under each coarse
+hat function, :func:`prolong` interpolates linearly; then one enthalpy shift of the transferred
+nodes (:func:`shift_to`) makes their energy that of the source field over the same region: the
+lumped (row-sum) energy of a nodal field inside a box counts each node's dual cell (half-way to
+its neighbours) clipped to the box (:func:`region_energy`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fe_node.boundary import loss_flux
+from fe_node.material import Constitutive
+from fe_node.mesh import Grid, graded_axis
+from fe_node.observe import interp_matrix
+from fe_node.operators import TensorOperator
+from fe_node.settings import Settings
+from fe_node.source import surface_load
+
+STABILITY_SAFETY = 0.9
+"""Fraction of the explicit stability limit a coarser level's sub-step takes (as the fine level)."""
+
+
+def dual_lengths(coords: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Length [m] of each node's dual cell (half-way to its neighbours, the row-sum lumped 1-D
+    mass) inside ``[lo, hi]``, shape (n,)."""
+    half = 0.5 * np.diff(coords)
+    left = np.concatenate([coords[:1], coords[1:] - half])
+    right = np.concatenate([coords[:-1] + half, coords[-1:]])
+    return np.clip(np.minimum(right, hi) - np.maximum(left, lo), 0.0, None)
+
+
+def region_energy(grid: Grid, h: np.ndarray, box: tuple[tuple[float, float], ...]) -> float:
+    """Lumped energy [J] of nodal enthalpy ``h`` (J/m³, solver order (ny, nz, nx)) inside the box
+    ``((x0, x1), (y0, y1), (z0, z1))`` [m]: the sum of ``h`` times each node's dual volume inside it
+    (every element's heat-capacity weight is 1, :data:`fe_node.powder.RHO_W`)."""
+    wx, wy, wz = (dual_lengths(c, *b) for c, b in zip((grid.xs, grid.ys, grid.zs), box))
+    return float(np.einsum("j,k,i,jki->", wy, wz, wx, h))
+
+
+def interpolate(grid: Grid, h: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
+    """Trilinear interpolation of ``h`` (solver order on ``grid``) at the tensor points (xs, ys, zs),
+    shape (len(ys), len(zs), len(xs)); points outside ``grid`` take the nearest boundary value."""
+    ny, nz, nx = h.shape
+    iy, iz, ix = interp_matrix(grid.ys, ys), interp_matrix(grid.zs, zs), interp_matrix(grid.xs, xs)
+    out = (iy @ h.reshape(ny, nz * nx)).reshape(len(ys), nz, nx)
+    return np.matmul(iz, out) @ ix.T
+
+
+def extent(grid: Grid) -> tuple[tuple[float, float], ...]:
+    """The grid's box ``((x0, x1), (y0, y1), (z0, z1))`` [m]."""
+    return tuple((float(c[0]), float(c[-1])) for c in (grid.xs, grid.ys, grid.zs))
+
+
+def inside(coords: np.ndarray, lo: float, hi: float) -> slice:
+    """The nodes of ``coords`` whose dual cells lie inside ``[lo, hi]``, as a slice (may be empty)."""
+    half = 0.5 * np.diff(coords)
+    left = np.concatenate([coords[:1], coords[1:] - half])
+    right = np.concatenate([coords[:-1] + half, coords[-1:]])
+    tol = 1e-9 * max(abs(hi - lo), 1e-9)
+    idx = np.flatnonzero((left >= lo - tol) & (right <= hi + tol))
+    return slice(0, 0) if not len(idx) else slice(int(idx[0]), int(idx[-1]) + 1)
+
+
+def dual_box(coords: np.ndarray, sl: slice) -> tuple[float, float]:
+    """The union [m] of the dual cells of nodes ``coords[sl]``."""
+    a, b = sl.start, sl.stop - 1
+    lo = coords[a] if a == 0 else 0.5 * (coords[a - 1] + coords[a])
+    hi = coords[b] if b == len(coords) - 1 else 0.5 * (coords[b] + coords[b + 1])
+    return float(lo), float(hi)
+
+
+def restrict(fine: Grid, h_fine: np.ndarray, coarse: Grid, h_coarse: np.ndarray) -> float:
+    """Overwrite the coarse nodes whose dual cells lie inside the fine grid with the fine field, in
+    place: each the fine field's average under its hat function (weighted by the fine nodes'
+    volumes; interpolated where the hat holds no fine node), then all shifted alike
+    (:func:`shift_to`) so that their lumped energy equals the fine field's over their dual cells.
+    Returns that energy [J] (0: no node)."""
+    (x0, x1), (y0, y1), (z0, z1) = extent(fine)
+    sy, sz, sx = inside(coarse.ys, y0, y1), inside(coarse.zs, z0, z1), inside(coarse.xs, x0, x1)
+    if any(s.stop <= s.start for s in (sy, sz, sx)):
+        return 0.0
+    box = (dual_box(coarse.xs, sx), dual_box(coarse.ys, sy), dual_box(coarse.zs, sz))
+    target = region_energy(fine, h_fine, box)
+    ay, az, ax = (hat_weights(c, f, s) for c, f, s in ((coarse.ys, fine.ys, sy), (coarse.zs, fine.zs, sz),
+                                                        (coarse.xs, fine.xs, sx)))
+    ny, nz, nx = h_fine.shape
+    energy = np.matmul(az, (ay @ h_fine.reshape(ny, nz * nx)).reshape(len(ay), nz, nx)) @ ax.T
+    volume = ay.sum(axis=1)[:, None, None] * az.sum(axis=1)[None, :, None] * ax.sum(axis=1)[None, None, :]
+    view = h_coarse[sy, sz, sx]
+    view[...] = interpolate(fine, h_fine, coarse.xs[sx], coarse.ys[sy], coarse.zs[sz])   # a hat holding no fine node
+    np.divide(energy, volume, out=view, where=volume > 0)
+    shift_to(view, lumped_volumes(coarse)[sy, sz, sx], np.ones(view.shape, dtype=bool), target)
+    return target
+
+
+def hat_weights(coarse: np.ndarray, fine: np.ndarray, sl: slice) -> np.ndarray:
+    """``A[i, f]`` = coarse hat function ``sl``'s ``i``-th at fine node ``f`` times the fine node's
+    dual length [m], shape (len(coarse[sl]), len(fine)): the 1-D factor of the restriction."""
+    return (interp_matrix(coarse, fine) * dual_lengths(fine, fine[0], fine[-1])[:, None]).T[sl]
+
+
+def shift_to(h: np.ndarray, mass: np.ndarray, moved: np.ndarray, energy_j: float) -> float:
+    """Add one enthalpy [J/m³] to the ``moved`` nodes so that ``sum(mass * h)`` is ``energy_j``, in
+    place; returns the shift (bounded by the transfer's own error, unlike a scaling of the excess
+    enthalpy, which diverges where the field is near its reference)."""
+    m = float(np.sum(mass[moved]))
+    dh = (energy_j - float(np.sum(mass * h))) / m if m > 0 else 0.0
+    h[moved] += dh
+    return dh
+
+
+def lumped_volumes(grid: Grid) -> np.ndarray:
+    """Row-sum lumped nodal volumes [m³] of ``grid``, solver order (ny, nz, nx)."""
+    wx, wy, wz = (dual_lengths(c, c[0], c[-1]) for c in (grid.xs, grid.ys, grid.zs))
+    return wy[:, None, None] * wz[None, :, None] * wx[None, None, :]
+
+
+def prolong(coarse: Grid, h_coarse: np.ndarray, old: Grid | None, h_old: np.ndarray | None, new: Grid
+            ) -> np.ndarray:
+    """The field on ``new`` for a level that moved from ``old`` (``None``: a new level): nodes inside
+    the old grid interpolated from the old field (exact at shared nodes), the others from the
+    coarser level, those shifted alike (:func:`shift_to`) so that the new field's energy is
+    the old field's over the overlap plus the coarser field's over the rest of the new box."""
+    h = interpolate(coarse, h_coarse, new.xs, new.ys, new.zs)
+    box_new = extent(new)
+    target = region_energy(coarse, h_coarse, box_new)
+    interpolated = np.ones(h.shape, dtype=bool)
+    if old is not None:
+        box_old = extent(old)
+        lap = tuple((max(a[0], b[0]), min(a[1], b[1])) for a, b in zip(box_new, box_old))
+        if all(hi > lo for lo, hi in lap):
+            tol = 1e-9
+            in_x = (new.xs >= lap[0][0] - tol) & (new.xs <= lap[0][1] + tol)
+            in_y = (new.ys >= lap[1][0] - tol) & (new.ys <= lap[1][1] + tol)
+            in_z = (new.zs >= lap[2][0] - tol) & (new.zs <= lap[2][1] + tol)
+            ix, iy, iz = np.flatnonzero(in_x), np.flatnonzero(in_y), np.flatnonzero(in_z)
+            block = (slice(iy[0], iy[-1] + 1), slice(iz[0], iz[-1] + 1), slice(ix[0], ix[-1] + 1))
+            h[block] = interpolate(old, h_old, new.xs[block[2]], new.ys[block[0]], new.zs[block[1]])
+            (ky, jy), (kz, jz), (kx, jx) = (_on(o, c[b]) for o, c, b in ((old.ys, new.ys, block[0]),
+                                                                      (old.zs, new.zs, block[1]),
+                                                                      (old.xs, new.xs, block[2])))
+            sub = h[block]
+            sub[np.ix_(ky, kz, kx)] = h_old[np.ix_(jy, jz, jx)]     # shared nodes: their values exactly
+            shared = np.zeros(sub.shape, dtype=bool)
+            shared[np.ix_(ky, kz, kx)] = True
+            interpolated[block] = ~shared
+            target += region_energy(old, h_old, lap) - region_energy(coarse, h_coarse, lap)
+    shift_to(h, lumped_volumes(new), interpolated, target)
+    return h
+
+
+def _on(old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The indices into ``new`` of its coordinates that are nodes of ``old`` (to 1e-6 of the
+    spacing), and those nodes' indices into ``old``."""
+    i = np.clip(np.searchsorted(old, new), 1, len(old) - 1)
+    i = np.where(np.abs(old[i - 1] - new) < np.abs(old[i] - new), i - 1, i)
+    hit = np.flatnonzero(np.abs(old[i] - new) <= 1e-6 * float(np.min(np.diff(old))))
+    return hit, i[hit]
+
+
+def level_axis(lo: float, hi: float, centre: float, side: float | None, h: float) -> np.ndarray:
+    """Uniform node coordinates [m] of spacing ``<= h`` over ``[lo, hi]`` (``side`` None) or over the
+    box of ``side`` around ``centre`` clipped to ``[lo, hi]``, its ends on the lattice ``lo + i h``."""
+    if side is not None:
+        a = max(lo, lo + math.floor((centre - 0.5 * side - lo) / h) * h)
+        b = min(hi, lo + math.ceil((centre + 0.5 * side - lo) / h) * h)
+        lo, hi = a, b
+    n = max(1, math.ceil((hi - lo) / h - 1e-9))
+    return np.linspace(lo, hi, n + 1)
+
+
+def level_depth_axis(settings: Settings, h: float, depth_m: float) -> np.ndarray:
+    """Node heights [m] of a coarser level: from ``-depth_m`` to the powder surface, top elements
+    ``h`` thick (the last one holding the powder layer), graded downwards (``growth``, ``h_max_m``)."""
+    s = settings
+    top = s.powder_layer_m
+    return graded_axis(-depth_m, top, max(-depth_m, top - 2 * h), top, h, s.growth, max(s.h_max_m, h))
+
+
+FACE_SLICES = {"x0": (slice(None), slice(None), slice(0, 1)), "x1": (slice(None), slice(None), slice(-1, None)),
+               "y0": (slice(0, 1), slice(None), slice(None)), "y1": (slice(-1, None), slice(None), slice(None)),
+               "z0": (slice(None), slice(0, 1), slice(None))}
+"""Solver-order slices (y, z, x) of a box's faces that can be held."""
+
+
+def held_faces(grid: Grid, coarse: Grid) -> tuple[str, ...]:
+    """The faces of ``grid`` strictly inside ``coarse`` (held to its field); the others lie on the
+    domain's boundary and keep its boundary condition."""
+    (x0, x1), (y0, y1), (z0, z1) = extent(grid)
+    (cx0, cx1), (cy0, cy1), (cz0, _) = extent(coarse)
+    tol = 1e-9
+    candidates = {"x0": x0 > cx0 + tol, "x1": x1 < cx1 - tol, "y0": y0 > cy0 + tol, "y1": y1 < cy1 - tol,
+                  "z0": z0 > cz0 + tol}
+    return tuple(face for face, held in candidates.items() if held)
+
+
+class HeldFaces:
+    """The side and bottom faces of a box that take a coarser level's field (Dirichlet), the values
+    interpolated when the coarser level changes (:meth:`hold`) and set after every sub-step
+    (:meth:`apply`)."""
+
+    def __init__(self, grid: Grid, coarse: Grid):
+        self.grid, self.faces = grid, held_faces(grid, coarse)
+        self._values: dict[str, np.ndarray] = {}
+
+    def hold(self, coarse: Grid, h_coarse: np.ndarray) -> None:
+        """Interpolate the held faces' values from the coarser field ``h_coarse`` on ``coarse``."""
+        g = self.grid
+        points = {"x0": (g.xs[:1], g.ys, g.zs), "x1": (g.xs[-1:], g.ys, g.zs), "y0": (g.xs, g.ys[:1], g.zs),
+                  "y1": (g.xs, g.ys[-1:], g.zs), "z0": (g.xs, g.ys, g.zs[:1])}
+        self._values = {f: interpolate(coarse, h_coarse, *points[f]) for f in self.faces}
+
+    def apply(self, h: np.ndarray, m: np.ndarray) -> float:
+        """Set the held faces of ``h`` in place (``m`` the lumped volumes [m³]); returns the energy [J]
+        that left the box through them (what resetting them removed)."""
+        out = 0.0
+        for face, values in self._values.items():
+            sl = FACE_SLICES[face]
+            out += float(np.sum(m[sl] * (h[sl] - values)))
+            h[sl] = values
+        return out
+
+
+class ConductionLevel:
+    """A coarser level (module docstring): conduction, top losses and a given surface heat input.
+
+    Parameters
+    ----------
+    settings : Settings
+    law : Constitutive
+    grid : Grid
+        The level's grid.
+    h : ndarray, shape grid.solver_shape
+        Initial nodal enthalpy [J/m³].
+    kw : ndarray, shape (ny - 1, nz - 1, nx - 1)
+        Per-element conductivity weights [-].
+    coarse : Grid, optional
+        The next coarser level's grid, whose field this level's faces inside it take (none: the part).
+
+    Attributes
+    ----------
+    lost_j, outflow_j : float
+        Energy [J] lost through the top face, and left through the held faces, so far.
+    """
+
+    def __init__(self, settings: Settings, law: Constitutive, grid: Grid, h: np.ndarray, kw: np.ndarray,
+                 coarse: Grid | None = None):
+        self.settings, self.law, self.grid = settings, law, grid
+        self.h = np.ascontiguousarray(h, dtype=float)
+        self.operator = TensorOperator(grid, kw.ravel(), None)
+        self.m = np.reshape(self.operator.lumped_mass, grid.solver_shape)
+        self.a_top = grid.top_areas()
+        self.dt_stable = STABILITY_SAFETY * 2.0 / (law.max_diffusivity * self.operator.stability_eigenvalue())
+        self.faces = HeldFaces(grid, coarse) if coarse is not None else None
+        self.lost_j = 0.0
+        self.outflow_j = 0.0
+
+    def energy(self) -> float:
+        """Lumped energy [J] of the level."""
+        return float(np.einsum("ijk,ijk->", self.m, self.h))
+
+    def set_weights(self, kw: np.ndarray) -> None:
+        """Element conductivity weights [-], shape (ny - 1, nz - 1, nx - 1); only changed ones are touched."""
+        changed = np.flatnonzero(kw.ravel() != self.operator.kw.ravel())
+        if len(changed):
+            self.operator.reweight(changed, kw.ravel()[changed], 1.0)
+
+    def advance(self, duration_s: float, heat: list[tuple[float, float, float]]) -> None:
+        """Step ``duration_s`` [s] explicitly with the surface heat ``heat`` ([(x [m], y [m], energy
+        [J])], spread as the beam's Gaussian over the level's top face, evenly in time)."""
+        from fe_node.solver import StepWork, explicit_update
+
+        s, g = self.settings, self.grid
+        n = max(1, math.ceil(duration_s / self.dt_stable))
+        dt = duration_s / n
+        load = np.zeros((len(g.ys), len(g.xs)))
+        for x, y, e in heat:
+            if e > 0:
+                q = surface_load(g.xs, g.ys, np.array([[x, y]]), 1.0, 1.0, s.beam_radius_m).T
+                load += q * (e / duration_s / q.sum())
+        c = (dt * self.law.k_ref) / self.m
+        c_top = dt / self.m[:, -1, :]
+        work = StepWork(self.law, self.h.shape)
+        for _ in range(n):
+            q_loss = self.a_top * loss_flux(self.law.temperature(self.h[:, -1, :]), s)
+            explicit_update(self.h, self.operator, self.law, c, load - q_loss, c_top, (1.0, 1.0), work)
+            self.lost_j += float(q_loss.sum()) * dt
+            if self.faces is not None:
+                self.outflow_j += self.faces.apply(self.h, self.m)
+
+
+def level_weights(grid: Grid, powder_layer_m: float, kw_powder: float, share: np.ndarray | None) -> np.ndarray:
+    """Per-element conductivity weights [-] of a coarser level, shape (ny - 1, nz - 1, nx - 1): dense
+    metal below z = 0; the part of an element in the powder layer ``[0, powder_layer_m]`` conducts
+    as powder (``kw_powder``) plus its consolidated ``share`` (shape (ny - 1, nx - 1), from
+    :class:`fe_node.window.ConsolidationLattice`; ``None``: no powder) of dense metal, the
+    element's weight the thickness-weighted mean."""
+    zs = grid.zs
+    ny, nz, nx = grid.solver_shape
+    kw = np.ones((ny - 1, nz - 1, nx - 1))
+    if share is None:
+        return kw
+    dz = np.diff(zs)
+    f_powder = np.clip(np.minimum(zs[1:], powder_layer_m) - np.maximum(zs[:-1], 0.0), 0.0, None) / dz
+    k_layer = kw_powder + share * (1.0 - kw_powder)
+    for k in np.flatnonzero(f_powder > 0):
+        kw[:, k, :] = (1.0 - f_powder[k]) + f_powder[k] * k_layer
+    return kw

@@ -1,0 +1,301 @@
+"""The multi-level plant (``Settings.mesh = "multilevel"``): a fine box that moves with the laser.
+
+Three nested grids, after the moving-level scheme of GO-MELT (Leonor et al., Addit. Manuf. 2024):
+
+* the fine level, :class:`MultiLevelModel` itself: the full physics of
+  :class:`~fe_node.solver.ThermalModel` (powder, keyhole, evaporation, liquid conductivity,
+  observation) on a box of side ``fine_box_m`` around the laser and ``fine_box_depth_m`` deep,
+  ``h_fine_m`` inside the whole-plan band and graded outside it;
+* the intermediate level: conduction and top losses on a box of ``mid_box_m`` at ``mid_h_m``
+  (:class:`~fe_node.levels.ConductionLevel`);
+* the part level: the same over the whole domain at ``coarse_h_m``.
+
+Each level steps at its own stable time step (the coarser levels every ``n`` fine steps, taking
+the energy the fine level absorbed in those steps); a box's side and bottom faces take its coarser
+level's field (held between that level's steps), and after a coarser level's step its nodes inside
+the finer box take the finer field (:func:`~fe_node.levels.restrict`).  The cost of a step depends
+on the fine box, not on the part.  The fine box moves when less than ``MIN_FRONT`` of its side
+lies ahead of the laser or ``MIN_SIDE`` to a side (the new box has ``FRONT_ROOM`` ahead); the
+intermediate box moves when the fine one nears its edge.  Moves carry the state over with the
+energy-conserving :func:`~fe_node.levels.prolong`, and the powder's consolidation through the
+:class:`~fe_node.window.ConsolidationLattice`.
+
+The observation's energy balance is the fine level's, the heat that left it through its held
+faces counted with the losses (``boundary_outflow_j``) and the energy a move brings in with the
+initial energy.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fe_node.levels import (
+    ConductionLevel,
+    HeldFaces,
+    extent,
+    level_axis,
+    level_depth_axis,
+    level_weights,
+    prolong,
+    restrict,
+)
+from fe_node.mesh import Grid, graded_axis
+from fe_node.observe import Observation, interp_matrix
+from fe_node.powder import KW_DENSE, RHO_W
+from fe_node.scan import ScanPlan
+from fe_node.settings import Settings
+from fe_node.solver import MAX_GRID_NODES, ThermalModel, check_command, depth_axis, plan_bands
+
+FRONT_ROOM = 0.4
+"""Share of ``fine_box_m`` ahead of the laser after the fine box moves (the rest holds the pool's tail)."""
+MIN_FRONT = 0.15
+"""The fine box moves when less than this share of its side lies ahead of the laser."""
+MIN_SIDE = 0.25
+"""... or less than this share of its side to either side of the laser along x or y."""
+MID_MARGIN = 2
+"""The intermediate box moves when the fine box comes within this many ``mid_h_m`` of its edge."""
+MID_MAX_STEPS = 2
+"""Most fine steps between two steps of the intermediate level (the fine box's held faces lag by at
+most this; 8 instead of 2 tripled the area error after a turn, docs/fe-scale.md)."""
+PART_MAX_STEPS = 64
+"""Most fine steps between two steps of the part level."""
+
+
+def graded_length(length: float, h: float, growth: float = 1.35, h_max: float = 0.5e-3) -> float:
+    """The longest run [m] of whole elements growing from ``h`` by ``growth`` (capped at ``h_max``)
+    that fits in ``length``: a box edge there needs no element smaller than ``h`` (which would
+    shorten the stable time step)."""
+    total, size = 0.0, h
+    while True:
+        size = min(size * growth, h_max)
+        if total + size > length * (1 + 1e-9):
+            return total
+        total += size
+
+
+class MultiLevelModel(ThermalModel):
+    """The plant on three nested grids (module docstring); the API of :class:`ThermalModel`.
+
+    Parameters
+    ----------
+    settings : Settings
+        With ``mesh = "multilevel"``.
+    plan : ScanPlan
+    layer_plans : tuple of ScanPlan, optional
+
+    Attributes
+    ----------
+    grid : Grid
+        The fine level's grid (moves with the laser).
+    mid, part : ConductionLevel
+        The intermediate and part levels.
+    boundary_outflow_j : float
+        Heat [J] that left the fine box through its held faces.
+    """
+
+    def __init__(self, settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None):
+        if settings.mesh != "multilevel":
+            raise ValueError("MultiLevelModel needs settings.mesh = 'multilevel'")
+        s = self.settings = settings
+        bands = plan_bands(s, plan, layer_plans)
+        self._domain = tuple(domain for domain, _ in bands)
+        self._bands = tuple(band for _, band in bands)
+        self._zs_box = self._box_heights(depth_axis(s), s.fine_box_depth_m)
+        self._box_centre = self._centre(*plan.locate(0.0)[1:])
+        self.boundary_outflow_j = 0.0
+        super().__init__(settings, plan, layer_plans)
+        self._kw_powder = None if self.powder is None else self.powder.kw_powder
+        (x0, x1), (y0, y1) = self._domain
+        part = Grid(level_axis(x0, x1, 0.0, None, s.coarse_h_m), level_axis(y0, y1, 0.0, None, s.coarse_h_m),
+                    level_depth_axis(s, s.coarse_h_m, s.depth_m))
+        self.part = ConductionLevel(s, self.law, part, np.full(part.solver_shape, self._h_ref), self._level_kw(part))
+        self.mid = self._mid_level(self._box_centre, None)
+        self._check_nodes()
+        self._faces = HeldFaces(self.grid, self.mid.grid)
+        self._faces.hold(self.mid.grid, self.mid.h)
+        self.mid_every = max(1, min(MID_MAX_STEPS, math.floor(self.mid.dt_stable / s.dt_s)))
+        self.part_every = self.mid_every * max(1, min(PART_MAX_STEPS // self.mid_every,
+                                                      math.floor(self.part.dt_stable / (self.mid_every * s.dt_s))))
+        self._heat = {"mid": [], "part": []}
+
+    @staticmethod
+    def _box_heights(zs: np.ndarray, depth_m: float) -> np.ndarray:
+        """The uniform grid's node heights from ``-depth_m`` (its first node at or above) up [m]."""
+        return zs[zs >= -depth_m - 1e-12]
+
+    def _centre(self, xy: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """The fine box's centre [m] for the laser at ``xy`` moving along ``direction``: ``FRONT_ROOM`` ahead."""
+        return np.asarray(xy, float) + (FRONT_ROOM - 0.5) * self.settings.fine_box_m * np.asarray(direction, float)
+
+    def _initial_grid(self) -> Grid:
+        return self._box_grid(self._box_centre)
+
+    def _box_grid(self, centre: np.ndarray) -> Grid:
+        """The fine box around ``centre`` [m]: its ends on the whole-plan band's lattice, ``h_fine_m``
+        inside the band, graded outside it, clipped to the domain."""
+        s = self.settings
+        axes = []
+        for c, (dlo, dhi), (blo, bhi) in zip(centre, self._domain, self._bands):
+            hf = (bhi - blo) / max(1, math.ceil((bhi - blo) / s.h_fine_m - 1e-9))
+            lo, hi = max(dlo, c - 0.5 * s.fine_box_m), min(dhi, c + 0.5 * s.fine_box_m)
+            grade = dict(h=hf, growth=s.growth, h_max=s.h_max_m)
+            lo = blo + math.floor((lo - blo) / hf + 1e-9) * hf if lo > blo else blo - graded_length(blo - lo, **grade)
+            hi = blo + math.ceil((hi - blo) / hf - 1e-9) * hf if hi < bhi else bhi + graded_length(hi - bhi, **grade)
+            lo, hi = max(lo, dlo), min(hi, dhi)
+            axes.append(graded_axis(lo, hi, max(lo, blo), min(hi, bhi), hf * (1 + 1e-9), s.growth, s.h_max_m))
+        return Grid(axes[0], axes[1], self._zs_box)
+
+    def _level_kw(self, grid: Grid) -> np.ndarray:
+        """Conductivity weights of a coarser level's elements from the consolidation so far."""
+        share = None if self.powder is None else self._lattice.fraction(grid.xs, grid.ys)[:, 0, :]
+        return level_weights(grid, self.settings.powder_layer_m, self._kw_powder or 1.0, share)
+
+    def _mid_level(self, centre: np.ndarray, old: ConductionLevel | None) -> ConductionLevel:
+        """The intermediate level around ``centre`` [m], its field carried over from ``old`` (``None``:
+        from the part level alone)."""
+        s = self.settings
+        (x0, x1), (y0, y1) = self._domain
+        grid = Grid(level_axis(x0, x1, centre[0], s.mid_box_m, s.mid_h_m),
+                    level_axis(y0, y1, centre[1], s.mid_box_m, s.mid_h_m), level_depth_axis(s, s.mid_h_m, s.depth_m))
+        h = prolong(self.part.grid, self.part.h, None if old is None else old.grid, None if old is None else old.h,
+                    grid)
+        mid = ConductionLevel(s, self.law, grid, h, self._level_kw(grid), coarse=self.part.grid)
+        mid.faces.hold(self.part.grid, self.part.h)
+        if old is not None:
+            mid.lost_j, mid.outflow_j = old.lost_j, old.outflow_j
+        return mid
+
+    def _check_nodes(self) -> None:
+        """RuntimeError if the three grids hold more than :data:`~fe_node.solver.MAX_GRID_NODES` nodes
+        (checked at every change of the mesh)."""
+        if self.n_nodes > MAX_GRID_NODES:
+            raise RuntimeError(f"multi-level mesh: {self.n_nodes:,} nodes, more than {MAX_GRID_NODES:,}")
+
+    @property
+    def node_updates_per_step(self) -> float:
+        """Explicit node updates per step [-], the three levels' nodes times their sub-steps per step:
+        the cost model of a step."""
+        def per_step(level: ConductionLevel, every: int) -> float:
+            return level.grid.n_nodes * math.ceil(every * self.settings.dt_s / level.dt_stable) / every
+        return (self.grid.n_nodes * self.n_substeps + per_step(self.mid, self.mid_every)
+                + per_step(self.part, self.part_every))
+
+    @property
+    def n_nodes(self) -> int:
+        """Nodes of the three levels."""
+        return self.grid.n_nodes + self.mid.grid.n_nodes + self.part.grid.n_nodes
+
+    def _needs_move(self, grid: Grid, xy: np.ndarray, direction: np.ndarray) -> bool:
+        """True if less than ``MIN_FRONT`` of the box lies ahead of ``xy`` or ``MIN_SIDE`` to a side
+        (where the domain goes on)."""
+        b = self.settings.fine_box_m
+        probes = [xy + MIN_FRONT * b * direction] + [xy + MIN_SIDE * b * e for e in
+                                                      (np.array([1.0, 0]), np.array([-1.0, 0]),
+                                                       np.array([0, 1.0]), np.array([0, -1.0]))]
+        box = extent(grid)[:2]
+        tol = 1e-9
+        for p in probes:
+            for k, ((lo, hi), (dlo, dhi)) in enumerate(zip(box, self._domain)):
+                if (p[k] < lo - tol and lo > dlo + tol) or (p[k] > hi + tol and hi < dhi - tol):
+                    return True
+        return False
+
+    def step(self, power_w: float, speed_m_s: float) -> Observation:
+        """Advance one step ``dt_s`` (:meth:`ThermalModel.step`), the fine box moved first if it must,
+        the coarser levels stepped when due."""
+        check_command(power_w, speed_m_s)
+        if self.done:
+            raise RuntimeError("scan plan finished: no more steps")
+        total = self.plan.total_length
+        _, points, directions = self.plan.locate(np.array([self._s, min(self._s + speed_m_s * self.settings.dt_s,
+                                                                      total)]))
+        if self._needs_move(self.grid, points[0], directions[0]):
+            centre = self._centre(points[0], directions[0])
+            if self._needs_move(self._box_grid(centre), points[1], directions[1]):
+                centre = self._centre(points[1], directions[1])
+            self.move(centre)
+        absorbed = self._absorbed
+        obs = super().step(power_w, speed_m_s)
+        heat = (obs.x_m, obs.y_m, self._absorbed - absorbed)
+        self._heat["mid"].append(heat)
+        self._heat["part"].append(heat)
+        if self.step_index % self.mid_every == 0:
+            self._step_level(self.mid, "mid", self.mid_every)
+            restrict(self.grid, self._h, self.mid.grid, self.mid.h)
+            self._faces.hold(self.mid.grid, self.mid.h)
+        if self.step_index % self.part_every == 0:
+            self._step_level(self.part, "part", self.part_every)
+            restrict(self.mid.grid, self.mid.h, self.part.grid, self.part.h)
+            self.mid.faces.hold(self.part.grid, self.part.h)
+        return obs
+
+    def _step_level(self, level: ConductionLevel, name: str, n_steps: int) -> None:
+        """Advance a coarser level ``n_steps`` fine steps with the heat absorbed meanwhile."""
+        if self.powder is not None:
+            level.set_weights(self._level_kw(level.grid))
+        level.advance(n_steps * self.settings.dt_s, self._heat[name])
+        self._heat[name] = []
+
+    def _substep(self, load) -> None:
+        super()._substep(load)
+        out = self._faces.apply(self._h, self._m)
+        self._lost += out
+        self.boundary_outflow_j += out
+
+    def move(self, centre: np.ndarray) -> None:
+        """Put the fine box at ``centre`` [m] (x, y), the intermediate box with it if it must, and
+        carry the state over (:func:`~fe_node.levels.prolong`)."""
+        s = self.settings
+        new = self._box_grid(centre)
+        (x0, x1), (y0, y1), _ = extent(new)
+        (mx0, mx1), (my0, my1), _ = extent(self.mid.grid)
+        (dx0, dx1), (dy0, dy1) = self._domain
+        margin = MID_MARGIN * s.mid_h_m
+        if ((x0 - margin < mx0 and mx0 > dx0) or (x1 + margin > mx1 and mx1 < dx1)
+                or (y0 - margin < my0 and my0 > dy0) or (y1 + margin > my1 and my1 < dy1)):
+            self.mid = self._mid_level(0.5 * np.array([x0 + x1, y0 + y1]), self.mid)
+            self._check_nodes()
+            restrict(self.grid, self._h, self.mid.grid, self.mid.h)
+        e_before = self._energy()
+        old = self.grid
+        self._h = np.ascontiguousarray(prolong(self.mid.grid, self.mid.h, old, self._h, new))
+        ny, nz, nx = new.solver_shape
+        kw, rho_w = np.full((ny - 1, nz - 1, nx - 1), KW_DENSE), np.full((ny - 1, nz - 1, nx - 1), RHO_W)
+        if self.powder is not None:
+            pb, k0 = self.powder, self.powder.k0
+            share = self._lattice.fraction(new.xs, new.ys)
+            pb.consolidated = share >= 1.0 - 1e-9
+            kw[:, k0:, :] = pb.kw_powder + share * (KW_DENSE - pb.kw_powder)
+        self.grid = new
+        self._check_nodes()
+        self.operator = self._build_operator(kw.ravel(), rho_w.ravel())
+        self._a_top, self._a_bottom = self._face_areas()
+        self._set_time_step()
+        self._faces = HeldFaces(new, self.mid.grid)
+        self._faces.hold(self.mid.grid, self.mid.h)
+        self._e0 += self._energy() - e_before
+        self.n_remeshes += 1
+
+    def temperature_image(self, half_length_m: float = 0.6e-3, half_width_m: float = 0.3e-3,
+                          pixel_m: float = 10e-6):
+        """Top-surface temperature raster centred on the laser (:meth:`ThermalModel.temperature_image`):
+        the fine level's inside its box, the intermediate level's outside."""
+        image, (px0, px1, py0, py1) = super().temperature_image(half_length_m, half_width_m, pixel_m)
+        px = np.linspace(px0, px1, image.shape[1])
+        py = np.linspace(py0, py1, image.shape[0])
+        mid = self.mid
+        t_mid = self.law.temperature(mid.h[:, -1, :])
+        coarse = interp_matrix(mid.grid.ys, py) @ t_mid @ interp_matrix(mid.grid.xs, px).T
+        (x0, x1), (y0, y1), _ = extent(self.grid)
+        outside = ~(((py >= y0) & (py <= y1))[:, None] & ((px >= x0) & (px <= x1))[None, :])
+        image[outside] = coarse[outside]
+        return image, (px0, px1, py0, py1)
+
+
+def plant_model(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None) -> ThermalModel:
+    """The plant of ``settings.mesh``: :class:`ThermalModel` (``"uniform"``) or :class:`MultiLevelModel`."""
+    if settings.mesh == "multilevel":
+        return MultiLevelModel(settings, plan, layer_plans)
+    return ThermalModel(settings, plan, layer_plans)
+

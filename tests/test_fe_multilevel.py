@@ -1,0 +1,126 @@
+"""The multi-level mesh (``mesh = "multilevel"``): energy-conserving transfers, consolidation carried
+across moves, a fine box that does not grow with the part, and agreement with the uniform mesh."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fe_node.levels import extent, lumped_volumes, prolong, region_energy, restrict
+from fe_node.mesh import Grid, graded_axis
+from fe_node.multilevel import MultiLevelModel, plant_model
+from fe_node.scan import ScanPlan
+from fe_node.settings import Settings
+from fe_node.solver import ThermalModel, check_grid_size
+
+COARSE = dict(h_fine_m=50e-6, beam_radius_m=60e-6, fine_pad_m=150e-6, fine_depth_m=150e-6, margin_m=0.6e-3,
+              depth_m=0.6e-3, min_substeps=1)
+"""A coarse mesh that runs in seconds."""
+
+
+def field(grid: Grid, peak: np.ndarray) -> np.ndarray:
+    """A smooth, peaked enthalpy field [J/m³] on ``grid`` (solver order) around ``peak`` (x, y)."""
+    y, z, x = np.meshgrid(grid.ys, grid.zs, grid.xs, indexing="ij")
+    r2 = (x - peak[0]) ** 2 + (y - peak[1]) ** 2 + 4 * z**2
+    return 1e9 + 5e9 * np.exp(-r2 / (2 * (120e-6) ** 2))
+
+
+def test_restrict_conserves_energy():
+    fine = Grid(graded_axis(-0.6e-3, 0.6e-3, -0.3e-3, 0.3e-3, 25e-6, 1.35, 0.2e-3), np.linspace(-0.5e-3, 0.5e-3, 41),
+                graded_axis(-0.4e-3, 0.0, -0.1e-3, 0.0, 25e-6, 1.35, 0.2e-3))
+    coarse = Grid(np.linspace(-2e-3, 2e-3, 81), np.linspace(-2e-3, 2e-3, 81), np.linspace(-1e-3, 0.0, 21))
+    h_fine, h_coarse = field(fine, np.array([50e-6, 0.0])), np.full(coarse.solver_shape, 1e9)
+    total_before = float(np.sum(lumped_volumes(coarse) * h_coarse))
+    target = restrict(fine, h_fine, coarse, h_coarse)
+    changed = h_coarse != 1e9
+    assert changed.any()
+    moved = float(np.sum((lumped_volumes(coarse) * h_coarse)[changed]))
+    assert moved == pytest.approx(target, rel=1e-12)
+    assert float(np.sum(lumped_volumes(coarse) * h_coarse)) - total_before == pytest.approx(
+        target - 1e9 * float(np.sum(lumped_volumes(coarse)[changed])), rel=1e-9)
+    # the restricted field is the fine one, not merely its energy
+    centre = (np.argmin(abs(coarse.ys - 0.0)), -1, np.argmin(abs(coarse.xs - 50e-6)))
+    assert h_coarse[centre] > 4e9
+
+
+def test_prolong_keeps_shared_nodes_and_conserves_energy():
+    coarse = Grid(np.linspace(-2e-3, 2e-3, 41), np.linspace(-2e-3, 2e-3, 41), np.linspace(-1e-3, 0.0, 11))
+    h_coarse = field(coarse, np.array([0.0, 0.0]))
+    old = Grid(np.linspace(-0.6e-3, 0.6e-3, 49), np.linspace(-0.6e-3, 0.6e-3, 49), np.linspace(-0.4e-3, 0.0, 17))
+    h_old = field(old, np.array([0.1e-3, 0.0])) * 1.05
+    new = Grid(old.xs + 0.3e-3, old.ys, old.zs)
+    h_new = prolong(coarse, h_coarse, old, h_old, new)
+    np.testing.assert_array_equal(h_new[:, :, :-12], h_old[:, :, 12:])       # shared nodes keep their values
+    lap = ((new.xs[0], old.xs[-1]), extent(old)[1], extent(old)[2])
+    expected = (region_energy(old, h_old, lap) + region_energy(coarse, h_coarse, extent(new))
+                - region_energy(coarse, h_coarse, lap))
+    assert float(np.sum(lumped_volumes(new) * h_new)) == pytest.approx(expected, rel=1e-12)
+
+
+def model(settings: Settings, plan: ScanPlan) -> MultiLevelModel:
+    return MultiLevelModel(replace(settings, mesh="multilevel"), plan)
+
+
+def test_fine_box_does_not_grow_with_the_part():
+    s = replace(Settings(**COARSE), mesh="multilevel", fine_box_m=1.2e-3, mid_box_m=2.4e-3, mid_h_m=100e-6,
+                coarse_h_m=400e-6)
+    small, large = (MultiLevelModel(s, ScanPlan.layer(round(side / 1e-4), side, 1e-4)) for side in (4e-3, 16e-3))
+    assert small.grid.n_nodes == large.grid.n_nodes
+    assert small.mid.grid.n_nodes == large.mid.grid.n_nodes
+    assert large.part.grid.n_nodes > 5 * small.part.grid.n_nodes       # the part level is the part
+    assert large.node_updates_per_step < 1.2 * small.node_updates_per_step
+    check_grid_size(s, ScanPlan.layer(400, 40e-3, 1e-4))      # 40 mm: fine under the node cap
+
+
+@pytest.fixture(scope="module")
+def powder_runs():
+    """A 3-track powder layer, multi-level and uniform, 3 mm tracks (the fine box moves along them)."""
+    s = Settings(**COARSE, powder_layer_m=50e-6, fine_box_m=1.6e-3, mid_box_m=3.2e-3, mid_h_m=100e-6,
+                 coarse_h_m=300e-6)
+    plan = ScanPlan.layer(3, 3e-3, 1e-4)
+    ml, un = model(s, plan), ThermalModel(s, plan)
+    areas, held = [], None
+    while not ml.done:
+        areas.append((ml.step(150.0, 0.8).area_m2, un.step(150.0, 0.8).area_m2))
+        if ml.step_index == 100:       # a step after which the intermediate level stepped (mid_every 1 or 2)
+            again = ml.mid.h.copy()
+            restrict(ml.grid, ml._h, ml.mid.grid, again)
+            held = float(np.max(np.abs(ml.law.temperature(ml.mid.h) - ml.law.temperature(again))))
+    return ml, un, np.array(areas), held
+
+
+def test_moves_carry_consolidation(powder_runs):
+    ml, un, _, _ = powder_runs
+    assert ml.n_remeshes > 5
+    share = ml._lattice.fraction(ml.grid.xs, ml.grid.ys)[:, 0, :]
+    assert share.max() == 1.0
+    ex, ey = (np.diff(e) for e in ml._lattice.edges)
+    area_lattice = float(np.sum(ml._lattice.melted[:, 0, :] * ey[:, None] * ex[None, :]))
+    area_uniform = float(np.sum(un.powder.consolidated[:, 0, :] * np.diff(un.grid.ys)[:, None]
+                                * np.diff(un.grid.xs)[None, :]))
+    assert area_lattice == pytest.approx(area_uniform, rel=0.1)
+    np.testing.assert_array_equal(ml.powder.consolidated[:, 0, :], share >= 1.0 - 1e-9)
+
+
+def test_multilevel_follows_the_uniform_mesh(powder_runs):
+    ml, _, areas, _ = powder_runs
+    a_ml, a_un = areas[10:, 0], areas[10:, 1]
+    rms = np.sqrt(np.mean((a_ml - a_un) ** 2)) / a_un.mean()
+    assert rms < 0.02, rms          # 1.07 % measured
+    assert abs(ml.initial_observation().energy_error_pct) < 1e-6
+
+
+def test_plant_model_picks_the_mesh():
+    plan = ScanPlan.single(1e-3)
+    assert type(plant_model(Settings(**COARSE), plan)) is ThermalModel
+    assert type(plant_model(Settings(**COARSE, mesh="multilevel", mid_h_m=100e-6, coarse_h_m=400e-6), plan)) \
+        is MultiLevelModel
+    with pytest.raises(ValueError, match="mesh must be one of"):
+        Settings(mesh="adaptive")
+    with pytest.raises(ValueError, match="n_layers"):
+        Settings(mesh="multilevel", powder_layer_m=25e-6, n_layers=2)
+
+
+def test_intermediate_level_holds_the_fine_field(powder_runs):
+    ml, _, _, held = powder_runs
+    assert 100 % ml.mid_every == 0
+    assert held < 1e-6          # K: inside the fine box, the intermediate level is the fine field restricted
