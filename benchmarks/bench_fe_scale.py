@@ -1,17 +1,25 @@
-"""Cost per FE step against part size: the whole-plan fine band vs the fine window that follows the laser.
+"""Cost per FE step against part size, the multi-level mesh against the uniform one, and their
+agreement on the default layer.
 
-Usage: ``python benchmarks/bench_fe_scale.py [--sides-mm 2 4 8 16] [--window-mm 2] [--steps 50]``.
-Last line of stdout is JSON.
+Usage: ``python benchmarks/bench_fe_scale.py [--sides-mm 2 4 8 16] [--steps 50] [--layer-steps N]
+[--json]``.  Last line of stdout is JSON.
 
-For each side L a square layer of L / hatch tracks of length L (hatch 0.1 mm, IN625, 250 W,
-800 mm/s, default mesh and sub-steps) is built twice: with the ``h_fine_m`` band over the whole
-plan (``window_m = 0``, today's default) and with the window (``window_m``, :mod:`fe_node.window`).
-After 5 warm-up steps, ``--steps`` steps are timed one by one, the two meshes alternating so both
-see the same machine load; ``ms_per_step_*`` is the mean, so the window's remeshes (one per
-``window_m / 2`` of travel along a track) are included.
+Side sweep: for each side L a square layer of L / hatch tracks of length L (hatch 0.1 mm) on the
+default plant (the ``layer`` scenario's settings and power) is built with ``mesh = "uniform"``
+(the whole-plan fine band) and ``mesh = "multilevel"`` (:mod:`fe_node.multilevel`).  After 5
+warm-up steps, ``--steps`` steps are timed one by one, the two meshes alternating so both see the
+same machine load; ``ms_per_step`` is the mean (the multi-level mesh's moves included).
 
-Keys: ``sides_mm``, ``window_m``, ``nodes_full``, ``nodes_window``, ``ms_per_step_full``,
-``ms_per_step_window``, ``steps``, ``load_avg``.
+Default layer: the ``layer`` scenario run to its end (or ``--layer-steps``) on both meshes,
+alternating; the melt-pool area traces are compared from step 20 on, as a share of the uniform
+mesh's mean area.
+
+Keys: ``cases`` (per side: ``side_mm``, ``nodes_uniform``, ``nodes_multilevel``,
+``ms_per_step_uniform``, ``ms_per_step_multilevel``), ``cost_ratio_max_min`` (the multi-level
+``ms_per_step`` over the sides, max / min), ``max_nodes`` (the largest multi-level node count),
+``speedup_vs_uniform``, ``area_rms_diff_pct``, ``area_max_diff_pct``, ``layer_steps``,
+``layer_ms_per_step_uniform``, ``layer_ms_per_step_multilevel``, ``load_avg``.  Layer counts are
+not swept: the multi-level mesh builds one layer so far.
 """
 from __future__ import annotations
 
@@ -21,45 +29,81 @@ import os
 import statistics
 import sys
 import time
-from dataclasses import replace
+
+import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from fe_node.scan import ScanPlan  # noqa: E402
-from fe_node.settings import Settings  # noqa: E402
-from fe_node.solver import ThermalModel  # noqa: E402
+from fe_node.multilevel import plant_model  # noqa: E402
+from fe_node.scenarios import scenario  # noqa: E402
 
 HATCH_M = 1e-4
+MESHES = ("uniform", "multilevel")
+
+
+def nodes(model) -> int:
+    """Nodes of a plant (the three grids of a multi-level one)."""
+    return getattr(model, "n_nodes", model.grid.n_nodes)
+
+
+def side_case(side_mm: float, steps: int) -> dict:
+    """Time both meshes on a square layer of side ``side_mm``."""
+    side = side_mm * 1e-3
+    scs = [scenario("layer", n_tracks=max(1, round(side / HATCH_M)), track_length_m=side, hatch_m=HATCH_M, mesh=m)
+           for m in MESHES]
+    models = [plant_model(sc.settings, sc.plan) for sc in scs]
+    times = [[], []]
+    for k in range(5 + steps):
+        for i, (sc, model) in enumerate(zip(scs, models)):
+            t0 = time.perf_counter()
+            model.step(*sc.profile.command(model.step_index))
+            if k >= 5:
+                times[i].append(time.perf_counter() - t0)
+    case = {"side_mm": side_mm}
+    for m, model, t in zip(MESHES, models, times):
+        case[f"nodes_{m}"] = nodes(model)
+        case[f"ms_per_step_{m}"] = round(1e3 * statistics.fmean(t), 2)
+    print(f"{side_mm:g} mm: uniform {case['nodes_uniform']} nodes {case['ms_per_step_uniform']} ms/step; "
+          f"multilevel {case['nodes_multilevel']} nodes {case['ms_per_step_multilevel']} ms/step "
+          f"({models[1].n_remeshes} moves)", file=sys.stderr, flush=True)
+    return case
+
+
+def default_layer(max_steps: int | None) -> dict:
+    """Both meshes over the default layer: cost and the area traces' difference."""
+    scs = [scenario("layer", mesh=m) for m in MESHES]
+    models = [plant_model(sc.settings, sc.plan) for sc in scs]
+    areas, times = [[], []], [[], []]
+    while not models[0].done and (max_steps is None or models[0].step_index < max_steps):
+        for i, (sc, model) in enumerate(zip(scs, models)):
+            t0 = time.perf_counter()
+            obs = model.step(*sc.profile.command(model.step_index))
+            times[i].append(time.perf_counter() - t0)
+            areas[i].append(obs.area_m2)
+    uniform, multi = (np.array(a[20:]) for a in areas)
+    diff = (multi - uniform) / uniform.mean()
+    ms = [1e3 * statistics.fmean(t) for t in times]
+    return {"layer_steps": len(times[0]), "layer_ms_per_step_uniform": round(ms[0], 2),
+            "layer_ms_per_step_multilevel": round(ms[1], 2), "speedup_vs_uniform": round(ms[0] / ms[1], 2),
+            "area_rms_diff_pct": round(100 * float(np.sqrt(np.mean(diff**2))), 3),
+            "area_max_diff_pct": round(100 * float(np.max(np.abs(diff))), 3),
+            "layer_moves": models[1].n_remeshes}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sides-mm", type=float, nargs="+", default=[2.0, 4.0, 8.0, 16.0])
-    parser.add_argument("--window-mm", type=float, default=2.0)
     parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--layer-steps", type=int, default=None, help="steps of the default layer (default: all)")
+    parser.add_argument("--json", action="store_true", help="(the last line is JSON either way)")
     args = parser.parse_args()
-    result = {"sides_mm": args.sides_mm, "window_m": args.window_mm * 1e-3, "nodes_full": [], "nodes_window": [],
-              "ms_per_step_full": [], "ms_per_step_window": [], "steps": args.steps,
-              "load_avg": [round(os.getloadavg()[0], 2)]}
-    for side_mm in args.sides_mm:
-        side = side_mm * 1e-3
-        plan = ScanPlan.layer(max(1, round(side / HATCH_M)), side, HATCH_M)
-        models = [ThermalModel(replace(Settings(), window_m=w), plan) for w in (0.0, args.window_mm * 1e-3)]
-        times = [[], []]
-        for k in range(5 + args.steps):
-            for i, model in enumerate(models):
-                t0 = time.perf_counter()
-                model.step(250.0, 0.8)
-                if k >= 5:
-                    times[i].append(time.perf_counter() - t0)
-        for key, model, t in (("full", models[0], times[0]), ("window", models[1], times[1])):
-            result[f"nodes_{key}"].append(model.grid.n_nodes)
-            result[f"ms_per_step_{key}"].append(round(1e3 * statistics.fmean(t), 2))
-        print(f"{side_mm:g} mm: full {models[0].grid.n_nodes} nodes {result['ms_per_step_full'][-1]} ms/step; "
-              f"window {models[1].grid.n_nodes} nodes {result['ms_per_step_window'][-1]} ms/step "
-              f"({models[1].n_remeshes} remeshes)", file=sys.stderr, flush=True)
-        del models
-    result["load_avg"].append(round(os.getloadavg()[0], 2))
+    load = [round(os.getloadavg()[0], 2)]
+    cases = [side_case(side, args.steps) for side in args.sides_mm]
+    ml = [c["ms_per_step_multilevel"] for c in cases]
+    result = {"cases": cases, "cost_ratio_max_min": round(max(ml) / min(ml), 3),
+              "max_nodes": max(c["nodes_multilevel"] for c in cases), **default_layer(args.layer_steps)}
+    load.append(round(os.getloadavg()[0], 2))
+    result["load_avg"] = load
     print(json.dumps(result))
 
 

@@ -27,7 +27,6 @@ from fe_node.mesh import Grid, graded_axis
 from fe_node.observe import interp_matrix
 from fe_node.operators import TensorOperator
 from fe_node.settings import Settings
-from fe_node.source import surface_load
 
 STABILITY_SAFETY = 0.9
 """Fraction of the explicit stability limit a coarser level's sub-step takes (as the fine level)."""
@@ -88,10 +87,10 @@ def restrict(fine: Grid, h_fine: np.ndarray, coarse: Grid, h_coarse: np.ndarray)
     volumes; interpolated where the hat holds no fine node), then all shifted alike
     (:func:`shift_to`) so that their lumped energy equals the fine field's over their dual cells.
     Returns that energy [J] (0: no node)."""
-    (x0, x1), (y0, y1), (z0, z1) = extent(fine)
-    sy, sz, sx = inside(coarse.ys, y0, y1), inside(coarse.zs, z0, z1), inside(coarse.xs, x0, x1)
-    if any(s.stop <= s.start for s in (sy, sz, sx)):
+    held = slaved(fine, coarse)
+    if held is None:
         return 0.0
+    sy, sz, sx = held
     box = (dual_box(coarse.xs, sx), dual_box(coarse.ys, sy), dual_box(coarse.zs, sz))
     target = region_energy(fine, h_fine, box)
     ay, az, ax = (hat_weights(c, f, s) for c, f, s in ((coarse.ys, fine.ys, sy), (coarse.zs, fine.zs, sz),
@@ -104,6 +103,26 @@ def restrict(fine: Grid, h_fine: np.ndarray, coarse: Grid, h_coarse: np.ndarray)
     np.divide(energy, volume, out=view, where=volume > 0)
     shift_to(view, lumped_volumes(coarse)[sy, sz, sx], np.ones(view.shape, dtype=bool), target)
     return target
+
+
+def slaved(fine: Grid, coarse: Grid) -> tuple[slice, slice, slice] | None:
+    """The coarse nodes whose dual cells lie inside the fine grid (those :func:`restrict` sets), as
+    slices along y, z, x (``None``: none)."""
+    (x0, x1), (y0, y1), (z0, z1) = extent(fine)
+    box = (inside(coarse.ys, y0, y1), inside(coarse.zs, z0, z1), inside(coarse.xs, x0, x1))
+    return None if any(s.stop <= s.start for s in box) else box
+
+
+def outside_energy(fine: Grid, h_fine: np.ndarray, coarse: Grid) -> float:
+    """Lumped energy [J] of the fine field outside the dual cells of the coarse nodes it overwrites
+    (:func:`slaved`): the part of the fine level the coarse one holds in its own free nodes."""
+    total = float(np.sum(lumped_volumes(fine) * h_fine))
+    held = slaved(fine, coarse)
+    if held is None:
+        return total
+    sy, sz, sx = held
+    return total - region_energy(fine, h_fine, (dual_box(coarse.xs, sx), dual_box(coarse.ys, sy),
+                                                dual_box(coarse.zs, sz)))
 
 
 def hat_weights(coarse: np.ndarray, fine: np.ndarray, sl: slice) -> np.ndarray:
@@ -182,11 +201,10 @@ def level_axis(lo: float, hi: float, centre: float, side: float | None, h: float
     return np.linspace(lo, hi, n + 1)
 
 
-def level_depth_axis(settings: Settings, h: float, depth_m: float) -> np.ndarray:
-    """Node heights [m] of a coarser level: from ``-depth_m`` to the powder surface, top elements
-    ``h`` thick (the last one holding the powder layer), graded downwards (``growth``, ``h_max_m``)."""
+def level_depth_axis(settings: Settings, h: float, depth_m: float, top: float) -> np.ndarray:
+    """Node heights [m] of a coarser level: from ``-depth_m`` to the powder surface ``top``, top
+    elements ``h`` thick (holding the powder layers), graded downwards (``growth``, ``h_max_m``)."""
     s = settings
-    top = s.powder_layer_m
     return graded_axis(-depth_m, top, max(-depth_m, top - 2 * h), top, h, s.growth, max(s.h_max_m, h))
 
 
@@ -278,44 +296,70 @@ class ConductionLevel:
         if len(changed):
             self.operator.reweight(changed, kw.ravel()[changed], 1.0)
 
-    def advance(self, duration_s: float, heat: list[tuple[float, float, float]]) -> None:
-        """Step ``duration_s`` [s] explicitly with the surface heat ``heat`` ([(x [m], y [m], energy
-        [J])], spread as the beam's Gaussian over the level's top face, evenly in time)."""
+    def take(self, fine: Grid, h_fine: np.ndarray) -> None:
+        """Take the finer field now (:func:`restrict`) with the level's energy unchanged, the
+        difference spread over the free nodes around the overwritten ones: after a finer grid
+        changes, when no time has passed."""
+        before = self.energy()
+        held = slaved(fine, self.grid)
+        if held is None:
+            return
+        restrict(fine, h_fine, self.grid, self.h)
+        shift_to(self.h, self.m, ring_around(held, self.h.shape), before)
+
+    def advance(self, duration_s: float, held: tuple[slice, slice, slice] | None = None,
+                inflow_j: float = 0.0) -> None:
+        """Step ``duration_s`` [s] explicitly; ``held`` (slices along y, z, x) are the nodes a finer
+        level overwrites (:func:`slaved`), which lose no heat through the top (the finer level
+        counts its own losses).  What conduction carried out of them is then replaced by
+        ``inflow_j`` [J], the heat the finer level sent out through its held faces meanwhile,
+        spread over the free nodes around them (:func:`shift_to`): the coupling conserves energy."""
         from fe_node.solver import StepWork, explicit_update
 
-        s, g = self.settings, self.grid
         n = max(1, math.ceil(duration_s / self.dt_stable))
         dt = duration_s / n
-        load = np.zeros((len(g.ys), len(g.xs)))
-        for x, y, e in heat:
-            if e > 0:
-                q = surface_load(g.xs, g.ys, np.array([[x, y]]), 1.0, 1.0, s.beam_radius_m).T
-                load += q * (e / duration_s / q.sum())
         c = (dt * self.law.k_ref) / self.m
         c_top = dt / self.m[:, -1, :]
         work = StepWork(self.law, self.h.shape)
+        top_free = np.ones(self.a_top.shape)
+        if held is not None and held[1].stop == self.h.shape[1]:
+            top_free[held[0], held[2]] = 0.0
+        before = 0.0 if held is None else float(np.sum(self.m[held] * self.h[held]))
         for _ in range(n):
-            q_loss = self.a_top * loss_flux(self.law.temperature(self.h[:, -1, :]), s)
-            explicit_update(self.h, self.operator, self.law, c, load - q_loss, c_top, (1.0, 1.0), work)
+            q_loss = self.a_top * top_free * loss_flux(self.law.temperature(self.h[:, -1, :]), self.settings)
+            explicit_update(self.h, self.operator, self.law, c, -q_loss, c_top, (1.0, 1.0), work)
             self.lost_j += float(q_loss.sum()) * dt
             if self.faces is not None:
                 self.outflow_j += self.faces.apply(self.h, self.m)
+        if held is None:
+            return
+        conducted = before - float(np.sum(self.m[held] * self.h[held]))
+        shift_to(self.h, self.m, ring_around(held, self.h.shape), self.energy() + inflow_j - conducted)
 
 
-def level_weights(grid: Grid, powder_layer_m: float, kw_powder: float, share: np.ndarray | None) -> np.ndarray:
-    """Per-element conductivity weights [-] of a coarser level, shape (ny - 1, nz - 1, nx - 1): dense
-    metal below z = 0; the part of an element in the powder layer ``[0, powder_layer_m]`` conducts
-    as powder (``kw_powder``) plus its consolidated ``share`` (shape (ny - 1, nx - 1), from
-    :class:`fe_node.window.ConsolidationLattice`; ``None``: no powder) of dense metal, the
-    element's weight the thickness-weighted mean."""
-    zs = grid.zs
-    ny, nz, nx = grid.solver_shape
-    kw = np.ones((ny - 1, nz - 1, nx - 1))
-    if share is None:
-        return kw
+def ring_around(held: tuple[slice, slice, slice], shape: tuple[int, int, int]) -> np.ndarray:
+    """The nodes next to the box of nodes ``held`` (slices along y, z, x) but not in it, a mask of ``shape``."""
+    ring = np.zeros(shape, dtype=bool)
+    ring[tuple(slice(max(sl.start - 1, 0), sl.stop + 1) for sl in held)] = True
+    ring[held] = False
+    return ring
+
+
+def column_weights(zs: np.ndarray, plan_shape: tuple[int, int], row_m: float, kw_powder: float,
+                   share: np.ndarray | None) -> np.ndarray:
+    """Per-element conductivity weights [-], shape (ny - 1, nz - 1, nx - 1) (``plan_shape`` the
+    element counts (ny - 1, nx - 1)), of a grid with node heights ``zs`` [m] over the powder's
+    element rows: dense metal below z = 0; row ``r`` of
+    thickness ``row_m`` [m] (from ``r row_m`` up) conducts as powder (``kw_powder``) plus its
+    consolidated ``share[:, r, :]`` (shape (ny - 1, n_rows, nx - 1), from
+    :class:`fe_node.window.ConsolidationLattice`; ``None``: no powder, all dense) of dense metal; an
+    element spanning several rows (a coarser level's, a buried layer's) takes their
+    thickness-weighted mean."""
     dz = np.diff(zs)
-    f_powder = np.clip(np.minimum(zs[1:], powder_layer_m) - np.maximum(zs[:-1], 0.0), 0.0, None) / dz
-    k_layer = kw_powder + share * (1.0 - kw_powder)
-    for k in np.flatnonzero(f_powder > 0):
-        kw[:, k, :] = (1.0 - f_powder[k]) + f_powder[k] * k_layer
-    return kw
+    if share is None:
+        return np.ones((plan_shape[0], len(dz), plan_shape[1]))
+    edges = np.arange(share.shape[1] + 1) * row_m
+    overlap = np.clip(np.minimum(zs[1:, None], edges[None, 1:]) - np.maximum(zs[:-1, None], edges[None, :-1]), 0.0,
+                      None) / dz[:, None]
+    dense = np.clip(np.minimum(zs[1:], 0.0) - zs[:-1], 0.0, None) / dz
+    return dense[None, :, None] + np.einsum("kr,jri->jki", overlap, kw_powder + share * (1.0 - kw_powder))

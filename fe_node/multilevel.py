@@ -33,16 +33,21 @@ import numpy as np
 from fe_node.levels import (
     ConductionLevel,
     HeldFaces,
+    column_weights,
     extent,
+    interpolate,
     level_axis,
     level_depth_axis,
-    level_weights,
+    lumped_volumes,
+    outside_energy,
     prolong,
     restrict,
+    shift_to,
+    slaved,
 )
 from fe_node.mesh import Grid, graded_axis
 from fe_node.observe import Observation, interp_matrix
-from fe_node.powder import KW_DENSE, RHO_W
+from fe_node.powder import RHO_W, PowderBed
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.solver import MAX_GRID_NODES, ThermalModel, check_command, depth_axis, plan_bands
@@ -101,28 +106,70 @@ class MultiLevelModel(ThermalModel):
         bands = plan_bands(s, plan, layer_plans)
         self._domain = tuple(domain for domain, _ in bands)
         self._bands = tuple(band for _, band in bands)
-        self._zs_box = self._box_heights(depth_axis(s), s.fine_box_depth_m)
+        self.layer = 0
+        self._zs_box, self._z_bed = self._box_heights()
         self._box_centre = self._centre(*plan.locate(0.0)[1:])
         self.boundary_outflow_j = 0.0
         super().__init__(settings, plan, layer_plans)
         self._kw_powder = None if self.powder is None else self.powder.kw_powder
         (x0, x1), (y0, y1) = self._domain
         part = Grid(level_axis(x0, x1, 0.0, None, s.coarse_h_m), level_axis(y0, y1, 0.0, None, s.coarse_h_m),
-                    level_depth_axis(s, s.coarse_h_m, s.depth_m))
+                    level_depth_axis(s, s.coarse_h_m, s.depth_m, self._top))
         self.part = ConductionLevel(s, self.law, part, np.full(part.solver_shape, self._h_ref), self._level_kw(part))
         self.mid = self._mid_level(self._box_centre, None)
         self._check_nodes()
         self._faces = HeldFaces(self.grid, self.mid.grid)
         self._faces.hold(self.mid.grid, self.mid.h)
-        self.mid_every = max(1, min(MID_MAX_STEPS, math.floor(self.mid.dt_stable / s.dt_s)))
-        self.part_every = self.mid_every * max(1, min(PART_MAX_STEPS // self.mid_every,
-                                                      math.floor(self.part.dt_stable / (self.mid_every * s.dt_s))))
-        self._heat = {"mid": [], "part": []}
+        self._set_level_steps()
+        self._sent = {"mid": 0.0, "part": 0.0}
+        self._synced = {"mid": 0, "part": 0}
+        self._outside = {"mid": 0.0, "part": 0.0}
+        self._mark_outside("mid")
+        self._mark_outside("part")
 
-    @staticmethod
-    def _box_heights(zs: np.ndarray, depth_m: float) -> np.ndarray:
-        """The uniform grid's node heights from ``-depth_m`` (its first node at or above) up [m]."""
-        return zs[zs >= -depth_m - 1e-12]
+    def _set_level_steps(self) -> None:
+        """Fine steps between two steps of the intermediate and of the part level (their stability
+        limits, at most ``MID_MAX_STEPS`` and ``PART_MAX_STEPS``)."""
+        dt = self.settings.dt_s
+        self.mid_every = max(1, min(MID_MAX_STEPS, math.floor(self.mid.dt_stable / dt)))
+        self.part_every = self.mid_every * max(1, min(PART_MAX_STEPS // self.mid_every,
+                                                      math.floor(self.part.dt_stable / (self.mid_every * dt))))
+
+    @property
+    def _top(self) -> float:
+        """Height [m] of the powder's surface: the top of the current layer (0 on a bare plate)."""
+        return (self.layer + 1) * self.settings.powder_layer_m
+
+    @property
+    def _row_m(self) -> float:
+        """Thickness [m] of a powder element row (a layer holds ``powder_layer_m / h_fine_m`` of them, rounded up)."""
+        s = self.settings
+        return s.powder_layer_m / max(1, math.ceil(s.powder_layer_m / s.h_fine_m - 1e-9))
+
+    def _box_heights(self) -> tuple[np.ndarray, float]:
+        """Node heights [m] of the fine box, and the height from which its element rows are single powder
+        rows (0 until the build is ``fine_depth_m`` high).
+
+        The uniform grid's heights after this many layers (:func:`~fe_node.solver.depth_axis` and a row
+        of elements per layer) within ``fine_depth_m`` of the top; below, down to ``fine_box_depth_m``,
+        a subset of them whose spacing grows by ``growth`` (up to ``h_max_m``): buried layers coarsen.
+        """
+        s = self.settings
+        zs = depth_axis(s)
+        if self.layer > 0:
+            zs = np.concatenate([zs, s.powder_layer_m + self._row_m * np.arange(1, round(
+                self.layer * s.powder_layer_m / self._row_m) + 1)])
+        top, tol = float(zs[-1]), 1e-9 * s.h_fine_m
+        fine = zs[zs >= top - s.fine_depth_m - tol]
+        below, floor = zs[zs < fine[0] - tol], top - s.fine_box_depth_m
+        kept, z, size = [], float(fine[0]), float(fine[1] - fine[0])
+        while len(below) and z > floor + tol:
+            size = min(size * s.growth, s.h_max_m)
+            deeper = below[below <= z - size + tol]
+            z = float(deeper[-1] if len(deeper) else below[0])
+            kept.append(z)
+            below = below[below < z - tol]
+        return np.concatenate([kept[::-1], fine]), max(0.0, float(fine[0]))
 
     def _centre(self, xy: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """The fine box's centre [m] for the laser at ``xy`` moving along ``direction``: ``FRONT_ROOM`` ahead."""
@@ -147,9 +194,11 @@ class MultiLevelModel(ThermalModel):
         return Grid(axes[0], axes[1], self._zs_box)
 
     def _level_kw(self, grid: Grid) -> np.ndarray:
-        """Conductivity weights of a coarser level's elements from the consolidation so far."""
-        share = None if self.powder is None else self._lattice.fraction(grid.xs, grid.ys)[:, 0, :]
-        return level_weights(grid, self.settings.powder_layer_m, self._kw_powder or 1.0, share)
+        """Conductivity weights of a grid's elements (any level's) from the consolidation so far
+        (:func:`~fe_node.levels.column_weights`)."""
+        share = None if self.powder is None else self._lattice.fraction(grid.xs, grid.ys)
+        kw_powder = 1.0 if self.powder is None else self.powder.kw_powder
+        return column_weights(grid.zs, (len(grid.ys) - 1, len(grid.xs) - 1), self._row_m, kw_powder, share)
 
     def _mid_level(self, centre: np.ndarray, old: ConductionLevel | None) -> ConductionLevel:
         """The intermediate level around ``centre`` [m], its field carried over from ``old`` (``None``:
@@ -157,7 +206,8 @@ class MultiLevelModel(ThermalModel):
         s = self.settings
         (x0, x1), (y0, y1) = self._domain
         grid = Grid(level_axis(x0, x1, centre[0], s.mid_box_m, s.mid_h_m),
-                    level_axis(y0, y1, centre[1], s.mid_box_m, s.mid_h_m), level_depth_axis(s, s.mid_h_m, s.depth_m))
+                    level_axis(y0, y1, centre[1], s.mid_box_m, s.mid_h_m),
+                    level_depth_axis(s, s.mid_h_m, s.depth_m, self._top))
         h = prolong(self.part.grid, self.part.h, None if old is None else old.grid, None if old is None else old.h,
                     grid)
         mid = ConductionLevel(s, self.law, grid, h, self._level_kw(grid), coarse=self.part.grid)
@@ -207,6 +257,8 @@ class MultiLevelModel(ThermalModel):
         check_command(power_w, speed_m_s)
         if self.done:
             raise RuntimeError("scan plan finished: no more steps")
+        if self.layer_done:
+            self.add_layer()
         total = self.plan.total_length
         _, points, directions = self.plan.locate(np.array([self._s, min(self._s + speed_m_s * self.settings.dt_s,
                                                                       total)]))
@@ -214,28 +266,49 @@ class MultiLevelModel(ThermalModel):
             centre = self._centre(points[0], directions[0])
             if self._needs_move(self._box_grid(centre), points[1], directions[1]):
                 centre = self._centre(points[1], directions[1])
+            self.sync("mid")
             self.move(centre)
-        absorbed = self._absorbed
         obs = super().step(power_w, speed_m_s)
-        heat = (obs.x_m, obs.y_m, self._absorbed - absorbed)
-        self._heat["mid"].append(heat)
-        self._heat["part"].append(heat)
-        if self.step_index % self.mid_every == 0:
-            self._step_level(self.mid, "mid", self.mid_every)
-            restrict(self.grid, self._h, self.mid.grid, self.mid.h)
-            self._faces.hold(self.mid.grid, self.mid.h)
-        if self.step_index % self.part_every == 0:
-            self._step_level(self.part, "part", self.part_every)
-            restrict(self.mid.grid, self.mid.h, self.part.grid, self.part.h)
-            self.mid.faces.hold(self.part.grid, self.part.h)
+        if self.step_index - self._synced["mid"] >= self.mid_every:
+            self.sync("mid")
+        if self.step_index - self._synced["part"] >= self.part_every:
+            self.sync("part")
         return obs
 
-    def _step_level(self, level: ConductionLevel, name: str, n_steps: int) -> None:
-        """Advance a coarser level ``n_steps`` fine steps with the heat absorbed meanwhile."""
+    def sync(self, name: str) -> None:
+        """Step level ``"mid"`` or ``"part"`` (the finer levels first) over the steps since its last
+        step, so that it holds the finer level's state now."""
+        if name == "part":
+            self.sync("mid")
+        n = self.step_index - self._synced[name]
+        if n <= 0:
+            return
+        if name == "mid":
+            self._step_level(self.mid, self.grid, self._h, "mid", self.boundary_outflow_j, n)
+            self._faces.hold(self.mid.grid, self.mid.h)
+        else:
+            self._step_level(self.part, self.mid.grid, self.mid.h, "part", self.mid.outflow_j, n)
+            self.mid.faces.hold(self.part.grid, self.part.h)
+            self._mark_outside("mid")
+        self._synced[name] = self.step_index
+
+    def _mark_outside(self, name: str) -> None:
+        """Note the finer level's energy outside the nodes level ``name`` takes from it (after a step
+        of that level or a change of either grid)."""
+        finer, h, level = (self.grid, self._h, self.mid) if name == "mid" else (self.mid.grid, self.mid.h, self.part)
+        self._outside[name] = outside_energy(finer, h, level.grid)
+
+    def _step_level(self, level: ConductionLevel, finer: Grid, h_finer: np.ndarray, name: str, sent_j: float,
+                    n_steps: int) -> None:
+        """Advance a coarser level ``n_steps`` fine steps, taking the heat its finer level sent out
+        through its held faces since (``sent_j`` [J], cumulative), then the finer field (:func:`restrict`)."""
         if self.powder is not None:
             level.set_weights(self._level_kw(level.grid))
-        level.advance(n_steps * self.settings.dt_s, self._heat[name])
-        self._heat[name] = []
+        outside = outside_energy(finer, h_finer, level.grid)
+        level.advance(n_steps * self.settings.dt_s, slaved(finer, level.grid),
+                      sent_j - self._sent[name] + outside - self._outside[name])
+        self._sent[name], self._outside[name] = sent_j, outside
+        restrict(finer, h_finer, level.grid, level.h)
 
     def _substep(self, load) -> None:
         super()._substep(load)
@@ -254,28 +327,85 @@ class MultiLevelModel(ThermalModel):
         margin = MID_MARGIN * s.mid_h_m
         if ((x0 - margin < mx0 and mx0 > dx0) or (x1 + margin > mx1 and mx1 < dx1)
                 or (y0 - margin < my0 and my0 > dy0) or (y1 + margin > my1 and my1 < dy1)):
+            self.sync("part")
             self.mid = self._mid_level(0.5 * np.array([x0 + x1, y0 + y1]), self.mid)
             self._check_nodes()
-            restrict(self.grid, self._h, self.mid.grid, self.mid.h)
+            self.mid.take(self.grid, self._h)
+            self.part.take(self.mid.grid, self.mid.h)
+            self._mark_outside("part")
+        self._rebuild_box(new)
+        self.n_remeshes += 1
+
+    def _rebuild_box(self, new: Grid) -> None:
+        """Carry the fine level over to grid ``new`` (:func:`~fe_node.levels.prolong` from the old box
+        and the intermediate level): weights and powder bed from the consolidation lattice, operator,
+        held faces; the energy the change brings in is added to the initial energy."""
         e_before = self._energy()
-        old = self.grid
-        self._h = np.ascontiguousarray(prolong(self.mid.grid, self.mid.h, old, self._h, new))
+        self._h = np.ascontiguousarray(prolong(self.mid.grid, self.mid.h, self.grid, self._h, new))
         ny, nz, nx = new.solver_shape
-        kw, rho_w = np.full((ny - 1, nz - 1, nx - 1), KW_DENSE), np.full((ny - 1, nz - 1, nx - 1), RHO_W)
+        kw = self._level_kw(new)
         if self.powder is not None:
-            pb, k0 = self.powder, self.powder.k0
+            bed = PowderBed(self.settings, new.zs - self._z_bed, (ny - 1, nx - 1))
+            self._lattice_row0 = round(self._z_bed / self._row_m)
             share = self._lattice.fraction(new.xs, new.ys)
-            pb.consolidated = share >= 1.0 - 1e-9
-            kw[:, k0:, :] = pb.kw_powder + share * (KW_DENSE - pb.kw_powder)
+            rows = bed.consolidated.shape[1]
+            bed.consolidated = share[:, self._lattice_row0:self._lattice_row0 + rows, :] >= 1.0 - 1e-9
+            self.powder = bed
         self.grid = new
         self._check_nodes()
-        self.operator = self._build_operator(kw.ravel(), rho_w.ravel())
+        self.operator = self._build_operator(kw.ravel(), np.full(kw.size, RHO_W))
         self._a_top, self._a_bottom = self._face_areas()
         self._set_time_step()
         self._faces = HeldFaces(new, self.mid.grid)
         self._faces.hold(self.mid.grid, self.mid.h)
         self._e0 += self._energy() - e_before
-        self.n_remeshes += 1
+        self.mid.take(self.grid, self._h)
+        self._mark_outside("mid")
+
+    def add_layer(self) -> None:
+        """Spread a new powder layer (at the preheat temperature) on every level and start the next
+        plan (:meth:`ThermalModel.add_layer`); the fine box's buried layers coarsen (:meth:`_box_heights`).
+
+        Raises
+        ------
+        RuntimeError
+            Without a powder layer (``powder_layer_m = 0``) or before the plan is done.
+        """
+        s = self.settings
+        if self.powder is None or not self.layer_done:
+            raise RuntimeError("add_layer needs powder_layer_m > 0 and a finished scan plan")
+        self.sync("part")
+        old_top = self._top
+        self._lattice.grow(round(s.powder_layer_m / self._row_m))
+        self.layer += 1
+        self.part = self._grown(self.part, level_depth_axis(s, s.coarse_h_m, s.depth_m, self._top), old_top, None)
+        self.mid = self._grown(self.mid, level_depth_axis(s, s.mid_h_m, s.depth_m, self._top), old_top, self.part)
+        self._set_level_steps()
+        self._zs_box, self._z_bed = self._box_heights()
+        self.part.take(self.mid.grid, self.mid.h)
+        self._rebuild_box(Grid(self.grid.xs, self.grid.ys, self._zs_box))
+        self._mark_outside("part")
+        self._s = 0.0
+        if self._layer_plans is not None:
+            self.plan = self._layer_plans[self.layer]
+
+    def _grown(self, level: ConductionLevel, zs: np.ndarray, old_top: float,
+               coarse: ConductionLevel | None) -> ConductionLevel:
+        """``level`` on heights ``zs`` [m] up to the new top: the old field below ``old_top`` [m]
+        (interpolated, shifted to keep its energy), the preheat state above."""
+        grid = Grid(level.grid.xs, level.grid.ys, zs)
+        h = interpolate(level.grid, level.h, grid.xs, grid.ys, grid.zs)
+        new = zs > old_top + 1e-9 * self.settings.h_fine_m
+        h[:, new, :] = self._h_ref
+        m = lumped_volumes(grid)
+        added = float(np.sum(m)) - float(np.sum(level.m))
+        shift_to(h, m, np.broadcast_to(~new[None, :, None], h.shape), level.energy() + self._h_ref * added)
+        grown = ConductionLevel(self.settings, self.law, grid, h, self._level_kw(grid),
+                                None if coarse is None else coarse.grid)
+        if coarse is not None:
+            grown.faces.hold(coarse.grid, coarse.h)
+        grown.lost_j, grown.outflow_j = level.lost_j, level.outflow_j
+        return grown
 
     def temperature_image(self, half_length_m: float = 0.6e-3, half_width_m: float = 0.3e-3,
                           pixel_m: float = 10e-6):

@@ -249,6 +249,8 @@ class ThermalModel:
         ny, nz, nx = self.grid.solver_shape
         self.powder = PowderBed(settings, self.grid.zs, (ny - 1, nx - 1)) if settings.powder_layer_m > 0 else None
         self._lattice = None
+        self._lattice_row0 = 0
+        """The lattice row of the powder bed's first element row (its buried rows are not its own)."""
         if self.powder is not None and (settings.window_m > 0 or settings.mesh == "multilevel"):
             self._lattice = ConsolidationLattice(*self._bands, settings.h_fine_m, self.powder.consolidated.shape[1])
         self.operator = self._build_operator(*self._initial_weights())
@@ -325,8 +327,9 @@ class ThermalModel:
     def add_layer(self) -> None:
         """Spread a new powder layer (``powder_layer_m``, at the preheat temperature) and start the next plan.
 
-        Elements keep their weights (consolidated tracks stay consolidated); the new powder's
-        enthalpy is brought in, not absorbed, so it is added to the reference energy of the balance.
+        Elements keep their weights (consolidated tracks stay consolidated); the new powder brings in
+        its enthalpy at the preheat state, exactly (the old top nodes, whose lumped volumes now reach
+        into it, mix their energy with it), added to the reference energy of the balance.
 
         Raises
         ------
@@ -353,8 +356,10 @@ class ThermalModel:
         self._a_top, self._a_bottom = self._face_areas()
         h = np.full(self.grid.solver_shape, self._h_ref)
         h[:, :nz, :] = self._h
-        self._h = h
+        self._h, m_top = h, self._m[:, -1, :].copy()
         self._set_time_step()
+        grown = self._m[:, nz - 1, :]     # the old top nodes now hold half of the new powder's bottom elements too
+        self._h[:, nz - 1, :] = (m_top * self._h[:, nz - 1, :] + (grown - m_top) * self._h_ref) / grown
         self._e0 += self._energy() - e_before
         self._s = 0.0
         self.layer += 1
@@ -429,7 +434,7 @@ class ThermalModel:
         melted = self.powder.consolidate(self.law.temperature(self._h[:, self.powder.k0:, :]))
         if len(melted) and self._lattice is not None:
             j, k, i = np.unravel_index(melted, (len(self.grid.ys) - 1, len(self.grid.zs) - 1, len(self.grid.xs) - 1))
-            self._lattice.mark(self.grid.xs, self.grid.ys, (j, k - self.powder.k0, i))
+            self._lattice.mark(self.grid.xs, self.grid.ys, (j, k - self.powder.k0 + self._lattice_row0, i))
         if len(melted):
             self.reweight(melted, KW_DENSE, RHO_W)
 

@@ -116,11 +116,60 @@ def test_plant_model_picks_the_mesh():
         is MultiLevelModel
     with pytest.raises(ValueError, match="mesh must be one of"):
         Settings(mesh="adaptive")
-    with pytest.raises(ValueError, match="n_layers"):
-        Settings(mesh="multilevel", powder_layer_m=25e-6, n_layers=2)
+    with pytest.raises(ValueError, match="dwell_s"):
+        Settings(mesh="multilevel", powder_layer_m=25e-6, n_layers=2, dwell_s=0.1)
 
 
 def test_intermediate_level_holds_the_fine_field(powder_runs):
     ml, _, _, held = powder_runs
     assert 100 % ml.mid_every == 0
     assert held < 1e-6          # K: inside the fine box, the intermediate level is the fine field restricted
+
+
+@pytest.fixture(scope="module")
+def layered_runs():
+    """Five 50 µm layers of a 3-track plan (1.5 mm tracks), multi-level and uniform, 150 W."""
+    s = Settings(**COARSE, powder_layer_m=50e-6, n_layers=5, fine_box_m=1.0e-3, mid_box_m=2.4e-3,
+                 mid_h_m=100e-6, coarse_h_m=300e-6)
+    plan = ScanPlan.layer(3, 1.5e-3, 1e-4)
+    ml, un = model(s, plan), ThermalModel(s, plan)
+    rows, starts = [], []
+    while not ml.done:
+        layer = ml.layer
+        o_ml, o_un = ml.step(150.0, 0.8), un.step(150.0, 0.8)
+        if ml.layer != layer or ml.step_index == 1:
+            rows.append(len(ml.grid.zs))
+            starts.append((o_ml.t_ahead_k, o_un.t_ahead_k))
+    return ml, un, rows, np.array(starts)
+
+
+def test_buried_layers_coarsen(layered_runs):
+    ml, un, rows, _ = layered_runs
+    assert ml.layer == un.layer == 4
+    assert len(un.grid.zs) - rows[0] >= 4                  # the uniform grid gains a row per layer
+    assert max(rows) - min(rows) <= 1                      # the fine box does not
+    assert ml.grid.zs[-1] == pytest.approx(un.grid.zs[-1])
+    assert ml.part.grid.zs[-1] == pytest.approx(un.grid.zs[-1])
+
+
+def test_layer_starts_follow_the_uniform_mesh(layered_runs):
+    _, _, _, starts = layered_runs
+    rise_ml, rise_un = starts[:, 0] - 300.0, starts[:, 1] - 300.0
+    np.testing.assert_allclose(rise_ml, rise_un, rtol=0.05)
+
+
+@pytest.mark.parametrize("layers", [dict(), dict(powder_layer_m=50e-6, n_layers=3)], ids=["plate", "3 layers"])
+def test_levels_keep_the_absorbed_energy(layers):
+    """No losses: the part level's energy grows by what the fine level absorbed plus the powder spread
+    at the preheat state, to round-off (the levels hand on the heat the finer one sends out of the
+    nodes they overwrite; a changed finer grid moves no energy)."""
+    s = Settings(**COARSE, h_conv_w_m2k=0.0, emissivity=0.0, mesh="multilevel", fine_box_m=1.0e-3,
+                 mid_box_m=2.4e-3, mid_h_m=100e-6, coarse_h_m=300e-6, **layers)
+    ml = MultiLevelModel(s, ScanPlan.layer(3, 1.5e-3, 1e-4))
+    e0, g = ml.part.energy(), ml.part.grid
+    powder_j = ml._h_ref * (g.xs[-1] - g.xs[0]) * (g.ys[-1] - g.ys[0]) * s.powder_layer_m
+    while not ml.done:
+        ml.step(150.0, 0.8)
+    ml.sync("part")                        # every level takes its finer one's state now
+    assert ml.n_remeshes > 5
+    assert ml.part.energy() - e0 - ml.layer * powder_j == pytest.approx(ml._absorbed, rel=1e-9)
