@@ -1,8 +1,8 @@
 """Cost per FE step against part size, the multi-level mesh against the uniform one, and their
 agreement on the default layer.
 
-Usage: ``python benchmarks/bench_fe_scale.py [--sides-mm 2 4 8 16] [--steps 50] [--layer-steps N]
-[--json]``.  Last line of stdout is JSON.
+Usage: ``python benchmarks/bench_fe_scale.py [--sides-mm 2 4 8 16] [--layers 1 10 25 50] [--steps 50]
+[--layer-steps N] [--json]``.  Last line of stdout is JSON.
 
 Side sweep: for each side L a square layer of L / hatch tracks of length L (hatch 0.1 mm) on the
 default plant (the ``layer`` scenario's settings and power) is built with ``mesh = "uniform"``
@@ -10,16 +10,21 @@ default plant (the ``layer`` scenario's settings and power) is built with ``mesh
 warm-up steps, ``--steps`` steps are timed one by one, the two meshes alternating so both see the
 same machine load; ``ms_per_step`` is the mean (the multi-level mesh's moves included).
 
+Layer sweep: one 2 mm track built ``max(--layers)`` layers high on the default plant (25 µm
+layers), both meshes alternating; ``ms_per_step`` is the mean over the steps of each layer in
+``--layers`` (the uniform grid gains a row of elements per layer, the multi-level fine box does
+not: buried layers coarsen).
+
 Default layer: the ``layer`` scenario run to its end (or ``--layer-steps``) on both meshes,
 alternating; the melt-pool area traces are compared from step 20 on, as a share of the uniform
 mesh's mean area.
 
-Keys: ``cases`` (per side: ``side_mm``, ``nodes_uniform``, ``nodes_multilevel``,
-``ms_per_step_uniform``, ``ms_per_step_multilevel``), ``cost_ratio_max_min`` (the multi-level
-``ms_per_step`` over the sides, max / min), ``max_nodes`` (the largest multi-level node count),
-``speedup_vs_uniform``, ``area_rms_diff_pct``, ``area_max_diff_pct``, ``layer_steps``,
-``layer_ms_per_step_uniform``, ``layer_ms_per_step_multilevel``, ``load_avg``.  Layer counts are
-not swept: the multi-level mesh builds one layer so far.
+Keys: ``cases`` (per side: ``side_mm``, and per layer count: ``layers``; each with
+``nodes_uniform``, ``nodes_multilevel``, ``ms_per_step_uniform``, ``ms_per_step_multilevel``),
+``cost_ratio_max_min`` (the multi-level ``ms_per_step`` over all cases, max / min), ``max_nodes``
+(the largest multi-level node count), ``speedup_vs_uniform``, ``area_rms_diff_pct``,
+``area_max_diff_pct``, ``layer_steps``, ``layer_ms_per_step_uniform``,
+``layer_ms_per_step_multilevel``, ``load_avg``.
 """
 from __future__ import annotations
 
@@ -69,6 +74,34 @@ def side_case(side_mm: float, steps: int) -> dict:
     return case
 
 
+def layer_cases(layers: list[int]) -> list[dict]:
+    """Time both meshes in layers ``layers`` (1-based) of a one-track build."""
+    scs = [scenario("layer", n_tracks=1, track_length_m=2e-3, n_layers=max(layers), mesh=m) for m in MESHES]
+    models = [plant_model(sc.settings, sc.plan, sc.layer_plans) for sc in scs]
+    times = {n: [[], []] for n in layers}
+    nodes_at = {}
+    while not models[0].done:
+        for i, (sc, model) in enumerate(zip(scs, models)):
+            t0 = time.perf_counter()
+            model.step(*sc.profile.command(model.step_index))
+            elapsed = time.perf_counter() - t0
+            n = model.layer + 1
+            if n in times and model.step_index > 1:
+                times[n][i].append(elapsed)
+                nodes_at[(n, i)] = nodes(model)
+    cases = []
+    for n in layers:
+        case = {"layers": n}
+        for i, m in enumerate(MESHES):
+            case[f"nodes_{m}"] = nodes_at[(n, i)]
+            case[f"ms_per_step_{m}"] = round(1e3 * statistics.fmean(times[n][i][1:]), 2)
+        print(f"layer {n}: uniform {case['nodes_uniform']} nodes {case['ms_per_step_uniform']} ms/step; "
+              f"multilevel {case['nodes_multilevel']} nodes {case['ms_per_step_multilevel']} ms/step",
+              file=sys.stderr, flush=True)
+        cases.append(case)
+    return cases
+
+
 def default_layer(max_steps: int | None) -> dict:
     """Both meshes over the default layer: cost and the area traces' difference."""
     scs = [scenario("layer", mesh=m) for m in MESHES]
@@ -93,12 +126,13 @@ def default_layer(max_steps: int | None) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sides-mm", type=float, nargs="+", default=[2.0, 4.0, 8.0, 16.0])
+    parser.add_argument("--layers", type=int, nargs="+", default=[1, 10, 25, 50])
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--layer-steps", type=int, default=None, help="steps of the default layer (default: all)")
     parser.add_argument("--json", action="store_true", help="(the last line is JSON either way)")
     args = parser.parse_args()
     load = [round(os.getloadavg()[0], 2)]
-    cases = [side_case(side, args.steps) for side in args.sides_mm]
+    cases = [side_case(side, args.steps) for side in args.sides_mm] + layer_cases(args.layers)
     ml = [c["ms_per_step_multilevel"] for c in cases]
     result = {"cases": cases, "cost_ratio_max_min": round(max(ml) / min(ml), 3),
               "max_nodes": max(c["nodes_multilevel"] for c in cases), **default_layer(args.layer_steps)}
