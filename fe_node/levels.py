@@ -58,6 +58,11 @@ def interpolate(grid: Grid, h: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: n
     return np.matmul(iz, out) @ ix.T
 
 
+def inside_grid(grid: Grid, points: np.ndarray) -> np.ndarray:
+    """True for the ``points`` (shape (n, 3), [m]) inside ``grid``'s box."""
+    return np.all([(points[:, k] >= lo) & (points[:, k] <= hi) for k, (lo, hi) in enumerate(extent(grid))], axis=0)
+
+
 def extent(grid: Grid) -> tuple[tuple[float, float], ...]:
     """The grid's box ``((x0, x1), (y0, y1), (z0, z1))`` [m]."""
     return tuple((float(c[0]), float(c[-1])) for c in (grid.xs, grid.ys, grid.zs))

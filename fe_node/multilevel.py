@@ -35,6 +35,7 @@ from fe_node.levels import (
     HeldFaces,
     column_weights,
     extent,
+    inside_grid,
     interpolate,
     level_axis,
     level_depth_axis,
@@ -46,7 +47,7 @@ from fe_node.levels import (
     slaved,
 )
 from fe_node.mesh import Grid, graded_axis
-from fe_node.observe import Observation, interp_matrix
+from fe_node.observe import Observation, interp_matrix, interpolate_points
 from fe_node.powder import RHO_W, PowderBed
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
@@ -376,7 +377,9 @@ class MultiLevelModel(ThermalModel):
             raise RuntimeError("add_layer needs powder_layer_m > 0 and a finished scan plan")
         self.sync("part")
         old_top = self._top
-        self._lattice.grow(round(s.powder_layer_m / self._row_m))
+        n = round(s.powder_layer_m / self._row_m)
+        self._lattice.grow(n)
+        self._spread(n)
         self.layer += 1
         self.part = self._grown(self.part, level_depth_axis(s, s.coarse_h_m, s.depth_m, self._top), old_top, None)
         self.mid = self._grown(self.mid, level_depth_axis(s, s.mid_h_m, s.depth_m, self._top), old_top, self.part)
@@ -388,6 +391,24 @@ class MultiLevelModel(ThermalModel):
         self._s = 0.0
         if self._layer_plans is not None:
             self.plan = self._layer_plans[self.layer]
+
+    def _spread(self, n: int) -> None:
+        """Put ``n`` rows of powder elements at the preheat state on the fine box, as
+        :meth:`ThermalModel.add_layer` does (the old top nodes mix their energy with the half of
+        the new bottom elements their lumped volumes now hold); the energy brought in is added
+        to the initial energy."""
+        old = self.grid
+        zs = np.concatenate([old.zs, old.zs[-1] + self._row_m * np.arange(1, n + 1)])
+        grid = Grid(old.xs, old.ys, zs)
+        h = np.full(grid.solver_shape, self._h_ref)
+        nz = len(old.zs)
+        h[:, :nz, :] = self._h
+        m_old, m_new = lumped_volumes(old)[:, -1, :], lumped_volumes(grid)[:, nz - 1, :]
+        h[:, nz - 1, :] = (m_old * self._h[:, -1, :] + (m_new - m_old) * self._h_ref) / m_new
+        e_before = self._energy()
+        self.grid, self._h = grid, h
+        self._m = lumped_volumes(grid)
+        self._e0 += self._energy() - e_before
 
     def _grown(self, level: ConductionLevel, zs: np.ndarray, old_top: float,
                coarse: ConductionLevel | None) -> ConductionLevel:
@@ -406,6 +427,16 @@ class MultiLevelModel(ThermalModel):
             grown.faces.hold(coarse.grid, coarse.h)
         grown.lost_j, grown.outflow_j = level.lost_j, level.outflow_j
         return grown
+
+    def temperature_at(self, points: np.ndarray) -> np.ndarray:
+        """Temperature [K] at ``points`` (shape (n, 3), x, y, z [m]): from the finest level whose box
+        holds each point (the coarser ones as of their last step)."""
+        points = np.asarray(points, dtype=float)
+        h = interpolate_points(self.part.grid, self.part.h, points)
+        for grid, field in ((self.mid.grid, self.mid.h), (self.grid, self._h)):
+            held = inside_grid(grid, points)
+            h[held] = interpolate_points(grid, field, points[held])
+        return self.law.temperature(h)
 
     def temperature_image(self, half_length_m: float = 0.6e-3, half_width_m: float = 0.3e-3,
                           pixel_m: float = 10e-6):

@@ -105,6 +105,19 @@ def interp_weights(nodes: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, n
     return i, (points - nodes[i]) / (nodes[i + 1] - nodes[i])
 
 
+def interpolate_points(grid, h: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Trilinear interpolation of ``h`` (solver order (ny, nz, nx) on ``grid``, a
+    :class:`fe_node.mesh.Grid`) at scattered ``points`` (shape (n, 3), x, y, z [m]), shape (n,);
+    points outside ``grid`` take the nearest boundary value."""
+    (ix, wx), (iy, wy), (iz, wz) = (interp_weights(c, points[:, k]) for k, c in enumerate((grid.xs, grid.ys, grid.zs)))
+    out = np.zeros(len(points))
+    for dy, fy in ((0, 1 - wy), (1, wy)):
+        for dz, fz in ((0, 1 - wz), (1, wz)):
+            for dx, fx in ((0, 1 - wx), (1, wx)):
+                out += fy * fz * fx * h[iy + dy, iz + dz, ix + dx]
+    return out
+
+
 def interp_matrix(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Dense linear-interpolation matrix, shape (len(points), len(nodes)) (:func:`interp_weights`)."""
     i, w = interp_weights(nodes, points)

@@ -28,7 +28,7 @@ from fe_node.dwell import implicit_step
 from fe_node.keyhole import beam_1e2_radius_m, cavity_absorptivity, drill, keyhole_temperature_k, vapour_depth_m
 from fe_node.material import Constitutive
 from fe_node.mesh import Grid, graded_axis, graded_axis_size
-from fe_node.observe import Observation, bilinear, interp_matrix, pool_geometry, trailing_edge
+from fe_node.observe import Observation, bilinear, interp_matrix, interpolate_points, pool_geometry, trailing_edge
 from fe_node.operators import CsrOperator, TensorOperator
 from fe_node.powder import KW_DENSE, RHO_W, PowderBed
 from fe_node.scan import ScanPlan
@@ -483,6 +483,11 @@ class ThermalModel:
     def temperature(self) -> np.ndarray:
         """Nodal temperature [K], shape ``grid.shape`` = (nx, ny, nz)."""
         return np.ascontiguousarray(self.grid.to_xyz(self.law.temperature(self._h)))
+
+    def temperature_at(self, points: np.ndarray) -> np.ndarray:
+        """Temperature [K] at ``points`` (shape (n, 3), x, y, z [m]), trilinear in the grid (points
+        outside take the nearest boundary value)."""
+        return self.law.temperature(interpolate_points(self.grid, self._h, np.asarray(points, dtype=float)))
 
     def step(self, power_w: float, speed_m_s: float) -> Observation:
         """Advance one step ``dt_s`` with laser power [W] and scan speed [m/s].
