@@ -239,6 +239,9 @@ class ThermalModel:
     """
 
     def __init__(self, settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None):
+        if settings.mesh != "uniform" and type(self) is ThermalModel:
+            raise ValueError("settings: mesh = 'multilevel' is built by fe_node.multilevel.plant_model "
+                             "(ThermalModel is the uniform mesh)")
         if layer_plans is not None and (len(layer_plans) != settings.n_layers or layer_plans[0] != plan):
             raise ValueError("thermal model: layer_plans must hold n_layers plans, the first being plan")
         self.settings, self.plan, self._layer_plans = settings, plan, layer_plans

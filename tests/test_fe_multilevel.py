@@ -114,6 +114,8 @@ def test_plant_model_picks_the_mesh():
     assert type(plant_model(Settings(**COARSE), plan)) is ThermalModel
     assert type(plant_model(Settings(**COARSE, mesh="multilevel", mid_h_m=100e-6, coarse_h_m=400e-6), plan)) \
         is MultiLevelModel
+    with pytest.raises(ValueError, match="plant_model"):
+        ThermalModel(Settings(**COARSE, mesh="multilevel", mid_h_m=100e-6, coarse_h_m=400e-6), plan)
     with pytest.raises(ValueError, match="mesh must be one of"):
         Settings(mesh="adaptive")
     with pytest.raises(ValueError, match="dwell_s"):
