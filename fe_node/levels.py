@@ -51,11 +51,18 @@ def region_energy(grid: Grid, h: np.ndarray, box: tuple[tuple[float, float], ...
 
 def interpolate(grid: Grid, h: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
     """Trilinear interpolation of ``h`` (solver order on ``grid``) at the tensor points (xs, ys, zs),
-    shape (len(ys), len(zs), len(xs)); points outside ``grid`` take the nearest boundary value."""
-    ny, nz, nx = h.shape
-    iy, iz, ix = interp_matrix(grid.ys, ys), interp_matrix(grid.zs, zs), interp_matrix(grid.xs, xs)
-    out = (iy @ h.reshape(ny, nz * nx)).reshape(len(ys), nz, nx)
-    return np.matmul(iz, out) @ ix.T
+    shape (len(ys), len(zs), len(xs)); points outside ``grid`` take the nearest boundary value.
+    Only the nodes around the points are read, and the axis that shrinks the field most goes first."""
+    mats = [interp_matrix(c, p) for c, p in ((grid.ys, ys), (grid.zs, zs), (grid.xs, xs))]
+    block = []
+    for k, m in enumerate(mats):
+        used = np.flatnonzero(m.any(axis=0))
+        block.append(slice(int(used[0]), int(used[-1]) + 1))
+        mats[k] = m[:, block[-1]]
+    out = h[tuple(block)]
+    for axis in sorted(range(3), key=lambda a: mats[a].shape[0] / mats[a].shape[1]):
+        out = np.moveaxis(np.tensordot(mats[axis], out, axes=([1], [axis])), 0, axis)
+    return np.ascontiguousarray(out)
 
 
 def inside_grid(grid: Grid, points: np.ndarray) -> np.ndarray:
