@@ -42,7 +42,7 @@ NUMBA_FREE_MODULES = frozenset({
     "test_fe_scan.py", "test_fe_config.py", "test_contract_nodes.py", "test_launch.py", "test_recorder_crash.py",
     "test_report.py", "test_layering.py", "test_plan_feature.py", "test_low_latency.py", "test_hostile_input.py",
     "test_controller_types.py", "test_controller_node.py", "test_blas_threads.py", "test_turn_sensitivity.py",
-    "test_bench_suite.py",
+    "test_bench_suite.py", "test_fe_multilevel.py",
 })
 """Test modules that build no controller but the PID and no GP model (no numba function): they run
 first, while the warm-up compiles; every other test waits for it."""
