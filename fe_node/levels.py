@@ -9,11 +9,12 @@ conduction, the top-face losses and the laser energy the fine level absorbed, at
 time step; near the laser its field is overwritten by its finer level's (:func:`restrict`).
 
 Transfers.  A box's side and bottom nodes take their coarser level's field (Dirichlet, held
-between the coarser level's steps).  :func:`restrict` averages the fine field under each coarse
-hat function, :func:`prolong` interpolates linearly; then one enthalpy shift of the transferred
-nodes (:func:`shift_to`) makes their energy that of the source field over the same region: the
-lumped (row-sum) energy of a nodal field inside a box counts each node's dual cell (half-way to
-its neighbours) clipped to the box (:func:`region_energy`).
+between the coarser level's steps).  :func:`restrict` takes the fine field's values at the
+coarse nodes' x and y, averaged in z under each coarse hat function; :func:`prolong` interpolates
+linearly; then one enthalpy shift of the transferred nodes (:func:`shift_to`) makes their energy
+that of the source field over the same region: the lumped (row-sum) energy of a nodal field
+inside a box counts each node's dual cell (half-way to its neighbours) clipped to the box
+(:func:`region_energy`).
 """
 from __future__ import annotations
 
@@ -95,24 +96,27 @@ def dual_box(coords: np.ndarray, sl: slice) -> tuple[float, float]:
 
 def restrict(fine: Grid, h_fine: np.ndarray, coarse: Grid, h_coarse: np.ndarray) -> float:
     """Overwrite the coarse nodes whose dual cells lie inside the fine grid with the fine field, in
-    place: each the fine field's average under its hat function (weighted by the fine nodes'
-    volumes; interpolated where the hat holds no fine node), then all shifted alike
-    (:func:`shift_to`) so that their lumped energy equals the fine field's over their dual cells.
-    Returns that energy [J] (0: no node)."""
+    place: each the fine field's value at the node's x and y (bilinear; exact where fine nodes lie
+    there) averaged in z under its hat function (weighted by the fine nodes' heights; interpolated
+    where the hat holds no fine node), then all shifted alike (:func:`shift_to`) so that their
+    lumped energy equals the fine field's over their dual cells.  Returns that energy [J] (0: no node).
+
+    Values in x and y, not averages under the whole hat: a fresh track's edge in the powder layer
+    (consolidated metal beside insulating powder) is steep sideways, and an average over a coarse
+    element's width, prolonged back into the fine box, brought that heat to the next track's line
+    cooler than on the uniform mesh."""
     held = slaved(fine, coarse)
     if held is None:
         return 0.0
     sy, sz, sx = held
     box = (dual_box(coarse.xs, sx), dual_box(coarse.ys, sy), dual_box(coarse.zs, sz))
     target = region_energy(fine, h_fine, box)
-    ay, az, ax = (hat_weights(c, f, s) for c, f, s in ((coarse.ys, fine.ys, sy), (coarse.zs, fine.zs, sz),
-                                                        (coarse.xs, fine.xs, sx)))
-    ny, nz, nx = h_fine.shape
-    energy = np.matmul(az, (ay @ h_fine.reshape(ny, nz * nx)).reshape(len(ay), nz, nx)) @ ax.T
-    volume = ay.sum(axis=1)[:, None, None] * az.sum(axis=1)[None, :, None] * ax.sum(axis=1)[None, None, :]
+    lateral = interpolate(fine, h_fine, coarse.xs[sx], coarse.ys[sy], fine.zs)
+    az = hat_weights(coarse.zs, fine.zs, sz)
+    height = az.sum(axis=1)[None, :, None]
     view = h_coarse[sy, sz, sx]
     view[...] = interpolate(fine, h_fine, coarse.xs[sx], coarse.ys[sy], coarse.zs[sz])   # a hat holding no fine node
-    np.divide(energy, volume, out=view, where=volume > 0)
+    np.divide(np.einsum("kf,jfi->jki", az, lateral), height, out=view, where=height > 0)
     shift_to(view, lumped_volumes(coarse)[sy, sz, sx], np.ones(view.shape, dtype=bool), target)
     return target
 
@@ -139,7 +143,7 @@ def outside_energy(fine: Grid, h_fine: np.ndarray, coarse: Grid) -> float:
 
 def hat_weights(coarse: np.ndarray, fine: np.ndarray, sl: slice) -> np.ndarray:
     """``A[i, f]`` = coarse hat function ``sl``'s ``i``-th at fine node ``f`` times the fine node's
-    dual length [m], shape (len(coarse[sl]), len(fine)): the 1-D factor of the restriction."""
+    dual length [m], shape (len(coarse[sl]), len(fine)): the 1-D weights of an average under a hat."""
     return (interp_matrix(coarse, fine) * dual_lengths(fine, fine[0], fine[-1])[:, None]).T[sl]
 
 
@@ -214,10 +218,16 @@ def level_axis(lo: float, hi: float, centre: float, side: float | None, h: float
 
 
 def level_depth_axis(settings: Settings, h: float, depth_m: float, top: float) -> np.ndarray:
-    """Node heights [m] of a coarser level: from ``-depth_m`` to the powder surface ``top``, top
-    elements ``h`` thick (holding the powder layers), graded downwards (``growth``, ``h_max_m``)."""
+    """Node heights [m] of a coarser level: from ``-depth_m`` to the powder surface ``top``, the two
+    top elements ``h`` thick but at most ``mid_h_m`` (holding the powder layers), graded downwards
+    (``growth``, ``h_max_m``).
+
+    The part level's top elements are as thin as the intermediate level's: the heat of the tracks
+    lies within about 100 µm of the surface, and a ``coarse_h_m`` element spread it that deep, so
+    that prolonged back to the intermediate level it left the surface cooler."""
     s = settings
-    return graded_axis(-depth_m, top, max(-depth_m, top - 2 * h), top, h, s.growth, max(s.h_max_m, h))
+    top_h = min(h, s.mid_h_m)
+    return graded_axis(-depth_m, top, max(-depth_m, top - 2 * top_h), top, top_h, s.growth, max(s.h_max_m, h))
 
 
 FACE_SLICES = {"x0": (slice(None), slice(None), slice(0, 1)), "x1": (slice(None), slice(None), slice(-1, None)),

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fe_node.levels import extent, lumped_volumes, prolong, region_energy, restrict
+from fe_node.levels import extent, interpolate, lumped_volumes, prolong, region_energy, restrict, slaved
 from fe_node.mesh import Grid, graded_axis
 from fe_node.multilevel import MultiLevelModel, plant_model
 from fe_node.scan import ScanPlan
@@ -40,6 +40,19 @@ def test_restrict_conserves_energy():
     # the restricted field is the fine one, not merely its energy
     centre = (np.argmin(abs(coarse.ys - 0.0)), -1, np.argmin(abs(coarse.xs - 50e-6)))
     assert h_coarse[centre] > 4e9
+
+
+def test_restrict_keeps_a_track_edge():
+    """Sideways the coarse nodes take the fine field's values, shifted alike for the energy: a field that
+    steps in y (a track's edge in the powder layer) keeps its step, not smeared over a coarse element."""
+    fine = Grid(np.linspace(-0.5e-3, 0.5e-3, 41), np.linspace(-0.5e-3, 0.5e-3, 41), np.linspace(-0.2e-3, 0.0, 9))
+    coarse = Grid(np.linspace(-1e-3, 1e-3, 41), np.linspace(-1e-3, 1e-3, 41), np.linspace(-0.4e-3, 0.0, 9))
+    h_fine = np.broadcast_to(np.where(fine.ys < 0.0, 6e9, 1e9)[:, None, None], fine.solver_shape).copy()
+    h_coarse = np.full(coarse.solver_shape, 1e9)
+    restrict(fine, h_fine, coarse, h_coarse)
+    sy, sz, sx = slaved(fine, coarse)
+    shift = h_coarse[sy, sz, sx] - interpolate(fine, h_fine, coarse.xs[sx], coarse.ys[sy], coarse.zs[sz])
+    assert np.ptp(shift) < 1e-9 * 5e9
 
 
 def test_prolong_keeps_shared_nodes_and_conserves_energy():
@@ -175,3 +188,8 @@ def test_levels_keep_the_absorbed_energy(layers):
     ml.sync("part")                        # every level takes its finer one's state now
     assert ml.n_remeshes > 5
     assert ml.part.energy() - e0 - ml.layer * powder_j == pytest.approx(ml._absorbed, rel=1e-9)
+
+
+def test_part_level_resolves_the_surface(powder_runs):
+    ml = powder_runs[0]          # the part level's top elements as thin as the intermediate level's
+    assert np.diff(ml.part.grid.zs)[-2:] == pytest.approx([ml.settings.mid_h_m] * 2)
