@@ -25,7 +25,7 @@ import numpy as np
 from fe_node.boundary import loss_flux
 from fe_node.material import Constitutive
 from fe_node.mesh import Grid, graded_axis
-from fe_node.observe import interp_matrix
+from fe_node.observe import interp_matrix, interp_weights
 from fe_node.operators import TensorOperator
 from fe_node.settings import Settings
 
@@ -53,16 +53,16 @@ def region_energy(grid: Grid, h: np.ndarray, box: tuple[tuple[float, float], ...
 def interpolate(grid: Grid, h: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
     """Trilinear interpolation of ``h`` (solver order on ``grid``) at the tensor points (xs, ys, zs),
     shape (len(ys), len(zs), len(xs)); points outside ``grid`` take the nearest boundary value.
-    Only the nodes around the points are read, and the axis that shrinks the field most goes first."""
-    mats = [interp_matrix(c, p) for c, p in ((grid.ys, ys), (grid.zs, zs), (grid.xs, xs))]
-    block = []
-    for k, m in enumerate(mats):
-        used = np.flatnonzero(m.any(axis=0))
-        block.append(slice(int(used[0]), int(used[-1]) + 1))
-        mats[k] = m[:, block[-1]]
-    out = h[tuple(block)]
-    for axis in sorted(range(3), key=lambda a: mats[a].shape[0] / mats[a].shape[1]):
-        out = np.moveaxis(np.tensordot(mats[axis], out, axes=([1], [axis])), 0, axis)
+    Axis by axis, each a weighted sum of two slices (:func:`fe_node.observe.interp_weights`), the
+    axis that shrinks the field most first."""
+    weights = [interp_weights(c, p) for c, p in ((grid.ys, ys), (grid.zs, zs), (grid.xs, xs))]
+    out = h
+    for axis in sorted(range(3), key=lambda a: len(weights[a][0]) / h.shape[a]):
+        i, w = weights[axis]
+        shape = [1, 1, 1]
+        shape[axis] = len(i)
+        w = w.reshape(shape)
+        out = np.take(out, i, axis=axis) * (1.0 - w) + np.take(out, i + 1, axis=axis) * w
     return np.ascontiguousarray(out)
 
 
