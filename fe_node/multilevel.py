@@ -64,8 +64,10 @@ MID_MARGIN = 2
 MID_MAX_STEPS = 2
 """Most fine steps between two steps of the intermediate level (the fine box's held faces lag by at
 most this; 8 instead of 2 tripled the area error after a turn, docs/fe-scale.md)."""
-PART_MAX_STEPS = 64
-"""Most fine steps between two steps of the part level."""
+PART_STEPS = 64
+"""Fine steps between two steps of the part level (rounded to a multiple of the intermediate
+level's), each in as many sub-steps as its stability limit needs: its restriction from the
+intermediate level and its conductivity weights are updated that rarely."""
 
 
 def graded_length(length: float, h: float, growth: float = 1.35, h_max: float = 0.5e-3) -> float:
@@ -129,12 +131,11 @@ class MultiLevelModel(ThermalModel):
         self._mark_outside("part")
 
     def _set_level_steps(self) -> None:
-        """Fine steps between two steps of the intermediate and of the part level (their stability
-        limits, at most ``MID_MAX_STEPS`` and ``PART_MAX_STEPS``)."""
+        """Fine steps between two steps of the intermediate level (its stability limit, at most
+        ``MID_MAX_STEPS``) and of the part level (``PART_STEPS``, rounded to a multiple)."""
         dt = self.settings.dt_s
         self.mid_every = max(1, min(MID_MAX_STEPS, math.floor(self.mid.dt_stable / dt)))
-        self.part_every = self.mid_every * max(1, min(PART_MAX_STEPS // self.mid_every,
-                                                      math.floor(self.part.dt_stable / (self.mid_every * dt))))
+        self.part_every = self.mid_every * max(1, PART_STEPS // self.mid_every)
 
     @property
     def _top(self) -> float:
