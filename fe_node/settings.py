@@ -173,7 +173,7 @@ class Settings:
     min_substeps: int = 3
     mesh: str = "uniform"
     fine_box_m: float = 2.4e-3
-    fine_box_depth_m: float = 0.5e-3
+    fine_box_depth_m: float = 0.4e-3
     mid_h_m: float = 50e-6
     mid_box_m: float = 5e-3
     coarse_h_m: float = 200e-6

@@ -74,8 +74,8 @@ def model(settings: Settings, plan: ScanPlan) -> MultiLevelModel:
 
 
 def test_fine_box_does_not_grow_with_the_part():
-    s = replace(Settings(**COARSE), mesh="multilevel", fine_box_m=1.2e-3, mid_box_m=2.4e-3, mid_h_m=100e-6,
-                coarse_h_m=400e-6)
+    s = replace(Settings(**COARSE), mesh="multilevel", fine_box_m=1.2e-3, fine_box_depth_m=0.5e-3, mid_box_m=2.4e-3,
+                mid_h_m=100e-6, coarse_h_m=400e-6)
     small, large = (MultiLevelModel(s, ScanPlan.layer(round(side / 1e-4), side, 1e-4)) for side in (4e-3, 16e-3))
     assert small.grid.n_nodes == large.grid.n_nodes
     assert small.mid.grid.n_nodes == large.mid.grid.n_nodes
