@@ -57,7 +57,7 @@ FRONT_ROOM = 0.4
 """Share of ``fine_box_m`` ahead of the laser after the fine box moves (the rest holds the pool's tail)."""
 MIN_FRONT = 0.15
 """The fine box moves when less than this share of its side lies ahead of the laser."""
-MIN_SIDE = 0.25
+MIN_SIDE = 0.15
 """... or less than this share of its side to either side of the laser along x or y."""
 MID_MARGIN = 2
 """The intermediate box moves when the fine box comes within this many ``mid_h_m`` of its edge."""

@@ -94,7 +94,7 @@ def powder_runs():
     areas, held = [], None
     while not ml.done:
         areas.append((ml.step(150.0, 0.8).area_m2, un.step(150.0, 0.8).area_m2))
-        if ml.step_index == 100:       # a step after which the intermediate level stepped (mid_every 1 or 2)
+        if held is None and ml.step_index >= 100 and ml._synced["mid"] == ml.step_index:   # the mid level just stepped
             again = ml.mid.h.copy()
             restrict(ml.grid, ml._h, ml.mid.grid, again)
             held = float(np.max(np.abs(ml.law.temperature(ml.mid.h) - ml.law.temperature(again))))
@@ -137,7 +137,7 @@ def test_plant_model_picks_the_mesh():
 
 def test_intermediate_level_holds_the_fine_field(powder_runs):
     ml, _, _, held = powder_runs
-    assert 100 % ml.mid_every == 0
+    assert held is not None
     assert held < 1e-6          # K: inside the fine box, the intermediate level is the fine field restricted
 
 
