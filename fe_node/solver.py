@@ -77,13 +77,12 @@ def level_nodes(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan,
     :mod:`fe_node.multilevel`): the fine box at most ``fine_box_m`` square at ``h_fine_m`` (as deep
     as the uniform grid's top ``fine_box_depth_m``), the intermediate box and the part level."""
     s = settings
-    ax = dict(growth=s.growth, h_max=max(s.h_max_m, s.coarse_h_m))
     (x, _), (y, _) = plan_bands(settings, plan, layer_plans)
     nz_fine = grid_shape(settings, plan, layer_plans)[2]
     fine = (math.ceil(s.fine_box_m / s.h_fine_m) + 2) ** 2 * nz_fine
-    top = s.powder_layer_m
-    nz = [graded_axis_size(-s.depth_m, top, max(-s.depth_m, top - 2 * h), top, h=h, **ax)
-          for h in (s.mid_h_m, s.coarse_h_m)]
+    top = s.n_layers * s.powder_layer_m      # the last layer's (the levels grow with the build)
+    nz = [graded_axis_size(-s.depth_m, top, max(-s.depth_m, top - 2 * min(h, s.mid_h_m)), top, h=min(h, s.mid_h_m),
+                           growth=s.growth, h_max=max(s.h_max_m, h)) for h in (s.mid_h_m, s.coarse_h_m)]
     mid = (math.ceil(s.mid_box_m / s.mid_h_m) + 2) ** 2 * nz[0]
     part = (math.ceil((x[1] - x[0]) / s.coarse_h_m) + 1) * (math.ceil((y[1] - y[0]) / s.coarse_h_m) + 1) * nz[1]
     return fine + mid + part
