@@ -238,6 +238,24 @@ class MultiLevelModel(ThermalModel):
         """Nodes of the three levels."""
         return self.grid.n_nodes + self.mid.grid.n_nodes + self.part.grid.n_nodes
 
+    def _box_holds(self, centre: np.ndarray, xy: np.ndarray) -> int:
+        """How many of the positions ``xy`` (shape (n, 2), [m]) the fine box around ``centre`` holds."""
+        (x0, x1), (y0, y1), _ = extent(self._box_grid(centre))
+        return int(np.count_nonzero((xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)))
+
+    def _holds(self, xy: np.ndarray) -> np.ndarray:
+        """True for the laser positions ``xy`` (shape (n, 2), [m]) inside the fine box; a step that
+        jumps farther than the box holds deposits only the part of its power on the side of the jump
+        the box holds, the side most of the step is on (the rest counted in ``laser_outside_j``)."""
+        (x0, x1), (y0, y1), _ = extent(self.grid)
+        return (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
+
+    def keyhole_depth_m(self) -> float:
+        """:meth:`ThermalModel.keyhole_depth_m`; 0 while the laser is outside the fine box (the
+        first sub-steps of a step that jumps farther than the box holds)."""
+        _, xy, _ = self.plan.locate(np.array([self._s]))
+        return super().keyhole_depth_m() if self._holds(xy)[0] else 0.0
+
     def _needs_move(self, grid: Grid, xy: np.ndarray, direction: np.ndarray) -> bool:
         """True if less than ``MIN_FRONT`` of the box lies ahead of ``xy`` or ``MIN_SIDE`` to a side
         (where the domain goes on)."""
@@ -264,10 +282,16 @@ class MultiLevelModel(ThermalModel):
         total = self.plan.total_length
         _, points, directions = self.plan.locate(np.array([self._s, min(self._s + speed_m_s * self.settings.dt_s,
                                                                       total)]))
-        if self._needs_move(self.grid, points[0], directions[0]):
+        travel = speed_m_s * self.settings.dt_s
+        jumps = float(np.hypot(*(points[1] - points[0]))) > 1.5 * travel        # the step crosses to a far track
+        if self._needs_move(self.grid, points[0], directions[0]) or (
+                jumps and self._needs_move(self.grid, points[1], directions[1])):
             centre = self._centre(points[0], directions[0])
             if self._needs_move(self._box_grid(centre), points[1], directions[1]):
-                centre = self._centre(points[1], directions[1])
+                _, path, _ = self.plan.locate(self._s + (np.arange(8) + 0.5) / 8 * travel)
+                there = self._centre(points[1], directions[1])
+                if self._box_holds(there, path) >= self._box_holds(centre, path):    # most of the step is there
+                    centre = there
             self.sync("mid")
             self.move(centre)
         obs = super().step(power_w, speed_m_s)

@@ -273,6 +273,9 @@ class ThermalModel:
         self.step_index = 0
         self._absorbed = 0.0
         self._lost = 0.0
+        self.laser_outside_j = 0.0
+        """Laser energy [J] that fell outside the grid and was not deposited (a multi-level fine box
+        over a step that jumps farther than the box holds, :mod:`fe_node.multilevel`)."""
 
     def _initial_grid(self) -> Grid:
         """The grid at the start (:func:`build_grid`, its window ahead of the plan's start)."""
@@ -516,14 +519,23 @@ class ThermalModel:
             load = np.zeros((1, 1))
             if np.any(on) and power_w > 0:
                 _, xy, _ = self.plan.locate(s_pos[on])
-                load = surface_load(self.grid.xs, self.grid.ys, xy, power_w * on.mean(), 1.0, s.beam_radius_m)
-                load *= self._beam_absorptivity(load, wall, depth_m)
+                held = self._holds(xy)
+                self.laser_outside_j += power_w * on.mean() * (1.0 - held.mean()) * self._dt_sub
+                if held.any():
+                    load = surface_load(self.grid.xs, self.grid.ys, xy[held], power_w * on.mean() * held.mean(), 1.0,
+                                        s.beam_radius_m)
+                    load *= self._beam_absorptivity(load, wall, depth_m)
             self._substep(load)
             self._s = min(self._s + ds, total)
         if self.powder is not None:
             self._consolidate()
         self.step_index += 1
         return self._observe(power_w, speed_m_s)
+
+    def _holds(self, xy: np.ndarray) -> np.ndarray:
+        """True for the laser positions ``xy`` (shape (n, 2), [m]) on this grid (all: the grid covers
+        the whole plan)."""
+        return np.ones(len(xy), dtype=bool)
 
     def keyhole_depth_m(self) -> float:
         """Depth [m] of the keyhole now: the vapour depth of the columns within three 1/e² radii

@@ -193,3 +193,19 @@ def test_levels_keep_the_absorbed_energy(layers):
 def test_part_level_resolves_the_surface(powder_runs):
     ml = powder_runs[0]          # the part level's top elements as thin as the intermediate level's
     assert np.diff(ml.part.grid.zs)[-2:] == pytest.approx([ml.settings.mid_h_m] * 2)
+
+
+def test_a_jump_farther_than_the_box_keeps_the_laser_on_the_grid():
+    """Two tracks 3 mm apart (a contour's end to a hatch's start): the box follows the jump, the
+    laser never leaves the grid for a whole step, and what fell outside is counted."""
+    s = Settings(**COARSE, mesh="multilevel", fine_box_m=1.0e-3, mid_box_m=2.4e-3, mid_h_m=100e-6,
+                 coarse_h_m=300e-6)
+    plan = ScanPlan(tracks=(((0.0, 0.0), (1.01e-3, 0.0)), ((1e-3, 3e-3), (0.0, 3e-3))))   # the jump 1/4 into a step
+    ml = MultiLevelModel(s, plan)
+    areas = []
+    while not ml.done:
+        obs = ml.step(150.0, 0.8)
+        assert np.isfinite(obs.area_m2) and np.isfinite(obs.energy_absorbed_j)
+        areas.append(obs.area_m2)
+    assert 0 < ml.laser_outside_j < 0.5 * 150.0 * s.dt_s    # the smaller side of the jump's step
+    assert min(areas[-5:]) > 0.5 * max(areas)           # the second track melts as the first
