@@ -143,8 +143,8 @@ def test_intermediate_level_holds_the_fine_field(powder_runs):
 
 @pytest.fixture(scope="module")
 def layered_runs():
-    """Five 50 µm layers of a 3-track plan (1.5 mm tracks), multi-level and uniform, 150 W."""
-    s = Settings(**COARSE, powder_layer_m=50e-6, n_layers=5, fine_box_m=1.0e-3, mid_box_m=2.4e-3,
+    """Four 50 µm layers of a 3-track plan (1.5 mm tracks), multi-level and uniform, 150 W."""
+    s = Settings(**COARSE, powder_layer_m=50e-6, n_layers=4, fine_box_m=1.0e-3, mid_box_m=2.4e-3,
                  mid_h_m=100e-6, coarse_h_m=300e-6)
     plan = ScanPlan.layer(3, 1.5e-3, 1e-4)
     ml, un = model(s, plan), ThermalModel(s, plan)
@@ -158,22 +158,44 @@ def layered_runs():
     return ml, un, rows, np.array(starts)
 
 
+def test_box_heights_do_not_grow_with_the_build():
+    """The fine box's rows at layer 0, 5 and 20: the layers within fine_depth_m keep a row each,
+    deeper ones merge (the uniform grid gains a row of elements per layer)."""
+    s = Settings(**COARSE, powder_layer_m=50e-6, n_layers=21, fine_box_m=1.0e-3, mid_box_m=2.4e-3,
+                 mid_h_m=100e-6, coarse_h_m=300e-6)
+    ml = model(s, ScanPlan.layer(3, 1.5e-3, 1e-4))
+    rows = []
+    for layer in (0, 5, 20):
+        ml.layer = layer
+        zs, z_bed = ml._box_heights()
+        rows.append(len(zs))
+        assert zs[-1] == pytest.approx((layer + 1) * s.powder_layer_m)
+        assert zs[-1] - zs[0] == pytest.approx(s.fine_box_depth_m, abs=s.h_max_m)
+        single = np.diff(zs[zs >= zs[-1] - s.fine_depth_m - 1e-12])
+        np.testing.assert_allclose(single, s.powder_layer_m)             # one row per layer near the top
+        if layer == 20:
+            assert np.diff(zs)[0] > 1.5 * s.powder_layer_m                  # buried layers merged
+    assert max(rows) - min(rows) <= 1
+
+
+@pytest.mark.slow
 def test_buried_layers_coarsen(layered_runs):
     ml, un, rows, _ = layered_runs
-    assert ml.layer == un.layer == 4
-    assert len(un.grid.zs) - rows[0] >= 4                  # the uniform grid gains a row per layer
+    assert ml.layer == un.layer == 3
+    assert len(un.grid.zs) - rows[0] >= 3                  # the uniform grid gains a row per layer
     assert max(rows) - min(rows) <= 1                      # the fine box does not
     assert ml.grid.zs[-1] == pytest.approx(un.grid.zs[-1])
     assert ml.part.grid.zs[-1] == pytest.approx(un.grid.zs[-1])
 
 
+@pytest.mark.slow
 def test_layer_starts_follow_the_uniform_mesh(layered_runs):
     _, _, _, starts = layered_runs
     rise_ml, rise_un = starts[:, 0] - 300.0, starts[:, 1] - 300.0
     np.testing.assert_allclose(rise_ml, rise_un, rtol=0.05)
 
 
-@pytest.mark.parametrize("layers", [dict(), dict(powder_layer_m=50e-6, n_layers=3)], ids=["plate", "3 layers"])
+@pytest.mark.parametrize("layers", [dict(), dict(powder_layer_m=50e-6, n_layers=2)], ids=["plate", "2 layers"])
 def test_levels_keep_the_absorbed_energy(layers):
     """No losses: the part level's energy grows by what the fine level absorbed plus the powder spread
     at the preheat state, to round-off (the levels hand on the heat the finer one sends out of the
