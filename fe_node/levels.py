@@ -5,8 +5,9 @@ the fine level (the full physics of :class:`fe_node.solver.ThermalModel`) on a b
 laser, an intermediate level of ``mid_h_m`` on a box of ``mid_box_m`` around the fine one, and the
 part at ``coarse_h_m``.  A coarser level here (:class:`ConductionLevel`) solves the same
 enthalpy equation with the same forms (:func:`fe_node.solver.explicit_update`) but only with
-conduction, the top-face losses and the laser energy the fine level absorbed, at its own stable
-time step; near the laser its field is overwritten by its finer level's (:func:`restrict`).
+conduction and the top-face losses, at its own stable time step; near the laser its field is
+overwritten by its finer level's (:func:`restrict`), and the heat the finer level sends out of
+those nodes is handed to the nodes around them (:meth:`ConductionLevel.advance`).
 
 Transfers.  A box's side and bottom nodes take their coarser level's field (Dirichlet, held
 between the coarser level's steps).  :func:`restrict` takes the fine field's values at the

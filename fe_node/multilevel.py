@@ -10,10 +10,12 @@ Three nested grids, after the moving-level scheme of GO-MELT (Leonor et al., Add
   (:class:`~fe_node.levels.ConductionLevel`);
 * the part level: the same over the whole domain at ``coarse_h_m``.
 
-Each level steps at its own stable time step (the coarser levels every ``n`` fine steps, taking
-the energy the fine level absorbed in those steps); a box's side and bottom faces take its coarser
-level's field (held between that level's steps), and after a coarser level's step its nodes inside
-the finer box take the finer field (:func:`~fe_node.levels.restrict`).  The cost of a step depends
+Each level steps at its own stable time step (the intermediate level every ``mid_every`` fine
+steps, the part level every ``part_every``; :meth:`MultiLevelModel.sync` brings them up to now);
+a box's side and bottom faces take its coarser level's field (held between that level's steps),
+and after a coarser level's step its nodes inside the finer box take the finer field
+(:func:`~fe_node.levels.restrict`) and the heat the finer level sent out of them meanwhile
+(energy exact without losses, ``tests/test_fe_multilevel.py``).  The cost of a step depends
 on the fine box, not on the part.  The fine box moves when less than ``MIN_FRONT`` of its side
 lies ahead of the laser or ``MIN_SIDE`` to a side (the new box has ``FRONT_ROOM`` ahead); the
 intermediate box moves when the fine one nears its edge.  Moves carry the state over with the
