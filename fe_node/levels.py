@@ -34,12 +34,16 @@ STABILITY_SAFETY = 0.9
 """Fraction of the explicit stability limit a coarser level's sub-step takes (as the fine level)."""
 
 
-def dual_lengths(coords: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """Length [m] of each node's dual cell (half-way to its neighbours, the row-sum lumped 1-D
-    mass) inside ``[lo, hi]``, shape (n,)."""
+def dual_cells(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper ends [m] of each node's dual cell (half-way to its neighbours; the row-sum
+    lumped 1-D mass is its length), shapes (n,)."""
     half = 0.5 * np.diff(coords)
-    left = np.concatenate([coords[:1], coords[1:] - half])
-    right = np.concatenate([coords[:-1] + half, coords[-1:]])
+    return np.concatenate([coords[:1], coords[1:] - half]), np.concatenate([coords[:-1] + half, coords[-1:]])
+
+
+def dual_lengths(coords: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Length [m] of each node's dual cell (:func:`dual_cells`) inside ``[lo, hi]``, shape (n,)."""
+    left, right = dual_cells(coords)
     return np.clip(np.minimum(right, hi) - np.maximum(left, lo), 0.0, None)
 
 
@@ -68,8 +72,9 @@ def interpolate(grid: Grid, h: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: n
 
 
 def inside_grid(grid: Grid, points: np.ndarray) -> np.ndarray:
-    """True for the ``points`` (shape (n, 3), [m]) inside ``grid``'s box."""
-    return np.all([(points[:, k] >= lo) & (points[:, k] <= hi) for k, (lo, hi) in enumerate(extent(grid))], axis=0)
+    """True for the ``points`` (shape (n, 3) x, y, z, or (n, 2) x, y only, [m]) inside ``grid``'s box."""
+    return np.all([(points[:, k] >= lo) & (points[:, k] <= hi)
+                   for k, (lo, hi) in enumerate(extent(grid)[:points.shape[1]])], axis=0)
 
 
 def extent(grid: Grid) -> tuple[tuple[float, float], ...]:
@@ -79,9 +84,7 @@ def extent(grid: Grid) -> tuple[tuple[float, float], ...]:
 
 def inside(coords: np.ndarray, lo: float, hi: float) -> slice:
     """The nodes of ``coords`` whose dual cells lie inside ``[lo, hi]``, as a slice (may be empty)."""
-    half = 0.5 * np.diff(coords)
-    left = np.concatenate([coords[:1], coords[1:] - half])
-    right = np.concatenate([coords[:-1] + half, coords[-1:]])
+    left, right = dual_cells(coords)
     tol = 1e-9 * max(abs(hi - lo), 1e-9)
     idx = np.flatnonzero((left >= lo - tol) & (right <= hi + tol))
     return slice(0, 0) if not len(idx) else slice(int(idx[0]), int(idx[-1]) + 1)
@@ -89,10 +92,8 @@ def inside(coords: np.ndarray, lo: float, hi: float) -> slice:
 
 def dual_box(coords: np.ndarray, sl: slice) -> tuple[float, float]:
     """The union [m] of the dual cells of nodes ``coords[sl]``."""
-    a, b = sl.start, sl.stop - 1
-    lo = coords[a] if a == 0 else 0.5 * (coords[a - 1] + coords[a])
-    hi = coords[b] if b == len(coords) - 1 else 0.5 * (coords[b] + coords[b + 1])
-    return float(lo), float(hi)
+    left, right = dual_cells(coords)
+    return float(left[sl.start]), float(right[sl.stop - 1])
 
 
 def restrict(fine: Grid, h_fine: np.ndarray, coarse: Grid, h_coarse: np.ndarray) -> float:

@@ -242,15 +242,13 @@ class MultiLevelModel(ThermalModel):
 
     def _box_holds(self, centre: np.ndarray, xy: np.ndarray) -> int:
         """How many of the positions ``xy`` (shape (n, 2), [m]) the fine box around ``centre`` holds."""
-        (x0, x1), (y0, y1), _ = extent(self._box_grid(centre))
-        return int(np.count_nonzero((xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)))
+        return int(np.count_nonzero(inside_grid(self._box_grid(centre), xy)))
 
     def _holds(self, xy: np.ndarray) -> np.ndarray:
         """True for the laser positions ``xy`` (shape (n, 2), [m]) inside the fine box; a step that
         jumps farther than the box holds deposits only the part of its power on the side of the jump
         the box holds, the side most of the step is on (the rest counted in ``laser_outside_j``)."""
-        (x0, x1), (y0, y1), _ = extent(self.grid)
-        return (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
+        return inside_grid(self.grid, xy)
 
     def keyhole_depth_m(self) -> float:
         """:meth:`ThermalModel.keyhole_depth_m`; 0 while the laser is outside the fine box (the
