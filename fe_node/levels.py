@@ -55,20 +55,34 @@ def region_energy(grid: Grid, h: np.ndarray, box: tuple[tuple[float, float], ...
     return float(np.einsum("j,k,i,jki->", wy, wz, wx, h))
 
 
+class Interpolation:
+    """Trilinear interpolation from ``grid`` to the tensor points (xs, ys, zs), its weights computed
+    once (:func:`fe_node.observe.interp_weights`): applied to a field by :meth:`of`, axis by axis, each
+    a weighted sum of two slices, the axis that shrinks the field most first.  Points outside
+    ``grid`` take the nearest boundary value."""
+
+    def __init__(self, grid: Grid, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray):
+        weights = [interp_weights(c, p) for c, p in ((grid.ys, ys), (grid.zs, zs), (grid.xs, xs))]
+        shape = grid.solver_shape
+        self._passes = []
+        for axis in sorted(range(3), key=lambda a: len(weights[a][0]) / shape[a]):
+            i, w = weights[axis]
+            bshape = [1, 1, 1]
+            bshape[axis] = len(i)
+            self._passes.append((axis, i, i + 1, w.reshape(bshape), (1.0 - w).reshape(bshape)))
+
+    def of(self, h: np.ndarray) -> np.ndarray:
+        """The interpolated field, shape (len(ys), len(zs), len(xs)), of ``h`` (solver order on the grid)."""
+        out = h
+        for axis, lo, hi, w, w0 in self._passes:
+            out = np.take(out, lo, axis=axis) * w0 + np.take(out, hi, axis=axis) * w
+        return np.ascontiguousarray(out)
+
+
 def interpolate(grid: Grid, h: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
     """Trilinear interpolation of ``h`` (solver order on ``grid``) at the tensor points (xs, ys, zs),
-    shape (len(ys), len(zs), len(xs)); points outside ``grid`` take the nearest boundary value.
-    Axis by axis, each a weighted sum of two slices (:func:`fe_node.observe.interp_weights`), the
-    axis that shrinks the field most first."""
-    weights = [interp_weights(c, p) for c, p in ((grid.ys, ys), (grid.zs, zs), (grid.xs, xs))]
-    out = h
-    for axis in sorted(range(3), key=lambda a: len(weights[a][0]) / h.shape[a]):
-        i, w = weights[axis]
-        shape = [1, 1, 1]
-        shape[axis] = len(i)
-        w = w.reshape(shape)
-        out = np.take(out, i, axis=axis) * (1.0 - w) + np.take(out, i + 1, axis=axis) * w
-    return np.ascontiguousarray(out)
+    shape (len(ys), len(zs), len(xs)) (:class:`Interpolation`, once)."""
+    return Interpolation(grid, xs, ys, zs).of(h)
 
 
 def inside_grid(grid: Grid, points: np.ndarray) -> np.ndarray:
@@ -96,51 +110,86 @@ def dual_box(coords: np.ndarray, sl: slice) -> tuple[float, float]:
     return float(left[sl.start]), float(right[sl.stop - 1])
 
 
+class Restriction:
+    """The transfer from a finer grid to the coarse nodes whose dual cells lie inside it
+    (:func:`slaved`), its geometry (interpolation and hat weights, dual volumes) computed once for
+    the pair of grids.
+
+    :meth:`apply` overwrites those nodes with the fine field: each takes the fine field's value at
+    the node's x and y (bilinear; exact where fine nodes lie there) averaged in z under its hat
+    function (weighted by the fine nodes' heights; interpolated where the hat holds no fine node),
+    then all are shifted alike (:func:`shift_to`) so that their lumped energy equals the fine
+    field's over their dual cells.  Values in x and y, not averages under the whole hat: a fresh
+    track's edge in the powder layer (consolidated metal beside insulating powder) is steep
+    sideways, and an average over a coarse element's width, prolonged back into the fine box,
+    brought that heat to the next track's line cooler than on the uniform mesh.
+
+    Parameters
+    ----------
+    fine, coarse : Grid
+        The finer grid and the coarser one it lies in.
+
+    Attributes
+    ----------
+    held : tuple of slice or None
+        The coarse nodes the fine field overwrites, slices along y, z, x (``None``: none).
+    """
+
+    def __init__(self, fine: Grid, coarse: Grid):
+        self.fine, self.coarse = fine, coarse
+        self.held = slaved(fine, coarse)
+        self._m_fine = lumped_volumes(fine)
+        if self.held is None:
+            return
+        sy, sz, sx = self.held
+        box = (dual_box(coarse.xs, sx), dual_box(coarse.ys, sy), dual_box(coarse.zs, sz))
+        self._wx, self._wy, self._wz = (dual_lengths(c, *b) for c, b in zip((fine.xs, fine.ys, fine.zs), box))
+        self._lateral = Interpolation(fine, coarse.xs[sx], coarse.ys[sy], fine.zs)
+        self._az = hat_weights(coarse.zs, fine.zs, sz)
+        height = self._az.sum(axis=1)
+        self._height = height[None, :, None]
+        self._gap = np.flatnonzero(height <= 0)       # hats holding no fine node
+        self._gap_values = (Interpolation(fine, coarse.xs[sx], coarse.ys[sy], coarse.zs[sz][self._gap])
+                            if len(self._gap) else None)
+        self._m_coarse = lumped_volumes(coarse)[sy, sz, sx]
+        self._m_total = float(np.sum(self._m_coarse))
+
+    def held_energy(self, h_fine: np.ndarray) -> float:
+        """Lumped energy [J] of the fine field ``h_fine`` over the dual cells of the held nodes."""
+        return 0.0 if self.held is None else float(np.einsum("j,k,i,jki->", self._wy, self._wz, self._wx, h_fine))
+
+    def outside(self, h_fine: np.ndarray) -> float:
+        """Lumped energy [J] of the fine field outside the dual cells of the held nodes: the part of
+        the fine level the coarse one holds in its own free nodes."""
+        return float(np.sum(self._m_fine * h_fine)) - self.held_energy(h_fine)
+
+    def apply(self, h_fine: np.ndarray, h_coarse: np.ndarray) -> float:
+        """Overwrite the held nodes of ``h_coarse`` (solver order on ``coarse``) with the fine field
+        ``h_fine``, in place; returns their energy [J] (0: no node)."""
+        if self.held is None:
+            return 0.0
+        target = self.held_energy(h_fine)
+        view = h_coarse[self.held]
+        np.divide(np.einsum("kf,jfi->jki", self._az, self._lateral.of(h_fine)), self._height, out=view,
+                  where=self._height > 0)
+        if self._gap_values is not None:
+            view[:, self._gap, :] = self._gap_values.of(h_fine)
+        view += (target - float(np.sum(self._m_coarse * view))) / self._m_total
+        return target
+
+
 def restrict(fine: Grid, h_fine: np.ndarray, coarse: Grid, h_coarse: np.ndarray) -> float:
     """Overwrite the coarse nodes whose dual cells lie inside the fine grid with the fine field, in
-    place: each the fine field's value at the node's x and y (bilinear; exact where fine nodes lie
-    there) averaged in z under its hat function (weighted by the fine nodes' heights; interpolated
-    where the hat holds no fine node), then all shifted alike (:func:`shift_to`) so that their
-    lumped energy equals the fine field's over their dual cells.  Returns that energy [J] (0: no node).
-
-    Values in x and y, not averages under the whole hat: a fresh track's edge in the powder layer
-    (consolidated metal beside insulating powder) is steep sideways, and an average over a coarse
-    element's width, prolonged back into the fine box, brought that heat to the next track's line
-    cooler than on the uniform mesh."""
-    held = slaved(fine, coarse)
-    if held is None:
-        return 0.0
-    sy, sz, sx = held
-    box = (dual_box(coarse.xs, sx), dual_box(coarse.ys, sy), dual_box(coarse.zs, sz))
-    target = region_energy(fine, h_fine, box)
-    lateral = interpolate(fine, h_fine, coarse.xs[sx], coarse.ys[sy], fine.zs)
-    az = hat_weights(coarse.zs, fine.zs, sz)
-    height = az.sum(axis=1)[None, :, None]
-    view = h_coarse[sy, sz, sx]
-    view[...] = interpolate(fine, h_fine, coarse.xs[sx], coarse.ys[sy], coarse.zs[sz])   # a hat holding no fine node
-    np.divide(np.einsum("kf,jfi->jki", az, lateral), height, out=view, where=height > 0)
-    shift_to(view, lumped_volumes(coarse)[sy, sz, sx], np.ones(view.shape, dtype=bool), target)
-    return target
+    place (:meth:`Restriction.apply`); returns their energy [J] (0: no node)."""
+    return Restriction(fine, coarse).apply(h_fine, h_coarse)
 
 
 def slaved(fine: Grid, coarse: Grid) -> tuple[slice, slice, slice] | None:
-    """The coarse nodes whose dual cells lie inside the fine grid (those :func:`restrict` sets), as
+    """The coarse nodes whose dual cells lie inside the fine grid (those :class:`Restriction` sets), as
     slices along y, z, x (``None``: none)."""
     (x0, x1), (y0, y1), (z0, z1) = extent(fine)
     box = (inside(coarse.ys, y0, y1), inside(coarse.zs, z0, z1), inside(coarse.xs, x0, x1))
     return None if any(s.stop <= s.start for s in box) else box
-
-
-def outside_energy(fine: Grid, h_fine: np.ndarray, coarse: Grid) -> float:
-    """Lumped energy [J] of the fine field outside the dual cells of the coarse nodes it overwrites
-    (:func:`slaved`): the part of the fine level the coarse one holds in its own free nodes."""
-    total = float(np.sum(lumped_volumes(fine) * h_fine))
-    held = slaved(fine, coarse)
-    if held is None:
-        return total
-    sy, sz, sx = held
-    return total - region_energy(fine, h_fine, (dual_box(coarse.xs, sx), dual_box(coarse.ys, sy),
-                                                dual_box(coarse.zs, sz)))
 
 
 def hat_weights(coarse: np.ndarray, fine: np.ndarray, sl: slice) -> np.ndarray:
@@ -257,13 +306,18 @@ class HeldFaces:
     def __init__(self, grid: Grid, coarse: Grid):
         self.grid, self.faces = grid, held_faces(grid, coarse)
         self._values: dict[str, np.ndarray] = {}
+        self._coarse: Grid | None = None
+        self._interpolations: dict[str, Interpolation] = {}
 
     def hold(self, coarse: Grid, h_coarse: np.ndarray) -> None:
         """Interpolate the held faces' values from the coarser field ``h_coarse`` on ``coarse``."""
-        g = self.grid
-        points = {"x0": (g.xs[:1], g.ys, g.zs), "x1": (g.xs[-1:], g.ys, g.zs), "y0": (g.xs, g.ys[:1], g.zs),
-                  "y1": (g.xs, g.ys[-1:], g.zs), "z0": (g.xs, g.ys, g.zs[:1])}
-        self._values = {f: interpolate(coarse, h_coarse, *points[f]) for f in self.faces}
+        if coarse is not self._coarse:
+            g = self.grid
+            points = {"x0": (g.xs[:1], g.ys, g.zs), "x1": (g.xs[-1:], g.ys, g.zs), "y0": (g.xs, g.ys[:1], g.zs),
+                      "y1": (g.xs, g.ys[-1:], g.zs), "z0": (g.xs, g.ys, g.zs[:1])}
+            self._interpolations = {f: Interpolation(coarse, *points[f]) for f in self.faces}
+            self._coarse = coarse
+        self._values = {f: i.of(h_coarse) for f, i in self._interpolations.items()}
 
     def apply(self, h: np.ndarray, m: np.ndarray) -> float:
         """Set the held faces of ``h`` in place (``m`` the lumped volumes [m³]); returns the energy [J]
@@ -320,16 +374,15 @@ class ConductionLevel:
         if len(changed):
             self.operator.reweight(changed, kw.ravel()[changed], 1.0)
 
-    def take(self, fine: Grid, h_fine: np.ndarray) -> None:
-        """Take the finer field now (:func:`restrict`) with the level's energy unchanged, the
-        difference spread over the free nodes around the overwritten ones: after a finer grid
-        changes, when no time has passed."""
-        before = self.energy()
-        held = slaved(fine, self.grid)
-        if held is None:
+    def take(self, restriction: Restriction, h_fine: np.ndarray) -> None:
+        """Take the finer field ``h_fine`` now (``restriction`` from its grid to this level's) with
+        the level's energy unchanged, the difference spread over the free nodes around the
+        overwritten ones: after a finer grid changes, when no time has passed."""
+        if restriction.held is None:
             return
-        restrict(fine, h_fine, self.grid, self.h)
-        shift_to(self.h, self.m, ring_around(held, self.h.shape), before)
+        before = self.energy()
+        restriction.apply(h_fine, self.h)
+        shift_to(self.h, self.m, ring_around(restriction.held, self.h.shape), before)
 
     def advance(self, duration_s: float, held: tuple[slice, slice, slice] | None = None,
                 inflow_j: float = 0.0) -> None:

@@ -14,7 +14,7 @@ Each level steps at its own stable time step (the intermediate level every ``mid
 steps, the part level every ``part_every``; :meth:`MultiLevelModel.sync` brings them up to now);
 a box's side and bottom faces take its coarser level's field (held between that level's steps),
 and after a coarser level's step its nodes inside the finer box take the finer field
-(:func:`~fe_node.levels.restrict`) and the heat the finer level sent out of them meanwhile
+(:class:`~fe_node.levels.Restriction`) and the heat the finer level sent out of them meanwhile
 (energy exact without losses, ``tests/test_fe_multilevel.py``).  The cost of a step depends
 on the fine box, not on the part.  The fine box moves when less than ``MIN_FRONT`` of its side
 lies ahead of the laser or ``MIN_SIDE`` to a side (the new box has ``FRONT_ROOM`` ahead); the
@@ -35,6 +35,7 @@ import numpy as np
 from fe_node.levels import (
     ConductionLevel,
     HeldFaces,
+    Restriction,
     column_weights,
     extent,
     inside_grid,
@@ -42,9 +43,7 @@ from fe_node.levels import (
     level_axis,
     level_depth_axis,
     lumped_volumes,
-    outside_energy,
     prolong,
-    restrict,
     shift_to,
     slaved,
 )
@@ -63,9 +62,9 @@ MIN_SIDE = 0.15
 """... or less than this share of its side to either side of the laser along x or y."""
 MID_MARGIN = 2
 """The intermediate box moves when the fine box comes within this many ``mid_h_m`` of its edge."""
-MID_MAX_STEPS = 2
+MID_MAX_STEPS = 4
 """Most fine steps between two steps of the intermediate level (the fine box's held faces lag by at
-most this; 8 instead of 2 tripled the area error after a turn, docs/fe-scale.md)."""
+most this; its effect on the area trace in docs/fe-scale.md)."""
 PART_STEPS = 64
 """Fine steps between two steps of the part level (rounded to a multiple of the intermediate
 level's), each in as many sub-steps as its stability limit needs: its restriction from the
@@ -129,6 +128,8 @@ class MultiLevelModel(ThermalModel):
         self._sent = {"mid": 0.0, "part": 0.0}
         self._synced = {"mid": 0, "part": 0}
         self._outside = {"mid": 0.0, "part": 0.0}
+        self._restrictions: dict[str, Restriction] = {}
+        self._weights_due = {"mid": False, "part": False}
         self._mark_outside("mid")
         self._mark_outside("part")
 
@@ -322,19 +323,32 @@ class MultiLevelModel(ThermalModel):
         """Note the finer level's energy outside the nodes level ``name`` takes from it (after a step
         of that level or a change of either grid)."""
         finer, h, level = (self.grid, self._h, self.mid) if name == "mid" else (self.mid.grid, self.mid.h, self.part)
-        self._outside[name] = outside_energy(finer, h, level.grid)
+        self._outside[name] = self._restriction(name).outside(h)
+
+    def _restriction(self, name: str) -> Restriction:
+        """The transfer from the finer level to level ``"mid"`` or ``"part"`` (built again when either grid changed)."""
+        finer, level = (self.grid, self.mid) if name == "mid" else (self.mid.grid, self.part)
+        r = self._restrictions.get(name)
+        if r is None or r.fine is not finer or r.coarse is not level.grid:
+            r = self._restrictions[name] = Restriction(finer, level.grid)
+        return r
 
     def _step_level(self, level: ConductionLevel, finer: Grid, h_finer: np.ndarray, name: str, sent_j: float,
                     n_steps: int) -> None:
         """Advance a coarser level ``n_steps`` fine steps, taking the heat its finer level sent out
-        through its held faces since (``sent_j`` [J], cumulative), then the finer field (:func:`restrict`)."""
-        if self.powder is not None:
+        through its held faces since (``sent_j`` [J], cumulative), then the finer field (:class:`Restriction`).
+
+        Its conductivity weights are brought up to the consolidation after the finer box moved: the
+        powder consolidates only inside the fine box, where the finer field overwrites this level's."""
+        if self.powder is not None and self._weights_due[name]:
             level.set_weights(self._level_kw(level.grid))
-        outside = outside_energy(finer, h_finer, level.grid)
+            self._weights_due[name] = False
+        restriction = self._restriction(name)
+        outside = restriction.outside(h_finer)
         level.advance(n_steps * self.settings.dt_s, slaved(finer, level.grid),
                       sent_j - self._sent[name] + outside - self._outside[name])
         self._sent[name], self._outside[name] = sent_j, outside
-        restrict(finer, h_finer, level.grid, level.h)
+        restriction.apply(h_finer, level.h)
 
     def _substep(self, load) -> None:
         super()._substep(load)
@@ -356,9 +370,10 @@ class MultiLevelModel(ThermalModel):
             self.sync("part")
             self.mid = self._mid_level(0.5 * np.array([x0 + x1, y0 + y1]), self.mid)
             self._check_nodes()
-            self.mid.take(self.grid, self._h)
-            self.part.take(self.mid.grid, self.mid.h)
+            self.mid.take(self._restriction("mid"), self._h)
+            self.part.take(self._restriction("part"), self.mid.h)
             self._mark_outside("part")
+            self._weights_due["part"] = True
         self._rebuild_box(new)
         self.n_remeshes += 1
 
@@ -385,8 +400,9 @@ class MultiLevelModel(ThermalModel):
         self._faces = HeldFaces(new, self.mid.grid)
         self._faces.hold(self.mid.grid, self.mid.h)
         self._e0 += self._energy() - e_before
-        self.mid.take(self.grid, self._h)
+        self.mid.take(self._restriction("mid"), self._h)
         self._mark_outside("mid")
+        self._weights_due["mid"] = True
 
     def add_layer(self) -> None:
         """Spread a new powder layer (at the preheat temperature) on every level and start the next
@@ -410,7 +426,7 @@ class MultiLevelModel(ThermalModel):
         self.mid = self._grown(self.mid, level_depth_axis(s, s.mid_h_m, s.depth_m, self._top), old_top, self.part)
         self._set_level_steps()
         self._zs_box, self._z_bed = self._box_heights()
-        self.part.take(self.mid.grid, self.mid.h)
+        self.part.take(self._restriction("part"), self.mid.h)
         self._rebuild_box(Grid(self.grid.xs, self.grid.ys, self._zs_box))
         self._mark_outside("part")
         self._s = 0.0

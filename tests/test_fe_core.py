@@ -4,7 +4,7 @@ import pytest
 
 from fe_node.material import Constitutive, Material
 from fe_node.mesh import Grid, graded_axis
-from fe_node.observe import area_above, pool_geometry
+from fe_node.observe import area_above, lowest_crossing, pool_geometry, segments_above
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.solver import ThermalModel
@@ -139,6 +139,20 @@ def test_area_exact_for_piecewise_linear_field():
     X, Y = np.meshgrid(xs, xs, indexing="ij")
     f = 1 - np.abs(X) - np.abs(Y) * 0.5
     assert area_above(f, xs, xs, 0.5, n_refine=4) == pytest.approx(1.0, rel=1e-12)
+
+
+def test_lowest_crossing_is_the_lowest_segment_start():
+    """The depth's shortcut gives :func:`segments_above`'s lowest ``lo`` and its first row, ties included."""
+    rng = np.random.default_rng(3)
+    zs = np.cumsum(rng.uniform(5e-6, 20e-6, 9))
+    for level, shift, cold in ((0.7, 0.0, 0), (0.7, 0.5, 2), (0.2, 0.0, 3)):
+        values = rng.uniform(0, 1, (400, 9)) ** 3 + shift * np.linspace(0, 1, 9)
+        values[:, :cold] *= 0.1                      # no row above at its lowest nodes
+        values[:5] = 0.0                             # rows with nothing above come first
+        _, lo, _ = segments_above(values, zs, level)
+        values[300] = values[int(np.nanargmin(lo))]   # a later row ties with the lowest
+        _, lo, _ = segments_above(values, zs, level)
+        assert lowest_crossing(values, zs, level) == (int(np.nanargmin(lo)), float(np.nanmin(lo)))
 
 
 def test_step_rejects_bad_commands():
