@@ -8,7 +8,9 @@ Side sweep: for each side L a square layer of L / hatch tracks of length L (hatc
 default plant (the ``layer`` scenario's settings and power) is built with ``mesh = "uniform"``
 (the whole-plan fine band) and ``mesh = "multilevel"`` (:mod:`fe_node.multilevel`).  After 5
 warm-up steps, ``--steps`` steps are timed one by one, the two meshes alternating so both see the
-same machine load; ``ms_per_step`` is the mean (the multi-level mesh's moves included).
+same machine load; ``ms_per_step`` is the mean CPU time of a step in this process (the plant is
+single-threaded: on a quiet machine it is the wall time, and other jobs on a shared machine do
+not inflate it), the multi-level mesh's moves included; ``wall_ms_per_step`` the mean wall time.
 
 Layer sweep: one 2 mm track built ``max(--layers)`` layers high on the default plant (25 µm
 layers), both meshes alternating; ``ms_per_step`` is the mean over the steps of each layer in
@@ -20,11 +22,12 @@ alternating; the melt-pool area traces are compared from step 20 on, as a share 
 mesh's mean area.
 
 Keys: ``cases`` (per side: ``side_mm``, and per layer count: ``layers``; each with
-``nodes_uniform``, ``nodes_multilevel``, ``ms_per_step_uniform``, ``ms_per_step_multilevel``),
-``cost_ratio_max_min`` (the multi-level ``ms_per_step`` over all cases, max / min), ``max_nodes``
-(the largest multi-level node count), ``speedup_vs_uniform``, ``area_rms_diff_pct``,
+``nodes_uniform``, ``nodes_multilevel``, ``ms_per_step_uniform``, ``ms_per_step_multilevel``,
+``wall_ms_per_step_uniform``, ``wall_ms_per_step_multilevel``), ``cost_ratio_max_min`` (the
+multi-level ``ms_per_step`` over all cases, max / min), ``max_nodes`` (the largest multi-level node
+count), ``speedup_vs_uniform`` (CPU time) and ``wall_speedup_vs_uniform``, ``area_rms_diff_pct``,
 ``area_max_diff_pct``, ``layer_steps``, ``layer_ms_per_step_uniform``,
-``layer_ms_per_step_multilevel``, ``load_avg``.
+``layer_ms_per_step_multilevel`` (CPU) and ``layer_wall_ms_per_step_*``, ``load_avg``.
 """
 from __future__ import annotations
 
@@ -51,6 +54,19 @@ def nodes(model) -> int:
     return getattr(model, "n_nodes", model.grid.n_nodes)
 
 
+def timed_step(sc, model):
+    """One step of ``model`` under its scenario's command: (CPU seconds, wall seconds, observation)."""
+    c0, w0 = time.process_time(), time.perf_counter()
+    obs = model.step(*sc.profile.command(model.step_index))
+    return time.process_time() - c0, time.perf_counter() - w0, obs
+
+
+def record(case: dict, mesh: str, times: list[tuple[float, float]]) -> None:
+    """Put the mean CPU and wall ms per step of ``times`` ((CPU s, wall s) per step) into ``case``."""
+    case[f"ms_per_step_{mesh}"] = round(1e3 * statistics.fmean(c for c, _ in times), 2)
+    case[f"wall_ms_per_step_{mesh}"] = round(1e3 * statistics.fmean(w for _, w in times), 2)
+
+
 def side_case(side_mm: float, steps: int) -> dict:
     """Time both meshes on a square layer of side ``side_mm``."""
     side = side_mm * 1e-3
@@ -60,14 +76,13 @@ def side_case(side_mm: float, steps: int) -> dict:
     times = [[], []]
     for k in range(5 + steps):
         for i, (sc, model) in enumerate(zip(scs, models)):
-            t0 = time.perf_counter()
-            model.step(*sc.profile.command(model.step_index))
+            cpu, wall, _ = timed_step(sc, model)
             if k >= 5:
-                times[i].append(time.perf_counter() - t0)
+                times[i].append((cpu, wall))
     case = {"side_mm": side_mm}
     for m, model, t in zip(MESHES, models, times):
         case[f"nodes_{m}"] = nodes(model)
-        case[f"ms_per_step_{m}"] = round(1e3 * statistics.fmean(t), 2)
+        record(case, m, t)
     print(f"{side_mm:g} mm: uniform {case['nodes_uniform']} nodes {case['ms_per_step_uniform']} ms/step; "
           f"multilevel {case['nodes_multilevel']} nodes {case['ms_per_step_multilevel']} ms/step "
           f"({models[1].n_remeshes} moves)", file=sys.stderr, flush=True)
@@ -82,19 +97,17 @@ def layer_cases(layers: list[int]) -> list[dict]:
     nodes_at = {}
     while not models[0].done:
         for i, (sc, model) in enumerate(zip(scs, models)):
-            t0 = time.perf_counter()
-            model.step(*sc.profile.command(model.step_index))
-            elapsed = time.perf_counter() - t0
+            cpu, wall, _ = timed_step(sc, model)
             n = model.layer + 1
             if n in times and model.step_index > 1:
-                times[n][i].append(elapsed)
+                times[n][i].append((cpu, wall))
                 nodes_at[(n, i)] = nodes(model)
     cases = []
     for n in layers:
         case = {"layers": n}
         for i, m in enumerate(MESHES):
             case[f"nodes_{m}"] = nodes_at[(n, i)]
-            case[f"ms_per_step_{m}"] = round(1e3 * statistics.fmean(times[n][i][1:]), 2)
+            record(case, m, times[n][i][1:])
         print(f"layer {n}: uniform {case['nodes_uniform']} nodes {case['ms_per_step_uniform']} ms/step; "
               f"multilevel {case['nodes_multilevel']} nodes {case['ms_per_step_multilevel']} ms/step",
               file=sys.stderr, flush=True)
@@ -109,15 +122,17 @@ def default_layer(max_steps: int | None) -> dict:
     areas, times = [[], []], [[], []]
     while not models[0].done and (max_steps is None or models[0].step_index < max_steps):
         for i, (sc, model) in enumerate(zip(scs, models)):
-            t0 = time.perf_counter()
-            obs = model.step(*sc.profile.command(model.step_index))
-            times[i].append(time.perf_counter() - t0)
+            cpu, wall, obs = timed_step(sc, model)
+            times[i].append((cpu, wall))
             areas[i].append(obs.area_m2)
     uniform, multi = (np.array(a[20:]) for a in areas)
     diff = (multi - uniform) / uniform.mean()
-    ms = [1e3 * statistics.fmean(t) for t in times]
-    return {"layer_steps": len(times[0]), "layer_ms_per_step_uniform": round(ms[0], 2),
-            "layer_ms_per_step_multilevel": round(ms[1], 2), "speedup_vs_uniform": round(ms[0] / ms[1], 2),
+    cpu_ms, wall_ms = ([1e3 * statistics.fmean(t[k] for t in ts) for ts in times] for k in (0, 1))
+    return {"layer_steps": len(times[0]), "layer_ms_per_step_uniform": round(cpu_ms[0], 2),
+            "layer_ms_per_step_multilevel": round(cpu_ms[1], 2), "speedup_vs_uniform": round(cpu_ms[0] / cpu_ms[1], 2),
+            "layer_wall_ms_per_step_uniform": round(wall_ms[0], 2),
+            "layer_wall_ms_per_step_multilevel": round(wall_ms[1], 2),
+            "wall_speedup_vs_uniform": round(wall_ms[0] / wall_ms[1], 2),
             "area_rms_diff_pct": round(100 * float(np.sqrt(np.mean(diff**2))), 3),
             "area_max_diff_pct": round(100 * float(np.max(np.abs(diff))), 3),
             "layer_moves": models[1].n_remeshes}
