@@ -341,8 +341,8 @@ class ConductionLevel:
         The level's grid.
     h : ndarray, shape grid.solver_shape
         Initial nodal enthalpy [J/m³].
-    kw : ndarray, shape (ny - 1, nz - 1, nx - 1)
-        Per-element conductivity weights [-].
+    weights : tuple of ndarray, each shape (ny - 1, nz - 1, nx - 1)
+        Per-element conductivity weights [-], in plane and vertical (:func:`column_weights`).
     coarse : Grid, optional
         The next coarser level's grid, whose field this level's faces inside it take (none: the part).
 
@@ -352,11 +352,12 @@ class ConductionLevel:
         Energy [J] lost through the top face, and left through the held faces, so far.
     """
 
-    def __init__(self, settings: Settings, law: Constitutive, grid: Grid, h: np.ndarray, kw: np.ndarray,
-                 coarse: Grid | None = None):
+    def __init__(self, settings: Settings, law: Constitutive, grid: Grid, h: np.ndarray,
+                 weights: tuple[np.ndarray, np.ndarray], coarse: Grid | None = None):
         self.settings, self.law, self.grid = settings, law, grid
         self.h = np.ascontiguousarray(h, dtype=float)
-        self.operator = TensorOperator(grid, kw.ravel(), None)
+        kw, kw_z = weights
+        self.operator = TensorOperator(grid, kw.ravel(), None, kw_z=kw_z.ravel())
         self.m = np.reshape(self.operator.lumped_mass, grid.solver_shape)
         self.a_top = grid.top_areas()
         self.dt_stable = STABILITY_SAFETY * 2.0 / (law.max_diffusivity * self.operator.stability_eigenvalue())
@@ -368,11 +369,13 @@ class ConductionLevel:
         """Lumped energy [J] of the level."""
         return float(np.einsum("ijk,ijk->", self.m, self.h))
 
-    def set_weights(self, kw: np.ndarray) -> None:
-        """Element conductivity weights [-], shape (ny - 1, nz - 1, nx - 1); only changed ones are touched."""
-        changed = np.flatnonzero(kw.ravel() != self.operator.kw.ravel())
+    def set_weights(self, weights: tuple[np.ndarray, np.ndarray]) -> None:
+        """Element conductivity weights [-], in plane and vertical, each shape (ny - 1, nz - 1, nx - 1);
+        only changed ones are touched."""
+        kw, kw_z = (w.ravel() for w in weights)
+        changed = np.flatnonzero((kw != self.operator.kw.ravel()) | (kw_z != self.operator.kw_z.ravel()))
         if len(changed):
-            self.operator.reweight(changed, kw.ravel()[changed], 1.0)
+            self.operator.reweight(changed, kw[changed], 1.0, kw_z[changed])
 
     def take(self, restriction: Restriction, h_fine: np.ndarray) -> None:
         """Take the finer field ``h_fine`` now (``restriction`` from its grid to this level's) with
@@ -423,20 +426,30 @@ def ring_around(held: tuple[slice, slice, slice], shape: tuple[int, int, int]) -
 
 
 def column_weights(zs: np.ndarray, plan_shape: tuple[int, int], row_m: float, kw_powder: float,
-                   share: np.ndarray | None) -> np.ndarray:
-    """Per-element conductivity weights [-], shape (ny - 1, nz - 1, nx - 1) (``plan_shape`` the
-    element counts (ny - 1, nx - 1)), of a grid with node heights ``zs`` [m] over the powder's
-    element rows: dense metal below z = 0; row ``r`` of
-    thickness ``row_m`` [m] (from ``r row_m`` up) conducts as powder (``kw_powder``) plus its
-    consolidated ``share[:, r, :]`` (shape (ny - 1, n_rows, nx - 1), from
-    :class:`fe_node.window.ConsolidationLattice`; ``None``: no powder, all dense) of dense metal; an
-    element spanning several rows (a coarser level's, a buried layer's) takes their
-    thickness-weighted mean."""
+                   share: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-element conductivity weights [-] in plane and vertical, each shape (ny - 1, nz - 1, nx - 1)
+    (``plan_shape`` the element counts (ny - 1, nx - 1)), of a grid with node heights ``zs`` [m]
+    over the powder's element rows: dense metal below z = 0; row ``r`` of thickness ``row_m`` [m]
+    (from ``r row_m`` up) conducts as powder (``kw_powder``) plus its consolidated
+    ``share[:, r, :]`` (shape (ny - 1, n_rows, nx - 1), from
+    :class:`fe_node.window.ConsolidationLattice`; ``None``: no powder, all dense) of dense metal,
+    the two side by side (their mean weighted by the share).
+
+    An element spanning several rows (a coarser level's, a buried layer's) conducts in plane as its
+    rows side by side (their thickness-weighted mean) and vertically as its rows in series (their
+    thickness-weighted harmonic mean): an insulating powder row over dense metal keeps its
+    surface's heat on a coarse element as on the rows it stands for.  An element within one row
+    has the row's weight in both."""
     dz = np.diff(zs)
     if share is None:
-        return np.ones((plan_shape[0], len(dz), plan_shape[1]))
+        dense = np.ones((plan_shape[0], len(dz), plan_shape[1]))
+        return dense, dense
     edges = np.arange(share.shape[1] + 1) * row_m
     overlap = np.clip(np.minimum(zs[1:, None], edges[None, 1:]) - np.maximum(zs[:-1, None], edges[None, :-1]), 0.0,
                       None) / dz[:, None]
     dense = np.clip(np.minimum(zs[1:], 0.0) - zs[:-1], 0.0, None) / dz
-    return dense[None, :, None] + np.einsum("kr,jri->jki", overlap, kw_powder + share * (1.0 - kw_powder))
+    row_kw = kw_powder + share * (1.0 - kw_powder)
+    in_plane = dense[None, :, None] + np.einsum("kr,jri->jki", overlap, row_kw)
+    one_row = (np.count_nonzero(overlap, axis=1) + (dense > 0)) == 1
+    series = 1.0 / (dense[None, :, None] + np.einsum("kr,jri->jki", overlap, 1.0 / row_kw))
+    return in_plane, np.where(one_row[None, :, None], in_plane, series)

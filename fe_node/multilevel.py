@@ -198,9 +198,9 @@ class MultiLevelModel(ThermalModel):
             axes.append(graded_axis(lo, hi, max(lo, blo), min(hi, bhi), hf * (1 + 1e-9), s.growth, s.h_max_m))
         return Grid(axes[0], axes[1], self._zs_box)
 
-    def _level_kw(self, grid: Grid) -> np.ndarray:
-        """Conductivity weights of a grid's elements (any level's) from the consolidation so far
-        (:func:`~fe_node.levels.column_weights`)."""
+    def _level_kw(self, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+        """Conductivity weights of a grid's elements (any level's), in plane and vertical, from the
+        consolidation so far (:func:`~fe_node.levels.column_weights`)."""
         share = None if self.powder is None else self._lattice.fraction(grid.xs, grid.ys)
         kw_powder = 1.0 if self.powder is None else self.powder.kw_powder
         return column_weights(grid.zs, (len(grid.ys) - 1, len(grid.xs) - 1), self._row_m, kw_powder, share)
@@ -384,7 +384,7 @@ class MultiLevelModel(ThermalModel):
         e_before = self._energy()
         self._h = np.ascontiguousarray(prolong(self.mid.grid, self.mid.h, self.grid, self._h, new))
         ny, nz, nx = new.solver_shape
-        kw = self._level_kw(new)
+        kw = self._level_kw(new)[0]     # one weight per element, as on the uniform grid
         if self.powder is not None:
             bed = PowderBed(self.settings, new.zs - self._z_bed, (ny - 1, nx - 1))
             self._lattice_row0 = round(self._z_bed / self._row_m)

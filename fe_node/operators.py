@@ -291,13 +291,17 @@ class TensorOperator:
     The Kronecker factors hold weights constant along x in each (y, z) row of elements (the
     row's median: the tracks run along x); the elements that differ from their row's weight are
     a sparse correction (:class:`_Correction`).  When re-weighting has grown the correction
-    beyond twice its size at the last factoring plus one row, the factors are rebuilt.
+    beyond twice its size at the last factoring plus one row, the factors are rebuilt.  Elements
+    whose vertical weight ``kw_z`` differs from ``kw`` add ``(kw_z - kw) K_z,e`` to the correction:
+    ``K_w = sum_e kw_e (K_e - K_z,e) + kw_z,e K_z,e``.
 
     Parameters
     ----------
     grid : Grid
     kw, rho_w : array_like, shape (n_elements,), optional
         Per-element weights [-] in element order ``(ny - 1, nz - 1, nx - 1)`` (default 1).
+    kw_z : array_like, shape (n_elements,), optional
+        Per-element weights [-] of the vertical term (default ``kw``: isotropic elements).
     vertical : bool
         Also provide ``K_z`` (``conduction_z``) for :meth:`vertical` and :meth:`add_vertical`.
 
@@ -307,7 +311,7 @@ class TensorOperator:
         ``m`` [m³].
     """
 
-    def __init__(self, grid: Grid, kw=None, rho_w=None, vertical: bool = False):
+    def __init__(self, grid: Grid, kw=None, rho_w=None, vertical: bool = False, kw_z=None):
         self.grid, self._vertical = grid, vertical
         self.shape = grid.solver_shape
         ny, nz, nx = self.shape
@@ -315,11 +319,13 @@ class TensorOperator:
         self.n_nodes, self.n_elements = grid.n_nodes, int(np.prod(self.elem_shape))
         self.kw = _weights(kw, self.n_elements, "kw").reshape(self.elem_shape)
         self.rho_w = _weights(rho_w, self.n_elements, "rho_w").reshape(self.elem_shape)
+        self.kw_z = self.kw.copy() if kw_z is None else _weights(kw_z, self.n_elements, "kw_z").reshape(self.elem_shape)
         _check_positive(self.kw, self.rho_w)
+        _check_positive(self.kw_z, self.rho_w)
         self._h = [np.diff(a) for a in (grid.ys, grid.zs, grid.xs)]
         hmin = np.minimum(np.minimum.outer(self._h[0], self._h[1])[:, :, None], self._h[2][None, None, :])
         self._lam_e = 4.0 / hmin**2
-        self._ratio = self.kw / self.rho_w * self._lam_e
+        self._ratio = np.maximum(self.kw, self.kw_z) / self.rho_w * self._lam_e
         self._scratch = None
         kx, mx = fe1d(grid.xs)
         self._kd, self._ko = kx.diagonal(), kx.diagonal(1)
@@ -347,6 +353,9 @@ class TensorOperator:
         dk = (self.kw - w[:, :, None]).ravel()
         el = np.flatnonzero(dk)
         self._add_stiffness(el, dk[el])
+        dz = (self.kw_z - self.kw).ravel()
+        el = np.flatnonzero(dz)
+        self._add_stiffness(el, dz[el], vertical_only=True)
         self._n_factored = self._corr.n_elements
 
     def _corners(self, el: np.ndarray) -> np.ndarray:
@@ -355,13 +364,15 @@ class TensorOperator:
         b = np.array([(by, bz, bx) for by in (0, 1) for bz in (0, 1) for bx in (0, 1)])
         return np.ravel_multi_index((j[:, None] + b[:, 0], k[:, None] + b[:, 1], i[:, None] + b[:, 2]), self.shape)
 
-    def _add_stiffness(self, el: np.ndarray, dk: np.ndarray) -> None:
-        """Add ``dk_e K_e`` (and ``dk_e K_z,e``) of elements ``el`` to the correction."""
+    def _add_stiffness(self, el: np.ndarray, dk: np.ndarray, vertical_only: bool = False) -> None:
+        """Add ``dk_e K_e`` (``vertical_only``: ``dk_e K_z,e``), and ``dk_e K_z,e`` to the ``K_z``
+        correction, of elements ``el`` to the correction."""
         if len(el):
             j, k, i = np.unravel_index(el, self.elem_shape)
             h = (self._h[2][i], self._h[0][j], self._h[1][k])
-            kze = box_stiffness(*h, vertical_only=True) * dk[:, None, None] if self._vertical else None
-            self._corr.add(self._corners(el), box_stiffness(*h) * dk[:, None, None], kze)
+            kze = box_stiffness(*h, vertical_only=True) * dk[:, None, None] if self._vertical or vertical_only else None
+            ke = kze if vertical_only else box_stiffness(*h) * dk[:, None, None]
+            self._corr.add(self._corners(el), ke, kze if self._vertical else None)
 
     def _add_mass(self, el: np.ndarray, dr: np.ndarray) -> None:
         """Add ``dr_e V_e / 8`` to the masses of the corners of elements ``el``."""
@@ -426,21 +437,27 @@ class TensorOperator:
         out[jo, ko, io] += res.reshape(jo.stop - jo.start, ko.stop - ko.start, -1)
         self._corr.apply_vertical(u_box, box, out.reshape(-1))
 
-    def reweight(self, elements, kw, rho_w) -> None:
-        """Set the weights of ``elements`` (flat indices) to ``kw``, ``rho_w`` [-]; updates K_w and m."""
+    def reweight(self, elements, kw, rho_w, kw_z=None) -> None:
+        """Set the weights of ``elements`` (flat indices) to ``kw``, ``rho_w`` and ``kw_z`` (default
+        ``kw``) [-]; updates K_w and m."""
         el = np.asarray(elements, dtype=np.intp).ravel()
         kw = np.broadcast_to(np.asarray(kw, dtype=float), el.shape)
+        kw_z = kw if kw_z is None else np.broadcast_to(np.asarray(kw_z, dtype=float), el.shape)
         rho_w = np.broadcast_to(np.asarray(rho_w, dtype=float), el.shape)
         _check_positive(kw, rho_w)
-        flat_k, flat_r = self.kw.reshape(-1), self.rho_w.reshape(-1)
+        _check_positive(kw_z, rho_w)
+        flat_k, flat_z, flat_r = self.kw.reshape(-1), self.kw_z.reshape(-1), self.rho_w.reshape(-1)
         dk, dr = kw - flat_k[el], rho_w - flat_r[el]
-        flat_k[el], flat_r[el] = kw, rho_w
-        self._ratio.reshape(-1)[el] = kw / rho_w * self._lam_e.reshape(-1)[el]
+        dz = (kw_z - kw) - (flat_z[el] - flat_k[el])
+        flat_k[el], flat_z[el], flat_r[el] = kw, kw_z, rho_w
+        self._ratio.reshape(-1)[el] = np.maximum(kw, kw_z) / rho_w * self._lam_e.reshape(-1)[el]
         self._add_mass(el[dr != 0], dr[dr != 0])
-        if self._corr.n_elements + np.count_nonzero(dk) > 2 * self._n_factored + self.elem_shape[2]:
+        added = np.count_nonzero(dk) + np.count_nonzero(dz)
+        if self._corr.n_elements + added > 2 * self._n_factored + self.elem_shape[2]:
             self._factor()
         else:
             self._add_stiffness(el[dk != 0], dk[dk != 0])
+            self._add_stiffness(el[dz != 0], dz[dz != 0], vertical_only=True)
 
     def stability_eigenvalue(self) -> float:
         """Upper bound of ``lambda_max(M_L^-1 K_w)`` [1/m²] (element bound, module docstring)."""

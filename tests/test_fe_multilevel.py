@@ -5,7 +5,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fe_node.levels import extent, interpolate, lumped_volumes, prolong, region_energy, restrict, slaved
+from fe_node.levels import (
+    column_weights,
+    extent,
+    interpolate,
+    lumped_volumes,
+    prolong,
+    region_energy,
+    restrict,
+    slaved,
+)
 from fe_node.mesh import Grid, graded_axis
 from fe_node.multilevel import MultiLevelModel, plant_model
 from fe_node.scan import ScanPlan
@@ -114,15 +123,29 @@ def test_moves_carry_consolidation(powder_runs):
     np.testing.assert_array_equal(ml.powder.consolidated[:, 0, :], share >= 1.0 - 1e-9)
 
 
+def test_coarse_elements_conduct_their_rows_side_by_side_and_in_series():
+    """An element over dense metal and a powder row (weight 0.02, half consolidated): in plane the
+    thickness-weighted mean, vertically the harmonic one (the powder insulates the surface)."""
+    row_m, kw_powder = 25e-6, 0.02
+    share = np.full((1, 2, 1), 0.0)
+    share[0, 0, 0] = 0.5                                   # the first powder row half consolidated
+    zs = np.array([-100e-6, -25e-6, 25e-6, 50e-6])          # dense; 25 µm dense + row 0; row 1
+    in_plane, vertical = column_weights(zs, (1, 1), row_m, kw_powder, share)
+    row0 = kw_powder + 0.5 * (1 - kw_powder)
+    np.testing.assert_allclose(in_plane[0, :, 0], [1.0, 0.5 + 0.5 * row0, kw_powder], rtol=1e-14)
+    np.testing.assert_allclose(vertical[0, :, 0], [1.0, 1.0 / (0.5 + 0.5 / row0), kw_powder], rtol=1e-14)
+    assert vertical[0, 0, 0] == 1.0 and vertical[0, 2, 0] == kw_powder       # one row: its weight exactly
+
+
 def stale_weights(ml: MultiLevelModel, level, finer: Grid) -> tuple[int, int]:
     """Elements of a coarser level outside the nodes its finer level overwrites (those with a free
     node) whose conductivity weight differs from the consolidation's, and those consolidated."""
-    expected = ml._level_kw(level.grid)
+    expected, expected_z = ml._level_kw(level.grid)
     free = np.ones(expected.shape, dtype=bool)
     sy, sz, sx = slaved(finer, level.grid)
     free[sy.start:sy.stop - 1, sz.start:sz.stop - 1, sx.start:sx.stop - 1] = False
-    return (int(np.count_nonzero(level.operator.kw[free] != expected[free])),
-            int(np.count_nonzero(expected[free] > expected.min())))
+    stale = (level.operator.kw[free] != expected[free]) | (level.operator.kw_z[free] != expected_z[free])
+    return int(np.count_nonzero(stale)), int(np.count_nonzero(expected[free] > expected.min()))
 
 
 def test_coarser_levels_conduct_through_the_consolidated_tracks():

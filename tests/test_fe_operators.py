@@ -88,6 +88,35 @@ def test_reweight_equals_fresh_operator(setup):
     assert t.stability_eigenvalue() > lam0        # the limit follows the weights
 
 
+def test_vertical_weights_equal_the_forms(setup):
+    """Elements with their own vertical weight ``kw_z`` (a coarse element over an insulating powder
+    row): ``K = sum_e kw (conduction - conduction_z) + kw_z conduction_z``, built fresh or re-weighted."""
+    g, mesh, perm, eorder, basis = setup
+    rng = np.random.default_rng(9)
+    n, nqp = eorder.size, basis.X.shape[-1]
+    kw = np.ones(n)
+    el = rng.choice(n, 200, replace=False)
+    kw[el] = rng.uniform(0.3, 1.0, el.size)
+    kw_z = kw.copy()
+    kw_z[el[:120]] = rng.uniform(0.01, 0.3, 120)
+    sk_kw, sk_z = np.empty(n), np.empty(n)
+    sk_kw[eorder], sk_z[eorder] = kw, kw_z
+    rep = lambda w: np.repeat(w[:, None], nqp, axis=1)          # noqa: E731
+    k_ref = (conduction.assemble(basis, kw=rep(sk_kw)) - conduction_z.assemble(basis, kw=rep(sk_kw))
+             + conduction_z.assemble(basis, kw=rep(sk_z)))[perm][:, perm]
+    kz_ref = conduction_z.assemble(basis, kw=rep(sk_z))[perm][:, perm]
+    u = rng.standard_normal(g.n_nodes)
+    fresh = TensorOperator(g, kw, None, vertical=True, kw_z=kw_z)
+    reweighted = TensorOperator(g, vertical=True)
+    reweighted.reweight(el[::2], kw[el[::2]], 1.0, kw_z[el[::2]])
+    reweighted.reweight(el[1::2], kw[el[1::2]], 1.0, kw_z[el[1::2]])
+    for op in (fresh, reweighted):
+        assert close(op(u.reshape(g.solver_shape)).ravel(), k_ref @ u)
+        assert close(op.vertical(u.reshape(g.solver_shape)).ravel(), kz_ref @ u)
+    reweighted.reweight(el, kw[el], 1.0)          # isotropic again
+    assert close(reweighted(u), TensorOperator(g, kw, None, vertical=True)(u))
+
+
 def test_stability_bound_is_tight_upper_bound(setup):
     g, mesh, perm, _, _ = setup
     n_el = (len(g.ys) - 1) * (len(g.zs) - 1) * (len(g.xs) - 1)
