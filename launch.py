@@ -175,7 +175,8 @@ def check_process(model, plant, settings: ControllerSettings, config: Path | Non
     file = f"{config} " if config else ""
     checks = ((f"{file}[plant] speed_m_s", {"speed_m_s": plant.profile.command(0)[1]}),
               (f"{file}[controller] nominal_speed_m_s", {"speed_m_s": settings.nominal_speed_m_s}),
-              (f"{file}[plant] dt_s", {"sample_period_s": plant.settings.dt_s}),
+              (f"{file}[plant] {'frame_period_s' if plant.settings.frame_period_s else 'dt_s'}",
+               {"sample_period_s": plant.settings.sample_period_s}),
               (f"{file}[plant] material", {"material": plant.settings.material.name}),
               (f"{file}[plant] powder_layer_m", {"powder_layer_m": plant.settings.powder_layer_m}))
     for where, value in checks:

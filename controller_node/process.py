@@ -1,7 +1,9 @@
 """The ``[controller]`` values a learned process records: ``provenance.controller`` of a model written
 by ``python -m gp_trainer learn`` (or ``tune-pid``), namely the operating power, from which every
 controller starts (``nominal_power_w``), and the PID baseline's gains tuned on the process's training
-staircases (``pid``: ``kp_w``, ``ki_w``, ``kd_w``; :mod:`gp_trainer.pid_tuning`).
+staircases (``pid``: ``kp_w``, ``ki_w``, ``kd_w``; :mod:`gp_trainer.pid_tuning`), and for a process
+observed at a camera's frame period the preview MPC's sample counts at that period (``preview``:
+:func:`preview_steps`).
 
 ``python -m controller_node --process MODEL.json`` puts them under the run's own ``[controller]``
 table, which wins; ``launch.py`` passes the model of the run's plant, so that the baselines and the
@@ -14,11 +16,12 @@ import math
 from pathlib import Path
 from typing import Any
 
+from gp_model.build_up import build_up_steps, rollout_horizon, steps_at
 from gp_model.errors import ModelFormatError
 from gp_model.files import read_document
 from messages.cli import UsageError
 
-__all__ = ["PID_KEYS", "process_mismatch", "process_table"]
+__all__ = ["PID_KEYS", "PREVIEW_KEYS", "preview_steps", "process_mismatch", "process_table"]
 
 PERIOD_TOLERANCE = 0.01
 """Relative difference between the plant's and the model's sample period that is refused."""
@@ -49,6 +52,22 @@ def process_mismatch(model, speed_m_s: float | None = None, sample_period_s: flo
 
 PID_KEYS = ("kp_w", "ki_w", "kd_w")
 """The gains of ``provenance.controller.pid`` that become ``[controller.pid]`` values."""
+PREVIEW_KEYS = ("horizon", "observer_start_steps", "turn_learning_steps")
+"""The sample counts of ``provenance.controller.preview`` that become ``[controller.preview]`` values."""
+
+
+def preview_steps(sample_period_s: float) -> dict[str, int]:
+    """The preview MPC's sample counts (:data:`PREVIEW_KEYS`) for a model at ``sample_period_s`` [s]: the
+    defaults of :class:`~controller_node.settings.PreviewSettings`, chosen at the FE step, as the same time
+    (:func:`gp_model.build_up.steps_at`); the horizon at least :func:`gp_model.build_up.rollout_horizon`'s
+    floor, the observer after the model's build-up. At 1 ms: horizon 8, observer_start_steps 1,
+    turn_learning_steps 3."""
+    from controller_node.settings import PreviewSettings
+
+    defaults = PreviewSettings()
+    return {"horizon": max(steps_at(defaults.horizon, sample_period_s), rollout_horizon(sample_period_s)),
+            "observer_start_steps": build_up_steps(sample_period_s),
+            "turn_learning_steps": steps_at(defaults.turn_learning_steps, sample_period_s)}
 
 
 def process_table(path: Path) -> dict[str, Any]:
@@ -74,4 +93,12 @@ def process_table(path: Path) -> dict[str, Any]:
     for key, value in (("nominal_power_w", table["nominal_power_w"]), *table["pid"].items()):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise UsageError(f"{where}: {key} must be a number, got {value!r}")
+    if "preview" in record:
+        preview = record["preview"]
+        if not isinstance(preview, dict) or set(preview) != set(PREVIEW_KEYS):
+            raise UsageError(f"{where}.preview must be an object with {', '.join(PREVIEW_KEYS)}")
+        for key, value in preview.items():
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise UsageError(f"{where}.preview: {key} must be an integer, got {value!r}")
+        table["preview"] = dict(preview)
     return table

@@ -9,6 +9,10 @@ and counted (``PlantDiagnostics.n_dropped``) and never extends the wait. The con
 then the run ends with exit status 1 after that step — or when no applicable command arrived
 within ``--command-timeout-s``. ``--open-loop`` plays the scenario's power/speed profile instead
 and needs no controller.
+
+With ``[plant] frame_period_s`` P = k Δt the node is a camera-rate plant (:mod:`fe_node.frames`): a
+step of the contract is a frame, k FE steps under the command held over it; it publishes every k-th
+FE state as frame j at time j P, and plays an open-loop profile's value at the frame's start.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fe_node.commands import FALLBACKS, CommandGate, CommandPolicy, Verdict
+from fe_node.frames import camera_frame
 from fe_node.freerun import state_message
 from fe_node.image import temperature_image
 from fe_node.multilevel import plant_model
@@ -163,8 +168,11 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
     scene_layer, scene_notes = None, set()
     waiter = None if settings.open_loop else CommandWaiter(bus.inbox(LASER_COMMAND), policy)
     gone = threading.Event() if waiter is None else bus.watch_presence(settings.controller)
-    total = n_steps(scenario) if settings.max_steps is None else min(n_steps(scenario), settings.max_steps)
-    bus.ready(config={**describe(scenario), "policy": vars(policy), "open_loop": settings.open_loop,
+    k, period_s = scenario.settings.steps_per_frame, scenario.settings.sample_period_s
+    frames = n_steps(scenario) // k                     # whole frames only (a camera sees no partial one)
+    total = frames if settings.max_steps is None else min(frames, settings.max_steps)
+    bus.ready(config={**describe(scenario), "sample_period_s": period_s, "policy": vars(policy),
+                      "open_loop": settings.open_loop,
                       "setup_s": round(setup_s, 3), "nodes": model.grid.n_nodes}, total_steps=total, stop=stop)
     bus.log(LogLevel.INFO, f"{scenario.name}: {total} steps, {model.grid.n_nodes} nodes, setup {setup_s:.1f} s")
     power_w, speed_m_s = scenario.profile.command(0)
@@ -190,7 +198,7 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
             break
         source = "open-loop"
         if waiter is None:
-            power_w, speed_m_s = scenario.profile.command(obs.step)
+            power_w, speed_m_s = scenario.profile.command(obs.step * k)
         elif (cmd := waiter.wait(obs.step + 1, stop, gone)) is not None:
             power_w, speed_m_s, source = cmd.power_w, cmd.speed_mm_s * 1e-3, "controller"
         elif stop.is_set():
@@ -207,7 +215,10 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
                 bus.log(LogLevel.WARNING, f"no command for step {obs.step + 1} within {policy.timeout_s} s; "
                         f"applying {source} {power_w:.1f} W", time_s=obs.time_s)
         t0 = time.perf_counter()
-        obs = model.step(power_w, speed_m_s)
+        if k == 1:
+            obs = model.step(power_w, speed_m_s)
+        else:
+            obs = camera_frame([model.step(power_w, speed_m_s) for _ in range(k)], obs.step + 1, period_s)
         diagnostics.put(PlantDiagnostics(
             run_id=bus.run_id, step=obs.step, time_s=obs.time_s, step_wall_ms=(time.perf_counter() - t0) * 1e3,
             absorbed_j=obs.energy_absorbed_j, stored_j=obs.energy_stored_j, lost_j=obs.energy_lost_j,

@@ -5,6 +5,7 @@ import math
 import numbers
 from dataclasses import dataclass, field, fields
 
+from fe_node.frames import frame_ratio
 from fe_node.material import Material
 
 
@@ -45,6 +46,9 @@ class Settings:
         element size (:mod:`fe_node.source`).
     dt_s : float
         Sampling/step time [s] (50 µs: the laser moves 40 µm per step at 800 mm/s).
+    frame_period_s : float
+        A camera's frame period [s], a whole number of ``dt_s``: the node publishes one state per
+        frame and holds the commanded power over it (:mod:`fe_node.frames`); 0 (default): every step.
     h_fine_m : float
         Element size in the refined band around the scan paths [m]; 25 µm is converged
         to ~1 % (``python -m fe_node validate``), and matches the paper's 25 µm mesh.
@@ -145,6 +149,7 @@ class Settings:
     beam_radius_m: float = 50e-6
     penetration_depth_m: float = 0.0
     dt_s: float = 50e-6
+    frame_period_s: float = 0.0
     h_fine_m: float = 25e-6
     growth: float = 1.35
     h_max_m: float = 0.5e-3
@@ -178,6 +183,16 @@ class Settings:
     mid_box_m: float = 5e-3
     coarse_h_m: float = 200e-6
     operator: str = "tensor"
+
+    @property
+    def steps_per_frame(self) -> int:
+        """FE steps per published state: ``frame_period_s / dt_s`` (1 without a frame period)."""
+        return 1 if self.frame_period_s == 0 else frame_ratio(self.frame_period_s, self.dt_s)
+
+    @property
+    def sample_period_s(self) -> float:
+        """The period of the published states [s]: ``frame_period_s``, else ``dt_s``."""
+        return self.frame_period_s or self.dt_s
 
     def __post_init__(self):
         if not isinstance(self.material, Material):
@@ -214,6 +229,8 @@ class Settings:
         if not (0 <= self.dwell_s < float("inf") and 0 < self.dwell_step_s < float("inf")):
             raise ValueError(f"settings: dwell_s must be >= 0 and dwell_step_s > 0, got {self.dwell_s}, "
                              f"{self.dwell_step_s}")
+        if self.frame_period_s != 0:
+            frame_ratio(self.frame_period_s, self.dt_s, "settings: frame_period_s")
         if not 0 <= self.plate_h_w_m2k < float("inf"):
             raise ValueError(f"settings: plate_h_w_m2k must be finite and >= 0, got {self.plate_h_w_m2k}")
         for name in ("liquid_k_factor_xy", "liquid_k_factor_z"):

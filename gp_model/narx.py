@@ -52,7 +52,7 @@ import numpy as np
 import scipy.linalg
 from numba import njit
 
-from gp_model.build_up import BUILD_UP_STEPS
+from gp_model.build_up import ROLLOUT_STRIDE, build_up_steps, rollout_horizon, steps_at
 from gp_model.errors import DatasetError, ModelFormatError, ModelVersionError
 from gp_model.files import is_format, read_document, write_document
 from gp_model.kernel import (
@@ -372,8 +372,12 @@ def run_forecast(run: RunSeries, k: int, horizon: int, profile_k: np.ndarray, pe
                             None if np.isnan(base) else float(base), persistence)
 
 
-def fit_persistence(runs: Sequence[RunSeries], profile_k: np.ndarray, horizon: int = 40, stride: int = 5) -> float:
-    """ρ of :func:`forecast_t_ahead` with the smallest mean absolute forecast error on ``runs``."""
+def fit_persistence(runs: Sequence[RunSeries], profile_k: np.ndarray) -> float:
+    """ρ of :func:`forecast_t_ahead` with the smallest mean absolute forecast error on ``runs``, over the
+    rollout horizon from every :data:`~gp_model.build_up.ROLLOUT_STRIDE`-th state (both as time at the runs'
+    sample period, :mod:`gp_model.build_up`)."""
+    period = runs[0].sample_period_s
+    horizon, stride, build_up = rollout_horizon(period), steps_at(ROLLOUT_STRIDE, period), build_up_steps(period)
     grid = (0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 1.0)
     plans = []  # per run: (run, s, e, T_b, first track, last track), computed once
     for run in runs:
@@ -386,7 +390,7 @@ def fit_persistence(runs: Sequence[RunSeries], profile_k: np.ndarray, horizon: i
                                                None if np.isnan(base[k]) else float(base[k]), rho)
                               - run.t_ahead_k[k + 1:k + horizon + 1]))
                for run, s, e, base, first, last, since in plans
-               for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride) if since[k] >= BUILD_UP_STEPS]
+               for k in range(build_up, len(run) - horizon - 1, stride) if since[k] >= build_up]
         errors.append(np.mean(err) if err else 0.0)
     return float(grid[int(np.argmin(errors))])
 
@@ -732,7 +736,8 @@ class NarxGPModel:
             provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
         """Least squares in z for the lag part, then the residual GP on ``n_train`` seeded random samples.
 
-        Samples whose target is in the first :data:`BUILD_UP_STEPS` states of a run or of a layer, or has no
+        Samples whose target is in the build-up of a run or of a layer (:func:`~gp_model.build_up.build_up_steps`
+        states at the runs' period: :data:`~gp_model.build_up.BUILD_UP_STEPS` at the FE step), or has no
         pool (area 0), are not fitted (the lags still see their powers). ``quadratic=False``
         leaves out the squared lags (a plain FIR part); ``interaction`` adds the lag-matched
         p × T terms; ``feature_lags`` > 0 the lagged turnaround features ``F[k+1−l]``, l < feature_lags,
@@ -769,7 +774,7 @@ class NarxGPModel:
         X, Y, PSI = [], [], []
         for run in runs:
             p, t, f = probe._lagged(run)
-            keep = (run.steps_since_layer_start()[1:] >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
+            keep = (run.steps_since_layer_start()[1:] >= build_up_steps(run.sample_period_s)) & (run.area_m2[1:] > 0)
             X.append(probe.design(p[keep], t[keep], f[keep])), Y.append(run.area_m2[1:][keep])
             PSI.append(probe.residual_inputs(run)[keep])
         X, Y, PSI = np.vstack(X), np.concatenate(Y), np.vstack(PSI)

@@ -28,9 +28,11 @@ from typing import Any, NoReturn
 import numpy as np
 
 from controller_node.settings import ControllerSettings
+from fe_node.frames import frame_ratio
 from fe_node.part import require_pyslm
 from fe_node.scenarios import scenario
 from gp_model import narx
+from gp_model.build_up import ROLLOUT_HORIZON, rollout_horizon
 from gp_model.errors import DatasetError, GPError
 from gp_model.files import is_model_file
 from gp_model.model import DEFAULT_RESTARTS, GPModel
@@ -51,7 +53,7 @@ from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.evaluate import evaluate, plot_narx
 from gp_trainer.jobs import JobResult
 from gp_trainer.learn import LearnSettings, design_from_record, learn, process_record, retune
-from gp_trainer.narx_fit import ROLLOUT_HORIZON, evaluate_model, select_and_fit
+from gp_trainer.narx_fit import evaluate_model, rollout_key, select_and_fit
 from gp_trainer.provenance import REPO_ROOT
 from gp_trainer.train import TrainSettings, train
 from messages.cli import UsageError
@@ -176,6 +178,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out-dir", type=Path, default=LearnSettings.out_dir,
                    help="recordings, report and plots (a re-run skips complete recordings)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fits")
+    p.add_argument("--frame-period-s", type=float, default=None, metavar="P",
+                   help="learn at a camera's frame period P [s], a whole number of FE steps: the runs hold each "
+                        "command over a frame and record every P/dt_s-th FE state ([plant] frame_period_s; "
+                        "default: the FE step)")
     _runner_options(p, "run")
 
     p = sub.add_parser(
@@ -356,7 +362,8 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
     else:
         print(
             f"R² = {result['r2']:.5f}, MAPE = {result['mape_pct']:.3f} % on {result['n_valid']} held-out samples; "
-            f"40-step rollout MAPE = {result['rollout_h40_mape_pct']:.3f} %; "
+            f"{rollout_horizon(model.sample_period_s)}-step rollout MAPE = "
+            f"{result[rollout_key(model.sample_period_s)]:.3f} %; "
             f"95 % coverage {result['coverage_95_pct']:.1f} %"
         )
         if result["n_turnaround"]:
@@ -488,9 +495,16 @@ def _learn(args: argparse.Namespace) -> int:
         plant = data.get("plant", {})
         search = {} if args.h_um is None else {"h_fine_m": args.h_um * 1e-6}
         try:
-            scenario("layer", **plant, **search)
+            plant_settings = scenario("layer", **plant, **search).settings
         except (ValueError, TypeError) as err:
             raise UsageError(f"{args.config} [plant]: {err}") from None
+        if args.frame_period_s is not None:
+            try:
+                frame_ratio(args.frame_period_s, plant_settings.dt_s)
+            except ValueError as err:
+                raise UsageError(str(err)) from None
+            plant = {**plant, "frame_period_s": args.frame_period_s}
+        period_s = args.frame_period_s or plant_settings.sample_period_s
         table = {k: v for k, v in data.get("controller", {}).items() if k != "name"}
         overrides = {} if args.set_point_mm2 is None else {"set_point_m2": args.set_point_mm2 * 1e-6}
         if args.set_point_mm2 is not None and not (math.isfinite(args.set_point_mm2) and args.set_point_mm2 > 0):
@@ -512,7 +526,8 @@ def _learn(args: argparse.Namespace) -> int:
     if report["status"] == "ok":
         m = report["metrics"]
         print(f"operating point {report['operating_point']['power_w']:.1f} W; held-out R² = {m['r2']:.4f}, "
-              f"MAPE = {m['mape_pct']:.2f} %, 40-step rollout {m['rollout_h40_mape_pct']:.2f} % -> {settings.model_out}"
+              f"MAPE = {m['mape_pct']:.2f} %, {rollout_horizon(period_s)}-step rollout "
+              f"{m[rollout_key(period_s)]:.2f} % -> {settings.model_out}"
               f" (report {settings.report_out})")
     if args.json:
         print(json.dumps(report))

@@ -189,12 +189,12 @@ def plot_narx(model: Any, runs: list[Any], plots_dir: str | os.PathLike[str]) ->
     (:class:`gp_model.narx.RunSeries`): the one-step scatter over all of them (``narx_scatter.png``, as
     Fig. 4a) and the forward simulation of the last one from its powers and measured T
     (``narx_rollout.png``, as Fig. 4b); the states of the pool build-up are left out."""
-    from gp_model.narx import BUILD_UP_STEPS
+    from gp_model.build_up import build_up_steps
 
     ys, preds, traj = [], [], None
     for run in runs:
         mean, _ = model.predict_run(run)
-        keep = (run.steps_since_layer_start()[1:] >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
+        keep = (run.steps_since_layer_start()[1:] >= build_up_steps(run.sample_period_s)) & (run.area_m2[1:] > 0)
         ys.append(run.area_m2[1:][keep]), preds.append(mean[keep])
         step = np.arange(len(run) - 1)[keep]
         traj = Rollout(step=step, recorded=run.area_m2[1:][keep], simulated=mean[keep], power_w=run.power_w[1:][keep])

@@ -31,14 +31,16 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from controller_node.process import preview_steps
 from gp_model.atomic import atomic_write
+from gp_model.build_up import rollout_horizon
 from gp_model.narx import NarxGPModel, RunSeries, series_from_states
 from gp_trainer.campaign import IdentRun, ProcessDesign, run_jobs
 from gp_trainer.dataset import read_states, recording_info
 from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.evaluate import plot_narx
 from gp_trainer.jobs import JobResult, RunnerSettings, job_recording
-from gp_trainer.narx_fit import select_and_fit
+from gp_trainer.narx_fit import rollout_key, select_and_fit
 from gp_trainer.pid_tuning import pid_record
 from gp_trainer.provenance import REPO_ROOT
 
@@ -193,12 +195,17 @@ def controller_record(recordings_dir: Path, design: ProcessDesign) -> dict[str, 
     at laser-on and during the build-up of every controller on this process), and ``pid``, the PID
     baseline tuned on the design's training staircases of the scenarios' own plans (not the held-out
     ones, nor the turnaround staircases, whose short tracks are mostly turnarounds) by
-    :func:`gp_trainer.pid_tuning.pid_record`."""
+    :func:`gp_trainer.pid_tuning.pid_record`; on a process observed at a camera's frame period
+    (``[plant] frame_period_s``) also ``preview``, the preview MPC's sample counts at that period
+    (:func:`controller_node.process.preview_steps`)."""
     held = set(design.held_out())
     staircases = [r for r in design.stage1_runs()
                   if isinstance(r, IdentRun) and r.tracks is None and r.name not in held]
-    return {"nominal_power_w": design.operating_power_w,
-            "pid": pid_record(_series(recordings_dir, staircases), design.setpoint_mm2 * 1e-6)}
+    record = {"nominal_power_w": design.operating_power_w,
+              "pid": pid_record(_series(recordings_dir, staircases), design.setpoint_mm2 * 1e-6)}
+    if frame_period_s := dict(design.plant).get("frame_period_s"):
+        record["preview"] = preview_steps(float(frame_period_s))
+    return record
 
 
 def process_record(paths: list[Path]) -> dict[str, Any]:
@@ -320,7 +327,9 @@ def learn(settings: LearnSettings, *, progress: bool = True,
             provenance["controller"] = controller_record(settings.out_dir, design)
         log(f"stage {stage}: selecting and fitting the model on {len(fit_on)} runs")
         model, report[key], held = _fit(settings, design, fit_on, out, provenance)
-        log(f"stage {stage}: held-out 40-step rollout {report[key]['rollout_h40_mape_pct']:.2f} % -> {out}")
+        horizon = rollout_horizon(model.sample_period_s)
+        log(f"stage {stage}: held-out {horizon}-step rollout {report[key][rollout_key(model.sample_period_s)]:.2f} % "
+            f"-> {out}")
     report["plots"] = plot_narx(model, held, settings.out_dir)
     report["status"] = "ok"
     _write_report(settings.report_out, report)

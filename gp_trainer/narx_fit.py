@@ -17,13 +17,19 @@ from typing import Any
 import numpy as np
 
 from controller_node.report import TURNAROUND_STEPS
+from gp_model.build_up import ROLLOUT_STRIDE, build_up_steps, rollout_horizon, steps_at
 from gp_model.kernel import HyperBounds
-from gp_model.narx import BUILD_UP_STEPS, NarxGPModel, RunSeries
+from gp_model.narx import NarxGPModel, RunSeries
 from gp_model.plan_feature import TurnFeature
 
-ROLLOUT_HORIZON = 40
 STRUCTURES = ((24, 30), (32, 40))
-"""Candidate (power lags, temperature lags) of the model selection."""
+"""Candidate (power lags, temperature lags) of the model selection, at the FE step (the reference period of
+:mod:`gp_model.build_up`; at another period as the same time, at least :data:`FRAME_LAG_MINIMA`)."""
+FRAME_LAG_MINIMA = ((2, 2), (4, 4))
+"""The fewest lags of each candidate of :data:`STRUCTURES` at a longer sample period: at a 1 ms frame the
+power→area ramp (~0.75 ms) and T ahead's lags (0.25–0.65 ms) lie within the last frame, so 2 ms and 4 ms."""
+FRAME_FEATURE_LAGS_MIN = 2
+"""The fewest turnaround-feature lags of a candidate with them at a longer sample period."""
 FORMS = (("log", True, True), ("log", True, False), ("log", False, False), ("identity", True, True),
          ("identity", True, False), ("identity", False, False))
 """Candidate (output map, squared lags, lag-matched power × temperature interactions) of the model selection."""
@@ -38,9 +44,34 @@ without it the lags of one signal, nearly collinear, are fitted with alternating
 track and give a wrong response to power before a turn (``benchmarks/turn_sensitivity.py``)."""
 
 
-def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int = ROLLOUT_HORIZON,
-                   stride: int = 5) -> dict[str, Any]:
+def rollout_key(sample_period_s: float) -> str:
+    """The key of the selecting rollout error in :func:`evaluate_model`'s row at ``sample_period_s`` [s],
+    ``rollout_h<H>_mape_pct`` (H = :func:`gp_model.build_up.rollout_horizon`; 40 at the FE step)."""
+    return f"rollout_h{rollout_horizon(sample_period_s)}_mape_pct"
+
+
+def structures(sample_period_s: float) -> tuple[tuple[int, int], ...]:
+    """The candidate (power lags, temperature lags) at ``sample_period_s`` [s]: :data:`STRUCTURES` as time
+    (:func:`gp_model.build_up.steps_at`), at least :data:`FRAME_LAG_MINIMA` at another period."""
+    minima = [FRAME_LAG_MINIMA[min(i, len(FRAME_LAG_MINIMA) - 1)] for i in range(len(STRUCTURES))]
+    return tuple((steps_at(n_p, sample_period_s, m_p), steps_at(n_t, sample_period_s, m_t))
+                 for (n_p, n_t), (m_p, m_t) in zip(STRUCTURES, minima, strict=True))
+
+
+def features(sample_period_s: float) -> tuple[tuple[bool, int], ...]:
+    """The candidate uses of the turnaround feature at ``sample_period_s`` [s]: :data:`FEATURES`, lags as
+    time, at least :data:`FRAME_FEATURE_LAGS_MIN` at another period."""
+    return tuple((with_f, steps_at(n_f, sample_period_s, FRAME_FEATURE_LAGS_MIN) if n_f else 0)
+                 for with_f, n_f in FEATURES)
+
+
+def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int | None = None,
+                   stride: int | None = None) -> dict[str, Any]:
     """Held-out metrics: one-step R² and MAPE, 95 % coverage, and the mean ``horizon``-step rollout error.
+
+    ``horizon``, ``stride``, the build-up and the turnaround windows are counted in samples of the model's
+    period (default horizon and stride 40 and 5 at the FE step, the same time at
+    another period: :mod:`gp_model.build_up`).
 
     The rollout starts every ``stride`` states after the build-up and predicts ``x[k+1..k+H]`` from
     what is known at k (:meth:`NarxGPModel.rollout`: applied powers as the plan, T forecast from the
@@ -50,18 +81,22 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int =
     :data:`controller_node.report.TURNAROUND_STEPS` states of every track but a layer's first) and
     along the tracks, with the one-step MAPE of each: where the model is overconfident.
     """
+    period = model.sample_period_s
+    horizon = rollout_horizon(period) if horizon is None else horizon
+    stride = steps_at(ROLLOUT_STRIDE, period) if stride is None else stride
+    build_up, turnaround = build_up_steps(period), steps_at(TURNAROUND_STEPS, period)
     ys, means, sds, rollouts, turns = [], [], [], [], []
     for run in runs:
         mean, var = model.predict_run(run)
         since_laser_on = run.steps_since_layer_start()
-        keep = (since_laser_on[1:] >= BUILD_UP_STEPS) & (run.area_m2[1:] > 0)
-        turn = ~run.first_track_of_layer()[1:] & (run.steps_since_track_start()[1:] < TURNAROUND_STEPS)
+        keep = (since_laser_on[1:] >= build_up) & (run.area_m2[1:] > 0)
+        turn = ~run.first_track_of_layer()[1:] & (run.steps_since_track_start()[1:] < turnaround)
         turns.append(turn[keep])
         ys.append(run.area_m2[1:][keep]), means.append(mean[keep])
         sds.append(np.sqrt(var[keep] + model.residual.noise_variance))
-        for k in range(BUILD_UP_STEPS, len(run) - horizon - 1, stride):
+        for k in range(build_up, len(run) - horizon - 1, stride):
             truth = run.area_m2[k + 1:k + horizon + 1]
-            if since_laser_on[k] >= BUILD_UP_STEPS and np.all(truth > 0):
+            if since_laser_on[k] >= build_up and np.all(truth > 0):
                 rollouts.append(float(np.mean(np.abs(model.rollout(run, k, horizon) - truth) / truth)))
     y, mean, sd, turn = np.concatenate(ys), np.concatenate(means), np.concatenate(sds), np.concatenate(turns)
     inside, error = np.abs(mean - y) <= 1.96 * sd, np.abs(mean - y) / y
@@ -88,9 +123,12 @@ def _fit_candidate(train: Sequence[RunSeries], held_out: Sequence[RunSeries], ca
                    n_train: int, provenance: Mapping[str, Any] | None) -> tuple[NarxGPModel, dict[str, Any]]:
     """Fit one candidate of :func:`select_and_fit` and score it on ``held_out``: the model and its row."""
     (n_p, n_t), (output, quadratic, with_x), (with_f, n_f), floor, smoothing = candidate
+    period = train[0].sample_period_s
+    feature = TurnFeature(n_targets=steps_at(TurnFeature.n_targets, period),
+                          n_sources=steps_at(TurnFeature.n_sources, period))
     model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
                             output=output, quadratic=quadratic, interaction=with_x, feature_lags=n_f,
-                            turn_feature=TurnFeature() if with_f else None, smoothing=smoothing,
+                            turn_feature=feature if with_f else None, smoothing=smoothing,
                             bounds=HyperBounds(length_scale=(floor, 100.0)), provenance=provenance)
     row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
            "interaction": with_x, "turn_feature": with_f, "feature_lags": n_f, "length_scale_floor": floor,
@@ -112,7 +150,9 @@ def select_and_fit(
     ``train``; keep the one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
     Returns it, its row and the whole table; ``provenance`` goes into every candidate's. ``workers`` > 1 fits
     the candidates in that many forked processes (each fit is deterministic: the same model either way)."""
-    candidates = list(itertools.product(STRUCTURES, FORMS, FEATURES, LENGTH_SCALE_FLOORS, SMOOTHINGS))
+    period = train[0].sample_period_s if train else held_out[0].sample_period_s
+    candidates = list(itertools.product(structures(period), FORMS, features(period), LENGTH_SCALE_FLOORS,
+                                        SMOOTHINGS))
     fit = functools.partial(_fit_candidate, train, held_out, seed=seed, n_train=n_train, provenance=provenance)
     if workers > 1:
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
@@ -120,6 +160,6 @@ def select_and_fit(
     else:
         fitted = [fit(c) for c in candidates]
     table = [row for _, row in fitted]
-    key = f"rollout_h{ROLLOUT_HORIZON}_mape_pct"
+    key = rollout_key(period)
     best = min(range(len(fitted)), key=lambda i: table[i][key])  # the first of equal ones, as in table order
     return fitted[best][0], table[best], table

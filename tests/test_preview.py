@@ -496,7 +496,8 @@ def _two_layer_run() -> RunSeries:
 
 
 def test_a_layer_start_is_neither_a_turnaround_nor_fitted_build_up():
-    from gp_model.narx import BUILD_UP_STEPS, turn_bases
+    from gp_model.build_up import BUILD_UP_STEPS
+    from gp_model.narx import turn_bases
 
     run = _two_layer_run()
     assert run.turn_starts().tolist() == [40, 120]                  # not 80: layer 1 starts a new pool
