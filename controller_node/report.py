@@ -23,7 +23,8 @@ With the relative error ``e_k = A_k / A_set − 1`` of the melt-pool area ``A_k`
 - max undershoot           = −100 · min_W e_k
 - steady-state RMSE        = 100 · sqrt(mean_W e_k²)
 - turnaround RMSE          = 100 · sqrt(mean_T e_k²), ``T = W ∩ {turnaround states}``: the first
-  ``TURNAROUND_STEPS`` (50) states of every track except the first one of each layer
+  ``TURNAROUND_STEPS`` (50) states of every track except the first one of each layer (2.5 ms; at another
+  frame period the same time, rounded up: 3 states at 1 ms)
 - along-track RMSE         = 100 · sqrt(mean_(W∖T) e_k²)
 - turnaround share         = 100 · Σ_T e_k² / Σ_W e_k² (share of the squared error in ``T``)
 
@@ -55,11 +56,12 @@ from pathlib import Path
 
 import numpy as np
 
+from gp_model.build_up import REFERENCE_PERIOD_S, steps_at
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 from messages.recording import RecordingError, RecordingLimitError, is_complete, read_messages
 
 WINDOW_START_S = 1.0e-3  # the evaluation window opens this long after laser-on (first state) [s]
-TURNAROUND_STEPS = 50  # states at the start of every track but the first counted as turnaround
+TURNAROUND_STEPS = 50  # states at the start of every track but the first counted as turnaround (at 50 µs: 2.5 ms)
 _TIME_TOL_S = 1e-9  # float tolerance on process times (far below one 50 µs step)
 _FINISHED = re.compile(r"^finished at step (\d+)\b")
 
@@ -174,8 +176,9 @@ def window_mask(trace: Trace) -> np.ndarray:
     return trace.time_s - t0 >= WINDOW_START_S - _TIME_TOL_S
 
 
-def turnaround_mask(track: np.ndarray, layer: np.ndarray | None = None) -> np.ndarray:
-    """Turnaround states: the first ``TURNAROUND_STEPS`` states of every track but the first of each layer.
+def turnaround_mask(track: np.ndarray, layer: np.ndarray | None = None, n_states: int = TURNAROUND_STEPS
+                    ) -> np.ndarray:
+    """Turnaround states: the first ``n_states`` states of every track but the first of each layer.
 
     Parameters
     ----------
@@ -183,12 +186,14 @@ def turnaround_mask(track: np.ndarray, layer: np.ndarray | None = None) -> np.nd
         Track index of every state, in step order.
     layer : ndarray of int, shape (n,), optional
         Layer of every state (default: one layer).
+    n_states : int
+        States counted from a track's first (default ``TURNAROUND_STEPS``, at the FE step).
 
     Returns
     -------
     ndarray of bool, shape (n,)
         True where the state's track is not its layer's first and the state lies fewer than
-        ``TURNAROUND_STEPS`` states after that track's first state.
+        ``n_states`` states after that track's first state.
     """
     track = np.asarray(track)
     layer = np.zeros(track.shape, dtype=int) if layer is None else np.asarray(layer)
@@ -196,7 +201,7 @@ def turnaround_mask(track: np.ndarray, layer: np.ndarray | None = None) -> np.nd
         return np.zeros(0, dtype=bool)
     index = np.arange(track.size)
     track_start, layer_start = _segment_starts(layer, track), _segment_starts(layer)
-    return (track_start != layer_start) & (index - track_start < TURNAROUND_STEPS)
+    return (track_start != layer_start) & (index - track_start < n_states)
 
 
 def _rms_pct(err: np.ndarray) -> float | None:
@@ -229,7 +234,8 @@ def metrics(trace: Trace, setpoint_mm2: float) -> Metrics:
         raise ValueError("the run ended before the evaluation window opened "
                          f"({WINDOW_START_S * 1e3:g} ms after laser-on)")
     err = trace.area_mm2 / setpoint_mm2 - 1
-    turn = turnaround_mask(trace.track, trace.layers()) & window
+    period_s = float(np.median(np.diff(trace.time_s))) if trace.time_s.size > 1 else REFERENCE_PERIOD_S
+    turn = turnaround_mask(trace.track, trace.layers(), steps_at(TURNAROUND_STEPS, period_s)) & window
     along = window & ~turn
     sq_total = float(np.sum(err[window] ** 2))
     share = float(100 * np.sum(err[turn] ** 2) / sq_total) if turn.any() and sq_total > 0 else None

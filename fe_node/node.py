@@ -10,9 +10,10 @@ then the run ends with exit status 1 after that step — or when no applicable c
 within ``--command-timeout-s``. ``--open-loop`` plays the scenario's power/speed profile instead
 and needs no controller.
 
-With ``[plant] frame_period_s`` P = k Δt the node is a camera-rate plant (:mod:`fe_node.frames`): a
-step of the contract is a frame, k FE steps under the command held over it; it publishes every k-th
-FE state as frame j at time j P, and plays an open-loop profile's value at the frame's start.
+With ``[plant] frame_period_s`` (``--frame-period-s``) P = k Δt the node is a camera-rate plant
+(:mod:`fe_node.frames`): a step of the contract is a frame, k FE steps under the command held over
+it; it publishes every k-th FE state as frame j at time j P, and plays an open-loop profile's value
+at the frame's start.
 """
 
 from __future__ import annotations
@@ -250,6 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--layers", type=int, help="layers to build (scenario part: default all of the part's)")
     parser.add_argument("--config", type=Path,
                         help="TOML run configuration; its [plant] table overrides plant settings")
+    parser.add_argument("--frame-period-s", type=float, metavar="P",
+                        help="publish one state per camera frame of P [s], a whole number of FE steps, holding each "
+                             "command over the frame ([plant] frame_period_s; default: every FE step)")
     parser.add_argument("--open-loop", action="store_true",
                         help="play the scenario's power/speed profile; no controller")
     parser.add_argument("--max-steps", type=int, help="stop after this many steps (short runs)")
@@ -291,6 +295,7 @@ def main(argv: list[str] | None = None) -> int:
                 "h_fine_m": None if args.h_um is None else args.h_um * 1e-6,
                 "part_stl": None if args.part is None else str(args.part),
                 "n_layers": args.layers,
+                "frame_period_s": args.frame_period_s,
             }.items() if v is not None}
             if args.part is not None and args.scenario not in PART_NAMES:
                 raise ValueError("--part needs --scenario part or ident-part")

@@ -115,7 +115,7 @@ def test_the_fe_node_at_a_frame_period_publishes_what_a_camera_sees_of_the_fe_ru
     recordings = {}
     for name, frame, steps in (("fe", 0.0, 60), ("camera", FRAME_S, 3)):
         config = tmp_path / f"{name}.toml"
-        config.write_text(f"[plant]\npower_w = 200.0\nh_fine_m = 1e-4\nframe_period_s = {frame!r}\n")
+        config.write_text(f"[plant]\npower_w = 200.0\nh_fine_m = 5e-5\nframe_period_s = {frame!r}\n")
         out = recordings[name] = tmp_path / f"{name}.mcap"
         subprocess.run([sys.executable, "launch.py", "--scenario", "single-track", "--controller", "none",
                         "--config", str(config), "--max-steps", str(steps), "--out", str(out), "--no-progress"],
@@ -130,3 +130,12 @@ def test_the_fe_node_at_a_frame_period_publishes_what_a_camera_sees_of_the_fe_ru
                                                                            theirs.area_mm2, theirs.t_ahead_k)
         assert mine.time_s == pytest.approx(theirs.time_s, rel=1e-9)
     assert np.all(np.array([s.power_w for s in published[1:]]) == 200.0)
+
+
+def test_the_turnaround_windows_of_the_report_are_2_5_ms_at_any_frame_period():
+    from controller_node.report import Trace, metrics
+
+    track = np.repeat([0, 1], 10)
+    trace = Trace(time_s=np.arange(20) * FRAME_S, area_mm2=np.full(20, 0.063), power_w=np.full(20, 200.0),
+                  t_ahead_k=np.full(20, 500.0), track=track)
+    assert metrics(trace, 0.063).n_turnaround == 3
