@@ -44,6 +44,7 @@ from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
 from controller_node.report import TURNAROUND_STEPS
+from gp_model.build_up import steps_at
 from gp_model.errors import DatasetError
 from gp_model.narx import RunSeries
 
@@ -121,15 +122,17 @@ def _scaled_errors(q: np.ndarray, scale: np.ndarray, stretches: list[tuple[np.nd
     return _simulated(q * scale, stretches) / scale[2]
 
 
-def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int = TURNAROUND_STEPS) -> Fopdt:
+def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int | None = None) -> Fopdt:
     """The FOPDT model of ``runs`` (open-loop power staircases of one process), module docstring.
 
     Parameters
     ----------
     runs : sequence of RunSeries
         The runs, of one sample period.
-    skip_steps : int
-        States after a track's start left out of the fit.
+    skip_steps : int, optional
+        States after a track's start left out of the fit (default :data:`TURNAROUND_STEPS` at the FE step,
+        the same time at another sample period: :func:`gp_model.build_up.steps_at`). The delays tried,
+        up to :data:`MAX_DELAY_STEPS` at the FE step, are scaled the same way.
 
     Raises
     ------
@@ -141,8 +144,9 @@ def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int = TURNAROUND_STEPS) -> 
     if len(periods) != 1:
         raise DatasetError(f"the staircases have different sample periods: {sorted(periods)} s")
     dt = periods.pop()
+    skip_steps = steps_at(TURNAROUND_STEPS, dt) if skip_steps is None else skip_steps
     best = None
-    for delay in range(MAX_DELAY_STEPS + 1):
+    for delay in range(steps_at(MAX_DELAY_STEPS, dt) + 1):
         stretches = _stretches(runs, skip_steps, delay)
         n = sum(area.size - 1 for area, _ in stretches)
         if n < 30:

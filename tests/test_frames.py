@@ -139,3 +139,20 @@ def test_the_turnaround_windows_of_the_report_are_2_5_ms_at_any_frame_period():
     trace = Trace(time_s=np.arange(20) * FRAME_S, area_mm2=np.full(20, 0.063), power_w=np.full(20, 200.0),
                   t_ahead_k=np.full(20, 500.0), track=track)
     assert metrics(trace, 0.063).n_turnaround == 3
+
+
+def test_the_pid_baseline_is_tuned_on_frames_with_the_turnarounds_left_out_as_time():
+    """Tracks of 12 frames: 2.5 ms (3 frames) after each track's start are left out, not 50 samples."""
+    from gp_model.narx import RunSeries
+    from gp_trainer.pid_tuning import fit_fopdt
+
+    rng, a, b = np.random.default_rng(3), 0.1, 4.5e-10
+    runs = []
+    for seed in range(3):
+        p = np.r_[0.0, rng.uniform(120.0, 220.0, 47)]
+        x = np.zeros(48)
+        for j in range(47):
+            x[j + 1] = a * x[j] + b * p[j + 1]
+        runs.append(RunSeries(f"frames-{seed}", x, np.full(48, 500.0), p, np.arange(48) // 12, FRAME_S))
+    model = fit_fopdt(runs)
+    assert model.delay_steps == 0 and model.time_constant_s == pytest.approx(-FRAME_S / np.log(a), rel=1e-3)
