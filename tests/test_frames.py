@@ -156,3 +156,13 @@ def test_the_pid_baseline_is_tuned_on_frames_with_the_turnarounds_left_out_as_ti
         runs.append(RunSeries(f"frames-{seed}", x, np.full(48, 500.0), p, np.arange(48) // 12, FRAME_S))
     model = fit_fopdt(runs)
     assert model.delay_steps == 0 and model.time_constant_s == pytest.approx(-FRAME_S / np.log(a), rel=1e-3)
+
+
+def test_the_shipped_1_ms_model_is_the_one_the_camera_example_runs():
+    from gp_model.shipped import MODELS_DIR
+
+    path = MODELS_DIR / "in625_narx_gp_1ms.json"
+    assert str(path.relative_to(REPO)) in (REPO / "docs" / "camera-1khz.toml").read_text()
+    model = NarxGPModel.load(path)
+    assert model.sample_period_s == pytest.approx(FRAME_S, rel=1e-9)
+    assert process_table(path)["preview"] == preview_steps(FRAME_S)
