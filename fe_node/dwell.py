@@ -13,8 +13,17 @@ energy counted as lost: energy is conserved whatever the linearisation error.
 """
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+
 import numpy as np
 from scipy.sparse.linalg import LinearOperator, cg
+
+from fe_node.boundary import loss_flux, loss_flux_slope
+from fe_node.settings import Settings
+
+EXPLICIT_S = 2e-3
+"""Explicit part of a dwell [s] (:func:`cool`)."""
 
 
 def implicit_step(h: np.ndarray, operator, law, m: np.ndarray, dt: float, b: np.ndarray, db_dt: np.ndarray,
@@ -53,3 +62,56 @@ def implicit_step(h: np.ndarray, operator, law, m: np.ndarray, dt: float, b: np.
     lost = b + db_dt * law.temperature_slope(h) / slope * dphi
     h -= dt * (k_ref * operator(phi + dphi) + lost) / m
     return float(lost.sum()) * dt
+
+
+def cool(h: np.ndarray, duration_s: float, dt_explicit: float, explicit_step: Callable[[], None],
+         implicit: Callable[[float], float], max_step_s: float, temperature: Callable, t_amb_k: float
+         ) -> list[float]:
+    """Cool ``h`` (nodal enthalpy [J/m³], in place) for ``duration_s`` [s] with no heat input.
+
+    The first :data:`EXPLICIT_S` in explicit steps of ``dt_explicit`` [s] (``explicit_step()``, which
+    counts its own losses), then implicit steps (``implicit(dt)``, e.g. :func:`implicit_step`:
+    in place, returns the energy lost [J] or raises ``RuntimeError``) doubling from
+    :data:`EXPLICIT_S` up to ``max_step_s``.  The trilinear stiffness is no M-matrix, so a long
+    implicit step over the steep gradients of a fresh track can undershoot: a step that cools any
+    node below the coldest temperature before it (``temperature(h)`` [K], floored at ``t_amb_k``)
+    or whose CG fails is undone and retried at an eighth of its length.  Returns the energies
+    [J] lost in the accepted implicit steps, in order, as a list.
+    """
+    n_explicit = min(math.ceil(EXPLICIT_S / dt_explicit), math.floor(duration_s / dt_explicit))
+    for _ in range(n_explicit):
+        explicit_step()
+    lost_j = []
+    left, dt = duration_s - n_explicit * dt_explicit, EXPLICIT_S / 2
+    while left > 1e-12 * duration_s:
+        dt = min(2 * dt, max_step_s, left)
+        before = h.copy()
+        t_floor = min(t_amb_k, float(temperature(before.min()))) - 1e-3
+        try:
+            lost = implicit(dt)
+        except RuntimeError:
+            lost = None
+        if lost is None or float(temperature(h.min())) < t_floor:
+            if dt <= dt_explicit:
+                raise RuntimeError("dwell: implicit step failed at the explicit step size")
+            h[...], dt = before, dt / 8
+            continue
+        lost_j.append(lost)
+        left -= dt
+    return lost_j
+
+
+def implicit_cooling_step(h: np.ndarray, operator, law, m: np.ndarray, a_top: np.ndarray, a_bottom: np.ndarray,
+                          settings: Settings, dt: float) -> float:
+    """One :func:`implicit_step` of ``dt`` [s] with the top-face losses (lumped areas ``a_top`` [m²],
+    shape (ny, nx)) and the plate's (``plate_h_w_m2k`` on ``a_bottom``) at the start temperature,
+    linearised; returns the energy lost [J]."""
+    s = settings
+    b, db = np.zeros_like(h), np.zeros_like(h)
+    t_top = law.temperature(h[:, -1, :])
+    b[:, -1, :] = a_top * loss_flux(t_top, s)
+    db[:, -1, :] = a_top * loss_flux_slope(t_top, s)
+    if s.plate_h_w_m2k > 0:
+        b[:, 0, :] += a_bottom * s.plate_h_w_m2k * (law.temperature(h[:, 0, :]) - s.t0_k)
+        db[:, 0, :] += a_bottom * s.plate_h_w_m2k
+    return implicit_step(h, operator, law, m, dt, b, db)

@@ -24,6 +24,7 @@ import math
 import numpy as np
 
 from fe_node.boundary import loss_flux
+from fe_node.dwell import cool, implicit_cooling_step
 from fe_node.material import Constitutive
 from fe_node.mesh import Grid, graded_axis
 from fe_node.observe import interp_matrix, interp_weights
@@ -331,7 +332,7 @@ class HeldFaces:
 
 
 class ConductionLevel:
-    """A coarser level (module docstring): conduction, top losses and a given surface heat input.
+    """A coarser level (module docstring): conduction, top and plate losses and a given surface heat input.
 
     Parameters
     ----------
@@ -349,7 +350,7 @@ class ConductionLevel:
     Attributes
     ----------
     lost_j, outflow_j : float
-        Energy [J] lost through the top face, and left through the held faces, so far.
+        Energy [J] lost through the top face and to the plate, and left through the held faces, so far.
     """
 
     def __init__(self, settings: Settings, law: Constitutive, grid: Grid, h: np.ndarray,
@@ -359,7 +360,7 @@ class ConductionLevel:
         kw, kw_z = weights
         self.operator = TensorOperator(grid, kw.ravel(), None, kw_z=kw_z.ravel())
         self.m = np.reshape(self.operator.lumped_mass, grid.solver_shape)
-        self.a_top = grid.top_areas()
+        self.a_top = grid.top_areas()         # the bottom face's too: a level spans the domain's depth
         self.dt_stable = STABILITY_SAFETY * 2.0 / (law.max_diffusivity * self.operator.stability_eigenvalue())
         self.faces = HeldFaces(grid, coarse) if coarse is not None else None
         self.lost_j = 0.0
@@ -390,8 +391,8 @@ class ConductionLevel:
     def advance(self, duration_s: float, held: tuple[slice, slice, slice] | None = None,
                 inflow_j: float = 0.0) -> None:
         """Step ``duration_s`` [s] explicitly; ``held`` (slices along y, z, x) are the nodes a finer
-        level overwrites (:func:`slaved`), which lose no heat through the top (the finer level
-        counts its own losses).  What conduction carried out of them is then replaced by
+        level overwrites (:func:`slaved`), which lose no heat through the top or to the plate (the
+        finer level counts its own losses).  What conduction carried out of them is then replaced by
         ``inflow_j`` [J], the heat the finer level sent out through its held faces meanwhile,
         spread over the free nodes around them (:func:`shift_to`): the coupling conserves energy."""
         from fe_node.solver import StepWork, explicit_update
@@ -401,11 +402,18 @@ class ConductionLevel:
         c = (dt * self.law.k_ref) / self.m
         c_top = dt / self.m[:, -1, :]
         work = StepWork(self.law, self.h.shape)
-        top_free = np.ones(self.a_top.shape)
+        top_free, bottom_free = np.ones(self.a_top.shape), np.ones(self.a_top.shape)
         if held is not None and held[1].stop == self.h.shape[1]:
             top_free[held[0], held[2]] = 0.0
+        if held is not None and held[1].start == 0:
+            bottom_free[held[0], held[2]] = 0.0
+        plate = self.settings.plate_h_w_m2k * self.a_top * bottom_free
         before = 0.0 if held is None else float(np.sum(self.m[held] * self.h[held]))
         for _ in range(n):
+            if self.settings.plate_h_w_m2k > 0:
+                q_plate = plate * (self.law.temperature(self.h[:, 0, :]) - self.settings.t0_k)
+                self.h[:, 0, :] -= q_plate * (dt / self.m[:, 0, :])
+                self.lost_j += float(q_plate.sum()) * dt
             q_loss = self.a_top * top_free * loss_flux(self.law.temperature(self.h[:, -1, :]), self.settings)
             explicit_update(self.h, self.operator, self.law, c, -q_loss, c_top, (1.0, 1.0), work)
             self.lost_j += float(q_loss.sum()) * dt
@@ -415,6 +423,17 @@ class ConductionLevel:
             return
         conducted = before - float(np.sum(self.m[held] * self.h[held]))
         shift_to(self.h, self.m, ring_around(held, self.h.shape), self.energy() + inflow_j - conducted)
+
+
+    def dwell(self, duration_s: float) -> None:
+        """Cool the whole level for ``duration_s`` [s] with no heat input and no finer level: its own
+        stable steps, then implicit ones (:func:`fe_node.dwell.cool`); losses counted."""
+        s = self.settings
+        for lost in cool(self.h, duration_s, self.dt_stable, lambda: self.advance(self.dt_stable),
+                         lambda dt: implicit_cooling_step(self.h, self.operator, self.law, self.m, self.a_top,
+                                                          self.a_top, s, dt),
+                         s.dwell_step_s, self.law.temperature, s.t_amb_k):
+            self.lost_j += lost
 
 
 def ring_around(held: tuple[slice, slice, slice], shape: tuple[int, int, int]) -> np.ndarray:

@@ -404,9 +404,46 @@ class MultiLevelModel(ThermalModel):
         self._mark_outside("mid")
         self._weights_due["mid"] = True
 
+    def _face_areas(self) -> tuple[np.ndarray, np.ndarray]:
+        """Top- and bottom-face areas [m²] of the fine box; its bottom face has no plate (0) unless it
+        is the domain's bottom (the box's bottom face is held to the intermediate level's field)."""
+        top = self.grid.top_areas()
+        on_plate = self.grid.zs[0] <= -self.settings.depth_m + 1e-9 * self.settings.h_fine_m
+        return top, top if on_plate else np.zeros_like(top)
+
+    def _dwell(self, duration_s: float) -> None:
+        """Cool between layers for ``duration_s`` [s] on the part level alone, then build the
+        intermediate and fine levels anew from it.
+
+        The levels are first brought up to now, each coarser one holding its finer one's field
+        (energy exact), so the part level holds the whole field; it cools in its stable steps, then
+        implicit ones (:meth:`~fe_node.levels.ConductionLevel.dwell`; after seconds of recoating the
+        field is smooth at its resolution); the finer levels take it by :func:`prolong` (energy
+        kept) on their grids.  The fine level's energy change is added to its initial energy, as at
+        a move; the losses are the part level's."""
+        s = self.settings
+        self.sync("part")
+        e_before = self._energy()
+        self.part.dwell(duration_s)
+        old = self.mid
+        mid = ConductionLevel(s, self.law, old.grid, prolong(self.part.grid, self.part.h, None, None, old.grid),
+                              self._level_kw(old.grid), coarse=self.part.grid)
+        mid.faces.hold(self.part.grid, self.part.h)
+        mid.lost_j, mid.outflow_j = old.lost_j, old.outflow_j
+        self.mid = mid
+        self._h = np.ascontiguousarray(prolong(mid.grid, mid.h, None, None, self.grid))
+        self._faces.hold(mid.grid, mid.h)
+        self._e0 += self._energy() - e_before
+        mid.take(self._restriction("mid"), self._h)
+        self.part.take(self._restriction("part"), mid.h)
+        self._mark_outside("mid")
+        self._mark_outside("part")
+        self._sent = {"mid": self.boundary_outflow_j, "part": mid.outflow_j}
+
     def add_layer(self) -> None:
-        """Spread a new powder layer (at the preheat temperature) on every level and start the next
-        plan (:meth:`ThermalModel.add_layer`); the fine box's buried layers coarsen (:meth:`_box_heights`).
+        """After the dwell (``dwell_s``, :meth:`_dwell`), spread a new powder layer (at the preheat
+        temperature) on every level and start the next plan (:meth:`ThermalModel.add_layer`); the
+        fine box's buried layers coarsen (:meth:`_box_heights`).
 
         Raises
         ------
@@ -417,6 +454,8 @@ class MultiLevelModel(ThermalModel):
         if self.powder is None or not self.layer_done:
             raise RuntimeError("add_layer needs powder_layer_m > 0 and a finished scan plan")
         self.sync("part")
+        if s.dwell_s > 0:
+            self._dwell(s.dwell_s)
         old_top = self._top
         n = round(s.powder_layer_m / self._row_m)
         self._lattice.grow(n)

@@ -260,8 +260,6 @@ class Settings:
         """The multi-level mesh's sizes nest: fine box < intermediate box, fine < mid < coarse elements."""
         if self.operator != "tensor" or self.window_m != 0:
             raise ValueError("settings: mesh = 'multilevel' needs operator = 'tensor' and window_m = 0")
-        if self.dwell_s != 0:
-            raise ValueError("settings: mesh = 'multilevel' has no dwell between layers (dwell_s = 0) so far")
         if not 16 * self.h_fine_m <= self.fine_box_m:
             raise ValueError(f"settings: fine_box_m must be >= 16 h_fine_m, got {self.fine_box_m}")
         if not self.fine_depth_m <= self.fine_box_depth_m <= self.depth_m:

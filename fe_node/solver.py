@@ -23,8 +23,8 @@ import math
 
 import numpy as np
 
-from fe_node.boundary import evaporate, loss_flux, loss_flux_slope
-from fe_node.dwell import implicit_step
+from fe_node.boundary import evaporate, loss_flux
+from fe_node.dwell import cool, implicit_cooling_step
 from fe_node.keyhole import beam_1e2_radius_m, cavity_absorptivity, drill, keyhole_temperature_k, vapour_depth_m
 from fe_node.material import Constitutive
 from fe_node.mesh import Grid, graded_axis, graded_axis_size
@@ -35,9 +35,6 @@ from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.source import depth_weights, surface_load
 from fe_node.window import ConsolidationLattice, ahead, conserve, element_map, kept, needs_move, transfer, window_axis
-
-DWELL_EXPLICIT_S = 2e-3
-"""Explicit part of a dwell [s] (:meth:`ThermalModel._dwell`)."""
 
 
 def plan_bands(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None):
@@ -372,47 +369,18 @@ class ThermalModel:
             self.plan = self._layer_plans[self.layer]
 
     def _dwell(self, duration_s: float) -> None:
-        """Cool for ``duration_s`` with the laser off; losses counted.
-
-        The first ``DWELL_EXPLICIT_S`` explicitly, then implicit steps (:mod:`fe_node.dwell`)
-        doubling from ``DWELL_EXPLICIT_S`` up to ``dwell_step_s``.  The trilinear stiffness is no
-        M-matrix, so a long implicit step over the steep gradients of a fresh track can undershoot:
-        a step that cools any node below the coldest temperature before it (or whose CG fails) is
-        undone and retried at a quarter of its length.
-        """
+        """Cool for ``duration_s`` with the laser off, explicit sub-steps then implicit steps
+        (:func:`fe_node.dwell.cool`); losses counted."""
         s = self.settings
-        n_explicit = min(math.ceil(DWELL_EXPLICIT_S / self._dt_sub), math.floor(duration_s / self._dt_sub))
         no_load = np.zeros((1, 1))
-        for _ in range(n_explicit):
-            self._substep(no_load)
-        left, dt = duration_s - n_explicit * self._dt_sub, DWELL_EXPLICIT_S / 2
-        while left > 1e-12 * duration_s:
-            dt = min(2 * dt, s.dwell_step_s, left)
-            before = self._h.copy()
-            t_floor = min(s.t_amb_k, float(self.law.temperature(before.min()))) - 1e-3
-            try:
-                lost = self._implicit_dwell_step(dt)
-            except RuntimeError:
-                lost = None
-            if lost is None or float(self.law.temperature(self._h.min())) < t_floor:
-                if dt <= self._dt_sub:
-                    raise RuntimeError("dwell: implicit step failed at the explicit step size")
-                self._h, dt = before, dt / 8
-                continue
+        for lost in cool(self._h, duration_s, self._dt_sub, lambda: self._substep(no_load), self._implicit_dwell_step,
+                         s.dwell_step_s, self.law.temperature, s.t_amb_k):
             self._lost += lost
-            left -= dt
 
     def _implicit_dwell_step(self, dt: float) -> float:
         """One implicit dwell step of ``dt`` [s] with the top and plate losses; returns the energy lost [J]."""
-        s = self.settings
-        b, db = np.zeros_like(self._h), np.zeros_like(self._h)
-        t_top = self.law.temperature(self._h[:, -1, :])
-        b[:, -1, :] = self._a_top * loss_flux(t_top, s)
-        db[:, -1, :] = self._a_top * loss_flux_slope(t_top, s)
-        if s.plate_h_w_m2k > 0:
-            b[:, 0, :] += self._a_bottom * s.plate_h_w_m2k * (self.law.temperature(self._h[:, 0, :]) - s.t0_k)
-            db[:, 0, :] += self._a_bottom * s.plate_h_w_m2k
-        return implicit_step(self._h, self.operator, self.law, self._m, dt, b, db)
+        return implicit_cooling_step(self._h, self.operator, self.law, self._m, self._a_top, self._a_bottom,
+                                     self.settings, dt)
 
     def reweight(self, elements, kw, rho_w) -> None:
         """Change the weights of solver elements (flat indices), keeping each node's energy.

@@ -184,8 +184,6 @@ def test_plant_model_picks_the_mesh():
         ThermalModel(Settings(**COARSE, mesh="multilevel", mid_h_m=100e-6, coarse_h_m=400e-6), plan)
     with pytest.raises(ValueError, match="mesh must be one of"):
         Settings(mesh="adaptive")
-    with pytest.raises(ValueError, match="dwell_s"):
-        Settings(mesh="multilevel", powder_layer_m=25e-6, n_layers=2, dwell_s=0.1)
 
 
 def test_intermediate_level_holds_the_fine_field(powder_runs):
@@ -248,7 +246,9 @@ def test_layer_starts_follow_the_uniform_mesh(layered_runs):
     np.testing.assert_allclose(rise_ml, rise_un, rtol=0.05)
 
 
-@pytest.mark.parametrize("layers", [dict(), dict(powder_layer_m=50e-6, n_layers=2)], ids=["plate", "2 layers"])
+@pytest.mark.parametrize("layers", [dict(), dict(powder_layer_m=50e-6, n_layers=2),
+                                    dict(powder_layer_m=50e-6, n_layers=2, dwell_s=0.05)],
+                         ids=["plate", "2 layers", "2 layers, dwell"])
 def test_levels_keep_the_absorbed_energy(layers):
     """No losses: the part level's energy grows by what the fine level absorbed plus the powder spread
     at the preheat state, to round-off (the levels hand on the heat the finer one sends out of the
@@ -263,6 +263,27 @@ def test_levels_keep_the_absorbed_energy(layers):
     ml.sync("part")                        # every level takes its finer one's state now
     assert ml.n_remeshes > 5
     assert ml.part.energy() - e0 - ml.layer * powder_j == pytest.approx(ml._absorbed, rel=1e-9)
+
+
+def test_dwell_cools_as_on_the_uniform_mesh():
+    """A 0.5 s recoating dwell with the plate's losses between two layers: the second layer starts
+    from the same surface temperatures as on the uniform mesh, and the heat lost (the levels' and
+    the plate's) is the uniform mesh's."""
+    s = Settings(**COARSE, powder_layer_m=50e-6, n_layers=2, dwell_s=0.5, plate_h_w_m2k=1e3, fine_box_m=1.0e-3,
+                 mid_box_m=2.4e-3, mid_h_m=100e-6, coarse_h_m=300e-6)
+    plan = ScanPlan.layer(3, 1.5e-3, 1e-4)
+    ml, un = model(s, plan), ThermalModel(s, plan)
+    while ml.layer == 0:
+        ml.step(150.0, 0.8), un.step(150.0, 0.8)
+    g = ml.part.grid
+    x, y = np.meshgrid(np.linspace(0.0, 1.5e-3, 7), np.linspace(-0.2e-3, 0.2e-3, 5))
+    points = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, g.zs[-1])])
+    rise_ml, rise_un = (m.temperature_at(points) - s.t0_k for m in (ml, un))
+    assert rise_un.mean() > 20.0                                   # still warm after the dwell
+    np.testing.assert_allclose(rise_ml.mean(), rise_un.mean(), rtol=0.03)
+    lost_ml = ml._lost + ml.mid.lost_j + ml.part.lost_j
+    assert lost_ml == pytest.approx(un._lost, rel=0.03)
+    assert not ml._a_bottom.any()          # the fine box's bottom face is held: the plate is the levels'
 
 
 def test_part_level_resolves_the_surface(powder_runs):
