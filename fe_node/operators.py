@@ -339,21 +339,23 @@ class TensorOperator:
         self._factor()
 
     def _factor(self) -> None:
-        """Kronecker factors for the row medians of ``kw`` and the correction of the other elements."""
+        """Kronecker factors for the row medians of ``kw`` (the vertical term: of ``kw_z``) and the
+        correction of the other elements."""
         mid = self.elem_shape[2] // 2
         w = np.partition(self.kw, mid, axis=2)[:, :, mid]
+        wz = np.partition(self.kw_z, mid, axis=2)[:, :, mid]
         hy, hz = self._h[0], self._h[1]
         a = _assemble_yz(hy, hz, w, "m", "m")
-        cz = _assemble_yz(hy, hz, w, "m", "k")
+        cz = _assemble_yz(hy, hz, wz, "m", "k")
         self._ab = sp.vstack([a, _assemble_yz(hy, hz, w, "k", "m") + cz]).tocsr()
         self._cz = cz if self._vertical else None
         self._cz_blocks = {}
         self._p = a.shape[0]
         self._corr = _Correction(self.shape, self._vertical)
-        dk = (self.kw - w[:, :, None]).ravel()
+        dk = self.kw - w[:, :, None]
         el = np.flatnonzero(dk)
-        self._add_stiffness(el, dk[el])
-        dz = (self.kw_z - self.kw).ravel()
+        self._add_stiffness(el, dk.ravel()[el])
+        dz = (self.kw_z - wz[:, :, None] - dk).ravel()       # K_z,e's weight beyond what dk_e K_e holds
         el = np.flatnonzero(dz)
         self._add_stiffness(el, dz[el], vertical_only=True)
         self._n_factored = self._corr.n_elements

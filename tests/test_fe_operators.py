@@ -99,6 +99,10 @@ def test_vertical_weights_equal_the_forms(setup):
     kw[el] = rng.uniform(0.3, 1.0, el.size)
     kw_z = kw.copy()
     kw_z[el[:120]] = rng.uniform(0.01, 0.3, 120)
+    ey, ez, ex = len(g.ys) - 1, len(g.zs) - 1, len(g.xs) - 1
+    top = np.arange(n).reshape(ey, ez, ex)[:, -1, :].ravel()     # a whole row of mixed elements
+    kw[top], kw_z[top] = 0.6, 0.05
+    el = np.union1d(el, top)
     sk_kw, sk_z = np.empty(n), np.empty(n)
     sk_kw[eorder], sk_z[eorder] = kw, kw_z
     rep = lambda w: np.repeat(w[:, None], nqp, axis=1)          # noqa: E731
