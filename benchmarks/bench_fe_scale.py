@@ -8,9 +8,9 @@ Side sweep: for each side L a square layer of L / hatch tracks of length L (hatc
 default plant (the ``layer`` scenario's settings and power) is built with ``mesh = "uniform"``
 (the whole-plan fine band) and ``mesh = "multilevel"`` (:mod:`fe_node.multilevel`).  After 5
 warm-up steps, ``--steps`` steps are timed one by one, the two meshes alternating so both see the
-same machine load; ``ms_per_step`` is the mean CPU time of a step in this process (the plant is
-single-threaded: on a quiet machine it is the wall time, and other jobs on a shared machine do
-not inflate it), the multi-level mesh's moves included; ``wall_ms_per_step`` the mean wall time.
+same machine load; ``ms_per_step`` is the mean CPU time of a step in this process (BLAS on one
+thread, so on a quiet machine it is the wall time, and other jobs on a shared machine do not
+inflate it), the multi-level mesh's moves included; ``wall_ms_per_step`` the mean wall time.
 
 Layer sweep: one 2 mm track built ``max(--layers)`` layers high on the default plant (25 µm
 layers), both meshes alternating; ``ms_per_step`` is the mean over the steps of each layer in
@@ -44,6 +44,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 from fe_node.multilevel import plant_model  # noqa: E402
 from fe_node.scenarios import scenario  # noqa: E402
+from messages.bus import single_threaded_blas  # noqa: E402
 
 HATCH_M = 1e-4
 MESHES = ("uniform", "multilevel")
@@ -146,6 +147,7 @@ def main() -> None:
     parser.add_argument("--layer-steps", type=int, default=None, help="steps of the default layer (default: all)")
     parser.add_argument("--json", action="store_true", help="(the last line is JSON either way)")
     args = parser.parse_args()
+    single_threaded_blas()         # CPU time is then the step's cost (two BLAS threads had doubled it on large pools)
     load = [round(os.getloadavg()[0], 2)]
     cases = [side_case(side, args.steps) for side in args.sides_mm] + layer_cases(args.layers)
     ml = [c["ms_per_step_multilevel"] for c in cases]
