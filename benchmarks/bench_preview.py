@@ -20,7 +20,7 @@ without preparation fed the same states: the real-time iteration's linearisation
 the QP took and the load.
 
 Usage: ``python benchmarks/bench_preview.py [--preset physical] [--scenario double-track] [--rounds 2]
-[--model FILE]``
+[--model FILE] [--json]`` (the last line is JSON either way).
 """
 
 from __future__ import annotations
@@ -91,6 +91,7 @@ def main() -> None:
     parser.add_argument("--scenario", default="double-track")
     parser.add_argument("--rounds", type=int, default=2, help="alternated pairs of loops with and without prepare")
     parser.add_argument("--model", type=Path, help="delay-aware model file (default: the shipped one of the plant)")
+    parser.add_argument("--json", action="store_true", help="(the last line is JSON either way)")
     args = parser.parse_args()
     sc = scenario(args.scenario, preset=args.preset)
     model_path = args.model or default_model_path(sc.settings.powder_layer_m)  # default: the shipped one of its layer
