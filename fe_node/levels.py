@@ -6,11 +6,11 @@ laser, an intermediate level of ``mid_h_m`` on a box of ``mid_box_m`` around the
 part at ``coarse_h_m``.  A coarser level here (:class:`ConductionLevel`) solves the same
 enthalpy equation with the same forms (:func:`fe_node.solver.explicit_update`) but only with
 conduction and the top-face losses, at its own stable time step; near the laser its field is
-overwritten by its finer level's (:func:`restrict`), and the heat the finer level sends out of
+overwritten by its finer level's (:class:`Restriction`), and the heat the finer level sends out of
 those nodes is handed to the nodes around them (:meth:`ConductionLevel.advance`).
 
 Transfers.  A box's side and bottom nodes take their coarser level's field (Dirichlet, held
-between the coarser level's steps).  :func:`restrict` takes the fine field's values at the
+between the coarser level's steps).  :class:`Restriction` takes the fine field's values at the
 coarse nodes' x and y, averaged in z under each coarse hat function; :func:`prolong` interpolates
 linearly; then one enthalpy shift of the transferred nodes (:func:`shift_to`) makes their energy
 that of the source field over the same region: the lumped (row-sum) energy of a nodal field
@@ -177,12 +177,6 @@ class Restriction:
             view[:, self._gap, :] = self._gap_values.of(h_fine)
         view += (target - float(np.sum(self._m_coarse * view))) / self._m_total
         return target
-
-
-def restrict(fine: Grid, h_fine: np.ndarray, coarse: Grid, h_coarse: np.ndarray) -> float:
-    """Overwrite the coarse nodes whose dual cells lie inside the fine grid with the fine field, in
-    place (:meth:`Restriction.apply`); returns their energy [J] (0: no node)."""
-    return Restriction(fine, coarse).apply(h_fine, h_coarse)
 
 
 def slaved(fine: Grid, coarse: Grid) -> tuple[slice, slice, slice] | None:
@@ -408,11 +402,12 @@ class ConductionLevel:
         if held is not None and held[1].start == 0:
             bottom_free[held[0], held[2]] = 0.0
         plate = self.settings.plate_h_w_m2k * self.a_top * bottom_free
+        c_bottom = dt / self.m[:, 0, :]
         before = 0.0 if held is None else float(np.sum(self.m[held] * self.h[held]))
         for _ in range(n):
             if self.settings.plate_h_w_m2k > 0:
                 q_plate = plate * (self.law.temperature(self.h[:, 0, :]) - self.settings.t0_k)
-                self.h[:, 0, :] -= q_plate * (dt / self.m[:, 0, :])
+                self.h[:, 0, :] -= q_plate * c_bottom
                 self.lost_j += float(q_plate.sum()) * dt
             q_loss = self.a_top * top_free * loss_flux(self.law.temperature(self.h[:, -1, :]), self.settings)
             explicit_update(self.h, self.operator, self.law, c, -q_loss, c_top, (1.0, 1.0), work)

@@ -291,9 +291,9 @@ class TensorOperator:
     The Kronecker factors hold weights constant along x in each (y, z) row of elements (the
     row's median: the tracks run along x); the elements that differ from their row's weight are
     a sparse correction (:class:`_Correction`).  When re-weighting has grown the correction
-    beyond twice its size at the last factoring plus one row, the factors are rebuilt.  Elements
-    whose vertical weight ``kw_z`` differs from ``kw`` add ``(kw_z - kw) K_z,e`` to the correction:
-    ``K_w = sum_e kw_e (K_e - K_z,e) + kw_z,e K_z,e``.
+    beyond twice its size at the last factoring plus one row, the factors are rebuilt.  With vertical
+    weights ``kw_z``, ``K_w = sum_e kw_e (K_e - K_z,e) + kw_z,e K_z,e``: the vertical factor takes
+    the rows' medians of ``kw_z``, and an element off either median is in the correction.
 
     Parameters
     ----------

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from fe_node.levels import (
+    Restriction,
     column_weights,
     extent,
     interpolate,
     lumped_volumes,
     prolong,
     region_energy,
-    restrict,
     slaved,
 )
 from fe_node.mesh import Grid, graded_axis
@@ -39,7 +39,7 @@ def test_restrict_conserves_energy():
     coarse = Grid(np.linspace(-2e-3, 2e-3, 81), np.linspace(-2e-3, 2e-3, 81), np.linspace(-1e-3, 0.0, 21))
     h_fine, h_coarse = field(fine, np.array([50e-6, 0.0])), np.full(coarse.solver_shape, 1e9)
     total_before = float(np.sum(lumped_volumes(coarse) * h_coarse))
-    target = restrict(fine, h_fine, coarse, h_coarse)
+    target = Restriction(fine, coarse).apply(h_fine, h_coarse)
     changed = h_coarse != 1e9
     assert changed.any()
     moved = float(np.sum((lumped_volumes(coarse) * h_coarse)[changed]))
@@ -58,7 +58,7 @@ def test_restrict_keeps_a_track_edge():
     coarse = Grid(np.linspace(-1e-3, 1e-3, 41), np.linspace(-1e-3, 1e-3, 41), np.linspace(-0.4e-3, 0.0, 9))
     h_fine = np.broadcast_to(np.where(fine.ys < 0.0, 6e9, 1e9)[:, None, None], fine.solver_shape).copy()
     h_coarse = np.full(coarse.solver_shape, 1e9)
-    restrict(fine, h_fine, coarse, h_coarse)
+    Restriction(fine, coarse).apply(h_fine, h_coarse)
     sy, sz, sx = slaved(fine, coarse)
     shift = h_coarse[sy, sz, sx] - interpolate(fine, h_fine, coarse.xs[sx], coarse.ys[sy], coarse.zs[sz])
     assert np.ptp(shift) < 1e-9 * 5e9
@@ -105,7 +105,7 @@ def powder_runs():
         areas.append((ml.step(150.0, 0.8).area_m2, un.step(150.0, 0.8).area_m2))
         if held is None and ml.step_index >= 100 and ml._synced["mid"] == ml.step_index:   # the mid level just stepped
             again = ml.mid.h.copy()
-            restrict(ml.grid, ml._h, ml.mid.grid, again)
+            Restriction(ml.grid, ml.mid.grid).apply(ml._h, again)
             held = float(np.max(np.abs(ml.law.temperature(ml.mid.h) - ml.law.temperature(again))))
     return ml, un, np.array(areas), held
 
