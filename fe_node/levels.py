@@ -339,7 +339,9 @@ class ConductionLevel:
     weights : tuple of ndarray, each shape (ny - 1, nz - 1, nx - 1)
         Per-element conductivity weights [-], in plane and vertical (:func:`column_weights`).
     coarse : Grid, optional
-        The next coarser level's grid, whose field this level's faces inside it take (none: the part).
+        The next coarser level's grid, whose field this level's faces inside it take (none: the part
+        level, whose operator integrates at the corners, ``TensorOperator(nodal=coarse is None)``: its flat
+        top elements under a track's heat would otherwise undershoot their neighbours by 100 K).
 
     Attributes
     ----------
@@ -352,7 +354,7 @@ class ConductionLevel:
         self.settings, self.law, self.grid = settings, law, grid
         self.h = np.ascontiguousarray(h, dtype=float)
         kw, kw_z = weights
-        self.operator = TensorOperator(grid, kw.ravel(), None, kw_z=kw_z.ravel())
+        self.operator = TensorOperator(grid, kw.ravel(), None, kw_z=kw_z.ravel(), nodal=coarse is None)
         self.m = np.reshape(self.operator.lumped_mass, grid.solver_shape)
         self.a_top = grid.top_areas()         # the bottom face's too: a level spans the domain's depth
         self.dt_stable = STABILITY_SAFETY * 2.0 / (law.max_diffusivity * self.operator.stability_eigenvalue())

@@ -153,7 +153,7 @@ class CsrOperator:
         return float(np.max(self.kw / self.rho_w * self._lam_e))
 
 
-def box_stiffness(hx, hy, hz, vertical_only: bool = False) -> np.ndarray:
+def box_stiffness(hx, hy, hz, vertical_only: bool = False, nodal: bool = False) -> np.ndarray:
     """Unit ``conduction`` (or ``conduction_z``) element matrices of axis-aligned boxes [m].
 
     Parameters
@@ -162,6 +162,9 @@ def box_stiffness(hx, hy, hz, vertical_only: bool = False) -> np.ndarray:
         Box edge lengths [m].
     vertical_only : bool
         Only the ``z`` term (``conduction_z``).
+    nodal : bool
+        Integrate at the 8 corners (nodal quadrature) instead of exactly: the 1-D masses in each
+        term are lumped, so a node couples to its axis neighbours only, with negative entries.
 
     Returns
     -------
@@ -172,7 +175,7 @@ def box_stiffness(hx, hy, hz, vertical_only: bool = False) -> np.ndarray:
         return np.array([[1.0, -1.0], [-1.0, 1.0]])[None] / h[:, None, None]
 
     def m1(h):
-        return np.array([[2.0, 1.0], [1.0, 2.0]])[None] * (h / 6.0)[:, None, None]
+        return _mass1(h, nodal)
 
     def kron3(a, b, c):   # kron(a, b, c) per box: rows (y, z, x), columns (y, z, x)
         return np.einsum("nab,ncd,nef->nacebdf", a, b, c).reshape(-1, 8, 8)
@@ -269,13 +272,19 @@ def _renumber(m: sp.csr_matrix, remap: np.ndarray, n: int) -> sp.csr_matrix:
     return sp.csr_matrix((m.data, remap[m.indices], np.concatenate([[0], np.cumsum(counts)])), shape=(n, n))
 
 
-def _assemble_yz(hy: np.ndarray, hz: np.ndarray, w: np.ndarray, y: str, z: str) -> sp.csr_matrix:
+def _mass1(h: np.ndarray, nodal: bool) -> np.ndarray:
+    """1-D linear-element masses [m] of edges ``h`` (shape (n,)), consistent or (``nodal``) lumped, shape (n, 2, 2)."""
+    local = np.eye(2) / 2.0 if nodal else np.array([[2.0, 1.0], [1.0, 2.0]]) / 6.0
+    return local[None] * h[:, None, None]
+
+
+def _assemble_yz(hy: np.ndarray, hz: np.ndarray, w: np.ndarray, y: str, z: str, nodal: bool = False) -> sp.csr_matrix:
     """Sum over the (y, z) elements of ``w[j, k] Y_j (x) Z_k`` [m or 1/m], ``Y, Z`` the 1-D element
-    stiffness (``"k"``) or consistent mass (``"m"``) of edges ``hy``, ``hz``; node ``j nz + k``."""
+    stiffness (``"k"``) or mass (``"m"``, lumped if ``nodal``) of edges ``hy``, ``hz``; node ``j nz + k``."""
     def element(h, which):
         if which == "k":
             return np.array([[1.0, -1.0], [-1.0, 1.0]])[None] / h[:, None, None]
-        return np.array([[2.0, 1.0], [1.0, 2.0]])[None] * (h / 6.0)[:, None, None]
+        return _mass1(h, nodal)
 
     ny, nz = len(hy) + 1, len(hz) + 1
     local = np.einsum("jab,kcd,jk->jkacbd", element(hy, y), element(hz, z), w).reshape(-1, 4, 4)
@@ -304,6 +313,11 @@ class TensorOperator:
         Per-element weights [-] of the vertical term (default ``kw``: isotropic elements).
     vertical : bool
         Also provide ``K_z`` (``conduction_z``) for :meth:`vertical` and :meth:`add_vertical`.
+    nodal : bool
+        Integrate the stiffness at the elements' corners (:func:`box_stiffness`): an M-matrix on any
+        box, so an explicit or implicit step never cools a node below its neighbours (the exact
+        trilinear stiffness couples the in-plane neighbours of a flat element positively and
+        undershoots next to a hot spot); its stability bound is ``4 (1/hx² + 1/hy² + 1/hz²)``.
 
     Attributes
     ----------
@@ -311,8 +325,8 @@ class TensorOperator:
         ``m`` [m³].
     """
 
-    def __init__(self, grid: Grid, kw=None, rho_w=None, vertical: bool = False, kw_z=None):
-        self.grid, self._vertical = grid, vertical
+    def __init__(self, grid: Grid, kw=None, rho_w=None, vertical: bool = False, kw_z=None, nodal: bool = False):
+        self.grid, self._vertical, self.nodal = grid, vertical, nodal
         self.shape = grid.solver_shape
         ny, nz, nx = self.shape
         self.elem_shape = (ny - 1, nz - 1, nx - 1)
@@ -323,13 +337,20 @@ class TensorOperator:
         _check_positive(self.kw, self.rho_w)
         _check_positive(self.kw_z, self.rho_w)
         self._h = [np.diff(a) for a in (grid.ys, grid.zs, grid.xs)]
-        hmin = np.minimum(np.minimum.outer(self._h[0], self._h[1])[:, :, None], self._h[2][None, None, :])
-        self._lam_e = 4.0 / hmin**2
+        if nodal:
+            inv2 = [1.0 / h**2 for h in self._h]
+            self._lam_e = 4.0 * (np.add.outer(inv2[0], inv2[1])[:, :, None] + inv2[2][None, None, :])
+        else:
+            hmin = np.minimum(np.minimum.outer(self._h[0], self._h[1])[:, :, None], self._h[2][None, None, :])
+            self._lam_e = 4.0 / hmin**2
         self._ratio = np.maximum(self.kw, self.kw_z) / self.rho_w * self._lam_e
         self._scratch = None
         kx, mx = fe1d(grid.xs)
         self._kd, self._ko = kx.diagonal(), kx.diagonal(1)
-        self._md, self._mo = mx.diagonal(), mx.diagonal(1)
+        if nodal:
+            self._md, self._mo = np.asarray(mx.sum(axis=1)).ravel(), np.zeros(len(grid.xs) - 1)
+        else:
+            self._md, self._mo = mx.diagonal(), mx.diagonal(1)
         rz = self.rho_w[0, :, 0]
         sx, sy, sz = (np.asarray(fe1d(c, w)[1].sum(axis=1)).ravel()
                       for c, w in ((grid.xs, None), (grid.ys, None), (grid.zs, rz)))
@@ -345,9 +366,9 @@ class TensorOperator:
         w = np.partition(self.kw, mid, axis=2)[:, :, mid]
         wz = np.partition(self.kw_z, mid, axis=2)[:, :, mid]
         hy, hz = self._h[0], self._h[1]
-        a = _assemble_yz(hy, hz, w, "m", "m")
-        cz = _assemble_yz(hy, hz, wz, "m", "k")
-        self._ab = sp.vstack([a, _assemble_yz(hy, hz, w, "k", "m") + cz]).tocsr()
+        a = _assemble_yz(hy, hz, w, "m", "m", self.nodal)
+        cz = _assemble_yz(hy, hz, wz, "m", "k", self.nodal)
+        self._ab = sp.vstack([a, _assemble_yz(hy, hz, w, "k", "m", self.nodal) + cz]).tocsr()
         self._cz = cz if self._vertical else None
         self._cz_blocks = {}
         self._p = a.shape[0]
@@ -372,8 +393,9 @@ class TensorOperator:
         if len(el):
             j, k, i = np.unravel_index(el, self.elem_shape)
             h = (self._h[2][i], self._h[0][j], self._h[1][k])
-            kze = box_stiffness(*h, vertical_only=True) * dk[:, None, None] if self._vertical or vertical_only else None
-            ke = kze if vertical_only else box_stiffness(*h) * dk[:, None, None]
+            kze = (box_stiffness(*h, vertical_only=True, nodal=self.nodal) * dk[:, None, None]
+                   if self._vertical or vertical_only else None)
+            ke = kze if vertical_only else box_stiffness(*h, nodal=self.nodal) * dk[:, None, None]
             self._corr.add(self._corners(el), ke, kze if self._vertical else None)
 
     def _add_mass(self, el: np.ndarray, dr: np.ndarray) -> None:

@@ -18,6 +18,7 @@ from fe_node.levels import (
 from fe_node.mesh import Grid, graded_axis
 from fe_node.multilevel import MultiLevelModel, plant_model
 from fe_node.scan import ScanPlan
+from fe_node.scenarios import scenario
 from fe_node.settings import Settings
 from fe_node.solver import ThermalModel, check_grid_size
 
@@ -89,7 +90,7 @@ def test_fine_box_does_not_grow_with_the_part():
     assert small.grid.n_nodes == large.grid.n_nodes
     assert small.mid.grid.n_nodes == large.mid.grid.n_nodes
     assert large.part.grid.n_nodes > 5 * small.part.grid.n_nodes       # the part level is the part
-    assert large.node_updates_per_step < 1.25 * small.node_updates_per_step
+    assert large.node_updates_per_step < 1.3 * small.node_updates_per_step
     check_grid_size(s, ScanPlan.layer(400, 40e-3, 1e-4))      # 40 mm: fine under the node cap
 
 
@@ -282,7 +283,7 @@ def test_dwell_cools_as_on_the_uniform_mesh():
     assert rise_un.mean() > 20.0                                   # still warm after the dwell
     np.testing.assert_allclose(rise_ml.mean(), rise_un.mean(), rtol=0.03)
     lost_ml = ml._lost + ml.mid.lost_j + ml.part.lost_j
-    assert lost_ml == pytest.approx(un._lost, rel=0.03)
+    assert lost_ml == pytest.approx(un._lost, rel=0.035)
     assert not ml._a_bottom.any()          # the fine box's bottom face is held: the plate is the levels'
 
 
@@ -305,3 +306,18 @@ def test_a_jump_farther_than_the_box_keeps_the_laser_on_the_grid():
         areas.append(obs.area_m2)
     assert 0 < ml.laser_outside_j < 0.5 * 150.0 * s.dt_s    # the smaller side of the jump's step
     assert min(areas[-5:]) > 0.5 * max(areas)           # the second track melts as the first
+
+
+def test_thin_wall_with_a_dwell_stays_above_ambient():
+    """Three layers of a 2 mm wall on the default plant with a 1 s dwell: the part level's flat top
+    elements under the tracks' heat stay monotone (nodal stiffness), so no node of it falls 10 K
+    below the preheat and the dwell's implicit steps, which refuse a step that undershoots, go
+    through (with the exact trilinear stiffness: 100 K undershoot, the dwell fails)."""
+    sc = scenario("layer", n_tracks=1, track_length_m=2e-3, n_layers=3, mesh="multilevel", dwell_s=1.0)
+    ml = MultiLevelModel(sc.settings, sc.plan, sc.layer_plans)
+    coldest = np.inf
+    while not ml.done:
+        ml.step(*sc.profile.command(ml.step_index))
+        coldest = min(coldest, float(ml.law.temperature(ml.part.h.min())))
+    assert ml.layer == 2
+    assert coldest > sc.settings.t0_k - 10.0

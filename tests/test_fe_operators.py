@@ -232,3 +232,54 @@ def test_refactoring_keeps_the_operator_and_bounds_the_correction(setup):
     assert close(out, fresh.vertical(on_box))
     assert abs(op.assembled() - fresh.assembled()).max() <= 1e-12 * abs(fresh.assembled()).max()
     assert refactored >= 2 and max(sizes) <= 2 * 2 * ex      # two rows of two layers, not the 2 (ey - 4) rows
+
+
+@pytest.fixture(scope="module")
+def corner_basis(setup):
+    """The forms integrated at the 8 corners of each element (nodal quadrature; the hex reference is the unit cube)."""
+    _, mesh, *_ = setup
+    corners = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)]).T
+    return Basis(mesh, ElementHex1(), quadrature=(corners, np.full(8, 1.0 / 8.0)))
+
+
+def test_nodal_operator_equals_the_forms_at_the_corners(setup, corner_basis):
+    """``nodal=True`` (the coarser levels of the multi-level mesh) is ``conduction`` with nodal
+    quadrature, fresh or re-weighted, with vertical weights; its element bound holds."""
+    g, mesh, perm, eorder, _ = setup
+    rng = np.random.default_rng(11)
+    n = eorder.size
+    kw, kw_z = rng.uniform(0.2, 1.0, n), np.ones(n)
+    el = rng.choice(n, 150, replace=False)
+    kw_z[el] = rng.uniform(0.01, 0.3, el.size)
+    kw_z[kw_z == 1.0] = kw[kw_z == 1.0]
+    sk_kw, sk_z = np.empty(n), np.empty(n)
+    sk_kw[eorder], sk_z[eorder] = kw, kw_z
+    rep = lambda w: np.repeat(w[:, None], 8, axis=1)          # noqa: E731
+    b = corner_basis
+    k_ref = (conduction.assemble(b, kw=rep(sk_kw)) - conduction_z.assemble(b, kw=rep(sk_kw))
+             + conduction_z.assemble(b, kw=rep(sk_z)))[perm][:, perm]
+    u = rng.standard_normal(g.n_nodes)
+    fresh = TensorOperator(g, kw, None, kw_z=kw_z, nodal=True)
+    reweighted = TensorOperator(g, nodal=True)
+    reweighted.reweight(np.arange(n), kw, 1.0, kw_z)
+    for op in (fresh, reweighted):
+        assert close(op(u.reshape(g.solver_shape)).ravel(), k_ref @ u)
+    assert abs(fresh.assembled() - k_ref).max() <= 1e-12 * abs(k_ref).max()
+    d = sp.diags(1.0 / np.sqrt(np.ravel(fresh.lumped_mass)))
+    lam = sp.linalg.eigsh(d @ fresh.assembled() @ d, k=1, which="LA", return_eigenvectors=False)[0]
+    assert lam <= fresh.stability_eigenvalue()
+
+
+def test_nodal_operator_is_an_m_matrix_where_the_exact_one_is_not():
+    """Flat elements (200 x 200 x 50 µm, the part level's top rows) with an insulating powder row's
+    vertical weight: the exact trilinear stiffness couples in-plane neighbours positively (a hot
+    node cools them), the nodal one has no positive off-diagonal entry."""
+    zs = np.array([-0.4e-3, -0.2e-3, -0.1e-3, -0.05e-3, 0.0])
+    g = Grid(np.linspace(0.0, 2e-3, 11), np.linspace(0.0, 2e-3, 11), zs)
+    ny, nz, nx = g.solver_shape
+    kw_z = np.ones((ny - 1, nz - 1, nx - 1))
+    kw_z[:, -1, :] = 0.05
+    for nodal, positive in ((False, True), (True, False)):
+        k = TensorOperator(g, None, None, kw_z=kw_z.ravel(), nodal=nodal).assembled().tocoo()
+        off = k.data[k.row != k.col]
+        assert (off.max() > 1e-12 * abs(k.data).max()) == positive
