@@ -397,7 +397,7 @@ class ConductionLevel:
         dt = duration_s / n
         c = (dt * self.law.k_ref) / self.m
         c_top = dt / self.m[:, -1, :]
-        work = StepWork(self.law, self.h.shape)
+        work = StepWork(self.h.shape)
         top_free, bottom_free = np.ones(self.a_top.shape), np.ones(self.a_top.shape)
         if held is not None and held[1].stop == self.h.shape[1]:
             top_free[held[0], held[2]] = 0.0

@@ -172,13 +172,9 @@ class Constitutive:
         """Enthalpy [J/m³] at and below which :meth:`mushy_integral` is 0: two table intervals
         below the solidus (the table's ``T`` is monotone and exact at its nodes)."""
 
-    def workspace(self, shape) -> tuple[np.ndarray, np.ndarray]:
-        """Scratch arrays ``(float, intp)`` of ``shape`` for :meth:`kirchhoff` on a hot path."""
-        return np.empty(shape), np.empty(shape, dtype=np.intp)
-
-    def _index(self, h, work=None):
-        """Table interval of each ``h``, clipped to the table (in ``work``'s arrays if given)."""
-        x, i = work if work is not None else self.workspace(np.shape(h))
+    def _index(self, h):
+        """Table interval of each ``h``, clipped to the table."""
+        x, i = np.empty(np.shape(h)), np.empty(np.shape(h), dtype=np.intp)
         np.subtract(h, self._h0, out=x)
         x *= self._inv_dh
         i[...] = x                                  # truncation, as ``astype``
@@ -198,18 +194,17 @@ class Constitutive:
         """``d phi / d H`` [K m³/J] at enthalpy ``h`` (the table's slope; small in the mushy range)."""
         return self._p_b[self._index(h)]
 
-    def kirchhoff(self, h, out=None, work=None):
+    def kirchhoff(self, h, out=None):
         """Kirchhoff variable phi [K] from enthalpy ``h`` [J/m³] (any shape).
 
-        ``out`` (h's shape) receives the result and ``work`` (:meth:`workspace`) holds the
-        intermediates: no array is allocated on the explicit stepping path.
+        ``out`` (C-contiguous, h's shape) receives the result: no array is allocated on the
+        explicit stepping path (one compiled pass, :func:`fe_node.kernels.piecewise_linear`).
         """
-        h = np.asarray(h, dtype=float)
-        work = work if work is not None else self.workspace(h.shape)
-        i = self._index(h, work)
-        out = np.take(self._p_b, i, out=out)
-        out *= h
-        out += np.take(self._p_a, i, out=work[0])
+        from fe_node.kernels import piecewise_linear
+
+        h = np.ascontiguousarray(h, dtype=float)
+        out = np.empty_like(h) if out is None else out
+        piecewise_linear(h.reshape(-1), self._h0, self._inv_dh, self._imax, self._p_a, self._p_b, out.reshape(-1))
         return out
 
     def mushy_integral(self, h):

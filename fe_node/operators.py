@@ -344,7 +344,6 @@ class TensorOperator:
             hmin = np.minimum(np.minimum.outer(self._h[0], self._h[1])[:, :, None], self._h[2][None, None, :])
             self._lam_e = 4.0 / hmin**2
         self._ratio = np.maximum(self.kw, self.kw_z) / self.rho_w * self._lam_e
-        self._scratch = None
         kx, mx = fe1d(grid.xs)
         self._kd, self._ko = kx.diagonal(), kx.diagonal(1)
         if nodal:
@@ -408,23 +407,15 @@ class TensorOperator:
     def __call__(self, u: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Return ``K_w u`` with the shape of ``u`` (solver order, flat or (ny, nz, nx)).
 
-        ``out`` (contiguous, ``u``'s size) receives the result; the x pass then runs in the
-        operator's own scratch arrays, so a step allocates only the (y, z) product.
+        ``out`` (contiguous, ``u``'s size) receives the result; a step then allocates only the
+        (y, z) product (the x pass is one compiled loop, :func:`fe_node.kernels.x_pass`).
         """
+        from fe_node.kernels import x_pass
+
         p, nx = self._p, self.shape[2]
-        if self._scratch is None:
-            self._scratch = (np.empty((p, nx)), np.empty((p, nx - 1)), np.empty((p, nx - 1)))
-        full, e1, e2 = self._scratch
         vw = self._ab @ np.reshape(u, (p, nx))
-        v, w = vw[:p], vw[p:]
-        res = np.multiply(v, self._kd, out=None if out is None else np.reshape(out, (p, nx)))
-        res += np.multiply(w, self._md, out=full)
-        up = np.multiply(v[:, :-1], self._ko, out=e1)     # couplings (i, i+1): contributions to row i+1
-        up += np.multiply(w[:, :-1], self._mo, out=e2)
-        res[:, 1:] += up
-        dn = np.multiply(v[:, 1:], self._ko, out=e1)      # contributions to row i
-        dn += np.multiply(w[:, 1:], self._mo, out=e2)
-        res[:, :-1] += dn
+        res = np.empty((p, nx)) if out is None else np.reshape(out, (p, nx))
+        x_pass(vw[:p], vw[p:], self._kd, self._ko, self._md, self._mo, res)
         self._corr.apply(np.ravel(u), res.reshape(-1))
         return res.reshape(np.shape(u)) if out is None else out
 

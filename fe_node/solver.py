@@ -146,10 +146,9 @@ class StepWork:
     doubled the step time on the shipped layer (``docs/fe.md``, "Step cost").
     """
 
-    def __init__(self, law: Constitutive, shape: tuple[int, ...]):
+    def __init__(self, shape: tuple[int, ...]):
         self.phi = np.empty(shape)
         self.kphi = np.empty(shape)
-        self.table = law.workspace(shape)
         self.mask = np.empty(shape, dtype=bool)
 
 
@@ -195,8 +194,8 @@ def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, t
     work : StepWork, optional
         Scratch arrays of ``h``'s shape (default: allocated for this call).
     """
-    work = work if work is not None else StepWork(law, h.shape)
-    phi = law.kirchhoff(h, out=work.phi, work=work.table)
+    work = work if work is not None else StepWork(h.shape)
+    phi = law.kirchhoff(h, out=work.phi)
     f_xy, f_z = liquid_factors
     box = None if f_xy == f_z == 1.0 else node_box(h, law.mushy_floor, work.mask)   # psi = 0 outside
     if box is not None:
@@ -416,7 +415,7 @@ class ThermalModel:
         self._m = np.reshape(self.operator.lumped_mass, self.grid.solver_shape)
         self._depth_w = depth_weights(self.grid.zs, self.settings.penetration_depth_m)
         if self._work is None or self._work.phi.shape != self._m.shape:
-            self._work = StepWork(self.law, self._m.shape)
+            self._work = StepWork(self._m.shape)
         self._set_factors(self._stable_substeps())
 
     def _stable_substeps(self) -> int:

@@ -1,0 +1,34 @@
+"""The compiled loops of ``fe_node.kernels`` equal the numpy forms they replace, bit for bit."""
+import numpy as np
+
+from fe_node.kernels import piecewise_linear, x_pass
+from fe_node.material import Constitutive, Material
+
+
+def test_x_pass_equals_the_numpy_passes():
+    rng = np.random.default_rng(4)
+    p, nx = 37, 53
+    v, w = rng.standard_normal((p, nx)), rng.standard_normal((p, nx))
+    kd, ko, md, mo = (rng.standard_normal(n) for n in (nx, nx - 1, nx, nx - 1))
+    ref = v * kd + w * md
+    ref[:, 1:] += v[:, :-1] * ko + w[:, :-1] * mo
+    ref[:, :-1] += v[:, 1:] * ko + w[:, 1:] * mo
+    out = np.empty((p, nx))
+    x_pass(v, w, kd, ko, md, mo, out)
+    np.testing.assert_array_equal(out, ref)
+
+
+def test_kirchhoff_is_the_table_clipped_at_its_ends():
+    """On the table's nodes phi is np.interp of its nodes; inside an interval it is the interval's
+    line (the numpy form, bitwise); below the table the first line, above it the liquid line."""
+    law = Constitutive(Material.in625())
+    h = np.linspace(law._h0 - 1e8, law._h0 + (law._imax + 3) / law._inv_dh, 20_011)
+    i = np.clip(((h - law._h0) * law._inv_dh).astype(np.intp), 0, law._imax)
+    np.testing.assert_array_equal(law.kirchhoff(h), law._p_b[i] * h + law._p_a[i])
+    out = np.empty((7, 3))
+    grid = h[5_000:5_021].reshape(7, 3)
+    assert law.kirchhoff(grid, out=out) is out
+    np.testing.assert_array_equal(out, law.kirchhoff(grid.ravel()).reshape(7, 3))
+    a, b, out1 = np.array([1.0, 2.0]), np.array([10.0, 20.0]), np.empty(4)
+    piecewise_linear(np.array([-5.0, 0.5, 1.5, 9.0]), 0.0, 1.0, 1, a, b, out1)
+    np.testing.assert_array_equal(out1, [-49.0, 6.0, 32.0, 182.0])
