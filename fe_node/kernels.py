@@ -39,3 +39,41 @@ def piecewise_linear(h: np.ndarray, h0: float, inv_dh: float, imax: int, a: np.n
         if i > imax:
             i = imax
         out[n] = b[i] * h[n] + a[i]
+
+
+@numba.njit(cache=True, nogil=True)
+def element_apply(corners: np.ndarray, ke: np.ndarray, u: np.ndarray, out: np.ndarray) -> None:
+    """``out += sum_e K_e u`` for element matrices ``ke`` (n, 8, 8) on the flat node indices
+    ``corners`` (n, 8) of the flat arrays ``u`` and ``out``."""
+    for e in range(corners.shape[0]):
+        for a in range(8):
+            s = 0.0
+            for b in range(8):
+                s += ke[e, a, b] * u[corners[e, b]]
+            out[corners[e, a]] += s
+
+
+@numba.njit(cache=True, nogil=True)
+def element_apply_box(corners: np.ndarray, ke: np.ndarray, u_box: np.ndarray, j0: int, k0: int, i0: int, nz: int,
+                      nx: int, out: np.ndarray) -> None:
+    """``out += sum_e K_e u`` as :func:`element_apply`, for ``u`` zero outside a box of nodes that
+    starts at (``j0``, ``k0``, ``i0``) of a grid with ``nz``, ``nx`` nodes along z, x, ``u_box``
+    (its shape) its values there; elements with no corner in the box are skipped."""
+    ny_b, nz_b, nx_b = u_box.shape
+    vals = np.empty(8)
+    for e in range(corners.shape[0]):
+        inside = False
+        for b in range(8):
+            c = corners[e, b]
+            j, k, i = c // (nz * nx) - j0, (c // nx) % nz - k0, c % nx - i0
+            if 0 <= j < ny_b and 0 <= k < nz_b and 0 <= i < nx_b:
+                vals[b] = u_box[j, k, i]
+                inside = True
+            else:
+                vals[b] = 0.0
+        if inside:
+            for a in range(8):
+                s = 0.0
+                for b in range(8):
+                    s += ke[e, a, b] * vals[b]
+                out[corners[e, a]] += s

@@ -184,36 +184,10 @@ def box_stiffness(hx, hy, hz, vertical_only: bool = False, nodal: bool = False) 
     return z if vertical_only else kron3(m1(hy), m1(hz), k1(hx)) + kron3(k1(hy), m1(hz), m1(hx)) + z
 
 
-class _Block:
-    """A CSR matrix ``k`` (and ``kz``) on the sorted flat node indices ``nodes`` of a grid of ``shape``."""
-
-    def __init__(self, nodes: np.ndarray, k: sp.csr_matrix, kz: sp.csr_matrix | None, shape: tuple[int, int, int]):
-        self.nodes, self.k, self.kz = nodes, k, kz
-        self.jki = np.unravel_index(nodes, shape)
-
-    @classmethod
-    def of_elements(cls, corners: np.ndarray, ke: np.ndarray, kze: np.ndarray | None, shape) -> _Block:
-        """The sum of element matrices ``ke`` (and ``kze``), shape (n, 8, 8), on nodes ``corners`` (n, 8)."""
-        nodes = np.unique(corners)
-        local, n = np.searchsorted(nodes, corners), len(nodes)
-        rows, cols = np.repeat(local, 8, axis=1).ravel(), np.tile(local, (1, 8)).ravel()
-        kz = None if kze is None else sp.csr_matrix((kze.ravel(), (rows, cols)), shape=(n, n))
-        return cls(nodes, sp.csr_matrix((ke.ravel(), (rows, cols)), shape=(n, n)), kz, shape)
-
-    def plus(self, other: _Block, shape) -> _Block:
-        """The sum of two blocks, on the union of their nodes."""
-        nodes = np.union1d(self.nodes, other.nodes)
-        n, a, b = len(nodes), np.searchsorted(nodes, self.nodes), np.searchsorted(nodes, other.nodes)
-        kz = None if self.kz is None else _renumber(self.kz, a, n) + _renumber(other.kz, b, n)
-        return _Block(nodes, _renumber(self.k, a, n) + _renumber(other.k, b, n), kz, shape)
-
-
 class _Correction:
-    """``sum_e dk_e K_e`` (and ``K_z``) over some elements, as CSR matrices on only the nodes
-    those elements touch: a product costs the correction's size, not the grid's.
-
-    Elements are added to a recent block, merged into the main one once it holds more than a
-    quarter of the main block's elements, so adding a few costs the recent block's size.
+    """``sum_e dk_e K_e`` (and ``K_z``) over some elements, kept element by element: adding some
+    copies their matrices, a product costs 64 products per element held (compiled loops,
+    :func:`fe_node.kernels.element_apply`).
 
     Parameters
     ----------
@@ -224,52 +198,54 @@ class _Correction:
     """
 
     def __init__(self, shape: tuple[int, int, int], vertical: bool):
-        self.shape = shape
-        self._empty = _Block(np.empty(0, dtype=np.intp), sp.csr_matrix((0, 0)),
-                             sp.csr_matrix((0, 0)) if vertical else None, shape)
-        self._main = self._recent = self._empty
+        self.shape, self._vertical = shape, vertical
+        self._corners = np.empty((0, 8), dtype=np.intp)
+        self._ke = np.empty((0, 8, 8))
+        self._kze = np.empty((0, 8, 8))
         self.n_elements = 0
         """Element matrices added so far (an element added twice counts twice)."""
-        self._n_recent = 0
 
     def add(self, corners: np.ndarray, ke: np.ndarray, kze: np.ndarray | None) -> None:
         """Add element matrices ``ke`` (and ``kze``), shape (n, 8, 8), on nodes ``corners`` (n, 8)."""
-        self._recent = self._recent.plus(_Block.of_elements(corners, ke, kze, self.shape), self.shape)
-        self.n_elements += len(corners)
-        self._n_recent += len(corners)
-        if 4 * self._n_recent > self.n_elements - self._n_recent:
-            self._main, self._recent, self._n_recent = self._main.plus(self._recent, self.shape), self._empty, 0
+        n, m = self.n_elements, len(corners)
+        if n + m > len(self._corners):                 # capacity doubles: adding is amortised O(m)
+            cap = max(2 * len(self._corners), n + m, 64)
+            grow = [(np.empty((cap, 8), dtype=np.intp), self._corners), (np.empty((cap, 8, 8)), self._ke)]
+            if self._vertical:
+                grow.append((np.empty((cap, 8, 8)), self._kze))
+            for new, old in grow:
+                new[:n] = old[:n]
+            self._corners, self._ke = grow[0][0], grow[1][0]
+            if self._vertical:
+                self._kze = grow[2][0]
+        self._corners[n:n + m], self._ke[n:n + m] = corners, ke
+        if self._vertical:
+            self._kze[n:n + m] = kze
+        self.n_elements = n + m
 
     def apply(self, u: np.ndarray, out: np.ndarray) -> None:
         """``out += K u`` (flat arrays of the grid's size)."""
-        for b in (self._main, self._recent):
-            if len(b.nodes):
-                out[b.nodes] += b.k @ u[b.nodes]
+        from fe_node.kernels import element_apply
+
+        n = self.n_elements
+        if n:
+            element_apply(self._corners[:n], self._ke[:n], u, out)
 
     def apply_vertical(self, u_box: np.ndarray, box: tuple[slice, slice, slice], out: np.ndarray) -> None:
         """``out += K_z u`` (``out`` flat) for ``u`` zero outside the node box ``box``, ``u_box`` its values there."""
-        (sj, sk, si) = box
-        for b in (self._main, self._recent):
-            j, k, i = b.jki
-            sel = np.flatnonzero((j >= sj.start) & (j < sj.stop) & (k >= sk.start) & (k < sk.stop)
-                                 & (i >= si.start) & (i < si.stop))
-            if len(sel):
-                u = np.zeros(len(b.nodes))
-                u[sel] = u_box[j[sel] - sj.start, k[sel] - sk.start, i[sel] - si.start]
-                out[b.nodes] += b.kz @ u
+        from fe_node.kernels import element_apply_box
+
+        n = self.n_elements
+        if n:
+            _, nz, nx = self.shape
+            element_apply_box(self._corners[:n], self._kze[:n], np.ascontiguousarray(u_box, dtype=float),
+                              box[0].start, box[1].start, box[2].start, nz, nx, out)
 
     def matrix(self, n_nodes: int) -> sp.csr_matrix:
         """``K`` on all ``n_nodes`` nodes."""
-        coo = self._main.plus(self._recent, self.shape).k.tocoo()
-        nodes = np.union1d(self._main.nodes, self._recent.nodes)
-        return sp.csr_matrix((coo.data, (nodes[coo.row], nodes[coo.col])), shape=(n_nodes, n_nodes))
-
-
-def _renumber(m: sp.csr_matrix, remap: np.ndarray, n: int) -> sp.csr_matrix:
-    """``m`` (k, k) as rows and columns ``remap`` (increasing) of an (n, n) CSR matrix."""
-    counts = np.zeros(n, dtype=np.intp)
-    counts[remap] = np.diff(m.indptr)
-    return sp.csr_matrix((m.data, remap[m.indices], np.concatenate([[0], np.cumsum(counts)])), shape=(n, n))
+        c = self._corners[:self.n_elements]
+        rows, cols = np.repeat(c, 8, axis=1).ravel(), np.tile(c, (1, 8)).ravel()
+        return sp.csr_matrix((self._ke[:self.n_elements].ravel(), (rows, cols)), shape=(n_nodes, n_nodes))
 
 
 def _mass1(h: np.ndarray, nodal: bool) -> np.ndarray:
