@@ -42,7 +42,8 @@ NUMBA_FREE_MODULES = frozenset({
     "test_fe_scan.py", "test_fe_config.py", "test_contract_nodes.py", "test_launch.py", "test_recorder_crash.py",
     "test_report.py", "test_layering.py", "test_plan_feature.py", "test_low_latency.py", "test_hostile_input.py",
     "test_controller_types.py", "test_controller_node.py", "test_blas_threads.py", "test_turn_sensitivity.py",
-    "test_bench_suite.py", "test_fe_multilevel.py",
+    "test_bench_suite.py", "test_fe_multilevel.py", "test_freerun.py", "test_replay.py", "test_contract_plain_node.py",
+    "test_campaign_dask.py",  # the open-loop plant under launch.py, no controller
 })
 """Test modules that build no controller but the PID and no GP model (no numba function): they run
 first, while the warm-up compiles; every other test waits for it."""
@@ -93,8 +94,11 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Under pytest-xdist (``--dist loadgroup``), keep the tests that share one of this suite's
     module- or session-scoped fixtures on one worker, so that the fixture is built once: group
     ``<file>`` for a module fixture, ``<fixture name>`` for a session fixture (e.g. ``mpc_run``).
-    The :data:`NUMBA_FREE_MODULES` come first (they run during the numba warm-up)."""
-    items.sort(key=lambda item: item.path.name not in NUMBA_FREE_MODULES)  # (stable: in file order otherwise)
+    The :data:`NUMBA_FREE_MODULES` come first (they run during the numba warm-up), and in each
+    part the groups before the single tests, which fill the end of the run. The workers take the
+    tests in this order (``--no-loadscope-reorder`` in the project's addopts: pytest-xdist would
+    otherwise start with the largest groups, numba's or not, and all three workers would wait for
+    the warm-up at once)."""
     tests_dir = Path(__file__).resolve().parent
     for item in items:
         info = getattr(item, "_fixtureinfo", None)
@@ -112,6 +116,8 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
                 group = item.path.name
         if group is not None:
             item.add_marker(pytest.mark.xdist_group(group))
+    # (stable: in file order otherwise)
+    items.sort(key=lambda item: (item.path.name not in NUMBA_FREE_MODULES, not item.get_closest_marker("xdist_group")))
 
 
 def free_endpoint() -> str:

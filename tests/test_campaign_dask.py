@@ -28,6 +28,23 @@ from tests.plants import BARE
 SHORT = ("--h-um", "50")  # the coarsest mesh the beam allows
 
 
+@pytest.fixture(scope="module")
+def cluster():
+    """One TLS ``LocalCluster`` of two worker processes for this module's campaigns on an existing
+    cluster (``--scheduler``), as a user starts one: (scheduler address, worker addresses, the
+    credentials a client sets with :func:`client_credentials`). The campaign's own cluster
+    (``--workers``) has its own tests."""
+    import logging
+
+    from distributed import LocalCluster
+    from distributed.security import Security
+
+    security = Security.temporary()
+    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None, silence_logs=logging.ERROR,
+                      security=security) as local:
+        yield local.scheduler_address, set(local.scheduler_info["workers"]), security
+
+
 def dataset_digest(recordings: list[Path]) -> str:
     """SHA-256 of the dataset's arrays (Z, y, source, step, track: dtype, shape and bytes), built
     from ``recordings`` in the given order as ``python -m gp_trainer dataset`` builds it."""
@@ -48,14 +65,16 @@ def _jobs(steps: tuple[int, ...]) -> list[Job]:
             for c, n in enumerate(steps, 1)]
 
 
-def _compare(tmp_path: Path, jobs: list[Job], launch_args: tuple[str, ...]) -> None:
+def _compare(tmp_path: Path, jobs: list[Job], launch_args: tuple[str, ...], cluster: tuple) -> None:
     base = CampaignSettings(out_dir=tmp_path / "sequential", sequential=True, launch_args=launch_args)
     local = run_jobs(jobs, base, progress=False)
-    dask = run_jobs(jobs, dataclasses.replace(base, out_dir=tmp_path / "dask", sequential=False, workers=2),
-                    progress=False)
+    scheduler, workers, security = cluster
+    with client_credentials(security):
+        dask = run_jobs(jobs, dataclasses.replace(base, out_dir=tmp_path / "dask", sequential=False,
+                                                  scheduler=scheduler), progress=False)
     assert [r.status for r in local] == [r.status for r in dask] == ["ok"] * len(jobs), [r.detail for r in dask]
     assert [r.name for r in dask] == [j.name for j in jobs]  # job order, whatever finished first
-    assert {r.worker for r in local} == {"local"} and all(r.worker.startswith("tls://") for r in dask)
+    assert {r.worker for r in local} == {"local"} and {r.worker for r in dask} <= workers
     assert [r.states_sha256 for r in local] == [r.states_sha256 for r in dask]
     paths = {name: [Path(r.recording) for r in results] for name, results in (("local", local), ("dask", dask))}
     assert dataset_digest(paths["local"]) == dataset_digest(paths["dask"])
@@ -63,8 +82,8 @@ def _compare(tmp_path: Path, jobs: list[Job], launch_args: tuple[str, ...]) -> N
     assert sorted(p.name for p in (tmp_path / "dask").iterdir()) == sorted(f"{j.name}.mcap" for j in jobs)
 
 
-def test_two_worker_cluster_gives_the_sequential_dataset_bit_for_bit(tmp_path):
-    _compare(tmp_path, _jobs((30, 10)), SHORT)
+def test_two_worker_cluster_gives_the_sequential_dataset_bit_for_bit(tmp_path, cluster):
+    _compare(tmp_path, _jobs((30, 10)), SHORT, cluster)
 
 
 @pytest.mark.slow
@@ -109,7 +128,7 @@ def launched(out: Path, case: int) -> list[int]:
     return [int(line) for line in log.read_text().split()] if log.exists() else []
 
 
-def test_failed_case_is_retried_once_then_reported_and_the_others_kept(tmp_path, monkeypatch, capsys):
+def test_failed_case_is_retried_once_then_reported_and_the_others_kept(tmp_path, monkeypatch, capsys, cluster):
     """A failed attempt is retried once, and only a failed one: case 1 fails twice and is reported,
     case 2 fails once and then succeeds, case 3 succeeds. The successes are real runs; should case 3's
     fail on its own (a loaded machine), the campaign must retry it: its attempts are checked against
@@ -122,7 +141,8 @@ def test_failed_case_is_retried_once_then_reported_and_the_others_kept(tmp_path,
                                                             progress=progress))
     out = tmp_path / "out"
     argv = ["campaign", "--cases", "1", "2", "3", "--max-steps", "10", *SHORT, "--out-dir", str(out), "--json"]
-    assert main([*argv, "--workers", "2"]) == 1
+    with client_credentials(cluster[2]):
+        assert main([*argv, "--scheduler", cluster[0]]) == 1
     captured = capsys.readouterr()
     summary = json.loads(captured.out.strip().splitlines()[-1])
     cases = {c["case"]: c for c in summary["cases"]}
@@ -211,24 +231,16 @@ def test_workers_and_scheduler_exclude_each_other(tmp_path, capsys):
     assert info.value.code == 2 and "--scheduler: not allowed with argument --workers" in capsys.readouterr().err
 
 
-def test_existing_cluster_via_scheduler_address(tmp_path):
-    """``--scheduler``: a cluster started elsewhere (here a LocalCluster of this test) runs the case."""
-    import logging
-
-    from distributed import LocalCluster
-
+def test_existing_cluster_via_scheduler_address(tmp_path, cluster):
+    """``--scheduler``: a cluster started elsewhere (here the module's) runs the case."""
     settings = CampaignSettings(cases=(2,), out_dir=tmp_path / "seq", sequential=True,
                                 launch_args=("--max-steps", "10", *SHORT))
     (reference,) = run_campaign(settings, progress=False)
-    from distributed.security import Security
-
-    security = Security.temporary()
-    with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None, silence_logs=logging.ERROR,
-                      security=security) as cluster, client_credentials(security):
+    scheduler, workers, security = cluster
+    with client_credentials(security):
         (result,) = run_campaign(dataclasses.replace(settings, out_dir=tmp_path / "dask", sequential=False,
-                                                     scheduler=cluster.scheduler_address), progress=False)
-        worker = next(iter(cluster.scheduler_info["workers"]))
-    assert (result.status, result.worker, result.attempts) == ("ok", worker, 1)
+                                                     scheduler=scheduler), progress=False)
+    assert (result.status, result.attempts) == ("ok", 1) and result.worker in workers
     assert result.states_sha256 == reference.states_sha256 is not None
 
 

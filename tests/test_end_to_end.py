@@ -8,6 +8,7 @@ import sys
 
 from messages.recording import is_complete, metadata, read_messages, run_config
 from tests.conftest import REPO
+from tests.plants import BARE_ARGS
 from tests.test_recorder import validate_recording
 
 
@@ -69,7 +70,7 @@ def test_same_config_gives_the_same_recording(tmp_path):
     """Two runs of one configuration, side by side (each on its own hub), record the same states."""
     outs = [tmp_path / f"{name}.mcap" for name in ("a", "b")]
     procs = [subprocess.Popen([sys.executable, "launch.py", "--no-progress", "--controller", "pid", "--max-steps", "40",
-                               "--h-um", "40", "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE,
+                               "--h-um", "40", *BARE_ARGS, "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True) for out in outs]
     traces = []
     for proc, out in zip(procs, outs):
