@@ -49,6 +49,7 @@ from fe_node.levels import (
 )
 from fe_node.mesh import Grid, graded_axis
 from fe_node.observe import Observation, interp_matrix, interpolate_points
+from fe_node.operators import TensorOperator
 from fe_node.powder import RHO_W, PowderBed
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
@@ -379,8 +380,9 @@ class MultiLevelModel(ThermalModel):
 
     def _rebuild_box(self, new: Grid) -> None:
         """Carry the fine level over to grid ``new`` (:func:`~fe_node.levels.prolong` from the old box
-        and the intermediate level): weights and powder bed from the consolidation lattice, operator,
-        held faces; the energy the change brings in is added to the initial energy."""
+        and the intermediate level): weights and powder bed from the consolidation lattice, operator
+        (the old one moved, :meth:`TensorOperator.moved`, when ``new`` is a translate of the old
+        box), held faces; the energy the change brings in is added to the initial energy."""
         e_before = self._energy()
         self._h = np.ascontiguousarray(prolong(self.mid.grid, self.mid.h, self.grid, self._h, new))
         ny, nz, nx = new.solver_shape
@@ -394,7 +396,9 @@ class MultiLevelModel(ThermalModel):
             self.powder = bed
         self.grid = new
         self._check_nodes()
-        self.operator = self._build_operator(kw.ravel(), np.full(kw.size, RHO_W))
+        rho_w = np.full(kw.size, RHO_W)
+        moved = self.operator.moved(new, kw.ravel(), rho_w) if isinstance(self.operator, TensorOperator) else None
+        self.operator = moved if moved is not None else self._build_operator(kw.ravel(), rho_w)
         self._a_top, self._a_bottom = self._face_areas()
         self._set_time_step()
         self._faces = HeldFaces(new, self.mid.grid)

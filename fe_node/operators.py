@@ -21,6 +21,8 @@ operator uses the mesh's order unless given ``order``.  Element order of the ten
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -222,6 +224,13 @@ class _Correction:
         if self._vertical:
             self._kze[n:n + m] = kze
         self.n_elements = n + m
+
+    def copy(self) -> _Correction:
+        """An independent copy."""
+        new = copy.copy(self)
+        n = self.n_elements
+        new._corners, new._ke, new._kze = self._corners[:n].copy(), self._ke[:n].copy(), self._kze[:n].copy()
+        return new
 
     def apply(self, u: np.ndarray, out: np.ndarray) -> None:
         """``out += K u`` (flat arrays of the grid's size)."""
@@ -449,6 +458,33 @@ class TensorOperator:
         else:
             self._add_stiffness(el[dk != 0], dk[dk != 0])
             self._add_stiffness(el[dz != 0], dz[dz != 0], vertical_only=True)
+
+    def moved(self, grid: Grid, kw=None, rho_w=None) -> TensorOperator | None:
+        """This operator on ``grid``, a translate of its grid, with element weights ``kw`` and
+        ``rho_w`` (as in the constructor; vertical weights equal to ``kw``), or ``None`` if ``grid``
+        is no translate (other spacings along x, y or other heights).
+
+        The factors, the element bounds and the correction are reused; only the elements whose
+        weights differ from this operator's at the same place are re-weighted (:meth:`reweight`):
+        a box that moves along the tracks keeps most of its weights.
+        """
+        same = (np.array_equal(grid.zs, self.grid.zs)
+                and all(len(a) == len(b) and np.allclose(np.diff(a), np.diff(b), rtol=1e-9, atol=0.0)
+                        for a, b in ((grid.xs, self.grid.xs), (grid.ys, self.grid.ys))))
+        if not same:
+            return None
+        kw = _weights(kw, self.n_elements, "kw")
+        rho_w = _weights(rho_w, self.n_elements, "rho_w")
+        _check_positive(kw, rho_w)
+        new = copy.copy(self)
+        new.grid = grid
+        new.kw, new.kw_z, new.rho_w = self.kw.copy(), self.kw_z.copy(), self.rho_w.copy()
+        new._ratio, new.lumped_mass = self._ratio.copy(), self.lumped_mass.copy()
+        new._corr, new._cz_blocks = self._corr.copy(), dict(self._cz_blocks)
+        changed = np.flatnonzero((kw != self.kw.ravel()) | (kw != self.kw_z.ravel()) | (rho_w != self.rho_w.ravel()))
+        if len(changed):
+            new.reweight(changed, kw[changed], rho_w[changed])
+        return new
 
     def stability_eigenvalue(self) -> float:
         """Upper bound of ``lambda_max(M_L^-1 K_w)`` [1/m²] (element bound, module docstring)."""

@@ -321,3 +321,18 @@ def test_thin_wall_with_a_dwell_stays_above_ambient():
         coldest = min(coldest, float(ml.law.temperature(ml.part.h.min())))
     assert ml.layer == 2
     assert coldest > sc.settings.t0_k - 10.0
+
+
+def test_the_fine_operator_moves_with_the_box(monkeypatch):
+    """Along a track the fine box moves by whole cells: its operator is moved (factors reused,
+    changed weights re-weighted), not assembled again at each move; it is assembled at the start
+    and where the box's spacings change (graded near the track's ends)."""
+    builds = []
+    build = MultiLevelModel._build_operator
+    monkeypatch.setattr(MultiLevelModel, "_build_operator", lambda self, *a: builds.append(1) or build(self, *a))
+    s = Settings(**COARSE, powder_layer_m=50e-6, fine_box_m=1.6e-3, mid_box_m=3.2e-3, mid_h_m=100e-6,
+                 coarse_h_m=300e-6)
+    ml = model(s, ScanPlan.layer(1, 4e-3, 1e-4))
+    while not ml.done:
+        ml.step(150.0, 0.8)
+    assert len(builds) <= 4 < ml.n_remeshes - 3

@@ -283,3 +283,24 @@ def test_nodal_operator_is_an_m_matrix_where_the_exact_one_is_not():
         k = TensorOperator(g, None, None, kw_z=kw_z.ravel(), nodal=nodal).assembled().tocoo()
         off = k.data[k.row != k.col]
         assert (off.max() > 1e-12 * abs(k.data).max()) == positive
+
+
+def test_a_moved_operator_equals_a_fresh_one(setup):
+    """``moved`` on a translate of the grid (a fine box that moved by whole cells) with other
+    weights equals the operator built there afresh; a grid of other spacings is refused."""
+    g, *_ = setup
+    rng = np.random.default_rng(21)
+    shape = (len(g.ys) - 1, len(g.zs) - 1, len(g.xs) - 1)
+    kw = np.broadcast_to(rng.uniform(0.05, 1.0, shape[1])[None, :, None], shape).copy()
+    kw[:, :, : shape[2] // 3] = 1.0                     # consolidated behind, powder ahead
+    op = TensorOperator(g, kw.ravel(), None, vertical=True)
+    moved_grid = Grid(g.xs + 7 * 30e-6, g.ys - 2 * 30e-6, g.zs)
+    kw2 = np.roll(kw, -2, axis=2)
+    kw2.ravel()[rng.choice(kw2.size, 30, replace=False)] = 0.5
+    moved = op.moved(moved_grid, kw2.ravel())
+    fresh = TensorOperator(moved_grid, kw2.ravel(), None, vertical=True)
+    u = rng.standard_normal(g.solver_shape)
+    assert close(moved(u), fresh(u)) and close(moved.vertical(u), fresh.vertical(u))
+    assert moved.stability_eigenvalue() == pytest.approx(fresh.stability_eigenvalue(), rel=1e-9)
+    assert close(op(u), TensorOperator(g, kw.ravel(), None, vertical=True)(u))     # the old one is untouched
+    assert op.moved(Grid(g.xs * 1.1, g.ys, g.zs), kw2.ravel()) is None
