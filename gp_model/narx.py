@@ -742,7 +742,8 @@ class NarxGPModel:
         leaves out the squared lags (a plain FIR part); ``interaction`` adds the lag-matched
         p × T terms; ``feature_lags`` > 0 the lagged turnaround features ``F[k+1−l]``, l < feature_lags,
         of ``turn_feature``; ``smoothing`` λ > 0 the smoothness prior on every lag kernel
-        (:func:`smoothing_rows`). The model's scan
+        (:func:`smoothing_rows`). The turnaround profile spans ``profile_length`` states, at least the
+        feature's ``n_targets`` (the forecast's feature part is fitted against it). The model's scan
         speed is the runs' (:attr:`RunSeries.speed_m_s`), or ``speed_m_s``
         [m/s] for runs that record none.
 
@@ -792,7 +793,7 @@ class NarxGPModel:
         residual = target - X @ theta
         pick = np.sort(np.random.default_rng(seed).choice(Y.size, size=n_train, replace=False))
         gp = ResidualGP.fit(PSI[pick], residual[pick], bounds=bounds, seed=seed, n_restarts=n_restarts)
-        profile = turn_profile(runs, profile_length)
+        profile = turn_profile(runs, max(profile_length, feature.n_targets if feature else 0))
         gain, feature_profile = probe._feature_forecast_fit(runs, profile) if feature else (0.0, None)
         record = dict(provenance or {})
         record.update(seed=seed, n_train=n_train, smoothing=smoothing, n_samples=int(Y.size),

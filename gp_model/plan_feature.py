@@ -75,9 +75,12 @@ class TurnFeature:
     beam_sigma_m : float
         σ of the Gaussian beam [m] (the plant's ``r_s / √6``, r_s = 50 µm).
     n_targets : int
-        States after a turn that get the feature (0 beyond).
+        States after a turn that get the feature (0 beyond): by default a whole 10 mm track at
+        0.8 m/s and 50 µs (250 states), so that the feature decays along the track instead of
+        stepping to 0 in its middle (the model would see a step in the heat that the plant does not).
     n_sources : int
-        States of the previous track, back from its end, whose powers contribute.
+        States of the previous track, back from its end, whose powers contribute: by default
+        ``n_targets`` plus the diffusion length of the last target (about 12 states), with a margin.
     """
 
     hatch_m: float = 1e-4
@@ -85,8 +88,8 @@ class TurnFeature:
     volumetric_heat_j_m3_k: float = _RHO_CP
     diffusivity_m2_s: float = _ALPHA
     beam_sigma_m: float = 50e-6 / math.sqrt(6.0)
-    n_targets: int = 64
-    n_sources: int = 128
+    n_targets: int = 256
+    n_sources: int = 320
 
     def __post_init__(self) -> None:
         for name in ("hatch_m", "absorptivity", "volumetric_heat_j_m3_k", "diffusivity_m2_s", "beam_sigma_m"):

@@ -52,7 +52,7 @@ from gp_trainer.dataset import load_samples, read_states
 from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.evaluate import evaluate, plot_narx
 from gp_trainer.jobs import JobResult
-from gp_trainer.learn import LearnSettings, design_from_record, learn, process_record, retune
+from gp_trainer.learn import LearnSettings, design_from_record, learn, process_record, refit, retune
 from gp_trainer.narx_fit import evaluate_model, rollout_key, select_and_fit
 from gp_trainer.provenance import REPO_ROOT
 from gp_trainer.train import TrainSettings, train
@@ -193,6 +193,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
                    help="model file (JSON), rewritten (default: the shipped model of the physical plant)")
     p.add_argument("--json", action="store_true", help="print the record as JSON")
+
+    p = sub.add_parser(
+        "refit", formatter_class=fmt, help="refit a learned model's selected candidate with the current code",
+        description="Fit the candidate a model of `learn` was selected as (lags, output map, squares, p×T, "
+        "feature lags, length-scale floor, smoothness prior, seed) again, on its training runs and scored on "
+        "its held-out runs from the recordings directory its provenance.design names, keeping its design, "
+        "process and controller records: a change of the model's definition on the same data, no new "
+        "selection.")
+    p.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
+                   help="the learned model (default: the shipped model of the physical plant)")
+    p.add_argument("--out", type=Path, default=None, help="where the refitted model goes (default: --model)")
+    p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
     return parser
 
 
@@ -486,6 +498,16 @@ def _tune_pid(args: argparse.Namespace) -> int:
     return 0
 
 
+def _refit(args: argparse.Namespace) -> int:
+    out = args.out or args.model
+    best = refit(args.model, out)
+    key = rollout_key(NarxGPModel.load(out).sample_period_s)
+    print(f"refitted {args.model} -> {out}: held-out R² {best['r2']:.3f}, {key} {best[key]:.2f} %", file=sys.stderr)
+    if args.json:
+        print(json.dumps(best))
+    return 0
+
+
 def _learn(args: argparse.Namespace) -> int:
     try:
         data = load_toml(args.config)
@@ -539,7 +561,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     command = {"dataset": _dataset, "train": _train, "evaluate": _evaluate, "campaign": _campaign, "narx": _narx,
-               "identify": _identify, "learn": _learn, "tune-pid": _tune_pid}[args.command]
+               "identify": _identify, "learn": _learn, "tune-pid": _tune_pid,
+               "refit": _refit}[args.command]
     try:
         return command(args)
     except GPError as exc:

@@ -40,7 +40,7 @@ from gp_trainer.dataset import read_states, recording_info
 from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.evaluate import plot_narx
 from gp_trainer.jobs import JobResult, RunnerSettings, job_recording
-from gp_trainer.narx_fit import rollout_key, select_and_fit
+from gp_trainer.narx_fit import candidate_of, rollout_key, select_and_fit
 from gp_trainer.pid_tuning import pid_record
 from gp_trainer.provenance import REPO_ROOT
 
@@ -238,6 +238,28 @@ def retune(model_path: Path) -> dict[str, Any]:
     model.provenance["controller"] = controller_record(recordings_dir, design)
     model.save(model_path)
     return model.provenance["controller"]
+
+
+def refit(model_path: Path, out: Path) -> dict[str, Any]:
+    """Refit a learned model with the current code (``python -m gp_trainer refit``): the candidate it was
+    selected as (:func:`~gp_trainer.narx_fit.candidate_of`), its seed and GP points, on its training runs in
+    their recorded order and scored on its design's held-out runs, all read from the recordings directory
+    its ``provenance.design`` names; written to ``out`` with its design, process and controller records.
+    For a change of the model's definition (e.g. the turnaround feature's extent) on the same data without
+    a new selection. Returns the held-out row."""
+    old = NarxGPModel.load(model_path)
+    design, recordings_dir = design_from_record(old.provenance.get("design") or {})
+    recordings_dir = recordings_dir if recordings_dir.is_absolute() else REPO_ROOT / recordings_dir
+    names = list(old.provenance.get("runs") or [])
+    held_names = list(design.held_out())
+    series = [series_from_states(read_states(recordings_dir / f"{n}.mcap"), n) for n in names + held_names]
+    train, held = series[:len(names)], series[len(names):]
+    provenance = {key: old.provenance[key] for key in ("design", "process", "controller") if key in old.provenance}
+    model, best, _ = select_and_fit(train, held, seed=int(old.provenance.get("seed", 0)),
+                                    n_train=int(old.provenance.get("n_train", 150)), provenance=provenance,
+                                    candidates=[candidate_of(old)])
+    model.save(out)
+    return best
 
 
 def _fit(settings: LearnSettings, design: ProcessDesign, runs, out: Path, provenance: dict[str, Any]

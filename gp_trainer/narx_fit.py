@@ -18,6 +18,7 @@ import numpy as np
 
 from controller_node.report import TURNAROUND_STEPS
 from gp_model.build_up import ROLLOUT_STRIDE, build_up_steps, rollout_horizon, steps_at
+from gp_model.errors import DatasetError
 from gp_model.kernel import HyperBounds
 from gp_model.narx import NarxGPModel, RunSeries
 from gp_model.plan_feature import TurnFeature
@@ -136,6 +137,21 @@ def _fit_candidate(train: Sequence[RunSeries], held_out: Sequence[RunSeries], ca
     return model, row
 
 
+def candidate_of(model: NarxGPModel) -> tuple:
+    """The candidate of :func:`select_and_fit` that ``model`` was fitted as: its (power lags, temperature
+    lags), (output map, squared lags, p × T terms), (turnaround feature, its lags), length-scale floor
+    and smoothness prior λ (from ``provenance.bounds`` and ``provenance.smoothing``)."""
+    try:
+        floor = float(model.provenance["bounds"]["length_scale"][0])
+        smoothing = float(model.provenance["smoothing"])
+    except (KeyError, IndexError, TypeError, ValueError):
+        raise DatasetError("the model records no length-scale bounds or smoothing in its provenance") from None
+    return ((model.n_power_lags, model.n_temperature_lags),
+            (model.output, model.temperature_square_coefficients.size > 0,
+             model.power_temperature_coefficients.size > 0),
+            (model.turn_feature is not None, model.n_feature_lags), floor, smoothing)
+
+
 def select_and_fit(
     train: Sequence[RunSeries],
     held_out: Sequence[RunSeries],
@@ -144,15 +160,19 @@ def select_and_fit(
     n_train: int = 150,
     provenance: Mapping[str, Any] | None = None,
     workers: int = 1,
+    candidates: Sequence[tuple] | None = None,
 ) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
     """Fit every candidate (lags, output map, squared lags, interactions, feature lags, length-scale floor,
     smoothness prior) on
     ``train``; keep the one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
     Returns it, its row and the whole table; ``provenance`` goes into every candidate's. ``workers`` > 1 fits
-    the candidates in that many forked processes (each fit is deterministic: the same model either way)."""
+    the candidates in that many forked processes (each fit is deterministic: the same model either way).
+    ``candidates`` (default: every combination of the module's candidate lists) restricts the choice, e.g.
+    to :func:`candidate_of` a selected model (refitting it on other data or with another feature)."""
     period = train[0].sample_period_s if train else held_out[0].sample_period_s
-    candidates = list(itertools.product(structures(period), FORMS, features(period), LENGTH_SCALE_FLOORS,
-                                        SMOOTHINGS))
+    if candidates is None:
+        candidates = list(itertools.product(structures(period), FORMS, features(period), LENGTH_SCALE_FLOORS,
+                                            SMOOTHINGS))
     fit = functools.partial(_fit_candidate, train, held_out, seed=seed, n_train=n_train, provenance=provenance)
     if workers > 1:
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:

@@ -80,7 +80,17 @@ def test_default_layer_meets_the_acceptance_figures():
 def test_double_track_holds_the_area_on_the_physical_plant():
     """The double track at 0.063 mm² on the physical plant with its shipped model (next to in sample: its
     training runs include preview-MPC double tracks at 0.058 and 0.068 mm² and the feed-forward one at
-    0.063 mm²). Measured: 7.55 / 19.16 / 3.94 % (over / under / RMSE, turnarounds 7.2 %, along the
+    0.063 mm²). Measured: 6.39 / 12.37 / 3.24 % (over / under / RMSE, turnarounds 5.4 %, along the
     tracks 2.3 %); the thresholds are a little above."""
     m = closed_loop("double-track", "physical")
-    assert m.overshoot_pct <= 8.5 and m.undershoot_pct <= 21.0 and m.steady_rmse_pct <= 4.5, m
+    assert m.overshoot_pct <= 7.5 and m.undershoot_pct <= 14.0 and m.steady_rmse_pct <= 3.6, m
+
+
+@pytest.mark.slow
+def test_default_layer_on_the_physical_plant():
+    """The default layer at 0.063 mm² on the physical plant (in sample: the model's training runs include
+    its geometry). Measured: 10.34 / 13.67 / 2.25 % (over / under / RMSE); the model whose turnaround
+    feature stopped 64 states after a turn gave 9.85 / 19.38 / 2.66 %. Issue 33's target is 7 / 10 / 2 %;
+    the thresholds are a little above what is reached."""
+    m = closed_loop("layer", "physical")
+    assert m.overshoot_pct <= 11.0 and m.undershoot_pct <= 14.5 and m.steady_rmse_pct <= 2.4, m

@@ -217,3 +217,26 @@ def test_the_pid_is_tuned_on_the_training_staircases_of_the_scenarios_own_plans(
     assert seen["runs"] == ["ident-layer-p104-s1", "ident-layer-p156-s3", "ident-double-track-p104-s4",
                             "ident-double-track-p156-s6"]
     assert record["nominal_power_w"] == 130.0
+
+
+def test_refitting_a_selected_model_fits_the_candidate_it_was_selected_as(monkeypatch):
+    """``candidate_of`` reads back the candidate a selection kept (lags, output map, squares, p × T,
+    length-scale floor, λ): fitting only that candidate on the same runs gives the same model."""
+    import dataclasses
+
+    from gp_trainer import narx_fit
+    from tests.test_preview import synthetic_run
+
+    monkeypatch.setattr(narx_fit, "STRUCTURES", ((8, 5),))
+    monkeypatch.setattr(narx_fit, "FORMS", (("identity", False, False), ("log", True, True)))
+    monkeypatch.setattr(narx_fit, "LENGTH_SCALE_FLOORS", (0.5, 2.0))
+    monkeypatch.setattr(narx_fit, "FEATURES", ((False, 0),))
+    monkeypatch.setattr(narx_fit, "SMOOTHINGS", (0.0, 0.1))
+    runs = [dataclasses.replace(synthetic_run(s, n=200), speed_m_s=0.8) for s in range(4)]
+    model, row, table = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40)
+    candidate = narx_fit.candidate_of(model)
+    assert candidate == ((8, 5), (row["output"], row["quadratic"], row["interaction"]), (False, 0),
+                         row["length_scale_floor"], row["smoothing"])
+    again, again_row, again_table = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40, candidates=[candidate])
+    assert len(table) == 8 and len(again_table) == 1 and again_row == row
+    assert again.to_dict() == model.to_dict()

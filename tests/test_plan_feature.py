@@ -76,3 +76,17 @@ def test_constants_round_trip_and_bad_ones_are_refused():
         TurnFeature(n_sources=0)
     with pytest.raises(ValueError, match="unknown keys"):
         TurnFeature.from_dict({**f.to_dict(), "extra": 1})
+
+
+def test_the_default_feature_decays_along_a_whole_track_without_a_step():
+    """A 10 mm track at 0.8 m/s (250 states) after a turn: the feature falls smoothly from its peak to the
+    track's end; it does not drop to 0 in the middle of the track (a step in the heat the model would see
+    and the plant does not, which moved the preview MPC's power along every track)."""
+    f = TurnFeature()
+    n = 250
+    power = np.r_[0.0, np.full(n - 1, 180.0), np.full(n, 180.0)]
+    ends = np.r_[np.full(n, n - 1), np.full(n, 2 * n - 1)]
+    after = turn_feature_series(f.kernel(STEP, DT), power, np.array([n]), ends)[n:]
+    peak = int(np.argmax(after))
+    assert np.all(after > 0) and np.all(np.diff(after[peak:]) < 0)
+    assert np.max(-np.diff(after[50:])) < 0.05 * after[50]     # no step along the rest of the track

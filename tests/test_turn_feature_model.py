@@ -171,3 +171,11 @@ def test_the_forecast_adds_the_features_deviation_and_decays_the_rest():
     first = np.zeros(5)
     adjust_forecast(first, future, 110.0, f_mean, 2.0, 1, True, 2, decay)
     np.testing.assert_allclose(first, np.r_[0.0, 0.0, 2.0 * (future[2:] - f_mean[:3])])
+
+
+def test_the_turnaround_profile_spans_the_feature():
+    """The forecast's feature part is fitted against the turnaround profile at every state the feature
+    reaches: a feature longer than ``profile_length`` lengthens the profile (it held its last value)."""
+    long_feature = TurnFeature(n_targets=80, n_sources=100)
+    model = _fit([_run(s) for s in range(3)], 2, long_feature)
+    assert model.turn_profile_k.size == model.feature_profile_k.size == 80
