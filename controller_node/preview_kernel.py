@@ -775,12 +775,14 @@ class Kernel:
         feature_kernel = model.feature_kernel()
         n_targets, n_sources = feature_kernel.shape
         self.feature_kernel = feature_kernel
+        horizon_kernel = self._horizon_kernel(feature_kernel, h)
         log_output = bool(model.output == "log")
         const = carve({"b": (n_p,), "q": (n_p,), "cc": (n_t,), "d": model.temperature_square_coefficients.shape,
                        "e": e.shape, "mean": (3,), "scale": (3,), "decay": (h,), "weights": (h,), "moves": (h, h),
                        "gp_points": (4, n_gp), "beta": (n_gp,), "slope_weights": (n_gp,), "var_f": (n_gp, n_gp),
-                       "series_weights": (n_gp, 2 * MOMENTS), "g": g.shape, "feature_kernel": feature_kernel.shape,
-                       "feature_jac": (h, n_sources), "feature_mean": (max(model.feature_profile_k.size, 1),)})
+                       "series_weights": (n_gp, 2 * MOMENTS), "g": g.shape, "feature_kernel": horizon_kernel.shape,
+                       "feature_jac": (h, horizon_kernel.shape[1]),
+                       "feature_mean": (max(model.feature_profile_k.size, 1),)})
         w0_powers = points[0][:, None] ** np.arange(MOMENTS)          # W_a0ʲ, (N, MOMENTS)
         for name, value in (("b", model.power_coefficients), ("q", model.power_square_coefficients),
                             ("cc", model.temperature_coefficients), ("d", model.temperature_square_coefficients),
@@ -790,8 +792,8 @@ class Kernel:
                             ("slope_weights", points[5]), ("var_f", var_f),
                             ("series_weights", np.hstack((points[4][:, None] * w0_powers,
                                                           points[5][:, None] * w0_powers))),
-                            ("g", g), ("feature_kernel", feature_kernel),
-                            ("feature_jac", self._lag_feature_jacobian(g, feature_kernel, h)),
+                            ("g", g), ("feature_kernel", horizon_kernel),
+                            ("feature_jac", self._lag_feature_jacobian(g, horizon_kernel, h)),
                             ("feature_mean", model.feature_profile_k if model.turn_feature else np.zeros(1))):
             const[name][...] = value
         self.predictor = new_predictor(float(model.intercept), const["b"], const["q"], const["cc"], const["d"],
@@ -831,6 +833,19 @@ class Kernel:
         self.__dict__.update(self._workspaces[0][1])
         self._update, self._prepare, self._feedback = (BoundOnFirstCall(f) for f in (update_into, prepare_into,
                                                                                     feedback_into))
+
+    @staticmethod
+    def _horizon_kernel(kernel: np.ndarray, h: int) -> np.ndarray:
+        """The feature kernel's columns (sources) that reach the first ``h`` states after a turn, all rows.
+
+        The compiled code reads ``K[s, e]`` only for s < H (the rows after the turn ahead; the current
+        track's feature is :meth:`start_track`'s full product). Sources further back than the last column
+        with a term above ``1e-17`` of the largest term of those rows (the heat of a point mm away, far
+        below a double's rounding of the sum) are dropped: at least ``h`` columns are kept."""
+        rows = np.abs(kernel[:h])
+        reach = np.flatnonzero(np.any(rows > 1e-17 * rows.max(), axis=0)) if rows.size and rows.max() > 0 else []
+        n = max(h, int(reach[-1]) + 1 if len(reach) else 0)
+        return np.ascontiguousarray(kernel[:, :min(n, kernel.shape[1])])
 
     @staticmethod
     def _lag_feature_jacobian(g: np.ndarray, kernel: np.ndarray, h: int) -> np.ndarray:

@@ -179,3 +179,19 @@ def test_the_turnaround_profile_spans_the_feature():
     long_feature = TurnFeature(n_targets=80, n_sources=100)
     model = _fit([_run(s) for s in range(3)], 2, long_feature)
     assert model.turn_profile_k.size == model.feature_profile_k.size == 80
+
+
+def test_the_compiled_kernel_keeps_every_source_that_reaches_the_horizon():
+    """The preview kernel reads the turnaround feature's kernel only in the H rows after a turn and keeps
+    the sources that reach them: the dropped ones give less than 1e-9 K at 350 W on every source, the
+    kept ones are fewer than the feature's (the default feature holds a whole track)."""
+    from controller_node.preview_kernel import Kernel
+
+    kernel = TurnFeature().kernel(SPEED * DT, DT)
+    for h in (8, 40, 60):
+        kept = Kernel._horizon_kernel(kernel, h)
+        assert kept.shape[0] == kernel.shape[0] and h <= kept.shape[1] < kernel.shape[1]
+        assert np.array_equal(kept, kernel[:, :kept.shape[1]])
+        assert np.max(kernel[:h, kept.shape[1]:].sum(axis=1)) * 350.0 < 1e-9
+        last = kernel[:h, kept.shape[1] - 1]
+        assert kept.shape[1] == h or np.max(last) > 1e-17 * np.max(kernel[:h])   # no column more than needed
