@@ -240,3 +240,13 @@ def test_refitting_a_selected_model_fits_the_candidate_it_was_selected_as(monkey
     again, again_row, again_table = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40, candidates=[candidate])
     assert len(table) == 8 and len(again_table) == 1 and again_row == row
     assert again.to_dict() == model.to_dict()
+
+
+def test_refit_refuses_a_model_without_a_design_in_one_line(tmp_path, capsys):
+    """``refit`` needs the design a model of ``learn`` records (its runs and their directory): the bare
+    plate's model of ``narx`` has none, a missing file is not a model; exit 2, one line, nothing written."""
+    for model, says in ((PLATE_MODEL_PATH, "provenance.design"), (tmp_path / "none.json", "none.json")):
+        status = main(["refit", "--model", str(model), "--out", str(tmp_path / "m.json")])
+        err = capsys.readouterr().err
+        assert status == 2 and says in err and err.count("\n") == 1 and err.startswith("python -m gp_trainer refit:")
+        assert not (tmp_path / "m.json").exists()
