@@ -10,8 +10,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from fe_node.boundary import L_VAP_J_KG, MOLAR_MASS_KG_MOL, P_AMBIENT_PA, R_GAS, RECONDENSATION
-
 
 @numba.njit(cache=True, nogil=True)
 def x_pass(v: np.ndarray, w: np.ndarray, kd: np.ndarray, ko: np.ndarray, md: np.ndarray, mo: np.ndarray,
@@ -83,15 +81,15 @@ def element_apply_box(corners: np.ndarray, ke: np.ndarray, u_box: np.ndarray, j0
 
 @numba.njit(cache=True, nogil=True)
 def evaporate_nodes(t_star: np.ndarray, k: np.ndarray, heat_capacity: float, t_boil: float, t_low: float,
-                    n_iter: int, out: np.ndarray) -> None:
+                    a: float, b: float, c: float, n_iter: int, out: np.ndarray) -> None:
     """:func:`fe_node.boundary.evaporate`, node by node: bracketed Newton on
-    ``C (T - T*) + k q_evap(T) = 0`` in ``[t_low, T*]``, each node until its step is below 1e-10 T."""
-    b = L_VAP_J_KG * MOLAR_MASS_KG_MOL / R_GAS
-    a = L_VAP_J_KG * (1.0 - RECONDENSATION) * P_AMBIENT_PA
+    ``C (T - T*) + k q_evap(T) = 0`` in ``[t_low, T*]``, each node until its step is below 1e-10 T,
+    with ``q_evap(T) = a exp(b (1/T_boil - 1/T)) sqrt(c / T)``
+    (:func:`fe_node.boundary.evaporation_flux`)."""
     for n in range(t_star.size):
         lo, hi, t = t_low, t_star[n], t_star[n]
         for _ in range(n_iter):
-            q = a * np.exp(b * (1.0 / t_boil - 1.0 / t)) * np.sqrt(MOLAR_MASS_KG_MOL / (2.0 * np.pi * R_GAS * t))
+            q = a * np.exp(b * (1.0 / t_boil - 1.0 / t)) * np.sqrt(c / t)
             f = heat_capacity * (t - t_star[n]) + k[n] * q
             if f > 0:
                 hi = t

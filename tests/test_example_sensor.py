@@ -29,9 +29,10 @@ def test_example_sensor_closes_the_loop_with_the_controller_node(hub, run_id):
     assert 1 <= len(seen_commands) <= 401
     steps = [c.step for c in seen_commands]
     assert steps == sorted(set(steps)) and steps[0] >= 1
-    # commands above the sensor's own 300 W bound are rejected (counted), never applied
+    # commands above the sensor's own 300 W bound are rejected (counted), never applied; one that
+    # arrives after a newer command was applied (or after the last tick) is dropped as stale first
     above = sum(c.power_w > 300.0 for c in seen_commands)
-    assert stats["steps"] == 400 and stats["rejected_commands"] == above
+    assert stats["steps"] == 400 and stats["rejected_commands"] <= above
     assert stats["commands"] + above >= 1 and stats["rtt_median_us"] > 0
     applied = {c.power_w for c in seen_commands if c.power_w <= 300.0} | {250.0}
     assert all(s.power_w in applied for s in seen_states)  # the plant echoes an applied power
