@@ -204,6 +204,8 @@ class Constitutive:
 
         h = np.ascontiguousarray(h, dtype=float)
         out = np.empty_like(h) if out is None else out
+        if out.shape != h.shape or not out.flags.c_contiguous:
+            raise ValueError(f"kirchhoff: out must be C-contiguous of shape {h.shape}")
         piecewise_linear(h.reshape(-1), self._h0, self._inv_dh, self._imax, self._p_a, self._p_b, out.reshape(-1))
         return out
 

@@ -1,5 +1,6 @@
 """The compiled loops of ``fe_node.kernels`` equal the numpy forms they replace, bit for bit."""
 import numpy as np
+import pytest
 
 from fe_node.kernels import piecewise_linear, x_pass
 from fe_node.material import Constitutive, Material
@@ -29,6 +30,8 @@ def test_kirchhoff_is_the_table_clipped_at_its_ends():
     grid = h[5_000:5_021].reshape(7, 3)
     assert law.kirchhoff(grid, out=out) is out
     np.testing.assert_array_equal(out, law.kirchhoff(grid.ravel()).reshape(7, 3))
+    with pytest.raises(ValueError, match="C-contiguous"):
+        law.kirchhoff(grid, out=np.empty((3, 7)).T)          # a view whose reshape would be a copy
     a, b, out1 = np.array([1.0, 2.0]), np.array([10.0, 20.0]), np.empty(4)
     piecewise_linear(np.array([-5.0, 0.5, 1.5, 9.0]), 0.0, 1.0, 1, a, b, out1)
     np.testing.assert_array_equal(out1, [-49.0, 6.0, 32.0, 182.0])
