@@ -28,9 +28,11 @@ def wait_for(inbox, predicate, timeout_s: float):
     return None
 
 
-def test_controller_killed_plant_applies_the_safe_power_within_100_ms_of_the_liveliness_loss(tmp_path, hub, run_id):
+def test_controller_killed_plant_applies_the_safe_power_on_the_liveliness_loss(tmp_path, hub, run_id):
     """The kill's wall time vs the wall time the plant logs for its first safe-power step (an upper bound of
-    the delay after the liveliness loss); the command timeout (2 s) is far too long to pass it."""
+    the delay after the liveliness loss) is under half the command timeout (2 s), and the timeout never
+    fired: the liveliness path acted. How fast it acts is a figure of the machine's load (11-19 ms on a
+    quiet one, ``docs/node-contract.md``), not a pass mark."""
     out = tmp_path / "fault.mcap"
     common = ("--run-id", run_id, "--connect", hub)
     with NodeBus("observer", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
@@ -58,7 +60,7 @@ def test_controller_killed_plant_applies_the_safe_power_within_100_ms_of_the_liv
     assert m, fallback.message
     delay_s = float(m.group(2)) - killed_wall
     print(f"controller SIGKILL -> safe power applied: {delay_s * 1e3:.1f} ms")
-    assert 0 <= delay_s < 0.1, f"safe power {delay_s * 1e3:.0f} ms after the kill"
+    assert 0 <= delay_s < 0.5 * TIMEOUT_S, f"safe power {delay_s * 1e3:.0f} ms after the kill"
     assert plant_out.count("gone (liveliness lost)") == 1 and "no command for step" not in plant_out, plant_out
     assert status == 1 and "aborted at step" in plant_out and "controller lost" in plant_out, plant_out
     assert last_state.step == int(m.group(1)) and last_state.power_w == 40.0  # the safe power, echoed
