@@ -17,7 +17,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 
 def graded_axis(lo: float, hi: float, fine_lo: float, fine_hi: float, h: float,
@@ -79,7 +78,7 @@ def graded_axis_size(lo: float, hi: float, fine_lo: float, fine_hi: float, h: fl
 
 
 def fe1d(x: np.ndarray, w: np.ndarray | None = None):
-    """1-D linear-element matrices on nodes ``x``, optionally weighted per element.
+    """1-D linear-element matrices on nodes ``x``, optionally weighted per element, as their bands.
 
     Parameters
     ----------
@@ -90,17 +89,25 @@ def fe1d(x: np.ndarray, w: np.ndarray | None = None):
 
     Returns
     -------
-    K, M : scipy.sparse.csr_matrix, shape (n, n)
-        Stiffness ``int w N_i' N_j'`` [1/m] and consistent mass ``int w N_i N_j`` [m].
+    kd, ko, md, mo : ndarray, shapes (n,), (n - 1,), (n,), (n - 1,)
+        Diagonal and off-diagonal of the stiffness ``int w N_i' N_j'`` [1/m] and of the consistent
+        mass ``int w N_i N_j`` [m] (both symmetric tridiagonal).
     """
     h = np.diff(x)
     w = np.ones_like(h) if w is None else np.asarray(w, dtype=float)
     z = np.zeros(1)
     kd = np.concatenate([w / h, z]) + np.concatenate([z, w / h])
     md = np.concatenate([w * h / 3, z]) + np.concatenate([z, w * h / 3])
-    K = sp.diags([kd, -w / h, -w / h], [0, -1, 1], format="csr")
-    M = sp.diags([md, w * h / 6, w * h / 6], [0, -1, 1], format="csr")
-    return K, M
+    return kd, -w / h, md, w * h / 6
+
+
+def lumped1d(x: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Row sums [m] of :func:`fe1d`'s mass on nodes ``x`` (element weights ``w``), shape (n,)."""
+    _, _, md, mo = fe1d(x, w)
+    out = md.copy()
+    out[:-1] += mo
+    out[1:] += mo
+    return out
 
 
 @dataclass(frozen=True)
@@ -131,7 +138,7 @@ class Grid:
 
     def top_areas(self) -> np.ndarray:
         """Row-sum lumped nodal areas of the top face [m²], shape ``(ny, nx)``."""
-        mx, my = (np.asarray(fe1d(a)[1].sum(axis=1)).ravel() for a in (self.xs, self.ys))
+        mx, my = (lumped1d(a) for a in (self.xs, self.ys))
         return my[:, None] * mx[None, :]
 
     def skfem_mesh(self):

@@ -27,7 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from fe_node.forms import conduction, conduction_z, facet_area, mass
-from fe_node.mesh import Grid, fe1d
+from fe_node.mesh import Grid, fe1d, lumped1d
 
 
 def _weights(w, n: int, what: str) -> np.ndarray:
@@ -329,15 +329,11 @@ class TensorOperator:
             hmin = np.minimum(np.minimum.outer(self._h[0], self._h[1])[:, :, None], self._h[2][None, None, :])
             self._lam_e = 4.0 / hmin**2
         self._ratio = np.maximum(self.kw, self.kw_z) / self.rho_w * self._lam_e
-        kx, mx = fe1d(grid.xs)
-        self._kd, self._ko = kx.diagonal(), kx.diagonal(1)
+        self._kd, self._ko, self._md, self._mo = fe1d(grid.xs)
         if nodal:
-            self._md, self._mo = np.asarray(mx.sum(axis=1)).ravel(), np.zeros(len(grid.xs) - 1)
-        else:
-            self._md, self._mo = mx.diagonal(), mx.diagonal(1)
+            self._md, self._mo = lumped1d(grid.xs), np.zeros(len(grid.xs) - 1)
         rz = self.rho_w[0, :, 0]
-        sx, sy, sz = (np.asarray(fe1d(c, w)[1].sum(axis=1)).ravel()
-                      for c, w in ((grid.xs, None), (grid.ys, None), (grid.zs, rz)))
+        sx, sy, sz = (lumped1d(c, w) for c, w in ((grid.xs, None), (grid.ys, None), (grid.zs, rz)))
         self.lumped_mass = sy[:, None, None] * sz[None, :, None] * sx[None, None, :]
         dr = (self.rho_w - rz[None, :, None]).ravel()
         self._add_mass(np.flatnonzero(dr), dr[np.flatnonzero(dr)])
