@@ -84,7 +84,7 @@ def evaporate(t_star: np.ndarray, k: np.ndarray, heat_capacity: float, t_boil: f
 
     t_star = np.ascontiguousarray(t_star, dtype=float)
     out = np.empty_like(t_star)
-    evaporate_nodes(t_star, np.ascontiguousarray(np.broadcast_to(k, t_star.shape), dtype=float), float(heat_capacity),
+    evaporate_nodes(t_star, np.array(np.broadcast_to(k, t_star.shape), dtype=float), float(heat_capacity),
                     float(t_boil), float(t_low), L_VAP_J_KG * (1.0 - RECONDENSATION) * P_AMBIENT_PA,
                     L_VAP_J_KG * MOLAR_MASS_KG_MOL / R_GAS, MOLAR_MASS_KG_MOL / (2.0 * np.pi * R_GAS), n_iter, out)
     return out

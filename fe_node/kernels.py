@@ -103,3 +103,16 @@ def evaporate_nodes(t_star: np.ndarray, k: np.ndarray, heat_capacity: float, t_b
             if done:
                 break
         out[n] = t
+
+
+def warm() -> None:
+    """Compile (or load from numba's cache) every kernel here with the argument types the plant
+    passes, on tiny arrays: a plant calls it when it is built, so its first step runs at speed
+    (a fresh install compiles them once, about a second)."""
+    one, two = np.ones(2), np.ones((2, 2))
+    x_pass(two, two, one, one[:1], one, one[:1], np.empty((2, 2)))
+    piecewise_linear(one, 0.0, 1.0, 1, one, one, np.empty(2))
+    corners = np.zeros((1, 8), dtype=np.intp)
+    element_apply(corners, np.zeros((1, 8, 8)), one, np.zeros(2))
+    element_apply_box(corners, np.zeros((1, 8, 8)), np.ones((1, 1, 1)), 0, 0, 0, 1, 1, np.zeros(2))
+    evaporate_nodes(one * 2000.0, one, 1.0, 3000.0, 1000.0, 1.0, 1.0, 1.0, 2, np.empty(2))

@@ -239,6 +239,9 @@ class ThermalModel:
                              "(ThermalModel is the uniform mesh)")
         if layer_plans is not None and (len(layer_plans) != settings.n_layers or layer_plans[0] != plan):
             raise ValueError("thermal model: layer_plans must hold n_layers plans, the first being plan")
+        from fe_node.kernels import warm
+
+        warm()          # compiled (or loaded) now, not in the first step
         self.settings, self.plan, self._layer_plans = settings, plan, layer_plans
         self.grid = self._initial_grid()
         self.n_remeshes, self.remesh_energy_j = 0, 0.0

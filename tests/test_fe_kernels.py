@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from fe_node.kernels import piecewise_linear, x_pass
+from fe_node.kernels import piecewise_linear, warm, x_pass
 from fe_node.material import Constitutive, Material
 
 
@@ -35,3 +35,19 @@ def test_kirchhoff_is_the_table_clipped_at_its_ends():
     a, b, out1 = np.array([1.0, 2.0]), np.array([10.0, 20.0]), np.empty(4)
     piecewise_linear(np.array([-5.0, 0.5, 1.5, 9.0]), 0.0, 1.0, 1, a, b, out1)
     np.testing.assert_array_equal(out1, [-49.0, 6.0, 32.0, 182.0])
+
+
+def test_warm_compiles_every_kernel_with_the_plants_types():
+    """After ``warm`` (what a plant runs when it is built) no kernel compiles again in a step."""
+    import fe_node.kernels as kernels
+    from fe_node.scenarios import scenario
+    from fe_node.solver import ThermalModel
+
+    warm()
+    compiled = {name: len(getattr(kernels, name).signatures) for name in
+                ("x_pass", "piecewise_linear", "element_apply", "element_apply_box", "evaporate_nodes")}
+    sc = scenario("double-track", h_fine_m=50e-6, track_length_m=1e-3)
+    model = ThermalModel(sc.settings, sc.plan)
+    for _ in range(30):
+        model.step(*sc.profile.command(model.step_index))
+    assert {name: len(getattr(kernels, name).signatures) for name in compiled} == compiled
