@@ -1,9 +1,11 @@
 """Compiled inner loops of the explicit step (numba), each one pass over the nodes.
 
-The numpy forms they replace took about ten passes over the grid each; the results are bitwise
-equal (same IEEE operations in the same order, no fast-math), and ``tests/test_fe_kernels.py``
-checks them against the numpy forms and ``np.interp``.  Imported on first use, so a process that
-builds no plant never loads numba.
+The numpy forms they replace took about ten passes over the grid each.  The table
+(:func:`piecewise_linear`) and the x factor (:func:`x_pass`) are bitwise equal to those forms (same
+IEEE operations in the same order, no fast-math; ``tests/test_fe_kernels.py``); the operator's
+element-wise correction and the evaporation solve agree with the library results to rounding
+(``tests/test_fe_operators.py`` against the scikit-fem forms, the evaporation residual test).
+Imported when a plant is built (:func:`warm`), so a process that builds no plant never loads numba.
 """
 from __future__ import annotations
 

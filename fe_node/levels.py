@@ -340,8 +340,8 @@ class ConductionLevel:
         Per-element conductivity weights [-], in plane and vertical (:func:`column_weights`).
     coarse : Grid, optional
         The next coarser level's grid, whose field this level's faces inside it take (none: the part
-        level, whose operator integrates at the corners, ``TensorOperator(nodal=coarse is None)``: its flat
-        top elements under a track's heat would otherwise undershoot their neighbours by 100 K).
+        level, whose operator integrates at the corners, ``TensorOperator(nodal=True)``: its flat top
+        elements under a track's heat would otherwise undershoot their neighbours by 100 K).
 
     Attributes
     ----------
