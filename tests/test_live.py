@@ -199,8 +199,7 @@ def test_shipped_layout_uses_only_served_channels_and_fields():
 
 def test_launch_live_serves_the_default_nodes_run(tmp_path):
     """``launch.py --live PORT``: a client subscribed to /plant/state receives the run's states, in order, from
-    its subscription to the last (300 steps: the client connects while the run goes on; 150 steps of the
-    compiled plant at 40 µm ended once before a loaded client had subscribed)."""
+    its subscription to the last (150 steps: the client connects while the run goes on)."""
     import subprocess
     import sys
 
@@ -208,7 +207,7 @@ def test_launch_live_serves_the_default_nodes_run(tmp_path):
 
     port = int(free_endpoint().rsplit(":", 1)[1])
     out = tmp_path / "live.mcap"
-    proc = subprocess.Popen([sys.executable, "launch.py", "--live", str(port), "--max-steps", "300", "--h-um", "40",
+    proc = subprocess.Popen([sys.executable, "launch.py", "--live", str(port), "--max-steps", "150", "--h-um", "40",
                              *BARE_ARGS, "--controller", "pid", "--out", str(out), "--no-progress"], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     steps = []
@@ -238,7 +237,7 @@ def test_launch_live_serves_the_default_nodes_run(tmp_path):
     finally:
         status, output = finish(proc, timeout=120)
     assert status == 0, output
-    assert steps and steps == sorted(steps) and steps[-1] == 300, (steps[:5], steps[-5:])
+    assert steps and steps == sorted(steps) and steps[-1] == 150, (steps[:5], steps[-5:])
 
 
 def test_with_a_token_only_a_client_that_gives_it_is_served(monkeypatch):
