@@ -163,9 +163,9 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
     policy = settings.policy
     states = bus.publisher(PLANT_STATE)
     diagnostics = bus.publisher(PLANT_DIAGNOSTICS)
-    images = bus.publisher(PLANT_TEMPERATURE, express=False)
+    images = bus.publisher(PLANT_TEMPERATURE)
     lasers = bus.publisher(PLANT_LASER)
-    scenes = bus.publisher(PLANT_SCENE, express=False)
+    scenes = bus.publisher(PLANT_SCENE)
     scene_layer, scene_notes = None, set()
     waiter = None if settings.open_loop else CommandWaiter(bus.inbox(LASER_COMMAND), policy)
     gone = threading.Event() if waiter is None else bus.watch_presence(settings.controller)

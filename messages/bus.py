@@ -607,15 +607,19 @@ class NodeBus:
         """The run this node belongs to."""
         return self.settings.run_id
 
-    def publisher(self, topic: Topic, *, express: bool = True) -> TopicPublisher:
-        """A counted, validating publisher for ``topic`` (reliable, blocking on congestion)."""
+    def publisher(self, topic: Topic) -> TopicPublisher:
+        """A counted, validating publisher for ``topic`` (reliable, blocking on congestion, express).
+
+        Every topic is express (never batched), so that a node's messages leave in the order it puts
+        them and none waits in a batch when its session closes (docs/node-contract.md).
+        """
         if topic.suffix not in self._publishers:
             assert self.session is not None
             pub = self.session.declare_publisher(
                 key_expr(self.run_id, topic, self.node),
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE,
-                express=express,
+                express=True,
             )
             self._declared.append(pub)
             self._publishers[topic.suffix] = TopicPublisher(self, topic, pub)
