@@ -210,7 +210,7 @@ def test_launch_live_serves_the_default_nodes_run(tmp_path):
     proc = subprocess.Popen([sys.executable, "launch.py", "--live", str(port), "--max-steps", "150", "--h-um", "40",
                              *BARE_ARGS, "--controller", "pid", "--out", str(out), "--no-progress"], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    steps = []
+    steps, started, subscribed_s = [], time.monotonic(), None
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
@@ -227,6 +227,7 @@ def test_launch_live_serves_the_default_nodes_run(tmp_path):
                     channels |= {c["topic"]: c["id"] for c in json.loads(frame)["channels"]}
             subscription = {"id": 1, "channelId": channels["/plant/state"]}
             ws.send(json.dumps({"op": "subscribe", "subscriptions": [subscription]}))
+            subscribed_s = time.monotonic() - started
             while True:
                 try:
                     frame = ws.recv(timeout=30)
@@ -237,7 +238,8 @@ def test_launch_live_serves_the_default_nodes_run(tmp_path):
     finally:
         status, output = finish(proc, timeout=120)
     assert status == 0, output
-    assert steps and steps == sorted(steps) and steps[-1] == 150, (steps[:5], steps[-5:])
+    live = [line for line in output.splitlines() if line.startswith(("[live]", "[plant]"))]
+    assert steps and steps == sorted(steps) and steps[-1] == 150, (steps[:5], steps[-5:], subscribed_s, live)
 
 
 def test_with_a_token_only_a_client_that_gives_it_is_served(monkeypatch):
