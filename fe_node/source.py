@@ -56,19 +56,21 @@ def depth_weights(zs: np.ndarray, penetration_depth_m: float) -> np.ndarray:
     return w / w.sum()
 
 
-def hat_gaussian_integrals(x: np.ndarray, centre: float, sigma: float) -> np.ndarray:
+def hat_gaussian_integrals(x: np.ndarray, centre: float | np.ndarray, sigma: float) -> np.ndarray:
     """Exact ``int N_i(x) exp(-(x - centre)² / (2 sigma²)) dx`` for the hat functions on ``x``.
 
     Parameters
     ----------
     x : ndarray, shape (n,)
         Increasing node coordinates [m].
-    centre, sigma : float
-        Gaussian centre and standard deviation [m].
+    centre : float or ndarray, shape (m, 1)
+        Gaussian centre(s) [m].
+    sigma : float
+        Gaussian standard deviation [m].
 
     Returns
     -------
-    ndarray, shape (n,)
+    ndarray, shape (n,), or (m, n) for m centres
         Nodal integrals [m]; their sum is the integral of the Gaussian over [x0, x_{n-1}].
     """
     p, q = x[:-1], x[1:]
@@ -80,9 +82,9 @@ def hat_gaussian_integrals(x: np.ndarray, centre: float, sigma: float) -> np.nda
     i1 = sigma**2 * (gp - gq) + centre * i0          # int x g dx over [p, q]
     right = (i1 - p * i0) / h                        # int (x - p)/h g
     left = i0 - right                                # int (q - x)/h g
-    out = np.zeros_like(x)
-    out[:-1] += left
-    out[1:] += right
+    out = np.zeros(np.broadcast_shapes(np.shape(centre), x.shape))
+    out[..., :-1] += left
+    out[..., 1:] += right
     return np.maximum(out, 0.0)          # round-off in the far tails
 
 
@@ -113,9 +115,23 @@ def surface_load(xs: np.ndarray, ys: np.ndarray, positions: np.ndarray, power_w:
     load = np.zeros((len(xs), len(ys)))
     if power_w == 0.0 or len(positions) == 0:
         return load
+    reach = LOAD_REACH_SIGMAS * sigma
     ys_unique, inverse = np.unique(positions[:, 1], return_inverse=True)
     for j, yl in enumerate(ys_unique):
-        gx = sum(hat_gaussian_integrals(xs, xl, sigma) for xl in positions[inverse == j, 0])
-        gy = hat_gaussian_integrals(ys, yl, sigma)
-        load += np.outer(gx, gy)
+        xl = positions[inverse == j, 0]
+        i = _nodes_within(xs, xl.min() - reach, xl.max() + reach)
+        k = _nodes_within(ys, yl - reach, yl + reach)
+        gx = hat_gaussian_integrals(xs[i], xl[:, None], sigma).sum(axis=0)
+        load[i, k] += np.outer(gx, hat_gaussian_integrals(ys[k], yl, sigma))
     return load * (absorptivity * power_w / load.sum())
+
+
+LOAD_REACH_SIGMAS = 10.0
+"""Half-width of the node window a beam's load is integrated on, in beam standard deviations:
+the Gaussian beyond it is below ``exp(-50)`` of its peak, under the rounding of the load."""
+
+
+def _nodes_within(coords: np.ndarray, lo: float, hi: float) -> slice:
+    """The nodes of ``coords`` (increasing) from the last at or below ``lo`` to the first at or above ``hi``."""
+    i0 = max(int(np.searchsorted(coords, lo, side="right")) - 1, 0)
+    return slice(i0, min(int(np.searchsorted(coords, hi)) + 1, len(coords)))

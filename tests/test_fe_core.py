@@ -61,6 +61,20 @@ def test_surface_load_deposits_a_p():
     assert load.sum() == pytest.approx(0.4 * 237.0, rel=1e-13) and load.min() >= 0
 
 
+def test_surface_load_on_its_window_equals_the_whole_surface_integral(monkeypatch):
+    """The load is integrated on the nodes within ``LOAD_REACH_SIGMAS`` of the beam only: equal, to the
+    rounding of the load, to integrating every node of the surface (beams inside and at the edge)."""
+    from fe_node import source
+
+    xs, ys = np.linspace(-1e-3, 1e-3, 81), np.concatenate([np.linspace(-4e-4, 0, 5), np.linspace(2.5e-5, 2e-4, 8)])
+    beams = [np.array([[1e-5 * k, 3e-6] for k in range(6)]), np.array([[-1e-3, 2e-4], [-0.99e-3, 1.9e-4]])]
+    windowed = [surface_load(xs, ys, pos, 237.0, 0.4, 50e-6) for pos in beams]
+    monkeypatch.setattr(source, "LOAD_REACH_SIGMAS", np.inf)
+    for pos, load in zip(beams, windowed, strict=True):
+        whole = surface_load(xs, ys, pos, 237.0, 0.4, 50e-6)
+        assert np.abs(load - whole).max() <= 1e-14 * whole.max()
+
+
 @pytest.fixture(scope="module")
 def coarse_track():
     s = Settings(**COARSE)
