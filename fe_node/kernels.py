@@ -1,10 +1,12 @@
 """Compiled inner loops of the explicit step (numba), each one pass over the nodes.
 
 The numpy forms they replace took about ten passes over the grid each.  The table
-(:func:`piecewise_linear`) and the x factor (:func:`x_pass`) are bitwise equal to those forms (same
-IEEE operations in the same order, no fast-math; ``tests/test_fe_kernels.py``); the operator's
-element-wise correction and the evaporation solve agree with the library results to rounding
-(``tests/test_fe_operators.py`` against the scikit-fem forms, the evaporation residual test).
+(:func:`piecewise_linear`: Kirchhoff variable and temperature) and the x factor (:func:`x_pass`) are
+bitwise equal to those forms (same IEEE operations in the same order, no fast-math;
+``tests/test_fe_kernels.py``); the operator's element-wise correction, the evaporation solve and the
+keyhole's column walk (:func:`drill_columns`) agree with the library or numpy results to rounding
+(``tests/test_fe_operators.py`` against the scikit-fem forms, the evaporation residual test,
+``tests/test_fe_physical.py``).
 Imported when a plant is built (:func:`warm`), so a process that builds no plant never loads numba.
 """
 from __future__ import annotations
@@ -107,6 +109,35 @@ def evaporate_nodes(t_star: np.ndarray, k: np.ndarray, heat_capacity: float, t_b
         out[n] = t
 
 
+@numba.njit(cache=True, nogil=True)
+def drill_columns(h: np.ndarray, m: np.ndarray, h_cap: float, n_heated: int, opening: np.ndarray) -> None:
+    """:func:`fe_node.keyhole.drill` column by column: ``h``, ``m`` of shape (ny, nz, nx), top at
+    ``[:, -1, :]``; ``opening`` (ny, nx) receives the drilled columns.  A column is walked down from
+    its top while in its ``n_heated`` top nodes or while it carries an excess."""
+    ny, nz, nx = h.shape
+    for j in range(ny):
+        for i in range(nx):
+            hot = False
+            for k in range(nz - n_heated, nz):
+                if h[j, k, i] > h_cap:
+                    hot = True
+            opening[j, i] = hot
+            if not hot:
+                continue
+            excess = 0.0
+            for k in range(nz - 1, -1, -1):
+                total = excess + (h[j, k, i] - h_cap) * m[j, k, i]
+                if total > 0:
+                    h[j, k, i] = h_cap
+                    excess = total
+                else:
+                    h[j, k, i] = h_cap + total / m[j, k, i]
+                    excess = 0.0
+                if k <= nz - n_heated and excess <= 0.0:
+                    break
+            h[j, 0, i] += excess / m[j, 0, i]
+
+
 def warm() -> None:
     """Compile (or load from numba's cache) every kernel here with the argument types the plant
     passes, on tiny arrays: a plant calls it when it is built, so its first step runs at speed
@@ -118,3 +149,4 @@ def warm() -> None:
     element_apply(corners, np.zeros((1, 8, 8)), one, np.zeros(2))
     element_apply_box(corners, np.zeros((1, 8, 8)), np.ones((1, 1, 1)), 0, 0, 0, 1, 1, np.zeros(2))
     evaporate_nodes(one * 2000.0, one, 1.0, 3000.0, 1000.0, 1.0, 1.0, 1.0, 2, np.empty(2))
+    drill_columns(np.ones((1, 2, 1)), np.ones((1, 2, 1)), 2.0, 1, np.empty((1, 1), dtype=np.bool_))

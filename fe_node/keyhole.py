@@ -64,7 +64,8 @@ def drill(h: np.ndarray, m: np.ndarray, h_cap: float, n_heated: int = 1) -> np.n
 
     From the top down, a node above ``h_cap`` is set to it and its excess passed to the node
     below, which takes what it can up to ``h_cap``; what no node of the column can take stays in
-    its bottom node.
+    its bottom node.  A column is walked down while in its ``n_heated`` top nodes or carrying an
+    excess (compiled, :func:`fe_node.kernels.drill_columns`).
 
     Parameters
     ----------
@@ -83,22 +84,11 @@ def drill(h: np.ndarray, m: np.ndarray, h_cap: float, n_heated: int = 1) -> np.n
     ndarray of bool, shape (ny, nx)
         The columns drilled (the keyhole's opening).  The sum of ``m * h`` is unchanged.
     """
-    nz = h.shape[1]
-    n_heated = min(max(n_heated, 1), nz)
-    opening = np.any(h[:, nz - n_heated:, :] > h_cap, axis=1)
-    j, i = np.nonzero(opening)
-    if len(j) == 0:
-        return opening
-    excess = np.zeros(len(j))
-    for k in range(nz - 1, -1, -1):
-        mk = m[j, k, i]
-        total = excess + (h[j, k, i] - h_cap) * mk
-        full = total > 0
-        h[j, k, i] = np.where(full, h_cap, h_cap + total / mk)
-        excess = np.where(full, total, 0.0)
-        if k <= nz - n_heated and not np.any(excess > 0):
-            break
-    h[j, 0, i] += excess / m[j, 0, i]
+    from fe_node.kernels import drill_columns
+
+    n_heated = min(max(n_heated, 1), h.shape[1])
+    opening = np.empty((h.shape[0], h.shape[2]), dtype=bool)
+    drill_columns(h, m, float(h_cap), n_heated, opening)
     return opening
 
 

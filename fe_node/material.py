@@ -181,10 +181,15 @@ class Constitutive:
         return np.clip(i, 0, self._imax, out=i)
 
     def temperature(self, h):
-        """Temperature [K] from enthalpy ``h`` [J/m³] (any shape)."""
+        """Temperature [K] from enthalpy ``h`` [J/m³] (any shape; a scalar for a scalar): one
+        compiled pass, :func:`fe_node.kernels.piecewise_linear` (a strided ``h`` is copied first)."""
+        from fe_node.kernels import piecewise_linear
+
         h = np.asarray(h, dtype=float)
-        i = self._index(h)
-        return self._t_a[i] + self._t_b[i] * h
+        out = np.empty(h.shape)
+        piecewise_linear(np.ascontiguousarray(h).reshape(-1), self._h0, self._inv_dh, self._imax, self._t_a,
+                         self._t_b, out.reshape(-1))
+        return out if h.ndim else out[()]
 
     def temperature_slope(self, h):
         """``dT / dH`` [K m³/J] at enthalpy ``h`` (the table's slope)."""

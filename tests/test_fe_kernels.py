@@ -37,6 +37,18 @@ def test_kirchhoff_is_the_table_clipped_at_its_ends():
     np.testing.assert_array_equal(out1, [-49.0, 6.0, 32.0, 182.0])
 
 
+def test_temperature_is_the_table_clipped_at_its_ends():
+    """T(H) through the compiled table equals the numpy form bit for bit, on any shape and stride,
+    and is a scalar for a scalar."""
+    law = Constitutive(Material.in625())
+    h = np.linspace(law._h0 - 1e8, law._h0 + (law._imax + 3) / law._inv_dh, 20_013).reshape(3, 6671)
+    i = np.clip(((h - law._h0) * law._inv_dh).astype(np.intp), 0, law._imax)
+    np.testing.assert_array_equal(law.temperature(h), law._t_a[i] + law._t_b[i] * h)
+    np.testing.assert_array_equal(law.temperature(h[:, ::7].T), (law._t_a[i] + law._t_b[i] * h)[:, ::7].T)
+    scalar = law.temperature(h[1, 17])
+    assert np.ndim(scalar) == 0 and scalar == law._t_a[i[1, 17]] + law._t_b[i[1, 17]] * h[1, 17]
+
+
 def test_warm_compiles_every_kernel_with_the_plants_types():
     """After ``warm`` (what a plant runs when it is built) no kernel compiles again in a step."""
     import fe_node.kernels as kernels
@@ -45,7 +57,8 @@ def test_warm_compiles_every_kernel_with_the_plants_types():
 
     warm()
     compiled = {name: len(getattr(kernels, name).signatures) for name in
-                ("x_pass", "piecewise_linear", "element_apply", "element_apply_box", "evaporate_nodes")}
+                ("x_pass", "piecewise_linear", "element_apply", "element_apply_box", "evaporate_nodes",
+                 "drill_columns")}
     sc = scenario("double-track", h_fine_m=50e-6, track_length_m=1e-3)
     model = ThermalModel(sc.settings, sc.plan)
     for _ in range(30):

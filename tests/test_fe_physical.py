@@ -48,6 +48,35 @@ def test_drill_conserves_energy_and_caps_the_surface():
     assert np.all(h[:, -1, :] <= 6e9) and opening.any() and np.all(h[:, 1:, :] <= 6e9 * (1 + 1e-12))
 
 
+def _drill_numpy(h, m, h_cap, n_heated):
+    """The vectorised form of ``drill``: every column of the opening walked down together."""
+    nz = h.shape[1]
+    j, i = np.nonzero(np.any(h[:, nz - n_heated:, :] > h_cap, axis=1))
+    excess = np.zeros(len(j))
+    for k in range(nz - 1, -1, -1):
+        total = excess + (h[j, k, i] - h_cap) * m[j, k, i]
+        full = total > 0
+        h[j, k, i] = np.where(full, h_cap, h_cap + total / m[j, k, i])
+        excess = np.where(full, total, 0.0)
+        if k <= nz - n_heated and not np.any(excess > 0):
+            break
+    h[j, 0, i] += excess / m[j, 0, i]
+
+
+@pytest.mark.parametrize("n_heated", [1, 2])
+def test_drill_equals_the_vectorised_form(n_heated):
+    """Column by column (compiled) as all columns at once (numpy), to rounding: the columns that carry
+    no excess are left as they are instead of rewritten as ``h_cap + (h - h_cap) m / m``."""
+    rng = np.random.default_rng(3)
+    h = rng.uniform(1e9, 5.9e9, (9, 12, 11))
+    h[:, -n_heated:, :] = rng.uniform(1e9, 3e10, (9, n_heated, 11))
+    m = rng.uniform(0.5, 2.0, h.shape)
+    ref = h.copy()
+    _drill_numpy(ref, m, 6e9, n_heated)
+    drill(h, m, 6e9, n_heated)
+    np.testing.assert_allclose(h, ref, rtol=1e-15, atol=0)
+
+
 def test_cavity_absorptivity_rises_with_keyhole_depth():
     # Gouffé without its correction term: a / (a (1 - s/S) + s/S), s/S = r / (r + 2 d)
     r = 40e-6
