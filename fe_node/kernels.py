@@ -1,12 +1,12 @@
 """Compiled inner loops of the explicit step (numba), each one pass over the nodes.
 
 The numpy forms they replace took about ten passes over the grid each.  The table
-(:func:`piecewise_linear`: Kirchhoff variable and temperature) and the x factor (:func:`x_pass`) are
-bitwise equal to those forms (same IEEE operations in the same order, no fast-math;
-``tests/test_fe_kernels.py``); the operator's element-wise correction, the evaporation solve and the
-keyhole's column walk (:func:`drill_columns`) agree with the library or numpy results to rounding
-(``tests/test_fe_operators.py`` against the scikit-fem forms, the evaporation residual test,
-``tests/test_fe_physical.py``).
+(:func:`piecewise_linear`: Kirchhoff variable and temperature), the x factor (:func:`x_pass`) and the
+powder's consolidation (:func:`melt_powder`) are bitwise equal to those forms (same IEEE operations in
+the same order, no fast-math; ``tests/test_fe_kernels.py``); the operator's element-wise correction,
+the evaporation solve and the keyhole's column walk (:func:`drill_columns`) agree with the library or
+numpy results to rounding (``tests/test_fe_operators.py`` against the scikit-fem forms, the
+evaporation residual test, ``tests/test_fe_physical.py``).
 Imported when a plant is built (:func:`warm`), so a process that builds no plant never loads numba.
 """
 from __future__ import annotations
@@ -138,6 +138,28 @@ def drill_columns(h: np.ndarray, m: np.ndarray, h_cap: float, n_heated: int, ope
             h[j, 0, i] += excess / m[j, 0, i]
 
 
+@numba.njit(cache=True, nogil=True)
+def melt_powder(t: np.ndarray, t_liquidus: float, consolidated: np.ndarray, k0: int, out: np.ndarray) -> int:
+    """:meth:`fe_node.powder.PowderBed.consolidate`: mark the elements of ``consolidated`` (ny, n, nx)
+    whose mean corner temperature of ``t`` (ny + 1, n + 1, nx + 1) [K] passes ``t_liquidus``; their
+    flat indices in the element order of a grid with ``k0`` element layers below them go to ``out``
+    (C order, as ``np.nonzero``); returns how many."""
+    ny, n, nx = consolidated.shape
+    count = 0
+    for j in range(ny):
+        for k in range(n):
+            for i in range(nx):
+                if consolidated[j, k, i]:
+                    continue
+                mean = 0.125 * (t[j, k, i] + t[j, k, i + 1] + t[j, k + 1, i] + t[j, k + 1, i + 1]
+                                + t[j + 1, k, i] + t[j + 1, k, i + 1] + t[j + 1, k + 1, i] + t[j + 1, k + 1, i + 1])
+                if mean > t_liquidus:
+                    consolidated[j, k, i] = True
+                    out[count] = (j * (n + k0) + k + k0) * nx + i
+                    count += 1
+    return count
+
+
 def warm() -> None:
     """Compile (or load from numba's cache) every kernel here with the argument types the plant
     passes, on tiny arrays: a plant calls it when it is built, so its first step runs at speed
@@ -150,3 +172,4 @@ def warm() -> None:
     element_apply_box(corners, np.zeros((1, 8, 8)), np.ones((1, 1, 1)), 0, 0, 0, 1, 1, np.zeros(2))
     evaporate_nodes(one * 2000.0, one, 1.0, 3000.0, 1000.0, 1.0, 1.0, 1.0, 2, np.empty(2))
     drill_columns(np.ones((1, 2, 1)), np.ones((1, 2, 1)), 2.0, 1, np.empty((1, 1), dtype=np.bool_))
+    melt_powder(np.ones((2, 2, 2)), 2.0, np.zeros((1, 1, 1), dtype=np.bool_), 1, np.empty(1, dtype=np.intp))

@@ -68,17 +68,17 @@ class PowderBed:
         return 0.25 * (top[:-1, :-1] + top[:-1, 1:] + top[1:, :-1] + top[1:, 1:])
 
     def consolidate(self, t: np.ndarray) -> np.ndarray:
-        """Mark the powder elements that melted; returns their flat indices in the full element order.
+        """Mark the powder elements that melted (mean nodal temperature above the liquidus; compiled,
+        :func:`fe_node.kernels.melt_powder`); returns their flat indices in the full element order.
 
         Parameters
         ----------
         t : ndarray, shape (ny, nz - k0, nx)
             Nodal temperatures [K] of the powder layers (from the plate's top nodes up).
         """
-        mean = 0.125 * (t[:-1, :-1, :-1] + t[:-1, :-1, 1:] + t[:-1, 1:, :-1] + t[:-1, 1:, 1:]
-                        + t[1:, :-1, :-1] + t[1:, :-1, 1:] + t[1:, 1:, :-1] + t[1:, 1:, 1:])
-        new = (mean > self.t_liquidus) & ~self.consolidated
-        self.consolidated |= new
-        j, k, i = np.nonzero(new)
-        ny, n, nx = self.consolidated.shape
-        return np.ravel_multi_index((j, k + self.k0, i), (ny, n + self.k0, nx))
+        from fe_node.kernels import melt_powder
+
+        self.consolidated = np.ascontiguousarray(self.consolidated)
+        out = np.empty(self.consolidated.size, dtype=np.intp)
+        n = melt_powder(np.ascontiguousarray(t, dtype=float), float(self.t_liquidus), self.consolidated, self.k0, out)
+        return out[:n]

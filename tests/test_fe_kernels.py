@@ -49,6 +49,27 @@ def test_temperature_is_the_table_clipped_at_its_ends():
     assert np.ndim(scalar) == 0 and scalar == law._t_a[i[1, 17]] + law._t_b[i[1, 17]] * h[1, 17]
 
 
+def test_consolidation_marks_the_elements_whose_corner_mean_passes_the_liquidus():
+    """The compiled consolidation equals the numpy form: the mean of the eight corners, summed in
+    their order, against the liquidus; already consolidated elements are not returned again."""
+    from fe_node.powder import PowderBed
+
+    rng = np.random.default_rng(7)
+    t = rng.uniform(1500.0, 1760.0, (6, 4, 9))
+    bed = PowderBed.__new__(PowderBed)
+    bed.k0, bed.t_liquidus = 5, 1623.0
+    bed.consolidated = rng.uniform(size=(5, 3, 8)) < 0.2
+    before = bed.consolidated.copy()
+    mean = 0.125 * (t[:-1, :-1, :-1] + t[:-1, :-1, 1:] + t[:-1, 1:, :-1] + t[:-1, 1:, 1:]
+                    + t[1:, :-1, :-1] + t[1:, :-1, 1:] + t[1:, 1:, :-1] + t[1:, 1:, 1:])
+    new = (mean > 1623.0) & ~before
+    j, k, i = np.nonzero(new)
+    melted = bed.consolidate(t)
+    np.testing.assert_array_equal(melted, np.ravel_multi_index((j, k + 5, i), (5, 8, 8)))
+    np.testing.assert_array_equal(bed.consolidated, before | new)
+    assert new.any() and (before & (mean > 1623.0)).any() and len(bed.consolidate(t)) == 0
+
+
 def test_warm_compiles_every_kernel_with_the_plants_types():
     """After ``warm`` (what a plant runs when it is built) no kernel compiles again in a step."""
     import fe_node.kernels as kernels
@@ -58,7 +79,7 @@ def test_warm_compiles_every_kernel_with_the_plants_types():
     warm()
     compiled = {name: len(getattr(kernels, name).signatures) for name in
                 ("x_pass", "piecewise_linear", "element_apply", "element_apply_box", "evaporate_nodes",
-                 "drill_columns")}
+                 "drill_columns", "melt_powder")}
     sc = scenario("double-track", h_fine_m=50e-6, track_length_m=1e-3)
     model = ThermalModel(sc.settings, sc.plan)
     for _ in range(30):
