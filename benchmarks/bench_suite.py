@@ -150,8 +150,14 @@ def in_sample(case: Case, plans: set[tuple[int, float, float]]) -> bool:
             and not any(key in case.plant for key in PROCESS_KEYS))
 
 
-def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None) -> dict[str, Any]:
-    """One launch.py run of ``case`` under ``controller``; launch's JSON summary (or the refusal)."""
+MODEL_CONTROLLERS = ("preview-mpc", "scan-feedforward")
+"""The controllers of :data:`CONTROLLERS` that run on the delay-aware model (``--model``)."""
+
+
+def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None,
+             model: Path | None = None) -> dict[str, Any]:
+    """One launch.py run of ``case`` under ``controller`` (on ``model`` for :data:`MODEL_CONTROLLERS`; None:
+    launch's model of the plant); launch's JSON summary (or the refusal)."""
     config = out_dir / f"{case.name}.toml"
     lines = ["[plant]"] + [f"{k} = {json.dumps(v)}" for k, v in sorted(case.plant.items())]
     config.write_text("\n".join(lines) + "\n")
@@ -162,6 +168,8 @@ def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None) 
         cmd += ["--layers", str(case.layers)]
     if max_steps is not None:
         cmd += ["--max-steps", str(max_steps)]
+    if model is not None and controller in MODEL_CONTROLLERS:
+        cmd += ["--model", str(model)]
     done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     last = (done.stdout.strip().splitlines() or [""])[-1]
     try:
@@ -191,8 +199,8 @@ def bound_from(provenance: dict[str, Any], args: argparse.Namespace) -> BoundSet
     fopdt = (controller.get("pid") or {}).get("fopdt") or {}
     needed = ("gain_m2_per_w", "delay_steps", "time_constant_s", "sample_period_s")
     if any(key not in fopdt for key in needed) or "nominal_power_w" not in controller:
-        sys.exit(f"bench_suite.py: error: --bound: {args.model} records no provenance.controller.pid.fopdt "
-                 "(run python -m gp_trainer tune-pid --model on it)")
+        sys.exit(f"bench_suite.py: error: --bound: {args.model or DEFAULT_MODEL_PATH} records no "
+                 "provenance.controller.pid.fopdt (run python -m gp_trainer tune-pid --model on it)")
     try:
         return BoundSettings(iterations=args.bound_iterations, gain=args.bound_gain, process=Fopdt(**fopdt),
                              start_power_w=float(controller["nominal_power_w"]))
@@ -216,8 +224,9 @@ def main() -> int:
     parser.add_argument("--cases", nargs="+", choices=[c.name for c in CASES], help="cases to run (default: all)")
     parser.add_argument("--controllers", nargs="+", default=list(CONTROLLERS), choices=CONTROLLERS)
     parser.add_argument("--max-steps", type=int, help="end each run after this many plant steps (a quick check)")
-    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
-                        help="the preview MPC's model, whose training runs decide in_sample (default: the shipped)")
+    parser.add_argument("--model", type=Path,
+                        help="the model of preview-mpc and scan-feedforward, whose training runs decide in_sample "
+                             "(default: the shipped model of each case's plant; in_sample from the physical plate's)")
     parser.add_argument("--out-dir", type=Path, help="recordings, configs and JSON records (default: a temp folder)")
     parser.add_argument("--json", action="store_true", help="print the records as JSON on the last line")
     parser.add_argument("--bound", action="store_true",
@@ -226,7 +235,7 @@ def main() -> int:
     parser.add_argument("--bound-gain", type=float, default=0.5, help="its learning gain (default %(default)s)")
     args = parser.parse_args()
     cases = [c for c in CASES if args.cases is None or c.name in args.cases]
-    provenance = read_document(args.model).get("provenance", {})
+    provenance = read_document(args.model or DEFAULT_MODEL_PATH).get("provenance", {})
     plans = training_plans(list(provenance.get("runs", [])))
     bound_settings = bound_from(provenance, args) if args.bound else None
     with tempfile.TemporaryDirectory() as tmp:
@@ -238,7 +247,8 @@ def main() -> int:
         for case in cases:
             bound = {} if bound_settings is None else case_bound(case, bound_settings, args.max_steps)
             for controller in args.controllers:
-                rec = record(case, controller, run_case(case, controller, out_dir, args.max_steps), plans) | bound
+                rec = record(case, controller, run_case(case, controller, out_dir, args.max_steps, args.model),
+                             plans) | bound
                 (out_dir / f"{case.name}-{controller}.json").write_text(json.dumps(rec, indent=1) + "\n")
                 records.append(rec)
                 figures = " ".join(f"{_cell(rec[k]):>7s}" for k in ("overshoot_pct", "undershoot_pct", "rmse_pct",

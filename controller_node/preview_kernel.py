@@ -13,7 +13,7 @@ and the state's :class:`~controller_node.preview_stages.StateContext`:
    m = 1..H (model of :mod:`gp_model.narx`, rows indexed ``i = m − 1``)::
 
     z_m = c₀ + Σ_i (b_i p_i + q_i p_i²) + Σ_j c_j T_j + Σ_{j<n_Tq} d_j T_j² + Σ_{i<n_x} e_i p_i T_i
-          + Σ_{l<n_F} g_l F[k+m−l] + r(ψ_{k+m−1})
+          + Σ_{l<n_F} g_l F[k+m−l] + R_m + r(ψ_{k+m−1})
     x̂_m = exp(z_m) (log output) + d̂ + κ-learned correction_m
     ∂x̂_m/∂ū_n = x'(z_m) (b_l + 2 q_l ū_n + e_l T[k+m−1−l] + ∂r/∂ψ₂ / n_p),  l = m − 1 − n ∈ [0, n_p)
               + x'(z_m) M[m − 1 − e_k, e_k − 1 − n]   (a turn ahead, after state k + e_k; n < e_k)
@@ -25,6 +25,9 @@ and the state's :class:`~controller_node.preview_stages.StateContext`:
    its previous track's powers give (set at the turn), after the turn ahead ``Σ_e K[s, e] p`` of
    the current track's last powers, applied or planned, so a planned power before the turn moves
    the prediction after it through ``M = Σ_l g_l K[· − l, ·]`` (Γ is then dense in those rows).
+   ``R_m`` are the remnant terms (:class:`gp_model.plan_feature.RemnantFeature`) of the state k+m, s
+   states after a turn: ``c_s + Σ_e W[s, e] p[t₀ − 1 − e]``, on the current track set at the turn, after
+   the turn ahead of the current track's last powers, applied or planned; ``W`` enters ``M``.
 3. **Plan** (:class:`~controller_node.preview_stages.Planner`): the condensed QP of
    :mod:`controller_node.preview_qp` in ``v = u / P``, ``e = Γ v + c``::
 
@@ -312,6 +315,7 @@ def _forecast(predictor, run, context, t_ahead_k, ws):  # pragma: no cover (comp
     out = ws.forecast
     forecast_into(t_ahead_k, context.since, context.on_first, context.to_end, run.profile, context.has_turn_base,
                   context.turn_base_k, predictor.decay, out)
+    _future_remnant(predictor, run, context, ws.rems)
     if not predictor.has_feature:
         return
     first = max(predictor.g.size, 1) - 1
@@ -428,13 +432,40 @@ def _future_features(predictor, run, context, feats):  # pragma: no cover (compi
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
+def _future_remnant(predictor, run, context, rems):  # pragma: no cover (compiled)
+    """The remnant terms R of the states k+1 .. k+H [z] into ``rems``, as :func:`_future_features`: the
+    current track's (``track_remnant``) or, after the turn ahead, ``c_s + Σ_e W[s, e] p`` of the current
+    track's last powers (planned after k, applied up to k); 0 beyond the terms' states."""
+    kernel, offsets, plan, p_long = predictor.remnant_kernel, predictor.remnant_offsets, run.plan, run.p_long
+    h, p_fill, power_w = plan.size, context.p_fill, context.power_w
+    n_states, n_sources = kernel.shape
+    since, to_end, on_first = context.since, context.to_end, context.on_first
+    for i in range(h):
+        m = i + 1
+        value = 0.0
+        if to_end < 0 or m <= to_end:
+            s = since + m
+            if not on_first and s < n_states:
+                value = run.track_remnant[s]
+        elif m - to_end - 1 < n_states:
+            s = m - to_end - 1
+            value = offsets[s]
+            for e in range(min(to_end, n_sources)):     # planned: p[k + e_k − e] = plan[e_k − e]
+                value += kernel[s, e] * plan[to_end - e]
+            for e in range(to_end, n_sources):          # applied: p[k + e_k − e], the state's p_fill first
+                back = e - to_end
+                value += kernel[s, e] * (power_w if back < p_fill else p_long[back - p_fill])
+        rems[i] = value
+
+
+@njit(cache=True, nogil=True, fastmath=_REORDER)
 def _prediction(predictor, ws, disturbance, gp_rows):  # pragma: no cover (compiled)
     """x̂ at ū (into ``ws``: z, x̂, std, the GP's mean-power slope and ``x'(z)``); the GP's kernel
     sums and the variance (of the first ``n_variance`` rows) from ``kern`` for the first ``gp_rows``
     rows, from the prepared moments beyond (:func:`feedback_into`). True if every x̂ is finite."""
     b, q, cc, d, e, g, feats = predictor.b, predictor.q, predictor.cc, predictor.d, predictor.e, predictor.g, ws.feats
     n_p, n_t, n_tq, n_x, n_f = b.size, cc.size, d.size, e.size, g.size
-    powers, temps, kern, psi, correction = ws.powers, ws.temps, ws.kern, ws.psi, ws.correction
+    powers, temps, kern, psi, correction, rems = ws.powers, ws.temps, ws.kern, ws.psi, ws.correction, ws.rems
     h = powers.size - n_p
     n_gp = kern.shape[1]
     beta, moment_weights, var_f = predictor.gp_beta, predictor.gp_slope_weights, predictor.var_factor
@@ -485,7 +516,7 @@ def _prediction(predictor, ws, disturbance, gp_rows):  # pragma: no cover (compi
                 power *= eps / (j + 1)
         w2 = (psi[row, 2] - mean2) * scale2
         gp_slope[row] = scale2 * (gp_moment - w2 * gp_mean) / n_p    # ∂r/∂ū_n through the mean power
-        zz = intercept + gp_mean
+        zz = intercept + gp_mean + rems[row]
         for i in range(n_p):
             p = powers[last_p - i]
             zz += (b[i] + q[i] * p) * p
@@ -537,10 +568,12 @@ def _jacobian(predictor, planner, ws, to_end):  # pragma: no cover (compiled)
     feature_jac = predictor.feature_jac
     n_sources = feature_jac.shape[1]
     ws.width = n_p
-    if predictor.has_feature and 1 <= to_end < h:    # F after the turn by the planned powers before it:
-        ws.width = h                                  # through T̂ (β ∂F) and the lagged features (M)
+    has_remnant = predictor.remnant_kernel.shape[0] > 0
+    if (predictor.has_feature or has_remnant) and 1 <= to_end < h:   # F and R after the turn by the planned
+        ws.width = h                                  # powers before it: through T̂ (β ∂F), the lagged features
+    if predictor.has_feature and 1 <= to_end < h:    # and the remnant terms (M)
         _feature_jacobian(predictor, ratio, ws, to_end)
-    if predictor.g.size and 1 <= to_end < h:
+    if (predictor.g.size or has_remnant) and 1 <= to_end < h:
         for row in range(to_end, h):
             slope, r, du = slopes[row], row - to_end, 0.0
             for col in range(max(0, to_end - n_sources), to_end):
@@ -754,10 +787,10 @@ class Kernel:
         ``T̂[k+1 .. k+H−1]`` [K] of the rows.
     forecast, correction : numpy.ndarray, shape (H,)
         ``T̂[k+1 .. k+H]`` [K] and the learned correction of x̂_{k+1..k+H} [m²].
-    p_long, f_hist, prev_powers, track_feature : numpy.ndarray
-        The turnaround feature's power history p[k], p[k−1], … (E,) [W], its values F[k−n_F+1 .. k]
-        [K], the previous track's last powers (E,) [W] and the current track's F by state since its
-        start (S,) [K] (:meth:`start_track`).
+    p_long, f_hist, prev_powers, track_feature, track_remnant : numpy.ndarray
+        The turnaround feature's and remnant's power history p[k], p[k−1], … (E,) [W], the feature's values
+        F[k−n_F+1 .. k] [K], the previous track's last powers (E,) [W] and the current track's F [K] and
+        remnant terms [z] by state since its start (S,), (n_R,) (:meth:`start_track`).
     feats : numpy.ndarray, shape (n_F − 1 + H,)
         F[k−n_F+2 .. k+H] [K] of the rows.
     prepared : bool
@@ -773,16 +806,20 @@ class Kernel:
         n_p, n_t, n_gp = model.power_coefficients.size, model.temperature_coefficients.size, points.shape[1]
         e, g = model.power_temperature_coefficients, model.feature_coefficients
         feature_kernel = model.feature_kernel()
-        n_targets, n_sources = feature_kernel.shape
-        self.feature_kernel = feature_kernel
+        remnant_kernel, remnant_offsets = model.remnant_kernel()
+        n_targets = feature_kernel.shape[0]
+        n_sources = max(feature_kernel.shape[1], remnant_kernel.shape[1])   # the power history both read
+        self.feature_kernel, self.remnant_kernel, self.remnant_offsets = feature_kernel, remnant_kernel, remnant_offsets
         horizon_kernel = self._horizon_kernel(feature_kernel, h)
+        feature_jac = self._lag_feature_jacobian(g, horizon_kernel, h, remnant_kernel)
         log_output = bool(model.output == "log")
         const = carve({"b": (n_p,), "q": (n_p,), "cc": (n_t,), "d": model.temperature_square_coefficients.shape,
                        "e": e.shape, "mean": (3,), "scale": (3,), "decay": (h,), "weights": (h,), "moves": (h, h),
                        "gp_points": (4, n_gp), "beta": (n_gp,), "slope_weights": (n_gp,), "var_f": (n_gp, n_gp),
                        "series_weights": (n_gp, 2 * MOMENTS), "g": g.shape, "feature_kernel": horizon_kernel.shape,
-                       "feature_jac": (h, horizon_kernel.shape[1]),
-                       "feature_mean": (max(model.feature_profile_k.size, 1),)})
+                       "feature_jac": feature_jac.shape,
+                       "feature_mean": (max(model.feature_profile_k.size, 1),), "remnant_kernel": remnant_kernel.shape,
+                       "remnant_offsets": remnant_offsets.shape})
         w0_powers = points[0][:, None] ** np.arange(MOMENTS)          # W_a0ʲ, (N, MOMENTS)
         for name, value in (("b", model.power_coefficients), ("q", model.power_square_coefficients),
                             ("cc", model.temperature_coefficients), ("d", model.temperature_square_coefficients),
@@ -793,8 +830,9 @@ class Kernel:
                             ("series_weights", np.hstack((points[4][:, None] * w0_powers,
                                                           points[5][:, None] * w0_powers))),
                             ("g", g), ("feature_kernel", horizon_kernel),
-                            ("feature_jac", self._lag_feature_jacobian(g, horizon_kernel, h)),
-                            ("feature_mean", model.feature_profile_k if model.turn_feature else np.zeros(1))):
+                            ("feature_jac", feature_jac),
+                            ("feature_mean", model.feature_profile_k if model.turn_feature else np.zeros(1)),
+                            ("remnant_kernel", remnant_kernel), ("remnant_offsets", remnant_offsets)):
             const[name][...] = value
         self.predictor = new_predictor(float(model.intercept), const["b"], const["q"], const["cc"], const["d"],
                                        const["e"], const["mean"], const["scale"], float(scalars[6]),
@@ -803,14 +841,15 @@ class Kernel:
                                        const["series_weights"], const["decay"], log_output, int(n_variance),
                                        float(STEPS_SINCE_START_CAP), const["g"], const["feature_kernel"],
                                        const["feature_jac"], model.turn_feature is not None,
-                                       float(model.feature_temperature_gain), const["feature_mean"])
+                                       float(model.feature_temperature_gain), const["feature_mean"],
+                                       const["remnant_kernel"], const["remnant_offsets"])
         self.planner = new_planner(float(qp.x_sp), float(qp.scale), float(qp.r), float(qp.v_lo), float(qp.v_hi),
                                    float(qp.e_lo), float(qp.e_hi), float(uncertainty_z), const["weights"],
                                    const["moves"])
         run = carve({"p_hist": (n_p,), "t_hist": (n_t,), "plan": (h,), "profile": (n_profile,),
                      "current": (n_correction,), "following": (n_correction,), "turn_errors": (n_correction,),
                      "p_long": (n_sources,), "f_hist": (max(g.size, 1),), "prev_powers": (n_sources,),
-                     "track_feature": (n_targets,)})
+                     "track_feature": (n_targets,), "track_remnant": (max(remnant_kernel.shape[0], 1),)})
         scratch = carve({"p_hist": (n_p,), "t_hist": (n_t,), "plan": (h,), "p_long": (n_sources,),
                          "f_hist": (max(g.size, 1),)})
         self.turn_error_seen = np.zeros(n_correction, dtype=bool)
@@ -819,15 +858,16 @@ class Kernel:
         self.estimator = new_estimator(*estimator_terms, run["turn_errors"], self.turn_error_seen)
         self.run = new_run(run["p_hist"], run["t_hist"], run["plan"], run["profile"], run["current"],
                            run["following"], run["p_long"], run["f_hist"], run["prev_powers"], run["track_feature"],
-                           self.estimator)
+                           run["track_remnant"], self.estimator)
         self._scratch = new_run(scratch["p_hist"], scratch["t_hist"], scratch["plan"], run["profile"],
                                 run["current"], run["following"], scratch["p_long"], scratch["f_hist"],
-                                run["prev_powers"], run["track_feature"],
+                                run["prev_powers"], run["track_feature"], run["track_remnant"],
                                 new_estimator(*estimator_terms, run["turn_errors"], self.turn_error_seen))
         self.p_hist, self.t_hist, self.plan, self.profile = run["p_hist"], run["t_hist"], run["plan"], run["profile"]
         self.current, self.following, self.turn_errors = run["current"], run["following"], run["turn_errors"]
         self.p_long, self.f_hist = run["p_long"], run["f_hist"]
-        self.prev_powers, self.track_feature = run["prev_powers"], run["track_feature"]
+        self.prev_powers, self.track_feature, self.track_remnant = run["prev_powers"], run["track_feature"], \
+            run["track_remnant"]
         self.prepared = False
         self._workspaces = (self._workspace(h, n_p, n_t, n_gp, g.size), self._workspace(h, n_p, n_t, n_gp, g.size))
         self.__dict__.update(self._workspaces[0][1])
@@ -848,21 +888,30 @@ class Kernel:
         return np.ascontiguousarray(kernel[:, :min(n, kernel.shape[1])])
 
     @staticmethod
-    def _lag_feature_jacobian(g: np.ndarray, kernel: np.ndarray, h: int) -> np.ndarray:
-        """``M[r, e] = Σ_{l ≤ r, r − l < S} g_l K[r − l, e]``, shape (H, E): ∂z of the r-th state after a
-        turn by the power e states before it, through the lagged turnaround features."""
-        out = np.zeros((h, kernel.shape[1]))
+    def _lag_feature_jacobian(g: np.ndarray, kernel: np.ndarray, h: int,
+                              remnant: np.ndarray | None = None) -> np.ndarray:
+        """``M[r, e] = Σ_{l ≤ r, r − l < S} g_l K[r − l, e] + W[r, e]``, shape (H, max(E, E_R)): ∂z of the r-th
+        state after a turn by the power e states before it, through the lagged turnaround features and the
+        remnant terms ``remnant`` W, shape (n_R, E_R) (W = 0 beyond them)."""
+        remnant = np.zeros((0, 1)) if remnant is None else remnant
+        out = np.zeros((h, max(kernel.shape[1], remnant.shape[1])))
         for lag, coefficient in enumerate(g):
             rows = np.arange(lag, min(h, lag + kernel.shape[0]))
-            out[rows] += coefficient * kernel[rows - lag]
+            out[rows, :kernel.shape[1]] += coefficient * kernel[rows - lag]
+        rows = min(h, remnant.shape[0])
+        out[:rows, :remnant.shape[1]] += remnant[:rows]
         return out
 
     def start_track(self, previous: bool) -> None:
         """At a track's first state, before its update: the previous track's last powers (``p_long``,
-        with ``previous``; zeros at a layer's start) and the turnaround feature they give along this
-        track (``track_feature = K prev_powers``)."""
+        with ``previous``; zeros at a layer's start) and the turnaround feature and remnant terms they give
+        along this track (``track_feature = K prev_powers``, ``track_remnant = c + W prev_powers``)."""
         self.prev_powers[:] = self.p_long if previous else 0.0
-        self.track_feature[:] = self.feature_kernel @ self.prev_powers if previous else 0.0
+        self.track_feature[:] = self.feature_kernel @ self.prev_powers[:self.feature_kernel.shape[1]] if previous \
+            else 0.0
+        n_r, n_e = self.remnant_kernel.shape
+        self.track_remnant[:n_r] = self.remnant_offsets + self.remnant_kernel @ self.prev_powers[:n_e] if previous \
+            else 0.0
 
     @staticmethod
     def _workspace(h: int, n_p: int, n_t: int, n_gp: int, n_f: int) -> tuple[Workspace, dict]:
@@ -872,7 +921,8 @@ class Kernel:
                    "slopes": (h,), "jac_u": (h,), "psi": (h, 3), "kern": (h, n_gp), "bits": (h * n_gp,),
                    "powers": (n_p + h,), "temps": (n_t + h - 1,), "forecast": (h,), "correction": (h,), "w0": (h,),
                    "mean_moments": (h, MOMENTS), "slope_moments": (h, MOMENTS), "variance_moments": (h, MOMENTS),
-                   "powers_of_w0": (n_gp, MOMENTS), "feats": (max(n_f, 1) - 1 + h,), "gp_t_slope": (h,)})
+                   "powers_of_w0": (n_gp, MOMENTS), "feats": (max(n_f, 1) - 1 + h,), "gp_t_slope": (h,),
+                   "rems": (h,)})
         block = a["gamma"].base                     # the one block of the views
         a["bits"] = a["bits"].view(np.int64)
         ws = new_workspace(*a.values())

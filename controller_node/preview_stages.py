@@ -107,21 +107,22 @@ PREDICTOR = PredictorType([
     ("gp_slope_weights", _F1), ("var_factor", _F2), ("series_weights", _F2), ("decay", _F1),
     ("log_output", types.boolean), ("n_variance", types.int64), ("steps_cap", types.float64), ("g", _F1),
     ("feature_kernel", _F2), ("feature_jac", _F2), ("has_feature", types.boolean), ("feature_gain", types.float64),
-    ("feature_mean", _F1)])
+    ("feature_mean", _F1), ("remnant_kernel", _F2), ("remnant_offsets", _F1)])
 PLANNER = PlannerType([
     ("set_point_m2", types.float64), ("power_scale_w", types.float64), ("move_weight", types.float64),
     ("v_lo", types.float64), ("v_hi", types.float64), ("e_lo", types.float64), ("e_hi", types.float64),
     ("z_sigma", types.float64), ("weights", _F1), ("moves", _F2)])
 RUN = RunType([
     ("p_hist", _F1), ("t_hist", _F1), ("plan", _F1), ("profile", _F1), ("current", _F1), ("following", _F1),
-    ("p_long", _F1), ("f_hist", _F1), ("prev_powers", _F1), ("track_feature", _F1), ("estimator", ESTIMATOR)])
+    ("p_long", _F1), ("f_hist", _F1), ("prev_powers", _F1), ("track_feature", _F1), ("track_remnant", _F1),
+    ("estimator", ESTIMATOR)])
 WORKSPACE = WorkspaceType([
     ("gamma", _F2), ("hess", _F2), ("chol", _F2), ("c", _F1), ("predicted", _F1), ("z", _F1), ("std", _F1),
     ("f", _F1), ("v", _F1), ("areas", _F1), ("gp_slope", _F1), ("inv_diag", _F1), ("slopes", _F1),
     ("jac_u", _F1), ("psi", _F2), ("kern", _F2), ("bits", _I1), ("powers", _F1), ("temps", _F1),
     ("forecast", _F1), ("correction", _F1), ("w0", _F1), ("mean_moments", _F2), ("slope_moments", _F2),
-    ("variance_moments", _F2), ("powers_of_w0", _F2), ("feats", _F1), ("gp_t_slope", _F1), ("has_step", types.boolean),
-    ("width", types.int64)])
+    ("variance_moments", _F2), ("powers_of_w0", _F2), ("feats", _F1), ("gp_t_slope", _F1), ("rems", _F1),
+    ("has_step", types.boolean), ("width", types.int64)])
 
 
 class Estimator(structref.StructRefProxy):
@@ -188,7 +189,9 @@ class Predictor(structref.StructRefProxy):
     without it), kernel ``feature_kernel`` K[s, e] [K/W] and ``feature_jac``
     ``M[r, e] = Σ_{l ≤ r} g_l K[r − l, e]`` (∂z of the r-th state after a turn by the power e states
     before it); ``has_feature``, and the feature's part of the T-ahead forecast, ``feature_gain`` β
-    and ``feature_mean`` F̄[s] [K] (:func:`gp_model.narx.adjust_forecast`). Build with
+    and ``feature_mean`` F̄[s] [K] (:func:`gp_model.narx.adjust_forecast`); the remnant terms'
+    (:class:`gp_model.plan_feature.RemnantFeature`) ``remnant_kernel`` W[s, e] [z/W], shape (n_R, E_R)
+    (n_R = 0: none; also in ``feature_jac``) and ``remnant_offsets`` c_s [z]. Build with
     :func:`new_predictor`."""
 
     __slots__ = ()
@@ -209,8 +212,9 @@ class Run(structref.StructRefProxy):
     ``current`` and ``following`` the learned corrections after the current track's turn and after
     the next [m²]; ``p_long`` p[k], p[k−1], … [W] over the turnaround feature's sources; ``f_hist``
     the feature F[k−n_F+1 .. k] [K]; ``prev_powers`` the previous track's last powers, newest first
-    [W], and ``track_feature`` the current track's F by state since its start [K] (both set at a
-    turn); its ``estimator``. Build with :func:`new_run`."""
+    [W], ``track_feature`` the current track's F by state since its start [K] and ``track_remnant``
+    its remnant terms ``c_s + Σ_e W[s, e] p`` [z] (all three set at a turn); its ``estimator``. Build
+    with :func:`new_run`."""
 
     __slots__ = ()
 
@@ -306,7 +310,7 @@ def _set_disturbance(st, value):  # pragma: no cover (compiled)
 def new_predictor(intercept, b, q, cc, d, e, gp_input_mean, gp_input_scale, gp_prior_variance, gp_noise_variance,
                   w0_max, gp_points, gp_beta, gp_slope_weights, var_factor, series_weights, decay, log_output,
                   n_variance, steps_cap, g, feature_kernel, feature_jac, has_feature, feature_gain,
-                  feature_mean):  # pragma: no cover (compiled)
+                  feature_mean, remnant_kernel, remnant_offsets):  # pragma: no cover (compiled)
     """A :class:`Predictor` of these constants."""
     st = structref.new(PREDICTOR)
     st.intercept, st.b, st.q, st.cc, st.d, st.e = intercept, b, q, cc, d, e
@@ -317,6 +321,7 @@ def new_predictor(intercept, b, q, cc, d, e, gp_input_mean, gp_input_scale, gp_p
     st.log_output, st.n_variance, st.steps_cap = log_output, n_variance, steps_cap
     st.g, st.feature_kernel, st.feature_jac = g, feature_kernel, feature_jac
     st.has_feature, st.feature_gain, st.feature_mean = has_feature, feature_gain, feature_mean
+    st.remnant_kernel, st.remnant_offsets = remnant_kernel, remnant_offsets
     return st
 
 
@@ -333,12 +338,13 @@ def new_planner(set_point_m2, power_scale_w, move_weight, v_lo, v_hi, e_lo, e_hi
 
 @njit(cache=True)
 def new_run(p_hist, t_hist, plan, profile, current, following, p_long, f_hist, prev_powers, track_feature,
-            estimator):  # pragma: no cover (compiled)
+            track_remnant, estimator):  # pragma: no cover (compiled)
     """A :class:`Run` of these arrays and estimator."""
     st = structref.new(RUN)
     st.p_hist, st.t_hist, st.plan, st.profile, st.current, st.following = p_hist, t_hist, plan, profile, current, \
         following
     st.p_long, st.f_hist, st.prev_powers, st.track_feature = p_long, f_hist, prev_powers, track_feature
+    st.track_remnant = track_remnant
     st.estimator = estimator
     return st
 
@@ -346,7 +352,7 @@ def new_run(p_hist, t_hist, plan, profile, current, following, p_long, f_hist, p
 @njit(cache=True)
 def new_workspace(gamma, hess, chol, c, predicted, z, std, f, v, areas, gp_slope, inv_diag, slopes, jac_u, psi, kern,
                   bits, powers, temps, forecast, correction, w0, mean_moments, slope_moments, variance_moments,
-                  powers_of_w0, feats, gp_t_slope):  # pragma: no cover (compiled)
+                  powers_of_w0, feats, gp_t_slope, rems):  # pragma: no cover (compiled)
     """A :class:`Workspace` of these arrays, with no step."""
     st = structref.new(WORKSPACE)
     st.gamma, st.hess, st.chol, st.c, st.predicted, st.z, st.std = gamma, hess, chol, c, predicted, z, std
@@ -356,7 +362,7 @@ def new_workspace(gamma, hess, chol, c, predicted, z, std, f, v, areas, gp_slope
     st.correction, st.w0, st.mean_moments, st.slope_moments = correction, w0, mean_moments, slope_moments
     st.variance_moments, st.powers_of_w0, st.feats, st.has_step, st.width = variance_moments, powers_of_w0, feats, \
         False, 0
-    st.gp_t_slope = gp_t_slope
+    st.gp_t_slope, st.rems = gp_t_slope, rems
     return st
 
 

@@ -6,7 +6,8 @@ cannot represent it (docs/gp.md, "Delay-aware model"). This model keeps the pool
 regressor, in lagged powers and temperatures only (no lagged areas):
 
     z[k+1] = c₀ + Σ_{i<n_p} (b_i p[k+1−i] + q_i p[k+1−i]²) + Σ_{j<n_T} c_j T[k−j]
-             + Σ_{j<n_Tq} d_j T[k−j]² + Σ_{i<n_x} e_i p[k+1−i] T[k−i] + Σ_{l<n_F} g_l F[k+1−l] + r(ψ_k)
+             + Σ_{j<n_Tq} d_j T[k−j]² + Σ_{i<n_x} e_i p[k+1−i] T[k−i] + Σ_{l<n_F} g_l F[k+1−l]
+             + c_s + h_s P̄ + r(ψ_k)
     x[k+1] = exp(z[k+1])  (output "log"; "identity": x = z),   r ~ GP(0, k_SE-ARD)
 
 * ``p[j]`` [W] is the power applied during the step j−1 → j (``state[j].power_w``; 0 before
@@ -18,6 +19,12 @@ regressor, in lagged powers and temperatures only (no lagged areas):
 * ``F[j]`` [K] is the turnaround feature of :mod:`gp_model.plan_feature`: the previous track's heat
   at the laser in state j, linear in the powers applied along that track's end and known ahead
   from the scan plan (``feature_lags=0`` in :meth:`NarxGPModel.fit` leaves it out).
+* ``c_s + h_s P̄`` are the remnant terms of :class:`gp_model.plan_feature.RemnantFeature`: for the
+  state k+1 that is s < n_R states after a turn, an offset and a slope in the previous track's mean
+  last power P̄ [W], learned per s (the previous track's molten end joined to the new pool; 0
+  elsewhere; ``remnant=None`` in :meth:`NarxGPModel.fit` leaves them out). They are fitted on what the
+  rest of the lag part leaves: fitted jointly, the per-state terms take over the turnaround feature's
+  lags (both linear in the previous track's powers), whose kernel then turns negative.
 * The GP of eq. (1)–(5) (SE-ARD kernel, hyper-parameters by maximum marginal likelihood on
   seeded random samples, :mod:`gp_model.kernel`) learns the residual in z on
   ``ψ_k = (T[k] [K], log(1 + min(s_k, 100)), mean(p[k+2−n_p..k+1]) [W])`` with ``s_k`` the states
@@ -61,12 +68,13 @@ from gp_model.kernel import (
     gram,
     squared_differences,
 )
-from gp_model.plan_feature import TurnFeature, turn_feature_series
+from gp_model.plan_feature import RemnantFeature, TurnFeature, remnant_series, turn_feature_series
 
 FORMAT_NAME = "meltloop-narx-gp-model"
-FORMAT_VERSION = 4
-READABLE_VERSIONS = (3, 4)
-"""Format 3 is format 4 without the turnaround feature (``turn_feature`` null)."""
+FORMAT_VERSION = 5
+READABLE_VERSIONS = (3, 4, 5)
+"""Format 4 is format 5 without the remnant terms (``remnant_feature`` null), format 3 also without the
+turnaround feature (``turn_feature`` null)."""
 OUTPUTS = ("log", "identity")
 _LOG_AREA_MAX = 700.0  # exp overflows beyond ~709
 RESIDUAL_INPUTS = ("t_ahead_k", "log1p_steps_since_track_start", "mean_power_w")
@@ -80,11 +88,12 @@ def steps_since_start_feature(steps: np.ndarray) -> np.ndarray:
     """The GP's track-position input ``log(1 + min(s, 100))``: resolves the first states after a
     turnaround, where the area changes fastest, as finely as the GP's length-scales allow."""
     return np.log1p(np.minimum(steps, STEPS_SINCE_START_CAP))
-SMOOTHED_GROUPS = (False, False, True, True, True, True)
+SMOOTHED_GROUPS = (False, False, True, True, True, True, False, False)
 """Which lag kernels the smoothness prior of :meth:`NarxGPModel.fit` acts on, in the order power, power²,
-T, T², p × T, F: not the power's, the ramp over one pool length that the staircases excite step by step
-(smoothed, it spreads over the 32 lags and the preview MPC over-corrects), but the kernels of the slow,
-nearly collinear T ahead and turnaround feature."""
+T, T², p × T, F, the remnant's slopes and offsets: not the power's, the ramp over one pool length that the
+staircases excite step by step (smoothed, it spreads over the 32 lags and the preview MPC over-corrects), nor
+the remnant's (fitted apart, on the residual), but the kernels of the slow, nearly collinear T ahead and
+turnaround feature."""
 DEFAULT_BOUNDS = HyperBounds()
 
 
@@ -518,6 +527,10 @@ class NarxGPModel:
         from its mean ``feature_profile_k`` (the forecast's part, :func:`adjust_forecast`).
     feature_profile_k : numpy.ndarray, shape (n_targets,), optional
         F̄[s]: mean feature s states after a turn of the training runs [K] (with ``turn_feature``).
+    remnant_feature : gp_model.plan_feature.RemnantFeature or None
+        Constants of the remnant terms (None: none).
+    remnant_coefficients, remnant_offsets : numpy.ndarray, shape (n_R,), optional
+        ``h_s`` [z/W] and ``c_s`` [z] of the remnant terms, s the states after a turn (with ``remnant_feature``).
     turn_profile_k : numpy.ndarray, shape (S,)
         Mean rise of T ahead after a turnaround [K] (:func:`turn_profile`).
     forecast_persistence : float
@@ -543,6 +556,8 @@ class NarxGPModel:
                  power_temperature_coefficients: np.ndarray | None = None,
                  turn_feature: TurnFeature | None = None, feature_coefficients: np.ndarray | None = None,
                  feature_temperature_gain: float = 0.0, feature_profile_k: np.ndarray | None = None,
+                 remnant_feature: RemnantFeature | None = None, remnant_coefficients: np.ndarray | None = None,
+                 remnant_offsets: np.ndarray | None = None,
                  turn_profile_k: np.ndarray, forecast_persistence: float, speed_m_s: float,
                  provenance: Mapping[str, Any] | None = None) -> None:
         self.sample_period_s = float(sample_period_s)
@@ -558,6 +573,10 @@ class NarxGPModel:
                                                dtype=float)
         self.feature_temperature_gain = float(feature_temperature_gain)
         self.feature_profile_k = np.asarray(() if feature_profile_k is None else feature_profile_k, dtype=float)
+        self.remnant_feature = remnant_feature
+        self.remnant_coefficients = np.asarray(() if remnant_coefficients is None else remnant_coefficients,
+                                               dtype=float)
+        self.remnant_offsets = np.asarray(() if remnant_offsets is None else remnant_offsets, dtype=float)
         self.output = output
         self.residual = residual
         self.turn_profile_k = np.asarray(turn_profile_k, dtype=float)
@@ -575,7 +594,7 @@ class NarxGPModel:
             raise ModelFormatError("NARX model: provenance.process.powder_layer_m must be a number in [0, 0.01) m")
         arrays = (self.power_coefficients, self.power_square_coefficients, self.temperature_coefficients,
                   self.temperature_square_coefficients, self.turn_profile_k, self.power_temperature_coefficients,
-                  self.feature_coefficients, self.feature_profile_k)
+                  self.feature_coefficients, self.feature_profile_k, self.remnant_coefficients, self.remnant_offsets)
         if output not in OUTPUTS:
             raise ModelFormatError(f"NARX model: output must be one of {OUTPUTS}, got {output!r}")
         if not (self.sample_period_s > 0 and self.speed_m_s > 0 and all(a.ndim == 1 for a in arrays)
@@ -585,6 +604,9 @@ class NarxGPModel:
                                                                     self.temperature_coefficients.size)
                 and (turn_feature is not None or self.feature_coefficients.size == 0 == self.feature_profile_k.size)
                 and (turn_feature is None or self.feature_profile_k.size == turn_feature.n_targets)
+                and self.remnant_coefficients.size == self.remnant_offsets.size
+                == (0 if remnant_feature is None else remnant_feature.n_states)
+                and (remnant_feature is None or remnant_feature.offsets or not np.any(self.remnant_offsets))
                 and math.isfinite(self.feature_temperature_gain)
                 and self.turn_profile_k.size > 0 and 0.0 <= self.forecast_persistence <= 1.0
                 and all(np.all(np.isfinite(a)) for a in arrays) and math.isfinite(self.intercept)):
@@ -615,6 +637,22 @@ class NarxGPModel:
             return np.zeros(len(run))
         return turn_feature_series(self.feature_kernel(), run.power_w, run.turn_starts(),
                                    run._ends(run.layers(), run.track))
+
+    def remnant_kernel(self) -> tuple[np.ndarray, np.ndarray]:
+        """The remnant terms as the controller takes them: ``W[s, e]`` [z/W], shape (n_R, n_sources)
+        (:meth:`gp_model.plan_feature.RemnantFeature.kernel`), and the offsets ``c_s`` [z], shape (n_R,);
+        shapes (0, 1) and (0,) without them."""
+        if self.remnant_feature is None:
+            return np.zeros((0, 1)), np.zeros(0)
+        return self.remnant_feature.kernel(self.remnant_coefficients), self.remnant_offsets.copy()
+
+    def remnant_inputs(self, run: RunSeries) -> np.ndarray:
+        """The remnant's regressors ``[P̄ columns, 1 columns]`` of every state of ``run``, shape (n, 2 n_R)
+        (:func:`gp_model.plan_feature.remnant_series`; (n, 0) without the remnant)."""
+        if self.remnant_feature is None:
+            return np.zeros((len(run), 0))
+        return np.hstack(remnant_series(self.remnant_feature, run.power_w, run.turn_starts(),
+                                        run._ends(run.layers(), run.track)))
 
     def area_at(self, z: float) -> float:
         """``x = exp(z)`` or ``z`` [m²] of one ``z``, in the C library's ``exp`` as the controller's
@@ -651,6 +689,9 @@ class NarxGPModel:
                                     "layer's first track and n_targets states after a turn)",
             "feature_temperature_gain": "beta: the T-ahead forecast after a turn adds beta (F - feature_profile_k[s]), "
                                         "s the states since the turn (T ahead's rise over the profile per K of F)",
+            "c_s + h_s Pbar": "remnant terms: for the state k+1 that is s < remnant_feature.n_states states after a "
+                              "turn, offset remnant_offsets[s] plus remnant_coefficients[s] [1/W] times Pbar, the "
+                              "mean power of the previous track's last remnant_feature.n_sources steps [W]",
             "mean_power_w": "GP input: mean of p[k+1-i], i=0..n_p-1 [W]",
             "output": "melt-pool area x[k+1] [m2] (state[k+1].area_mm2 * 1e-6) "
                       "= exp(z) for output 'log', z for 'identity'",
@@ -658,9 +699,9 @@ class NarxGPModel:
         }
 
     # ------------------------------------------------------------------ regressors
-    def _lagged(self, run: RunSeries) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _lagged(self, run: RunSeries) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Lag matrices for every target index j = 1..n−1: powers (n−1, n_p), temperatures (n−1, n_T),
-        features (n−1, n_F)."""
+        features (n−1, n_F), and the remnant's regressors of the targets (n−1, 2 n_R)."""
         n_p, n_t, n_f = self.n_power_lags, self.n_temperature_lags, self.n_feature_lags
         p = np.r_[np.zeros(n_p), run.power_w]
         t = np.r_[np.full(n_t, run.t_ahead_k[0]), run.t_ahead_k]
@@ -669,19 +710,20 @@ class NarxGPModel:
         P = p[(j + n_p)[:, None] - np.arange(n_p)[None, :]]
         T = t[(j - 1 + n_t)[:, None] - np.arange(n_t)[None, :]]
         F = f[(j + n_f)[:, None] - np.arange(n_f)[None, :]]
-        return P, T, F
+        return P, T, F, self.remnant_inputs(run)[1:]
 
-    def design(self, P: np.ndarray, T: np.ndarray, F: np.ndarray) -> np.ndarray:
-        """Regressor rows ``[1, p, p², T, T², p×T, F]`` for lag matrices ``P`` (m, n_p), ``T`` (m, n_T)
-        and ``F`` (m, n_F)."""
+    def design(self, P: np.ndarray, T: np.ndarray, F: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Regressor rows ``[1, p, p², T, T², p×T, F, P̄ columns, 1 columns]`` for lag matrices ``P`` (m, n_p),
+        ``T`` (m, n_T), ``F`` (m, n_F) and the remnant's regressors ``R`` (m, 2 n_R)."""
         n_tq, n_x = self.temperature_square_coefficients.size, self.power_temperature_coefficients.size
-        return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2, P[:, :n_x] * T[:, :n_x], F])
+        return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2, P[:, :n_x] * T[:, :n_x], F, R])
 
     def coefficients(self) -> np.ndarray:
         """All coefficients in the order of :meth:`design`."""
         return np.r_[self.intercept, self.power_coefficients, self.power_square_coefficients,
                      self.temperature_coefficients, self.temperature_square_coefficients,
-                     self.power_temperature_coefficients, self.feature_coefficients]
+                     self.power_temperature_coefficients, self.feature_coefficients, self.remnant_coefficients,
+                     self.remnant_offsets]
 
     def residual_inputs(self, run: RunSeries) -> np.ndarray:
         """ψ for every target index j = 1..n−1, shape (n−1, 3)."""
@@ -720,8 +762,7 @@ class NarxGPModel:
         future = RunSeries(run.name, run.area_m2[:n], np.r_[run.t_ahead_k[:k + 1], forecast][:n],
                            run.power_w[:n], run.track[:n], run.sample_period_s, run.layers()[:n])
         rows = slice(k, k + horizon)
-        P, T, F = (a[rows] for a in self._lagged(future))
-        z = self.design(P, T, F) @ self.coefficients() + self.residual.predict(
+        z = self.design(*(a[rows] for a in self._lagged(future))) @ self.coefficients() + self.residual.predict(
             self.residual_inputs(future)[rows], n_variance=0)[0]
         return self.area_and_slope(z)[0]
 
@@ -730,7 +771,7 @@ class NarxGPModel:
     def fit(cls, runs: Sequence[RunSeries], *, n_power_lags: int, n_temperature_lags: int,
             n_temperature_square_lags: int | None = None, quadratic: bool = True, interaction: bool = False,
             feature_lags: int = 0, turn_feature: TurnFeature | None = None,
-            smoothing: float = 0.0, output: str = "log",
+            remnant: RemnantFeature | None = None, smoothing: float = 0.0, output: str = "log",
             n_train: int = 150, bounds: HyperBounds = DEFAULT_BOUNDS, seed: int = 0, n_restarts: int = 4,
             profile_length: int = 200, speed_m_s: float | None = None,
             provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
@@ -741,7 +782,8 @@ class NarxGPModel:
         pool (area 0), are not fitted (the lags still see their powers). ``quadratic=False``
         leaves out the squared lags (a plain FIR part); ``interaction`` adds the lag-matched
         p × T terms; ``feature_lags`` > 0 the lagged turnaround features ``F[k+1−l]``, l < feature_lags,
-        of ``turn_feature``; ``smoothing`` λ > 0 the smoothness prior on every lag kernel
+        of ``turn_feature``; ``remnant`` the remnant terms (least squares on the lag part's residual, per
+        state after a turn); ``smoothing`` λ > 0 the smoothness prior on every lag kernel
         (:func:`smoothing_rows`). The turnaround profile spans ``profile_length`` states, at least the
         feature's ``n_targets`` (the forecast's feature part is fitted against it). The model's scan
         speed is the runs' (:attr:`RunSeries.speed_m_s`), or ``speed_m_s``
@@ -771,26 +813,35 @@ class NarxGPModel:
             raise DatasetError(f"feature_lags must be >= 0, and 0 without a turn_feature, got {feature_lags}")
         feature = turn_feature
         probe = cls._probe(n_power_lags, n_temperature_lags, n_tq, runs[0].sample_period_s, n_x, feature_lags,
-                           feature, speed)
+                           feature, speed, remnant)
         X, Y, PSI = [], [], []
         for run in runs:
-            p, t, f = probe._lagged(run)
+            lagged = probe._lagged(run)
             keep = (run.steps_since_layer_start()[1:] >= build_up_steps(run.sample_period_s)) & (run.area_m2[1:] > 0)
-            X.append(probe.design(p[keep], t[keep], f[keep])), Y.append(run.area_m2[1:][keep])
+            X.append(probe.design(*(a[keep] for a in lagged))), Y.append(run.area_m2[1:][keep])
             PSI.append(probe.residual_inputs(run)[keep])
         X, Y, PSI = np.vstack(X), np.concatenate(Y), np.vstack(PSI)
         if not quadratic:
             X[:, 1 + n_power_lags:1 + 2 * n_power_lags] = 0.0
+        n_r = 0 if remnant is None else remnant.n_states
+        if n_r and not remnant.offsets:
+            X[:, X.shape[1] - n_r:] = 0.0
         if Y.size < max(n_train, X.shape[1]) + 10:
             raise DatasetError(f"only {Y.size} samples for {X.shape[1]} coefficients and {n_train} GP points")
         target = np.log(Y) if output == "log" else Y
         scale = np.linalg.norm(X, axis=0)
         scale[scale == 0] = 1.0
-        sizes = (n_power_lags, n_power_lags, n_temperature_lags, n_tq, n_x, feature_lags)
+        sizes = (n_power_lags, n_power_lags, n_temperature_lags, n_tq, n_x, feature_lags, n_r, n_r)
         rows = smoothing_rows(sizes, smoothing, SMOOTHED_GROUPS)
+        remnant_columns = X[:, X.shape[1] - 2 * n_r:].copy()
+        X[:, X.shape[1] - 2 * n_r:] = 0.0          # the remnant terms: fitted on what the rest leaves (below)
         theta = np.linalg.lstsq(np.vstack([X / scale, rows]), np.r_[target, np.zeros(rows.shape[0])],
                                 rcond=None)[0] / scale
         residual = target - X @ theta
+        if n_r:
+            r_scale = scale[scale.size - 2 * n_r:]
+            theta[theta.size - 2 * n_r:] = np.linalg.lstsq(remnant_columns / r_scale, residual, rcond=None)[0] / r_scale
+            residual = residual - remnant_columns @ theta[theta.size - 2 * n_r:]
         pick = np.sort(np.random.default_rng(seed).choice(Y.size, size=n_train, replace=False))
         gp = ResidualGP.fit(PSI[pick], residual[pick], bounds=bounds, seed=seed, n_restarts=n_restarts)
         profile = turn_profile(runs, max(profile_length, feature.n_targets if feature else 0))
@@ -802,6 +853,8 @@ class NarxGPModel:
                               "length_scale": list(bounds.length_scale)})
         n_p, n_t = n_power_lags, n_temperature_lags
         n_f = feature_lags
+        split = theta.size - 2 * n_r
+        theta, h, c = theta[:split], theta[split:split + n_r], theta[split + n_r:]
         theta, g = (theta[:theta.size - n_f], theta[theta.size - n_f:]) if n_f else (theta, None)
         return cls(sample_period_s=runs[0].sample_period_s, intercept=theta[0], power_coefficients=theta[1:1 + n_p],
                    power_square_coefficients=theta[1 + n_p:1 + 2 * n_p],
@@ -809,6 +862,8 @@ class NarxGPModel:
                    temperature_square_coefficients=theta[1 + 2 * n_p + n_t:1 + 2 * n_p + n_t + n_tq],
                    power_temperature_coefficients=theta[1 + 2 * n_p + n_t + n_tq:], turn_feature=feature,
                    feature_coefficients=g, feature_temperature_gain=gain, feature_profile_k=feature_profile,
+                   remnant_feature=remnant, remnant_coefficients=h if n_r else None,
+                   remnant_offsets=c if n_r else None,
                    output=output, residual=gp,
                    turn_profile_k=profile, forecast_persistence=fit_persistence(runs, profile), speed_m_s=speed,
                    provenance=record)
@@ -834,7 +889,8 @@ class NarxGPModel:
 
     @classmethod
     def _probe(cls, n_p: int, n_t: int, n_tq: int, period: float, n_x: int = 0, n_f: int = 0,
-               feature: TurnFeature | None = None, speed_m_s: float = 1.0) -> NarxGPModel:
+               feature: TurnFeature | None = None, speed_m_s: float = 1.0,
+               remnant: RemnantFeature | None = None) -> NarxGPModel:
         """A shell with the right lag counts (for building regressors before the fit)."""
         if n_p < 1 or n_t < 1 or not 0 <= n_tq <= n_t:
             raise DatasetError(f"lag counts must be >= 1 (squared T lags <= T lags), got {n_p}, {n_t}, {n_tq}")
@@ -844,6 +900,8 @@ class NarxGPModel:
         obj.power_temperature_coefficients = np.zeros(n_x)
         obj.feature_coefficients, obj.turn_feature = np.zeros(n_f), feature
         obj.feature_temperature_gain, obj.feature_profile_k = 0.0, np.zeros(0)
+        n_r = 0 if remnant is None else remnant.n_states
+        obj.remnant_feature, obj.remnant_coefficients, obj.remnant_offsets = remnant, np.zeros(n_r), np.zeros(n_r)
         obj.sample_period_s, obj.speed_m_s = period, speed_m_s
         return obj
 
@@ -857,7 +915,8 @@ class NarxGPModel:
             "inputs": self.input_definitions(),
             "structure": (
                 "z[k+1] = c0 + sum_i (b_i p[k+1-i] + q_i p[k+1-i]^2) + sum_j c_j T[k-j] + sum_{j<n_Tq} d_j T[k-j]^2"
-                " + sum_{i<n_x} e_i p[k+1-i] T[k-i] + sum_{l<n_F} g_l F[k+1-l] + r(psi_k), r ~ GP(0, SE-ARD);"
+                " + sum_{i<n_x} e_i p[k+1-i] T[k-i] + sum_{l<n_F} g_l F[k+1-l] + c_s + h_s Pbar + r(psi_k),"
+                " r ~ GP(0, SE-ARD);"
                 " x[k+1] = exp(z) (output 'log') or z"
             ),
             "output": self.output,
@@ -871,6 +930,9 @@ class NarxGPModel:
             "feature_coefficients": self.feature_coefficients.tolist(),
             "feature_temperature_gain": self.feature_temperature_gain,
             "feature_profile_k": self.feature_profile_k.tolist(),
+            "remnant_feature": None if self.remnant_feature is None else self.remnant_feature.to_dict(),
+            "remnant_coefficients": self.remnant_coefficients.tolist(),
+            "remnant_offsets": self.remnant_offsets.tolist(),
             "residual_gp": {"inputs_names": list(RESIDUAL_INPUTS), **self.residual.to_dict()},
             "turn_profile_k": self.turn_profile_k.tolist(),
             "forecast_persistence": self.forecast_persistence,
@@ -894,6 +956,8 @@ class NarxGPModel:
             g = doc["residual_gp"]
             feature = doc.get("turn_feature")
             feature = None if feature is None else TurnFeature.from_dict(feature)
+            remnant = doc.get("remnant_feature")
+            remnant = None if remnant is None else RemnantFeature.from_dict(remnant)
             residual = ResidualGP(inputs=np.array(g["inputs"]), targets=np.array(g["targets"]),
                                   signal_std=g["signal_std"], noise_std=g["noise_std"],
                                   length_scales=np.array(g["length_scales"]), input_mean=np.array(g["input_mean"]),
@@ -907,6 +971,8 @@ class NarxGPModel:
                        turn_feature=feature, feature_coefficients=np.array(doc.get("feature_coefficients", [])),
                        feature_temperature_gain=doc.get("feature_temperature_gain", 0.0),
                        feature_profile_k=np.array(doc.get("feature_profile_k", [])),
+                       remnant_feature=remnant, remnant_coefficients=np.array(doc.get("remnant_coefficients", [])),
+                       remnant_offsets=np.array(doc.get("remnant_offsets", [])),
                        output=doc["output"], residual=residual, turn_profile_k=np.array(doc["turn_profile_k"]),
                        forecast_persistence=doc["forecast_persistence"], speed_m_s=doc["speed_m_s"],
                        provenance=doc.get("provenance") or {})

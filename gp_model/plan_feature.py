@@ -30,7 +30,21 @@ this feature.
 
 The feature is linear in power and known ahead from the plan (the states since the track's
 start, the turn ahead, the hatch) and the applied and planned powers, so over a horizon the
-preview MPC sees ``∂F/∂p = K`` of its planned powers. Everything is SI.
+preview MPC sees ``∂F/∂p = K`` of its planned powers.
+
+**The remnant** (:class:`RemnantFeature`, a second, learned channel). For the first tens of states
+after a turn the measured pool is the new pool joined to the still-molten end of the previous track:
+the area is larger while that remnant lasts, drops when it solidifies (17-21 states after the turn on
+the physical plant) and the new pool is short a few states after the turn. Neither F (heat at the
+laser) nor the lags carry it. The remnant's size is set by the powers along the previous track's end,
+so the model takes, for the ``n_states`` states s after a turn, the terms::
+
+    z += c_s + h_s P̄,   P̄ = (1 / n_sources) Σ_{e < n_sources} p[t₀ − 1 − e]
+
+with ``h_s`` [1/W] and ``c_s`` (``offsets``: fitted, else 0) learned per state s after the turn. The
+terms are linear in the previous track's last powers and known ahead from the plan, so over a horizon
+the preview MPC sees ``∂z[t₀ + s]/∂p[t₀ − 1 − e] = h_s / n_sources`` (:meth:`RemnantFeature.kernel`).
+Everything is SI.
 """
 
 from __future__ import annotations
@@ -44,7 +58,7 @@ import numpy as np
 
 from messages import in625
 
-__all__ = ["TurnFeature", "turn_feature_series"]
+__all__ = ["RemnantFeature", "TurnFeature", "remnant_series", "turn_feature_series"]
 
 
 def _rho_cp(t_k: float) -> tuple[float, float]:
@@ -159,3 +173,70 @@ def turn_feature_series(kernel: np.ndarray, power_w: np.ndarray, turn_starts: np
         stop = min(start + n_targets, int(track_ends[start]) + 1)
         out[start:stop] = kernel[:stop - start, :sources.size] @ sources
     return out
+
+
+@dataclass(frozen=True)
+class RemnantFeature:
+    """Constants of the remnant terms (module docstring, "The remnant"); frozen, validated on construction.
+
+    Parameters
+    ----------
+    n_states : int
+        States after a turn that get a remnant term each (the remnant solidifies within them).
+    n_sources : int
+        States of the previous track, back from its end, whose mean power P̄ [W] scales the terms
+        (about the pool's length at 0.8 m/s and 50 µs).
+    offsets : bool
+        Fit an offset ``c_s`` per state besides the slope ``h_s`` (False: ``c_s`` = 0).
+    """
+
+    n_states: int = 24
+    n_sources: int = 16
+    offsets: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("n_states", "n_sources"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 10_000:
+                raise ValueError(f"RemnantFeature.{name} must be an int in [1, 10000], got {value!r}")
+        if not isinstance(self.offsets, bool):
+            raise ValueError(f"RemnantFeature.offsets must be a bool, got {self.offsets!r}")
+
+    def kernel(self, coefficients: np.ndarray) -> np.ndarray:
+        """``W[s, e] = h_s / n_sources`` [z/W], shape (n_states, n_sources): ∂z of the state s after a turn
+        by the power e states before it, for the slopes ``coefficients`` h_s [1/W], shape (n_states,)."""
+        h = np.asarray(coefficients, dtype=float)
+        if h.shape != (self.n_states,):
+            raise ValueError(f"remnant coefficients must have shape ({self.n_states},), got {h.shape}")
+        return np.repeat(h[:, None] / self.n_sources, self.n_sources, axis=1)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The constants, JSON-able (recorded in the model file)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> RemnantFeature:
+        """The inverse of :meth:`to_dict` (``ValueError`` naming a missing, unknown or bad key)."""
+        if not isinstance(doc, Mapping):
+            raise ValueError("remnant feature: not an object")
+        fields = set(cls.__dataclass_fields__)
+        unknown, missing = set(doc) - fields, fields - set(doc)
+        if unknown or missing:
+            raise ValueError(f"remnant feature: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
+        return cls(**doc)
+
+
+def remnant_series(remnant: RemnantFeature, power_w: np.ndarray, turn_starts: np.ndarray,
+                   track_ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The remnant's regressors of every state of a run: ``P̄`` [W] in column s of the state s after a
+    turn, and 1 there (the offsets' column), shapes (n, n_states); zero rows elsewhere (module docstring).
+
+    Parameters as :func:`turn_feature_series` (``p[0]``: 0 before laser-on; powers before the run count 0).
+    """
+    power = np.asarray(power_w, dtype=float)
+    slopes, ones = np.zeros((power.size, remnant.n_states)), np.zeros((power.size, remnant.n_states))
+    for start in np.asarray(turn_starts, dtype=int):
+        mean = power[max(start - remnant.n_sources, 0):start].sum() / remnant.n_sources
+        s = np.arange(min(remnant.n_states, int(track_ends[start]) + 1 - start))
+        slopes[start + s, s], ones[start + s, s] = mean, 1.0
+    return slopes, ones

@@ -37,6 +37,7 @@ from gp_model.errors import DatasetError, GPError
 from gp_model.files import is_model_file
 from gp_model.model import DEFAULT_RESTARTS, GPModel
 from gp_model.narx import NarxGPModel, series_from_states
+from gp_model.plan_feature import RemnantFeature
 from gp_model.shipped import DEFAULT_MODEL_PATH, ONE_STEP_MODEL_PATH
 from gp_trainer import dataset, synthetic
 from gp_trainer.campaign import (
@@ -204,6 +205,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", type=Path, default=DEFAULT_MODEL_PATH,
                    help="the learned model (default: the shipped model of the physical plant)")
     p.add_argument("--out", type=Path, default=None, help="where the refitted model goes (default: --model)")
+    p.add_argument("--remnant-states", type=int, default=None,
+                   help="fit the remnant terms over this many states after a turn, 0: none (default: as the model)")
+    p.add_argument("--remnant-sources", type=int, default=RemnantFeature.n_sources,
+                   help="previous-track states whose mean power scales the remnant terms (default %(default)s)")
+    p.add_argument("--remnant-offsets", action="store_true", help="fit an offset per state besides the slope")
     p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
     return parser
 
@@ -500,7 +506,12 @@ def _tune_pid(args: argparse.Namespace) -> int:
 
 def _refit(args: argparse.Namespace) -> int:
     out = args.out or args.model
-    best = refit(args.model, out)
+    try:
+        remnant = "keep" if args.remnant_states is None else None if args.remnant_states == 0 else RemnantFeature(
+            n_states=args.remnant_states, n_sources=args.remnant_sources, offsets=args.remnant_offsets)
+    except ValueError as exc:
+        raise DatasetError(f"--remnant-states/--remnant-sources: {exc}") from None
+    best = refit(args.model, out, remnant)
     key = rollout_key(NarxGPModel.load(out).sample_period_s)
     print(f"refitted {args.model} -> {out}: held-out R² {best['r2']:.3f}, {key} {best[key]:.2f} %", file=sys.stderr)
     if args.json:

@@ -29,12 +29,13 @@ import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from controller_node.process import preview_steps
 from gp_model.atomic import atomic_write
 from gp_model.build_up import rollout_horizon
 from gp_model.narx import NarxGPModel, RunSeries, series_from_states
+from gp_model.plan_feature import RemnantFeature
 from gp_trainer.campaign import IdentRun, ProcessDesign, run_jobs
 from gp_trainer.dataset import read_states, recording_info
 from gp_trainer.errors import CampaignError, LearnError
@@ -240,13 +241,14 @@ def retune(model_path: Path) -> dict[str, Any]:
     return model.provenance["controller"]
 
 
-def refit(model_path: Path, out: Path) -> dict[str, Any]:
+def refit(model_path: Path, out: Path, remnant: RemnantFeature | None | Literal["keep"] = "keep") -> dict[str, Any]:
     """Refit a learned model with the current code (``python -m gp_trainer refit``): the candidate it was
     selected as (:func:`~gp_trainer.narx_fit.candidate_of`), its seed and GP points, on its training runs in
     their recorded order and scored on its design's held-out runs, all read from the recordings directory
     its ``provenance.design`` names; written to ``out`` with its design, process and controller records.
     For a change of the model's definition (e.g. the turnaround feature's extent) on the same data without
-    a new selection. Returns the held-out row."""
+    a new selection; ``remnant`` replaces the candidate's remnant terms (None: none; "keep": the model's).
+    Returns the held-out row."""
     old = NarxGPModel.load(model_path)
     design, recordings_dir = design_from_record(old.provenance.get("design") or {})
     recordings_dir = recordings_dir if recordings_dir.is_absolute() else REPO_ROOT / recordings_dir
@@ -257,7 +259,8 @@ def refit(model_path: Path, out: Path) -> dict[str, Any]:
     provenance = {key: old.provenance[key] for key in ("design", "process", "controller") if key in old.provenance}
     model, best, _ = select_and_fit(train, held, seed=int(old.provenance.get("seed", 0)),
                                     n_train=int(old.provenance.get("n_train", 150)), provenance=provenance,
-                                    candidates=[candidate_of(old)])
+                                    candidates=[candidate_of(old) if remnant == "keep"
+                                                else (*candidate_of(old)[:-1], remnant)])
     model.save(out)
     return best
 

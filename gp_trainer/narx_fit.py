@@ -123,24 +123,25 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int |
 def _fit_candidate(train: Sequence[RunSeries], held_out: Sequence[RunSeries], candidate: tuple, seed: int,
                    n_train: int, provenance: Mapping[str, Any] | None) -> tuple[NarxGPModel, dict[str, Any]]:
     """Fit one candidate of :func:`select_and_fit` and score it on ``held_out``: the model and its row."""
-    (n_p, n_t), (output, quadratic, with_x), (with_f, n_f), floor, smoothing = candidate
+    (n_p, n_t), (output, quadratic, with_x), (with_f, n_f), floor, smoothing, remnant = candidate
     period = train[0].sample_period_s
     feature = TurnFeature(n_targets=steps_at(TurnFeature.n_targets, period),
                           n_sources=steps_at(TurnFeature.n_sources, period))
     model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
                             output=output, quadratic=quadratic, interaction=with_x, feature_lags=n_f,
-                            turn_feature=feature if with_f else None, smoothing=smoothing,
+                            turn_feature=feature if with_f else None, remnant=remnant, smoothing=smoothing,
                             bounds=HyperBounds(length_scale=(floor, 100.0)), provenance=provenance)
     row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
            "interaction": with_x, "turn_feature": with_f, "feature_lags": n_f, "length_scale_floor": floor,
-           "smoothing": smoothing, **evaluate_model(model, held_out)}
+           "smoothing": smoothing, "remnant": None if remnant is None else remnant.to_dict(),
+           **evaluate_model(model, held_out)}
     return model, row
 
 
 def candidate_of(model: NarxGPModel) -> tuple:
     """The candidate of :func:`select_and_fit` that ``model`` was fitted as: its (power lags, temperature
-    lags), (output map, squared lags, p × T terms), (turnaround feature, its lags), length-scale floor
-    and smoothness prior λ (from ``provenance.bounds`` and ``provenance.smoothing``)."""
+    lags), (output map, squared lags, p × T terms), (turnaround feature, its lags), length-scale floor,
+    smoothness prior λ (from ``provenance.bounds`` and ``provenance.smoothing``) and remnant terms."""
     try:
         floor = float(model.provenance["bounds"]["length_scale"][0])
         smoothing = float(model.provenance["smoothing"])
@@ -149,7 +150,7 @@ def candidate_of(model: NarxGPModel) -> tuple:
     return ((model.n_power_lags, model.n_temperature_lags),
             (model.output, model.temperature_square_coefficients.size > 0,
              model.power_temperature_coefficients.size > 0),
-            (model.turn_feature is not None, model.n_feature_lags), floor, smoothing)
+            (model.turn_feature is not None, model.n_feature_lags), floor, smoothing, model.remnant_feature)
 
 
 def select_and_fit(
@@ -163,7 +164,7 @@ def select_and_fit(
     candidates: Sequence[tuple] | None = None,
 ) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
     """Fit every candidate (lags, output map, squared lags, interactions, feature lags, length-scale floor,
-    smoothness prior) on
+    smoothness prior; no remnant terms: :func:`gp_trainer.learn.refit` adds them to a selected one) on
     ``train``; keep the one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
     Returns it, its row and the whole table; ``provenance`` goes into every candidate's. ``workers`` > 1 fits
     the candidates in that many forked processes (each fit is deterministic: the same model either way).
@@ -172,7 +173,7 @@ def select_and_fit(
     period = train[0].sample_period_s if train else held_out[0].sample_period_s
     if candidates is None:
         candidates = list(itertools.product(structures(period), FORMS, features(period), LENGTH_SCALE_FLOORS,
-                                            SMOOTHINGS))
+                                            SMOOTHINGS, [None]))
     fit = functools.partial(_fit_candidate, train, held_out, seed=seed, n_train=n_train, provenance=provenance)
     if workers > 1:
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:

@@ -53,6 +53,24 @@ def test_a_short_case_runs_through_launch_and_is_recorded(tmp_path):
     assert "short-8x2mm" in out.stdout.splitlines()[1]
 
 
+def test_the_model_goes_to_launch_for_the_controllers_that_use_it(monkeypatch, tmp_path):
+    """``--model`` reaches ``launch.py`` for preview-mpc and scan-feedforward (else the suite would score the
+    shipped model whatever was given), never for PID; without it launch picks the plant's model."""
+    commands = []
+
+    def run(cmd, **kwargs):
+        commands.append(cmd)
+        return subprocess.CompletedProcess(cmd, 0, stdout="{}\n", stderr="")
+
+    monkeypatch.setattr(bench_suite.subprocess, "run", run)
+    case = next(c for c in bench_suite.CASES if c.name == "short-8x2mm")
+    for controller in bench_suite.CONTROLLERS:
+        bench_suite.run_case(case, controller, tmp_path, None, tmp_path / "m.json")
+    bench_suite.run_case(case, "preview-mpc", tmp_path, None)
+    given = [cmd[cmd.index("--model") + 1] if "--model" in cmd else None for cmd in commands]
+    assert given == [str(tmp_path / "m.json"), None, str(tmp_path / "m.json"), None]
+
+
 PROCESS = Fopdt(gain_m2_per_w=5e-10, time_constant_s=0.715e-3, dead_time_s=0.125e-3, delay_steps=2,
                 sample_period_s=50e-6, residual_rms_m2=0.0, n_samples=1)
 BOUND = learning_bound.BoundSettings(iterations=3, gain=0.5, process=PROCESS, start_power_w=174.0)

@@ -221,9 +221,11 @@ def test_the_pid_is_tuned_on_the_training_staircases_of_the_scenarios_own_plans(
 
 def test_refitting_a_selected_model_fits_the_candidate_it_was_selected_as(monkeypatch):
     """``candidate_of`` reads back the candidate a selection kept (lags, output map, squares, p × T,
-    length-scale floor, λ): fitting only that candidate on the same runs gives the same model."""
+    length-scale floor, λ, no remnant terms): fitting only that candidate on the same runs gives the same
+    model; with remnant terms, ``candidate_of`` reads them back too."""
     import dataclasses
 
+    from gp_model.plan_feature import RemnantFeature
     from gp_trainer import narx_fit
     from tests.test_preview import synthetic_run
 
@@ -236,17 +238,23 @@ def test_refitting_a_selected_model_fits_the_candidate_it_was_selected_as(monkey
     model, row, table = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40)
     candidate = narx_fit.candidate_of(model)
     assert candidate == ((8, 5), (row["output"], row["quadratic"], row["interaction"]), (False, 0),
-                         row["length_scale_floor"], row["smoothing"])
+                         row["length_scale_floor"], row["smoothing"], None)
     again, again_row, again_table = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40, candidates=[candidate])
     assert len(table) == 8 and len(again_table) == 1 and again_row == row
     assert again.to_dict() == model.to_dict()
+    remnant = RemnantFeature(n_states=12, n_sources=5)
+    with_remnant = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40, candidates=[(*candidate[:-1], remnant)])[0]
+    assert narx_fit.candidate_of(with_remnant) == (*candidate[:-1], remnant)
 
 
 def test_refit_refuses_a_model_without_a_design_in_one_line(tmp_path, capsys):
     """``refit`` needs the design a model of ``learn`` records (its runs and their directory): the bare
-    plate's model of ``narx`` has none, a missing file is not a model; exit 2, one line, nothing written."""
-    for model, says in ((PLATE_MODEL_PATH, "provenance.design"), (tmp_path / "none.json", "none.json")):
-        status = main(["refit", "--model", str(model), "--out", str(tmp_path / "m.json")])
+    plate's model of ``narx`` has none, a missing file is not a model, remnant terms need ≥ 1 source; exit 2,
+    one line, nothing written."""
+    for model, says, extra in ((PLATE_MODEL_PATH, "provenance.design", []), (tmp_path / "none.json", "none.json", []),
+                               (PLATE_MODEL_PATH, "RemnantFeature.n_sources", ["--remnant-states", "8",
+                                                                             "--remnant-sources", "0"])):
+        status = main(["refit", "--model", str(model), "--out", str(tmp_path / "m.json"), *extra])
         err = capsys.readouterr().err
         assert status == 2 and says in err and err.count("\n") == 1 and err.startswith("python -m gp_trainer refit:")
         assert not (tmp_path / "m.json").exists()

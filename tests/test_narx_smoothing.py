@@ -42,7 +42,7 @@ def test_rows_difference_consecutive_lags_within_each_smoothed_group_only():
     np.testing.assert_array_equal(rows, expected)                 # no row across a group's boundary
     np.testing.assert_array_equal(smoothing_rows((3, 0, 2), 4.0, (False, True, True)), expected[2:])
     assert smoothing_rows((3, 2), 0.0).shape == (0, 6)
-    assert SMOOTHED_GROUPS == (False, False, True, True, True, True)   # power, power² left to the data
+    assert SMOOTHED_GROUPS == (False, False, True, True, True, True, False, False)   # power, power², remnant: data
     for bad in (-1.0, math.nan, math.inf):
         with pytest.raises(DatasetError, match="smoothing must be a finite number >= 0"):
             smoothing_rows((3,), bad)

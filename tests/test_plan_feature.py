@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from gp_model.plan_feature import TurnFeature, turn_feature_series
+from gp_model.plan_feature import RemnantFeature, TurnFeature, remnant_series, turn_feature_series
 
 DT, STEP = 50e-6, 40e-6
 
@@ -90,3 +90,43 @@ def test_the_default_feature_decays_along_a_whole_track_without_a_step():
     peak = int(np.argmax(after))
     assert np.all(after > 0) and np.all(np.diff(after[peak:]) < 0)
     assert np.max(-np.diff(after[50:])) < 0.05 * after[50]     # no step along the rest of the track
+
+
+def test_remnant_series_is_the_mean_of_the_previous_tracks_last_powers_by_state_after_the_turn():
+    """Written out: the state s < n_states after a turn gets P̄ (the previous track's last n_sources powers'
+    mean) in column s and 1 beside it; every other entry is 0; the terms ``Σ_e W[s, e] p`` of the kernel are
+    ``h_s P̄``, and the series is linear in power."""
+    remnant = RemnantFeature(n_states=12, n_sources=7)
+    _, starts, ends = _runs()
+    n = ends.size
+    rng = np.random.default_rng(1)
+    p1, p2 = rng.uniform(100, 350, n), rng.uniform(100, 350, n)
+    slopes, ones = remnant_series(remnant, p1, starts, ends)
+    direct_slopes, direct_ones = np.zeros((n, 12)), np.zeros((n, 12))
+    for j in range(n):
+        start = 90 if 90 <= j < 180 else 180 if j >= 180 else None
+        if start is not None and j - start < 12:
+            direct_slopes[j, j - start] = sum(p1[start - 1 - e] for e in range(7)) / 7
+            direct_ones[j, j - start] = 1.0
+    np.testing.assert_allclose(slopes, direct_slopes, rtol=1e-12)
+    np.testing.assert_array_equal(ones, direct_ones)
+    np.testing.assert_allclose(remnant_series(remnant, p1 + 3.0 * p2, starts, ends)[0],
+                               slopes + 3.0 * remnant_series(remnant, p2, starts, ends)[0], rtol=1e-12)
+    h = rng.normal(size=12)
+    kernel = remnant.kernel(h)
+    for start in starts:
+        for s in range(12):
+            assert kernel[s] @ p1[start - 1 - np.arange(7)] == pytest.approx(h[s] * slopes[start + s, s], rel=1e-12)
+
+
+def test_remnant_constants_round_trip_and_bad_ones_are_refused():
+    r = RemnantFeature(n_states=30, n_sources=8, offsets=True)
+    assert RemnantFeature.from_dict(r.to_dict()) == r
+    with pytest.raises(ValueError, match="n_states"):
+        RemnantFeature(n_states=0)
+    with pytest.raises(ValueError, match="offsets"):
+        RemnantFeature(offsets=1)
+    with pytest.raises(ValueError, match="missing keys"):
+        RemnantFeature.from_dict({"n_states": 3})
+    with pytest.raises(ValueError, match="shape"):
+        r.kernel(np.zeros(29))

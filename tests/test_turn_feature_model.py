@@ -14,35 +14,41 @@ from controller_node.settings import ControllerSettings, PreviewSettings
 from controller_node.types import Measurement
 from gp_model.errors import ModelVersionError
 from gp_model.narx import NarxGPModel, RunSeries
-from gp_model.plan_feature import TurnFeature
+from gp_model.plan_feature import RemnantFeature, TurnFeature
 
 DT, SPEED = 50e-6, 0.8
 FEATURE = TurnFeature(n_targets=20, n_sources=40)
 B = 1e-12 * np.array([5.0, 10.0, 20.0, 30.0, 30.0, 20.0, 10.0, 5.0])
 C = 1e-12 * np.array([2.0, 4.0, 6.0, 4.0, 2.0])
 G_TRUE = 3e-12           # m²/K of F[j] in the synthetic plant
+REMNANT = RemnantFeature(n_states=10, n_sources=6, offsets=True)
+H_TRUE = 1e-11 * np.sin(np.arange(10) / 3.0)   # m²/W of P̄ s states after a turn in the synthetic plant
 
 
-def _run(seed: int, n: int = 450, tracks: int = 3, area_of_feature: float = G_TRUE) -> RunSeries:
-    """A serpentine run whose area is an FIR in power and T plus ``area_of_feature`` F."""
+def _run(seed: int, n: int = 450, tracks: int = 3, area_of_feature: float = G_TRUE,
+         area_of_remnant: np.ndarray | None = None) -> RunSeries:
+    """A serpentine run whose area is an FIR in power and T plus ``area_of_feature`` F (plus, with
+    ``area_of_remnant`` h_s, the remnant's ``h_s P̄`` s states after a turn)."""
     rng = np.random.default_rng(seed)
     p = np.repeat(rng.uniform(150, 300, n // 10 + 1), 10)[:n]
     p[0] = 0.0
     track = (np.arange(n) * tracks) // n
     t = 300.0 + 5.0 * rng.standard_normal(n).cumsum() + 300.0 * (track > 0)
     shell = RunSeries("s", np.ones(n), t, p, track, DT, speed_m_s=SPEED)
-    probe = NarxGPModel._probe(8, 5, 0, DT, 0, 1, FEATURE, SPEED)
+    probe = NarxGPModel._probe(8, 5, 0, DT, 0, 1, FEATURE, SPEED, REMNANT)
     feature = probe.features(shell)
+    remnant = probe.remnant_inputs(shell)[:, :REMNANT.n_states] @ (
+        np.zeros(REMNANT.n_states) if area_of_remnant is None else area_of_remnant)
     x = np.full(n, 1e-8)
     for j in range(1, n):
         x[j] += sum(B[i] * p[j - i] for i in range(8) if j - i >= 0)
-        x[j] += sum(C[m] * t[max(j - 1 - m, 0)] for m in range(5)) + area_of_feature * feature[j]
+        x[j] += sum(C[m] * t[max(j - 1 - m, 0)] for m in range(5)) + area_of_feature * feature[j] + remnant[j]
     return RunSeries(f"turn-{seed}", x, t, p, track, DT, speed_m_s=SPEED)
 
 
-def _fit(runs, feature_lags, feature=FEATURE):
+def _fit(runs, feature_lags, feature=FEATURE, remnant=None):
     return NarxGPModel.fit(runs, n_power_lags=8, n_temperature_lags=5, quadratic=False, output="identity",
-                           feature_lags=feature_lags, turn_feature=feature, n_train=40, n_restarts=1,
+                           feature_lags=feature_lags, turn_feature=feature, remnant=remnant, n_train=40, n_restarts=1,
                            profile_length=50)
 
 
@@ -57,15 +63,50 @@ def test_the_fit_takes_the_feature_and_the_file_records_it(tmp_path):
     assert again.turn_feature == FEATURE
     assert np.array_equal(again.predict_run(held_out)[0], with_feature.predict_run(held_out)[0])
     doc = json.loads(path.read_text())
-    assert doc["format_version"] == 4 and doc["turn_feature"]["hatch_m"] == FEATURE.hatch_m
+    assert doc["format_version"] == 5 and doc["turn_feature"]["hatch_m"] == FEATURE.hatch_m
     old = dict(without.to_dict(), format_version=3)               # a format-3 file: no feature
-    for key in ("turn_feature", "feature_coefficients", "feature_temperature_gain", "feature_profile_k"):
+    for key in ("turn_feature", "feature_coefficients", "feature_temperature_gain", "feature_profile_k",
+                "remnant_feature", "remnant_coefficients", "remnant_offsets"):
         del old[key]
     (tmp_path / "old.json").write_text(json.dumps(old))
     assert NarxGPModel.load(tmp_path / "old.json").turn_feature is None
     (tmp_path / "older.json").write_text(json.dumps(dict(old, format_version=2)))
-    with pytest.raises(ModelVersionError, match="format version 2, this code reads 3, 4; retrain it"):
+    with pytest.raises(ModelVersionError, match="format version 2, this code reads 3, 4, 5; retrain it"):
         NarxGPModel.load(tmp_path / "older.json")
+
+
+def test_the_remnant_terms_are_the_least_squares_of_the_lag_parts_residual_per_state(tmp_path):
+    """A plant with the remnant's ``h_s P̄`` after each turn: the lag part is the one fitted without the
+    remnant, and (h_s, c_s) are, state by state after a turn, the least squares of its residual on
+    (P̄, 1), written out here; they lower the held-out error; the file round-trips them; without
+    ``offsets`` the c_s are 0."""
+    runs = [_run(s, area_of_remnant=H_TRUE) for s in range(3)]
+    with_remnant, without = _fit(runs, 4, remnant=REMNANT), _fit(runs, 4)
+    np.testing.assert_allclose(with_remnant.coefficients()[:-2 * REMNANT.n_states], without.coefficients(),
+                               rtol=1e-9, atol=0.0)
+    rows = []                                       # (s, P̄, residual of the lag part) of every fitted sample
+    for run in runs:
+        lag_part = without.design(*without._lagged(run)) @ without.coefficients()
+        since = run.steps_since_track_start()
+        for start in run.turn_starts():
+            mean = run.power_w[start - REMNANT.n_sources:start].mean()
+            for s in range(REMNANT.n_states):
+                rows.append((s, mean, run.area_m2[start + s] - lag_part[start + s - 1]))
+                assert since[start + s] == s
+    rows = np.array(rows)
+    for s in range(REMNANT.n_states):
+        at = rows[rows[:, 0] == s]
+        direct = np.linalg.lstsq(np.column_stack([at[:, 1], np.ones(len(at))]), at[:, 2], rcond=None)[0]
+        np.testing.assert_allclose([with_remnant.remnant_coefficients[s], with_remnant.remnant_offsets[s]], direct,
+                                   rtol=1e-6, atol=1e-9 * np.abs(direct).max())
+    held_out = _run(9, area_of_remnant=H_TRUE)
+    error = [np.max(np.abs(m.predict_run(held_out)[0] - held_out.area_m2[1:])[20:]) for m in (with_remnant, without)]
+    assert error[0] < 0.8 * error[1]
+    again = NarxGPModel.load(with_remnant.save(tmp_path / "m.json"))
+    assert again.remnant_feature == REMNANT
+    assert np.array_equal(again.predict_run(held_out)[0], with_remnant.predict_run(held_out)[0])
+    off = _fit(runs, 4, remnant=RemnantFeature(n_states=10, n_sources=6, offsets=False))
+    assert np.all(off.remnant_offsets == 0.0) and np.any(with_remnant.remnant_offsets != 0.0)
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +118,13 @@ def model() -> NarxGPModel:
                           "temperature_square_coefficients": np.full(2, 3e-15),
                           "power_temperature_coefficients": np.full(5, -5e-15), "feature_temperature_gain": 0.7,
                           "feature_coefficients": G_TRUE * np.array([1.0, 0.8, 0.6, 0.4, 0.3, 0.2])})
+
+
+@pytest.fixture(scope="module")
+def remnant_model(model) -> NarxGPModel:
+    """``model`` with remnant terms of a size that matters: slopes and offsets that vary by state."""
+    return NarxGPModel(**{**_constructor_args(model), "remnant_feature": REMNANT,
+                          "remnant_coefficients": H_TRUE, "remnant_offsets": 2e-9 * np.cos(np.arange(10.0))})
 
 
 def _controller_at_turn(model, k=54, track_length=30, horizon=12):
@@ -109,10 +157,13 @@ def _model_prediction(model, run, k, u):
     return model.predict_run(RunSeries("f", np.ones(k + 1 + h), t, p, track, DT))[0][k:k + h]
 
 
+@pytest.mark.parametrize("with_remnant", [False, True])
 @pytest.mark.parametrize("k", [35, 54])
-def test_the_controllers_prediction_and_jacobian_are_the_models_own_across_a_turn(model, k):
+def test_the_controllers_prediction_and_jacobian_are_the_models_own_across_a_turn(model, remnant_model, k,
+                                                                                 with_remnant):
     """k = 35: 5 states after a turn (the feature of the track's own previous track, and its lags);
-    k = 54: the next turn after state 59, 5 rows before it."""
+    k = 54: the next turn after state 59, 5 rows before it; with and without the remnant terms."""
+    model = remnant_model if with_remnant else model
     ctrl, jac, c, plan, run = _controller_at_turn(model, k)
     sp = ctrl.settings.set_point_m2
     at_plan = c * sp + jac @ plan + sp
@@ -151,6 +202,8 @@ def _constructor_args(model: NarxGPModel) -> dict:
                 residual=model.residual, power_temperature_coefficients=model.power_temperature_coefficients,
                 turn_feature=model.turn_feature, feature_coefficients=model.feature_coefficients,
                 feature_temperature_gain=model.feature_temperature_gain, feature_profile_k=model.feature_profile_k,
+                remnant_feature=model.remnant_feature, remnant_coefficients=model.remnant_coefficients,
+                remnant_offsets=model.remnant_offsets,
                 turn_profile_k=model.turn_profile_k, forecast_persistence=model.forecast_persistence,
                 speed_m_s=model.speed_m_s, provenance=model.provenance)
 
