@@ -1,12 +1,14 @@
-"""Compiled inner loops of the explicit step (numba), each one pass over the nodes.
+"""Compiled inner loops of the explicit step and of the melt-pool observation (numba), each one pass
+over the nodes.
 
 The numpy forms they replace took about ten passes over the grid each.  The table
 (:func:`piecewise_linear`: Kirchhoff variable and temperature), the x factor (:func:`x_pass`) and the
 powder's consolidation (:func:`melt_powder`) are bitwise equal to those forms (same IEEE operations in
 the same order, no fast-math; ``tests/test_fe_kernels.py``); the operator's element-wise correction,
-the evaporation solve and the keyhole's column walk (:func:`drill_columns`) agree with the library or
-numpy results to rounding (``tests/test_fe_operators.py`` against the scikit-fem forms, the
-evaporation residual test, ``tests/test_fe_physical.py``).
+the evaporation solve, the keyhole's column walk (:func:`drill_columns`) and the melt-pool geometry
+(:func:`area_and_extent`, :func:`deepest_line`) agree with the library or numpy results to rounding
+(``tests/test_fe_operators.py`` against the scikit-fem forms, the evaporation residual test,
+``tests/test_fe_physical.py``, ``tests/test_fe_core.py``).
 Imported when a plant is built (:func:`warm`), so a process that builds no plant never loads numba.
 """
 from __future__ import annotations
@@ -160,6 +162,82 @@ def melt_powder(t: np.ndarray, t_liquidus: float, consolidated: np.ndarray, k0: 
     return count
 
 
+@numba.njit(cache=True, nogil=True)
+def _row_above(field: np.ndarray, m: int, w: float, u: np.ndarray, level: float) -> tuple[float, float, float]:
+    """Measure, lowest and highest coordinate of ``{f > level}`` on the row ``(1 - w) field[:, m] + w
+    field[:, m + 1]``, piecewise linear on ``u`` (0, NaN, NaN if empty)."""
+    length, lo, hi = 0.0, np.nan, np.nan
+    a = (1.0 - w) * field[0, m] + w * field[0, m + 1]
+    for c in range(u.size - 1):
+        b = (1.0 - w) * field[c + 1, m] + w * field[c + 1, m + 1]
+        above_a, above_b = a > level, b > level
+        if above_a or above_b:
+            h = u[c + 1] - u[c]
+            cross = (level - a) / (b - a) if not (above_a and above_b) else 0.0
+            length += (1.0 if above_a and above_b else cross if above_a else 1.0 - cross) * h   # > 0
+            if np.isnan(lo):
+                lo = u[c] + (0.0 if above_a else cross) * h
+            hi = u[c] + (1.0 if above_b else cross) * h
+        a = b
+    return length, lo, hi
+
+
+@numba.njit(cache=True, nogil=True)
+def area_and_extent(field: np.ndarray, u: np.ndarray, v: np.ndarray, level: float, t: np.ndarray
+                    ) -> tuple[float, float]:
+    """Area of ``{f > level}`` for the bilinear ``field`` (len(u), len(v)) on ``u x v``, exact along
+    ``u``, trapezoid rule in ``v`` on the rows at ``v[m] + (v[m + 1] - v[m]) t`` and at ``v[-1]``; and
+    its extent along ``u`` over those rows (0 if empty) (:func:`fe_node.observe.pool_geometry`)."""
+    area, lo_min, hi_max = 0.0, np.inf, -np.inf
+    v_prev, len_prev = 0.0, 0.0
+    n = v.size - 1
+    for m in range(n):
+        d = v[m + 1] - v[m]
+        for r in range(t.size + (1 if m == n - 1 else 0)):
+            vr = v[m] + d * t[r] if r < t.size else v[n]
+            length, lo, hi = _row_above(field, m, (vr - v[m]) / d, u, level)
+            if m > 0 or r > 0:
+                area += (vr - v_prev) * (length + len_prev) / 2.0
+            v_prev, len_prev = vr, length
+            if not np.isnan(lo):
+                lo_min, hi_max = min(lo_min, lo), max(hi_max, hi)
+    return area, (hi_max - lo_min) if hi_max >= lo_min else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def deepest_line(t3: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, level: float, t: np.ndarray
+                 ) -> tuple[int, float]:
+    """Of the vertical lines of the bilinear-in-(x, y) ``t3`` (nx, ny, nz) on the raster ``refine(xs) x
+    refine(ys)`` (``t`` the fractions of an interval, the last node added), in x-major order: the
+    index along the refined x of the line whose set ``{f > level}`` reaches lowest (the first on a
+    tie) and that lowest height, linear between nodes along z."""
+    nx, ny, nz = t3.shape
+    best_first, best_lo, best_p = nz, np.inf, -1
+    p = 0
+    for i in range(nx - 1):
+        dx = xs[i + 1] - xs[i]
+        for a in range(t.size + (1 if i == nx - 2 else 0)):
+            wx = ((xs[i] + dx * t[a]) - xs[i]) / dx if a < t.size else 1.0
+            for j in range(ny - 1):
+                dy = ys[j + 1] - ys[j]
+                for b in range(t.size + (1 if j == ny - 2 else 0)):
+                    wy = ((ys[j] + dy * t[b]) - ys[j]) / dy if b < t.size else 1.0
+                    below = 0.0
+                    for k in range(nz):
+                        val = ((1.0 - wy) * ((1.0 - wx) * t3[i, j, k] + wx * t3[i + 1, j, k])
+                               + wy * ((1.0 - wx) * t3[i, j + 1, k] + wx * t3[i + 1, j + 1, k]))
+                        if val > level:
+                            if k < best_first or k == best_first and k > 0:
+                                lo = zs[0] if k == 0 else (zs[k - 1] + (level - below) / (val - below)
+                                                           * (zs[k] - zs[k - 1]))
+                                if k < best_first or lo < best_lo:
+                                    best_first, best_lo, best_p = k, lo, p
+                            break
+                        below = val
+            p += 1
+    return best_p, best_lo
+
+
 def warm() -> None:
     """Compile (or load from numba's cache) every kernel here with the argument types the plant
     passes, on tiny arrays: a plant calls it when it is built, so its first step runs at speed
@@ -173,3 +251,6 @@ def warm() -> None:
     evaporate_nodes(one * 2000.0, one, 1.0, 3000.0, 1000.0, 1.0, 1.0, 1.0, 2, np.empty(2))
     drill_columns(np.ones((1, 2, 1)), np.ones((1, 2, 1)), 2.0, 1, np.empty((1, 1), dtype=np.bool_))
     melt_powder(np.ones((2, 2, 2)), 2.0, np.zeros((1, 1, 1), dtype=np.bool_), 1, np.empty(1, dtype=np.intp))
+    axis = np.array([0.0, 1.0])
+    area_and_extent(two, axis, axis, 0.5, np.zeros(1))
+    deepest_line(np.ones((2, 2, 2)), axis, axis, axis, 0.5, np.zeros(1))

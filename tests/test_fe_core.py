@@ -4,7 +4,7 @@ import pytest
 
 from fe_node.material import Constitutive, Material
 from fe_node.mesh import Grid, graded_axis
-from fe_node.observe import area_above, lowest_crossing, pool_geometry, segments_above
+from fe_node.observe import area_above, pool_geometry
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.solver import ThermalModel
@@ -156,7 +156,10 @@ def test_area_exact_for_piecewise_linear_field():
 
 
 def test_lowest_crossing_is_the_lowest_segment_start():
-    """The depth's shortcut gives :func:`segments_above`'s lowest ``lo`` and its first row, ties included."""
+    """The reference depth's shortcut gives :func:`segments_above`'s lowest ``lo`` and its first row, ties
+    included (the numpy form the compiled depth is compared with below)."""
+    from tests.pool_reference import lowest_crossing, segments_above
+
     rng = np.random.default_rng(3)
     zs = np.cumsum(rng.uniform(5e-6, 20e-6, 9))
     for level, shift, cold in ((0.7, 0.0, 0), (0.7, 0.5, 2), (0.2, 0.0, 3)):
@@ -167,6 +170,43 @@ def test_lowest_crossing_is_the_lowest_segment_start():
         values[300] = values[int(np.nanargmin(lo))]   # a later row ties with the lowest
         _, lo, _ = segments_above(values, zs, level)
         assert lowest_crossing(values, zs, level) == (int(np.nanargmin(lo)), float(np.nanmin(lo)))
+
+
+def _pool_fields():
+    """Fields for the geometry comparison: random lumps on a graded block, one with its deepest lines
+    tied (mirror-symmetric in y), one liquid down to the block's bottom, and a state of the FE plant."""
+    rng = np.random.default_rng(11)
+    xs = np.cumsum(rng.uniform(10e-6, 30e-6, 33)) - 4e-4
+    ys = np.cumsum(rng.uniform(10e-6, 30e-6, 12)) - 1.5e-4
+    zs = np.cumsum(rng.uniform(8e-6, 25e-6, 14)) - 2.5e-4
+    X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
+    for _ in range(4):
+        c = rng.uniform(-1e-4, 1e-4, 3)
+        r2 = ((X - c[0]) / 2e-4) ** 2 + ((Y - 0.3 * c[1]) / 7e-5) ** 2 + ((Z - zs[-1]) / 8e-5) ** 2
+        yield 2000.0 * np.exp(1.0 - r2) + rng.normal(0, 5.0, X.shape), xs, ys, zs
+    half = np.cumsum(rng.uniform(10e-6, 30e-6, 6))
+    sym = np.concatenate([-half[::-1], [0.0], half])
+    Xs, Ys, Zs = np.meshgrid(xs, sym, zs, indexing="ij")
+    yield 2000.0 * np.exp(1.0 - (Xs / 2e-4) ** 2 - (Ys / 7e-5) ** 2 - ((Zs - zs[-1]) / 8e-5) ** 2), xs, sym, zs
+    yield 2000.0 * np.exp(1.0 - (X / 2e-4) ** 2 - (Y / 7e-5) ** 2 - ((Z - zs[-1]) / 5e-4) ** 2), xs, ys, zs
+    model = ThermalModel(Settings(**COARSE), ScanPlan.single(1.2e-3))
+    for _ in range(25):
+        model.step(250.0, 0.8)
+    g = model.grid
+    yield g.to_xyz(model.law.temperature(model._h)), g.xs, g.ys, g.zs
+
+
+def test_compiled_pool_geometry_equals_the_numpy_form():
+    """Area, length, width, depth and cross-section of the compiled geometry equal the numpy form to
+    rounding, on fields with ties and liquid down to the bottom and on an FE state."""
+    from tests.pool_reference import pool_geometry as reference
+
+    level = 1623.0
+    for t3, xs, ys, zs in _pool_fields():
+        got, ref = pool_geometry(t3, xs, ys, zs, level), reference(t3, xs, ys, zs, level)
+        assert ref["area_m2"] > 0 and ref["depth_m"] > 0
+        for key, value in ref.items():
+            assert got[key] == pytest.approx(value, rel=1e-12, abs=1e-20), key
 
 
 def test_step_rejects_bad_commands():
