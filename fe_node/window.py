@@ -149,8 +149,11 @@ class ConsolidationLattice:
         """Consolidated share [-] of every powder element of the grid (xs, ys), shape (ny - 1, n_layers, nx - 1);
         0 for elements that hold no lattice cell (outside the band)."""
         (ax, bx), (ay, by) = self._cells(0, xs), self._cells(1, ys)
-        s = np.zeros((self.melted.shape[0] + 1, self.melted.shape[1], self.melted.shape[2] + 1))
-        s[1:, :, 1:] = self.melted.cumsum(axis=0).cumsum(axis=2)
+        x0, y0 = int(ax.min()), int(ay.min())                     # the cells under the grid only
+        ax, bx, ay, by = ax - x0, bx - x0, ay - y0, by - y0
+        cells = self.melted[y0:y0 + int(by.max()), :, x0:x0 + int(bx.max())]
+        s = np.zeros((cells.shape[0] + 1, cells.shape[1], cells.shape[2] + 1))
+        s[1:, :, 1:] = cells.cumsum(axis=0).cumsum(axis=2)        # summed-area table (integer counts)
         total = s[by][:, :, bx] - s[ay][:, :, bx] - s[by][:, :, ax] + s[ay][:, :, ax]
         count = ((by - ay)[:, None] * (bx - ax)[None, :])[:, None, :]
         return np.divide(total, count, out=np.zeros_like(total), where=count > 0)

@@ -99,6 +99,23 @@ def test_consolidation_lattice_and_energy_correction():
     assert np.sum(mass * h) == pytest.approx(7.0) and h[0] == 1.0 and factor == pytest.approx(0.6)
 
 
+def test_lattice_fraction_counts_only_the_cells_under_the_grid():
+    """The share of each element from the summed-area table of the cells under the grid equals the
+    count over the whole lattice, for grids inside the band, straddling its edge and outside it."""
+    rng = np.random.default_rng(5)
+    lattice = ConsolidationLattice((0.0, 2e-3), (0.0, 1e-3), 25e-6, n_layers=2)
+    lattice.melted[...] = rng.uniform(size=lattice.melted.shape) < 0.3
+    centres = [0.5 * (e[1:] + e[:-1]) for e in lattice.edges]
+    for x, y in ((np.linspace(0.3e-3, 0.9e-3, 9), np.linspace(0.2e-3, 0.5e-3, 4)),
+                 (np.array([-0.5e-3, 0.0, 0.1e-3, 0.35e-3, 2.5e-3]), np.array([0.8e-3, 1.0e-3, 1.2e-3])),
+                 (np.array([2.1e-3, 2.4e-3]), np.array([0.1e-3, 0.2e-3]))):
+        cx = [(centres[0] >= a) & (centres[0] < b) for a, b in zip(x[:-1], x[1:])]
+        cy = [(centres[1] >= a) & (centres[1] < b) for a, b in zip(y[:-1], y[1:])]
+        expected = np.array([[[lattice.melted[my, k][:, mx].mean() if mx.any() and my.any() else 0.0 for mx in cx]
+                              for k in range(2)] for my in cy])
+        np.testing.assert_allclose(lattice.fraction(x, y), expected, rtol=1e-15, atol=0)
+
+
 def test_both_operators_follow_the_window_alike():
     sc = scenario("layer", preset=BARE, h_fine_m=40e-6)
     traces = {}
