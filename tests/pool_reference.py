@@ -92,22 +92,7 @@ def lowest_crossing(values: np.ndarray, coords: np.ndarray, level: float) -> tup
 
 def pool_geometry(t3: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray,
                   level: float, n_refine: int = 16) -> dict:
-    """Melt-pool geometry of a trilinear field on a grid block.
-
-    Parameters
-    ----------
-    t3 : ndarray, shape (nx, ny, nz)
-        Nodal temperatures [K] of a block whose border nodes are below ``level``
-        (except possibly the top layer ``[:, :, -1]``, which is the free surface).
-    xs, ys, zs : ndarray
-        Block coordinates [m]; ``zs[-1]`` is the top surface.
-    level : float
-        Liquidus [K].
-
-    Returns
-    -------
-    dict with area_m2, width_m, length_m, depth_m, cross_section_m2 [m², m].
-    """
+    """The numpy form of :func:`fe_node.observe.pool_geometry` (same arguments and result)."""
     top = t3[:, :, -1]
     if not np.any(top > level):
         return dict(area_m2=0.0, width_m=0.0, length_m=0.0, depth_m=0.0, cross_section_m2=0.0)
