@@ -190,7 +190,7 @@ def pool_geometry(t3: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray
     line, zlo = deepest_line(t3, xs, ys, zs, level, _fractions(max(2, n_refine // 4)))
     x_deep = refine(xs, max(2, n_refine // 4))[line]
     (i,), (w,) = interp_weights(xs, np.array([x_deep]))
-    cross = area_and_extent((1.0 - w) * t3[i] + w * t3[i + 1], ys, zs, level, t)[0]
+    cross = area_above((1.0 - w) * t3[i] + w * t3[i + 1], ys, zs, level, n_refine)
     return dict(area_m2=area, width_m=width, length_m=length, depth_m=float(zs[-1] - zlo),
                 cross_section_m2=cross)
 
