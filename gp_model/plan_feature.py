@@ -72,6 +72,18 @@ def _rho_cp(t_k: float) -> tuple[float, float]:
 _RHO_CP, _ALPHA = _rho_cp(1000.0)
 
 
+def _constants(cls: type, doc: Any, what: str) -> Mapping[str, Any]:
+    """``doc`` checked to hold exactly the fields of the dataclass ``cls`` (``ValueError`` naming
+    ``what`` and the missing or unknown keys)."""
+    if not isinstance(doc, Mapping):
+        raise ValueError(f"{what}: not an object")
+    fields = set(cls.__dataclass_fields__)
+    unknown, missing = set(doc) - fields, fields - set(doc)
+    if unknown or missing:
+        raise ValueError(f"{what}: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
+    return doc
+
+
 @dataclass(frozen=True)
 class TurnFeature:
     """Constants of the turnaround feature (module docstring); frozen, validated on construction.
@@ -141,13 +153,7 @@ class TurnFeature:
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any]) -> TurnFeature:
         """The inverse of :meth:`to_dict` (``ValueError`` naming a missing, unknown or bad key)."""
-        if not isinstance(doc, Mapping):
-            raise ValueError("turn feature: not an object")
-        fields = set(cls.__dataclass_fields__)
-        unknown, missing = set(doc) - fields, fields - set(doc)
-        if unknown or missing:
-            raise ValueError(f"turn feature: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
-        return cls(**doc)
+        return cls(**_constants(cls, doc, "turn feature"))
 
 
 def turn_feature_series(kernel: np.ndarray, power_w: np.ndarray, turn_starts: np.ndarray,
@@ -217,13 +223,7 @@ class RemnantFeature:
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any]) -> RemnantFeature:
         """The inverse of :meth:`to_dict` (``ValueError`` naming a missing, unknown or bad key)."""
-        if not isinstance(doc, Mapping):
-            raise ValueError("remnant feature: not an object")
-        fields = set(cls.__dataclass_fields__)
-        unknown, missing = set(doc) - fields, fields - set(doc)
-        if unknown or missing:
-            raise ValueError(f"remnant feature: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
-        return cls(**doc)
+        return cls(**_constants(cls, doc, "remnant feature"))
 
 
 def remnant_series(remnant: RemnantFeature, power_w: np.ndarray, turn_starts: np.ndarray,
