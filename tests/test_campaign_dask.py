@@ -231,19 +231,6 @@ def test_workers_and_scheduler_exclude_each_other(tmp_path, capsys):
     assert info.value.code == 2 and "--scheduler: not allowed with argument --workers" in capsys.readouterr().err
 
 
-def test_existing_cluster_via_scheduler_address(tmp_path, cluster):
-    """``--scheduler``: a cluster started elsewhere (here the module's) runs the case."""
-    settings = CampaignSettings(cases=(2,), out_dir=tmp_path / "seq", sequential=True,
-                                launch_args=("--max-steps", "10", *SHORT))
-    (reference,) = run_campaign(settings, progress=False)
-    scheduler, workers, security = cluster
-    with client_credentials(security):
-        (result,) = run_campaign(dataclasses.replace(settings, out_dir=tmp_path / "dask", sequential=False,
-                                                     scheduler=scheduler), progress=False)
-    assert (result.status, result.attempts) == ("ok", 1) and result.worker in workers
-    assert result.states_sha256 == reference.states_sha256 is not None
-
-
 def test_a_rerun_on_another_mesh_does_not_keep_the_recordings_of_the_first(tmp_path):
     """A complete recording is kept by a re-run only if it was made on the mesh and the plant the re-run
     asks for: an earlier ``--h-um 50`` run in the same ``--out-dir`` is not silently taken as a 25 µm
