@@ -185,16 +185,20 @@ class MultiLevelModel(ThermalModel):
         return self._box_grid(self._box_centre)
 
     def _box_grid(self, centre: np.ndarray) -> Grid:
-        """The fine box around ``centre`` [m]: its ends on the whole-plan band's lattice, ``h_fine_m``
-        inside the band, graded outside it, clipped to the domain."""
+        """The fine box around ``centre`` [m]: inside the whole-plan band, as many elements of the band's
+        lattice (spacing ``h`` about ``h_fine_m``) wherever it lies, the fewest that cover
+        ``fine_box_m`` around ``centre`` (so that a move along the band is a translate,
+        :meth:`TensorOperator.moved`); graded outside the band; clipped to the domain."""
         s = self.settings
         axes = []
         for c, (dlo, dhi), (blo, bhi) in zip(centre, self._domain, self._bands):
             hf = (bhi - blo) / max(1, math.ceil((bhi - blo) / s.h_fine_m - 1e-9))
-            lo, hi = max(dlo, c - 0.5 * s.fine_box_m), min(dhi, c + 0.5 * s.fine_box_m)
+            n = math.ceil(s.fine_box_m / hf - 1e-9) + 1
+            first = blo + math.floor((c - 0.5 * s.fine_box_m - blo) / hf + 1e-9) * hf
+            lo, hi = max(dlo, first), min(dhi, first + n * hf)
             grade = dict(h=hf, growth=s.growth, h_max=s.h_max_m)
-            lo = blo + math.floor((lo - blo) / hf + 1e-9) * hf if lo > blo else blo - graded_length(blo - lo, **grade)
-            hi = blo + math.ceil((hi - blo) / hf - 1e-9) * hf if hi < bhi else bhi + graded_length(hi - bhi, **grade)
+            lo = lo if lo > blo else blo - graded_length(blo - lo, **grade)
+            hi = hi if hi < bhi else bhi + graded_length(hi - bhi, **grade)
             lo, hi = max(lo, dlo), min(hi, dhi)
             axes.append(graded_axis(lo, hi, max(lo, blo), min(hi, bhi), hf * (1 + 1e-9), s.growth, s.h_max_m))
         return Grid(axes[0], axes[1], self._zs_box)
