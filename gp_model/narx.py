@@ -69,6 +69,7 @@ from gp_model.kernel import (
     squared_differences,
 )
 from gp_model.plan_feature import RemnantFeature, TurnFeature, remnant_series, turn_feature_series
+from messages.types import LASER_POWER_MAX_W
 
 FORMAT_NAME = "meltloop-narx-gp-model"
 FORMAT_VERSION = 5
@@ -95,6 +96,50 @@ staircases excite step by step (smoothed, it spreads over the 32 lags and the pr
 the remnant's (fitted apart, on the residual), but the kernels of the slow, nearly collinear T ahead and
 turnaround feature."""
 DEFAULT_BOUNDS = HyperBounds()
+
+MONOTONE_POWER_W = (0.0, LASER_POWER_MAX_W)
+"""Powers [W] over which :meth:`NarxGPModel.fit` holds the lag part's steady-state gain in power
+non-negative: every power a controller may command (the contract's bounds)."""
+
+
+def static_power_gains(sizes: Sequence[int], powers_w: Sequence[float], temperatures_k: Sequence[float]
+                       ) -> np.ndarray:
+    """Rows ``a`` with ``a @ θ`` the lag part's steady-state gain ``∂z/∂p`` [1/W] at each pair of a
+    power ``p`` and a temperature ahead ``T`` (every lag at that p and T): ``Σ b_i + 2 p Σ q_i +
+    T Σ e_i``, for coefficients θ in the order of :meth:`NarxGPModel.design`; ``sizes`` the group
+    sizes (n_p, n_p, n_T, n_Tq, n_x, n_F, n_R, n_R). Shape (len(powers) · len(temperatures), len(θ))."""
+    n_p, _, n_t, n_tq, n_x, *_ = sizes
+    rows = []
+    for p in powers_w:
+        for t in temperatures_k:
+            a = np.zeros(1 + sum(sizes))
+            a[1:1 + n_p] = 1.0
+            a[1 + n_p:1 + 2 * n_p] = 2.0 * p
+            start = 1 + 2 * n_p + n_t + n_tq
+            a[start:start + n_x] = t
+            rows.append(a)
+    return np.array(rows)
+
+
+def least_squares_with_gains(A: np.ndarray, b: np.ndarray, gains: np.ndarray) -> np.ndarray:
+    """``argmin ||A θ − b||`` subject to ``gains @ θ >= 0``: :func:`numpy.linalg.lstsq` when its solution
+    holds the constraints, else the constrained problem on the QR factor of ``A``'s non-zero columns
+    (cvxpy, Clarabel; the coefficients of zero columns, terms left out of the model, stay 0)."""
+    theta = np.linalg.lstsq(A, b, rcond=None)[0]
+    if np.all(gains @ theta >= 0.0):
+        return theta
+    import cvxpy as cp
+
+    used = np.flatnonzero(np.any(A != 0.0, axis=0))
+    q, r = np.linalg.qr(A[:, used])
+    x = cp.Variable(used.size)
+    problem = cp.Problem(cp.Minimize(cp.sum_squares(r @ x - q.T @ b)), [gains[:, used] @ x >= 0.0])
+    problem.solve(solver=cp.CLARABEL)
+    if problem.status != cp.OPTIMAL:
+        raise DatasetError(f"the lag part's fit with non-negative power gains failed: {problem.status}")
+    theta = np.zeros(A.shape[1])
+    theta[used] = x.value
+    return theta
 
 
 @dataclass(frozen=True)
@@ -774,6 +819,7 @@ class NarxGPModel:
             remnant: RemnantFeature | None = None, smoothing: float = 0.0, output: str = "log",
             n_train: int = 150, bounds: HyperBounds = DEFAULT_BOUNDS, seed: int = 0, n_restarts: int = 4,
             profile_length: int = 200, speed_m_s: float | None = None,
+            monotone_power_w: tuple[float, float] | None = MONOTONE_POWER_W,
             provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
         """Least squares in z for the lag part, then the residual GP on ``n_train`` seeded random samples.
 
@@ -787,7 +833,10 @@ class NarxGPModel:
         (:func:`smoothing_rows`). The turnaround profile spans ``profile_length`` states, at least the
         feature's ``n_targets`` (the forecast's feature part is fitted against it). The model's scan
         speed is the runs' (:attr:`RunSeries.speed_m_s`), or ``speed_m_s``
-        [m/s] for runs that record none.
+        [m/s] for runs that record none. The lag part's steady-state gain in power
+        (:func:`static_power_gains`) is held non-negative over ``monotone_power_w`` [W] and the runs'
+        range of T ahead (at its corners: the gain is linear in p and T), so that beyond the staircases'
+        powers the fitted squares do not turn the model's response to power around (``None``: unconstrained).
 
         Raises
         ------
@@ -835,8 +884,11 @@ class NarxGPModel:
         rows = smoothing_rows(sizes, smoothing, SMOOTHED_GROUPS)
         remnant_columns = X[:, X.shape[1] - 2 * n_r:].copy()
         X[:, X.shape[1] - 2 * n_r:] = 0.0          # the remnant terms: fitted on what the rest leaves (below)
-        theta = np.linalg.lstsq(np.vstack([X / scale, rows]), np.r_[target, np.zeros(rows.shape[0])],
-                                rcond=None)[0] / scale
+        t_ahead = np.concatenate([r.t_ahead_k for r in runs])
+        gains = (np.zeros((0, X.shape[1])) if monotone_power_w is None
+                 else static_power_gains(sizes, monotone_power_w, (float(t_ahead.min()), float(t_ahead.max()))))
+        theta = least_squares_with_gains(np.vstack([X / scale, rows]), np.r_[target, np.zeros(rows.shape[0])],
+                                         gains / scale) / scale
         residual = target - X @ theta
         if n_r:
             r_scale = scale[scale.size - 2 * n_r:]
@@ -848,6 +900,7 @@ class NarxGPModel:
         gain, feature_profile = probe._feature_forecast_fit(runs, profile) if feature else (0.0, None)
         record = dict(provenance or {})
         record.update(seed=seed, n_train=n_train, smoothing=smoothing, n_samples=int(Y.size),
+                      monotone_power_w=None if monotone_power_w is None else list(monotone_power_w),
                       runs=[r.name for r in runs],
                       bounds={"signal_std": list(bounds.signal_std), "noise_std": list(bounds.noise_std),
                               "length_scale": list(bounds.length_scale)})
