@@ -133,10 +133,10 @@ def run_id() -> str:
 
 @pytest.fixture(scope="session")
 def mpc_run(tmp_path_factory) -> tuple[int, str, Path]:
-    """One short closed-loop run under ``launch.py`` (MPC, 200 steps on a 40 µm mesh), shared by the
+    """One short closed-loop run under ``launch.py`` (MPC, 100 steps on a 40 µm mesh), shared by the
     tests that check a real run's recording in different ways: (exit status, output, recording)."""
     out = tmp_path_factory.mktemp("mpc_run") / "e2e.mcap"
-    proc = subprocess.run([sys.executable, "launch.py", "--no-progress", "--controller", "mpc", "--max-steps", "200",
+    proc = subprocess.run([sys.executable, "launch.py", "--no-progress", "--controller", "mpc", "--max-steps", "100",
                            "--h-um", "40", *BARE_ARGS, "--out", str(out), "--json"], cwd=REPO, capture_output=True,
                           text=True, timeout=240)
     return proc.returncode, proc.stdout + proc.stderr, out

@@ -41,7 +41,7 @@ def test_a_case_is_in_sample_only_on_a_trained_plan_and_process():
 def test_a_short_case_runs_through_launch_and_is_recorded(tmp_path):
     out = subprocess.run([sys.executable, "benchmarks/bench_suite.py", "--cases", "short-8x2mm", "--controllers",
                           "pid", "--max-steps", "40", "--out-dir", str(tmp_path), "--json", "--bound",
-                          "--bound-iterations", "2"],
+                          "--bound-iterations", "1"],
                          cwd=REPO, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     (record,) = json.loads(out.stdout.strip().splitlines()[-1])["cases"]
