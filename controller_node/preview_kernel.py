@@ -310,16 +310,17 @@ def _push_feature(predictor, run, context):  # pragma: no cover (compiled)
 @njit(cache=True, nogil=True)
 def _forecast(predictor, run, context, t_ahead_k, ws):  # pragma: no cover (compiled)
     """T ahead over the horizon into ``ws.forecast`` (:func:`gp_model.narx.forecast_into`); with the
-    turnaround feature, F[k+1..k+H] into ``ws.feats`` (:func:`_future_features`) and its part of the
-    forecast (:func:`gp_model.narx.adjust_forecast`)."""
+    turnaround feature, F[k+1..k+H] into ``ws.feats`` (:func:`_future_sums`, as the remnant terms into
+    ``ws.rems``) and its part of the forecast (:func:`gp_model.narx.adjust_forecast`)."""
     out = ws.forecast
     forecast_into(t_ahead_k, context.since, context.on_first, context.to_end, run.profile, context.has_turn_base,
                   context.turn_base_k, predictor.decay, out)
-    _future_remnant(predictor, run, context, ws.rems)
+    _future_sums(predictor.remnant_kernel, predictor.remnant_offsets, run.track_remnant, run, context, ws.rems)
     if not predictor.has_feature:
         return
     first = max(predictor.g.size, 1) - 1
-    _future_features(predictor, run, context, ws.feats[first:])
+    _future_sums(predictor.feature_kernel, predictor.remnant_offsets[:0], run.track_feature, run, context,
+                 ws.feats[first:])
     since, n_targets = context.since, predictor.feature_kernel.shape[0]
     f_now = run.track_feature[since] if not context.on_first and 0 <= since < n_targets else 0.0
     adjust_forecast(out, ws.feats[first:], f_now, predictor.feature_mean, predictor.feature_gain, since,
@@ -405,38 +406,13 @@ def _regressors(predictor, run, ws, context, n_rows):  # pragma: no cover (compi
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
-def _future_features(predictor, run, context, feats):  # pragma: no cover (compiled)
-    """The turnaround feature F[k+1 .. k+H] [K] into ``feats``: per row the current track's value
-    (``track_feature``) or, after the turn ahead, the kernel's sum over the current track's last
-    powers (the plan ū for the states after k, the state's power and ``p_long`` up to k: read before
-    the state's power is pushed)."""
-    kernel, plan, track_feature, p_long = predictor.feature_kernel, run.plan, run.track_feature, run.p_long
-    h, p_fill, power_w = plan.size, context.p_fill, context.power_w
-    n_targets, n_sources = kernel.shape
-    since, to_end, on_first = context.since, context.to_end, context.on_first
-    for i in range(h):
-        m = i + 1
-        value = 0.0
-        if to_end < 0 or m <= to_end:
-            s = since + m
-            if not on_first and s < n_targets:
-                value = track_feature[s]
-        elif m - to_end - 1 < n_targets:
-            s = m - to_end - 1
-            for e in range(min(to_end, n_sources)):     # planned: p[k + e_k − e] = ū[e_k − 1 − e] = plan[e_k − e]
-                value += kernel[s, e] * plan[to_end - e]
-            for e in range(to_end, n_sources):          # applied: p[k + e_k − e], the state's p_fill first
-                back = e - to_end
-                value += kernel[s, e] * (power_w if back < p_fill else p_long[back - p_fill])
-        feats[i] = value
-
-
-@njit(cache=True, nogil=True, fastmath=_REORDER)
-def _future_remnant(predictor, run, context, rems):  # pragma: no cover (compiled)
-    """The remnant terms R of the states k+1 .. k+H [z] into ``rems``, as :func:`_future_features`: the
-    current track's (``track_remnant``) or, after the turn ahead, ``c_s + Σ_e W[s, e] p`` of the current
-    track's last powers (planned after k, applied up to k); 0 beyond the terms' states."""
-    kernel, offsets, plan, p_long = predictor.remnant_kernel, predictor.remnant_offsets, run.plan, run.p_long
+def _future_sums(kernel, offsets, track_values, run, context, out):  # pragma: no cover (compiled)
+    """A plan-driven input of the states k+1 .. k+H into ``out``: the turnaround feature F [K]
+    (``offsets`` empty) or the remnant terms R [z] (``offsets`` c_s). Per row the current track's value
+    (``track_values``) or, after the turn ahead, ``offsets[s] + Σ_e kernel[s, e] p`` over the current
+    track's last powers (the plan ū for the states after k, the state's power and ``p_long`` up to k:
+    read before the state's power is pushed); 0 beyond the kernel's states."""
+    plan, p_long = run.plan, run.p_long
     h, p_fill, power_w = plan.size, context.p_fill, context.power_w
     n_states, n_sources = kernel.shape
     since, to_end, on_first = context.since, context.to_end, context.on_first
@@ -446,16 +422,17 @@ def _future_remnant(predictor, run, context, rems):  # pragma: no cover (compile
         if to_end < 0 or m <= to_end:
             s = since + m
             if not on_first and s < n_states:
-                value = run.track_remnant[s]
+                value = track_values[s]
         elif m - to_end - 1 < n_states:
             s = m - to_end - 1
-            value = offsets[s]
-            for e in range(min(to_end, n_sources)):     # planned: p[k + e_k − e] = plan[e_k − e]
+            if offsets.size:
+                value = offsets[s]
+            for e in range(min(to_end, n_sources)):     # planned: p[k + e_k − e] = ū[e_k − 1 − e] = plan[e_k − e]
                 value += kernel[s, e] * plan[to_end - e]
             for e in range(to_end, n_sources):          # applied: p[k + e_k − e], the state's p_fill first
                 back = e - to_end
                 value += kernel[s, e] * (power_w if back < p_fill else p_long[back - p_fill])
-        rems[i] = value
+        out[i] = value
 
 
 @njit(cache=True, nogil=True, fastmath=_REORDER)
