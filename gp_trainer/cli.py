@@ -210,6 +210,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--remnant-sources", type=int, default=RemnantFeature.n_sources,
                    help="previous-track states whose mean power scales the remnant terms (default %(default)s)")
     p.add_argument("--remnant-offsets", action="store_true", help="fit an offset per state besides the slope")
+    p.add_argument("--drop", nargs="+", default=(), metavar="RUN",
+                   help="leave these training runs out (a model that never saw their plans, e.g. for "
+                        "bench_suite.py --model; give --out)")
     p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
     return parser
 
@@ -511,7 +514,9 @@ def _refit(args: argparse.Namespace) -> int:
             n_states=args.remnant_states, n_sources=args.remnant_sources, offsets=args.remnant_offsets)
     except ValueError as exc:
         raise DatasetError(f"--remnant-states/--remnant-sources: {exc}") from None
-    best = refit(args.model, out, remnant)
+    if args.drop and args.out is None:
+        raise LearnError("--drop needs --out (the model without those runs is not the one it was refitted from)")
+    best = refit(args.model, out, remnant, tuple(args.drop))
     key = rollout_key(NarxGPModel.load(out).sample_period_s)
     print(f"refitted {args.model} -> {out}: held-out R² {best['r2']:.3f}, {key} {best[key]:.2f} %", file=sys.stderr)
     if args.json:

@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -241,22 +241,36 @@ def retune(model_path: Path) -> dict[str, Any]:
     return model.provenance["controller"]
 
 
-def refit(model_path: Path, out: Path, remnant: RemnantFeature | None | Literal["keep"] = "keep") -> dict[str, Any]:
+def refit(model_path: Path, out: Path, remnant: RemnantFeature | None | Literal["keep"] = "keep",
+          drop: Sequence[str] = ()) -> dict[str, Any]:
     """Refit a learned model with the current code (``python -m gp_trainer refit``): the candidate it was
     selected as (:func:`~gp_trainer.narx_fit.candidate_of`), its seed and GP points, on its training runs in
     their recorded order and scored on its design's held-out runs, all read from the recordings directory
     its ``provenance.design`` names; written to ``out`` with its design, process and controller records.
     For a change of the model's definition (e.g. the turnaround feature's extent) on the same data without
-    a new selection; ``remnant`` replaces the candidate's remnant terms (None: none; "keep": the model's).
-    Returns the held-out row."""
+    a new selection; ``remnant`` replaces the candidate's remnant terms (None: none; "keep": the model's);
+    ``drop`` names training runs to leave out (a model that never saw their plans, to be judged off its
+    training set), recorded as ``provenance.dropped_runs``. Returns the held-out row.
+
+    Raises
+    ------
+    LearnError
+        A name in ``drop`` is not one of the model's training runs.
+    """
     old = NarxGPModel.load(model_path)
     design, recordings_dir = design_from_record(old.provenance.get("design") or {})
     recordings_dir = recordings_dir if recordings_dir.is_absolute() else REPO_ROOT / recordings_dir
     names = list(old.provenance.get("runs") or [])
+    if unknown := [n for n in drop if n not in names]:
+        raise LearnError(f"--drop: {', '.join(unknown)} not among the model's training runs ({', '.join(names)})")
+    names = [n for n in names if n not in drop]
     held_names = list(design.held_out())
     series = [series_from_states(read_states(recordings_dir / f"{n}.mcap"), n) for n in names + held_names]
     train, held = series[:len(names)], series[len(names):]
     provenance = {key: old.provenance[key] for key in ("design", "process", "controller") if key in old.provenance}
+    dropped = [*old.provenance.get("dropped_runs", []), *drop]
+    if dropped:
+        provenance["dropped_runs"] = dropped
     model, best, _ = select_and_fit(train, held, seed=int(old.provenance.get("seed", 0)),
                                     n_train=int(old.provenance.get("n_train", 150)), provenance=provenance,
                                     candidates=[candidate_of(old) if remnant == "keep"

@@ -258,3 +258,34 @@ def test_refit_refuses_a_model_without_a_design_in_one_line(tmp_path, capsys):
         err = capsys.readouterr().err
         assert status == 2 and says in err and err.count("\n") == 1 and err.startswith("python -m gp_trainer refit:")
         assert not (tmp_path / "m.json").exists()
+
+
+def test_refit_can_leave_out_training_runs_and_records_them(monkeypatch, tmp_path, capsys):
+    """``refit --drop RUN ...``: a model that never saw those runs' plans (judged off its training set by
+    ``bench_suite.py --model``): the named runs are not fitted, the held-out ones stay, the names go to
+    ``provenance.dropped_runs``; a name that is no training run, or no ``--out``, is one line, exit 2."""
+    from gp_trainer import learn as learn_module
+
+    seen = {}
+
+    class Saved:
+        def save(self, out):
+            seen["out"] = out
+
+    def select(train, held, **kwargs):
+        seen.update(train=train, held=held, provenance=kwargs["provenance"])
+        return Saved(), {"r2": 1.0}, []
+
+    monkeypatch.setattr(learn_module, "read_states", lambda path: path.stem)
+    monkeypatch.setattr(learn_module, "series_from_states", lambda states, name: name)
+    monkeypatch.setattr(learn_module, "select_and_fit", select)
+    runs = NarxGPModel.load(DEFAULT_MODEL_PATH).provenance["runs"]
+    drop = ("ident-layer-p139-s1", "ident-pid-layer-a0.058")
+    learn_module.refit(DEFAULT_MODEL_PATH, tmp_path / "m.json", drop=drop)
+    assert seen["train"] == [r for r in runs if r not in drop] and len(seen["train"]) == len(runs) - 2
+    assert "ident-layer-p174-s2" in seen["held"] and seen["provenance"]["dropped_runs"] == list(drop)
+    for argv, says in ((["--drop", "nope", "--out", str(tmp_path / "x.json")], "--drop: nope not among"),
+                       (["--drop", drop[0]], "--drop needs --out")):
+        assert main(["refit", *argv]) == 2
+        err = capsys.readouterr().err
+        assert says in err and err.count("\n") == 1 and not (tmp_path / "x.json").exists()
