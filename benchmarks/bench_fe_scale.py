@@ -2,7 +2,7 @@
 agreement on the default layer.
 
 Usage: ``python benchmarks/bench_fe_scale.py [--sides-mm 2 4 8 16] [--layers 1 10 25 50] [--steps 50]
-[--layer-steps N] [--json]``.  Last line of stdout is JSON.
+[--repeats 3] [--layer-steps N] [--json]``.  Last line of stdout is JSON.
 
 Side sweep: for each side L a square layer of L / hatch tracks of length L (hatch 0.1 mm) on the
 default plant (the ``layer`` scenario's settings and power) is built with ``mesh = "uniform"``
@@ -10,7 +10,11 @@ default plant (the ``layer`` scenario's settings and power) is built with ``mesh
 warm-up steps, ``--steps`` steps are timed one by one, the two meshes alternating so both see the
 same machine load; ``ms_per_step`` is the mean CPU time of a step in this process (BLAS on one
 thread, so on a quiet machine it is the wall time, and other jobs on a shared machine do not
-inflate it), the multi-level mesh's moves included; ``wall_ms_per_step`` the mean wall time.
+inflate it), the multi-level mesh's moves included; ``wall_ms_per_step`` the mean wall time. Each
+timed window (a side case's ``--steps``, a layer of the layer sweep) is run ``--repeats`` times from
+copies of the plants taken at its start (the same steps: the plants are deterministic), and the
+median of the windows' means is reported, so that a passing burst of load on a shared machine does
+not decide a case.
 
 Layer sweep: one 2 mm track built ``max(--layers)`` layers high on the default plant (25 µm
 layers), both meshes alternating; ``ms_per_step`` is the mean over the steps of each layer in
@@ -32,6 +36,7 @@ count), ``speedup_vs_uniform`` (CPU time) and ``wall_speedup_vs_uniform``, ``are
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import statistics
@@ -62,53 +67,77 @@ def timed_step(sc, model):
     return time.process_time() - c0, time.perf_counter() - w0, obs
 
 
-def record(case: dict, mesh: str, times: list[tuple[float, float]]) -> None:
-    """Put the mean CPU and wall ms per step of ``times`` ((CPU s, wall s) per step) into ``case``."""
-    case[f"ms_per_step_{mesh}"] = round(1e3 * statistics.fmean(c for c, _ in times), 2)
-    case[f"wall_ms_per_step_{mesh}"] = round(1e3 * statistics.fmean(w for _, w in times), 2)
+def record(case: dict, mesh: str, windows: list[list[tuple[float, float]]]) -> None:
+    """Put the median over ``windows`` of their mean CPU and wall ms per step (each window a list of
+    (CPU s, wall s) per step) into ``case``."""
+    for key, k in ((f"ms_per_step_{mesh}", 0), (f"wall_ms_per_step_{mesh}", 1)):
+        case[key] = round(1e3 * statistics.median(statistics.fmean(t[k] for t in w) for w in windows), 2)
 
 
-def side_case(side_mm: float, steps: int) -> dict:
+def timed_window(scs, models, steps: int) -> list[list[tuple[float, float]]]:
+    """Step ``models`` (one per scenario of ``scs``) ``steps`` times, alternating: per model, (CPU s, wall s)
+    per step."""
+    times = [[] for _ in models]
+    for _ in range(steps):
+        for i, (sc, model) in enumerate(zip(scs, models)):
+            times[i].append(timed_step(sc, model)[:2])
+    return times
+
+
+def repeated(scs, start: list, steps: int, repeats: int) -> list[list[list[tuple[float, float]]]]:
+    """``repeats - 1`` more runs of a window of ``steps`` steps from copies of the plants ``start`` taken at its
+    start: per model, its windows."""
+    return [list(w) for w in zip(*(timed_window(scs, [copy.deepcopy(m) for m in start], steps)
+                                   for _ in range(repeats - 1)))] if repeats > 1 else [[] for _ in start]
+
+
+def side_case(side_mm: float, steps: int, repeats: int) -> dict:
     """Time both meshes on a square layer of side ``side_mm``."""
     side = side_mm * 1e-3
     scs = [scenario("layer", n_tracks=max(1, round(side / HATCH_M)), track_length_m=side, hatch_m=HATCH_M, mesh=m)
            for m in MESHES]
     models = [plant_model(sc.settings, sc.plan) for sc in scs]
-    times = [[], []]
-    for k in range(5 + steps):
-        for i, (sc, model) in enumerate(zip(scs, models)):
-            cpu, wall, _ = timed_step(sc, model)
-            if k >= 5:
-                times[i].append((cpu, wall))
+    timed_window(scs, models, 5)
+    start = [copy.deepcopy(m) for m in models]
+    first = timed_window(scs, models, steps)
+    again = repeated(scs, start, steps, repeats)
     case = {"side_mm": side_mm}
-    for m, model, t in zip(MESHES, models, times):
+    for i, (m, model) in enumerate(zip(MESHES, models)):
         case[f"nodes_{m}"] = nodes(model)
-        record(case, m, t)
+        record(case, m, [first[i], *again[i]])
     print(f"{side_mm:g} mm: uniform {case['nodes_uniform']} nodes {case['ms_per_step_uniform']} ms/step; "
           f"multilevel {case['nodes_multilevel']} nodes {case['ms_per_step_multilevel']} ms/step "
           f"({models[1].n_remeshes} moves)", file=sys.stderr, flush=True)
     return case
 
 
-def layer_cases(layers: list[int]) -> list[dict]:
-    """Time both meshes in layers ``layers`` (1-based) of a one-track build."""
+def layer_cases(layers: list[int], repeats: int) -> list[dict]:
+    """Time both meshes in layers ``layers`` (1-based) of a one-track build, each layer but its first two
+    steps (the first spreads the powder)."""
     scs = [scenario("layer", n_tracks=1, track_length_m=2e-3, n_layers=max(layers), mesh=m) for m in MESHES]
     models = [plant_model(sc.settings, sc.plan, sc.layer_plans) for sc in scs]
-    times = {n: [[], []] for n in layers}
-    nodes_at = {}
+    windows, nodes_at = {}, {}
     while not models[0].done:
-        for i, (sc, model) in enumerate(zip(scs, models)):
-            cpu, wall, _ = timed_step(sc, model)
-            n = model.layer + 1
-            if n in times and model.step_index > 1:
-                times[n][i].append((cpu, wall))
-                nodes_at[(n, i)] = nodes(model)
+        n = models[0].layer + 1 + (models[0].layer_done and models[0].step_index > 0)   # the layer of the next step
+        if n in layers and n not in windows:
+            timed_window(scs, models, 2)
+            start = [copy.deepcopy(m) for m in models]
+            first = [[] for _ in models]
+            count = 0
+            while not models[0].done and not models[0].layer_done:
+                for i, t in enumerate(timed_window(scs, models, 1)):
+                    first[i] += t
+                count += 1
+            windows[n] = [[first[i], *w] for i, w in enumerate(repeated(scs, start, count, repeats))]
+            nodes_at[n] = [nodes(m) for m in models]
+        else:
+            timed_window(scs, models, 1)
     cases = []
     for n in layers:
         case = {"layers": n}
         for i, m in enumerate(MESHES):
-            case[f"nodes_{m}"] = nodes_at[(n, i)]
-            record(case, m, times[n][i][1:])
+            case[f"nodes_{m}"] = nodes_at[n][i]
+            record(case, m, windows[n][i])
         print(f"layer {n}: uniform {case['nodes_uniform']} nodes {case['ms_per_step_uniform']} ms/step; "
               f"multilevel {case['nodes_multilevel']} nodes {case['ms_per_step_multilevel']} ms/step",
               file=sys.stderr, flush=True)
@@ -144,14 +173,18 @@ def main() -> None:
     parser.add_argument("--sides-mm", type=float, nargs="+", default=[2.0, 4.0, 8.0, 16.0])
     parser.add_argument("--layers", type=int, nargs="+", default=[1, 10, 25, 50])
     parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--repeats", type=int, default=3, help="runs of each timed window from its start (median)")
     parser.add_argument("--layer-steps", type=int, default=None, help="steps of the default layer (default: all)")
     parser.add_argument("--json", action="store_true", help="(the last line is JSON either way)")
     args = parser.parse_args()
     single_threaded_blas()         # CPU time is then the step's cost (two BLAS threads had doubled it on large pools)
     load = [round(os.getloadavg()[0], 2)]
-    cases = [side_case(side, args.steps) for side in args.sides_mm] + layer_cases(args.layers)
+    if args.repeats < 1:
+        parser.error("--repeats must be >= 1")
+    cases = [side_case(side, args.steps, args.repeats) for side in args.sides_mm] + layer_cases(args.layers,
+                                                                                             args.repeats)
     ml = [c["ms_per_step_multilevel"] for c in cases]
-    result = {"cases": cases, "cost_ratio_max_min": round(max(ml) / min(ml), 3),
+    result = {"cases": cases, "repeats": args.repeats, "cost_ratio_max_min": round(max(ml) / min(ml), 3),
               "max_nodes": max(c["nodes_multilevel"] for c in cases), **default_layer(args.layer_steps)}
     load.append(round(os.getloadavg()[0], 2))
     result["load_avg"] = load
