@@ -135,7 +135,7 @@ def least_squares_with_gains(A: np.ndarray, b: np.ndarray, gains: np.ndarray) ->
     x = cp.Variable(used.size)
     problem = cp.Problem(cp.Minimize(cp.sum_squares(r @ x - q.T @ b)), [gains[:, used] @ x >= 0.0])
     problem.solve(solver=cp.CLARABEL)
-    if problem.status != cp.OPTIMAL:
+    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or x.value is None:
         raise DatasetError(f"the lag part's fit with non-negative power gains failed: {problem.status}")
     theta = np.zeros(A.shape[1])
     theta[used] = x.value
