@@ -66,7 +66,7 @@ import numpy as np
 from numba import njit
 
 from gp_model.compiled import BoundOnFirstCall
-from gp_model.narx import STEPS_SINCE_START_CAP, adjust_forecast, forecast_into
+from gp_model.narx import LOG_POWER_SCALE_W, STEPS_SINCE_START_CAP, adjust_forecast, forecast_into
 
 from .preview_stages import (
     MOMENTS,
@@ -75,6 +75,8 @@ from .preview_stages import (
     carve,
     estimate,
     hold_prediction,
+    map_power,
+    map_power_slope,
     new_estimator,
     new_planner,
     new_predictor,
@@ -365,7 +367,8 @@ def _predict(predictor, planner, run, ws, context, disturbance, relinearise):  #
 
 @njit(cache=True, nogil=True)
 def _regressors(predictor, run, ws, context, n_rows):  # pragma: no cover (compiled)
-    """The lagged powers and temperatures of the rows (into ``powers``, ``temps``), their GP inputs ψ
+    """The lagged powers, their φ and the temperatures of the rows (into ``powers``, ``mapped``, ``temps``),
+    their GP inputs ψ
     (into ``psi``) and, for the first ``n_rows`` rows, the SE kernel's exponents
     ``w·W_a − ‖W_a‖²/2 − ‖w‖²/2`` (into ``kern``, shape (H, N), ``w`` the scaled input)."""
     p_hist, t_hist, forecast, plan = run.p_hist, run.t_hist, ws.forecast, run.plan
@@ -379,6 +382,9 @@ def _regressors(predictor, run, ws, context, n_rows):  # pragma: no cover (compi
     for i in range(h - 1):
         powers[n_p + i] = plan[i + 1]
     powers[n_p + h - 1] = plan[h - 1]
+    mapped, map_scale_w = ws.mapped, predictor.map_scale_w
+    for i in range(n_p + h):                        # φ(p) of every power the rows read
+        mapped[i] = map_power(powers[i], map_scale_w)
     for i in range(n_t):                            # T[k−n_T+1 .. k], T̂[k+1 .. k+H−1]
         temps[i] = t_hist[i]
     for i in range(h - 1):
@@ -443,6 +449,7 @@ def _prediction(predictor, ws, disturbance, gp_rows):  # pragma: no cover (compi
     b, q, cc, d, e, g, feats = predictor.b, predictor.q, predictor.cc, predictor.d, predictor.e, predictor.g, ws.feats
     n_p, n_t, n_tq, n_x, n_f = b.size, cc.size, d.size, e.size, g.size
     powers, temps, kern, psi, correction, rems = ws.powers, ws.temps, ws.kern, ws.psi, ws.correction, ws.rems
+    mapped = ws.mapped
     h = powers.size - n_p
     n_gp = kern.shape[1]
     beta, moment_weights, var_f = predictor.gp_beta, predictor.gp_slope_weights, predictor.var_factor
@@ -495,8 +502,7 @@ def _prediction(predictor, ws, disturbance, gp_rows):  # pragma: no cover (compi
         gp_slope[row] = scale2 * (gp_moment - w2 * gp_mean) / n_p    # ∂r/∂ū_n through the mean power
         zz = intercept + gp_mean + rems[row]
         for i in range(n_p):
-            p = powers[last_p - i]
-            zz += (b[i] + q[i] * p) * p
+            zz += b[i] * powers[last_p - i] + q[i] * mapped[last_p - i]
         for j in range(n_t):
             t = temps[last_t - j]
             zz += cc[j] * t
@@ -529,13 +535,15 @@ def _jacobian(predictor, planner, ws, to_end):  # pragma: no cover (compiled)
     ratio = planner.power_scale_w / planner.set_point_m2
     h = powers.size - n_p
     gamma[:] = 0.0
-    u = powers[n_p:]
+    u, mapped_slope, map_scale_w = powers[n_p:], ws.mapped_slope, predictor.map_scale_w
+    for col in range(h):                            # φ'(ū)
+        mapped_slope[col] = map_power_slope(u[col], map_scale_w)
     for row in range(h):
         slope = slopes[row]
         du = 0.0
         for col in range(max(0, row + 1 - n_p), row + 1):
             lag = row - col
-            dz = b[lag] + 2.0 * q[lag] * u[col] + gp_slope[row]
+            dz = b[lag] + q[lag] * mapped_slope[col] + gp_slope[row]
             if lag < n_x:
                 dz += e[lag] * temps[n_t - 1 + row - min(lag, n_t - 1)]
             jac = slope * dz
@@ -701,8 +709,8 @@ def _apply(run, ws, planner, n_p, status):  # pragma: no cover (compiled)
     estimator, t_hist = run.estimator, run.t_hist
     if status != 2:
         u1, t_now = ws.powers[n_p], t_hist[t_hist.size - 1]
-        hold_prediction(estimator, ws.z[0] - (estimator.b0 + estimator.q0 * u1 + estimator.e0 * t_now) * u1, t_now,
-                        ws.correction[0])
+        z_base = ws.z[0] - (estimator.b0 + estimator.e0 * t_now) * u1 - estimator.q0 * ws.mapped[n_p]
+        hold_prediction(estimator, z_base, t_now, ws.correction[0])
     if status == 0:
         plan, v, scale = run.plan, ws.v, planner.power_scale_w
         for i in range(plan.size):
@@ -779,7 +787,7 @@ class Kernel:
         h = qp.horizon
         if np.any(np.triu(qp.moves, 2)) or np.any(np.tril(qp.moves, -2)):
             raise ValueError("the QP's move penalty must be tridiagonal (the kernel's Cholesky is banded)")
-        scalars, points, var_f = model.residual.kernel_terms()
+        scalars, points, var_f = self._three_inputs(*model.residual.kernel_terms())
         n_p, n_t, n_gp = model.power_coefficients.size, model.temperature_coefficients.size, points.shape[1]
         e, g = model.power_temperature_coefficients, model.feature_coefficients
         feature_kernel = model.feature_kernel()
@@ -798,7 +806,7 @@ class Kernel:
                        "feature_mean": (max(model.feature_profile_k.size, 1),), "remnant_kernel": remnant_kernel.shape,
                        "remnant_offsets": remnant_offsets.shape})
         w0_powers = points[0][:, None] ** np.arange(MOMENTS)          # W_a0ʲ, (N, MOMENTS)
-        for name, value in (("b", model.power_coefficients), ("q", model.power_square_coefficients),
+        for name, value in (("b", model.power_coefficients), ("q", model.power_map_coefficients),
                             ("cc", model.temperature_coefficients), ("d", model.temperature_square_coefficients),
                             ("e", e), ("mean", scalars[:3]), ("scale", scalars[3:6]),
                             ("decay", model.forecast_persistence ** np.arange(1.0, h + 1)), ("weights", qp.weights),
@@ -811,7 +819,9 @@ class Kernel:
                             ("feature_mean", model.feature_profile_k if model.turn_feature else np.zeros(1)),
                             ("remnant_kernel", remnant_kernel), ("remnant_offsets", remnant_offsets)):
             const[name][...] = value
-        self.predictor = new_predictor(float(model.intercept), const["b"], const["q"], const["cc"], const["d"],
+        map_scale_w = 0.0 if model.power_map == "square" else LOG_POWER_SCALE_W
+        self.predictor = new_predictor(float(model.intercept), const["b"], const["q"], map_scale_w, const["cc"],
+                                       const["d"],
                                        const["e"], const["mean"], const["scale"], float(scalars[6]),
                                        float(scalars[7]), float(np.abs(points[0]).max()), const["gp_points"],
                                        const["beta"], const["slope_weights"], const["var_f"],
@@ -831,7 +841,8 @@ class Kernel:
                          "f_hist": (max(g.size, 1),)})
         self.turn_error_seen = np.zeros(n_correction, dtype=bool)
         estimator_terms = (float(observer_gain), float(model.power_coefficients[0]),
-                           float(model.power_square_coefficients[0]), float(e[0]) if e.size else 0.0, log_output)
+                           float(model.power_map_coefficients[0]), float(e[0]) if e.size else 0.0, map_scale_w,
+                           log_output)
         self.estimator = new_estimator(*estimator_terms, run["turn_errors"], self.turn_error_seen)
         self.run = new_run(run["p_hist"], run["t_hist"], run["plan"], run["profile"], run["current"],
                            run["following"], run["p_long"], run["f_hist"], run["prev_powers"], run["track_feature"],
@@ -850,6 +861,22 @@ class Kernel:
         self.__dict__.update(self._workspaces[0][1])
         self._update, self._prepare, self._feedback = (BoundOnFirstCall(f) for f in (update_into, prepare_into,
                                                                                     feedback_into))
+
+    @staticmethod
+    def _three_inputs(scalars: np.ndarray, points: np.ndarray, var_f: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The GP's :meth:`~gp_model.narx.ResidualGP.kernel_terms` as the compiled code reads them, for
+        the three inputs of :data:`gp_model.narx.RESIDUAL_INPUTS`: a GP without the mean-power input gets
+        it with scale 0 (its scaled input, the points' coordinate and their slope weights 0), so that
+        its kernel values and sums are the two-input GP's and its slope in the mean power is 0."""
+        d = points.shape[0] - 3
+        if d == 3:
+            return scalars, points, var_f
+        zero = np.zeros(1)
+        scalars = np.r_[scalars[:d], zero, scalars[d:2 * d], zero, scalars[2 * d:]]
+        points = np.vstack([points[:d], np.zeros((1, points.shape[1])), points[d:d + 2],
+                            np.zeros((1, points.shape[1]))])
+        return scalars, points, var_f
 
     @staticmethod
     def _horizon_kernel(kernel: np.ndarray, h: int) -> np.ndarray:
@@ -899,7 +926,7 @@ class Kernel:
                    "powers": (n_p + h,), "temps": (n_t + h - 1,), "forecast": (h,), "correction": (h,), "w0": (h,),
                    "mean_moments": (h, MOMENTS), "slope_moments": (h, MOMENTS), "variance_moments": (h, MOMENTS),
                    "powers_of_w0": (n_gp, MOMENTS), "feats": (max(n_f, 1) - 1 + h,), "gp_t_slope": (h,),
-                   "rems": (h,)})
+                   "rems": (h,), "mapped": (n_p + h,), "mapped_slope": (h,)})
         block = a["gamma"].base                     # the one block of the views
         a["bits"] = a["bits"].view(np.int64)
         ws = new_workspace(*a.values())

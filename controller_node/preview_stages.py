@@ -29,12 +29,25 @@ from numba import njit, types
 from numba.experimental import structref
 
 __all__ = ["MOMENTS", "Estimator", "Planner", "Predictor", "Run", "StateContext", "Workspace", "carve", "estimate",
-           "forget_prediction", "hold_prediction", "new_estimator", "new_planner", "new_predictor", "new_run",
-           "new_workspace", "reset_estimator"]
+           "forget_prediction", "hold_prediction", "map_power", "map_power_slope", "new_estimator", "new_planner",
+           "new_predictor", "new_run", "new_workspace", "reset_estimator"]
 
 MOMENTS = 12
 """Terms of the series in which the feedback phase moves the GP's kernel sums (and, without bound
 tightening, the variance) to the measured T ahead (:func:`controller_node.preview_kernel.feedback_into`)."""
+
+
+@njit(cache=True, inline="always")
+def map_power(power_w, map_scale_w):  # pragma: no cover (compiled)
+    """φ(p) of :func:`gp_model.narx.map_power`: ``p²`` (``map_scale_w`` 0, the ``"square"`` map) or
+    ``log(1 + p/p_s)`` (``map_scale_w`` p_s [W], the ``"log1p"`` map)."""
+    return power_w * power_w if map_scale_w == 0.0 else math.log1p(power_w / map_scale_w)
+
+
+@njit(cache=True, inline="always")
+def map_power_slope(power_w, map_scale_w):  # pragma: no cover (compiled)
+    """φ'(p) of :func:`map_power`: ``2p`` or ``1/(p_s + p)``."""
+    return 2.0 * power_w if map_scale_w == 0.0 else 1.0 / (map_scale_w + power_w)
 
 
 class StateContext(NamedTuple):
@@ -97,11 +110,13 @@ class WorkspaceType(types.StructRef):
 
 ESTIMATOR = EstimatorType([
     ("gain", types.float64), ("b0", types.float64), ("q0", types.float64), ("e0", types.float64),
-    ("log_output", types.boolean), ("disturbance_m2", types.float64), ("has_prediction", types.boolean),
+    ("map_scale_w", types.float64), ("log_output", types.boolean), ("disturbance_m2", types.float64),
+    ("has_prediction", types.boolean),
     ("z_base", types.float64), ("t_ahead_k", types.float64), ("correction_m2", types.float64),
     ("turn_errors", _F1), ("turn_error_seen", _B1)])
 PREDICTOR = PredictorType([
-    ("intercept", types.float64), ("b", _F1), ("q", _F1), ("cc", _F1), ("d", _F1), ("e", _F1),
+    ("intercept", types.float64), ("b", _F1), ("q", _F1), ("map_scale_w", types.float64), ("cc", _F1), ("d", _F1),
+    ("e", _F1),
     ("gp_input_mean", _F1), ("gp_input_scale", _F1), ("gp_prior_variance", types.float64),
     ("gp_noise_variance", types.float64), ("w0_max", types.float64), ("gp_points", _F2), ("gp_beta", _F1),
     ("gp_slope_weights", _F1), ("var_factor", _F2), ("series_weights", _F2), ("decay", _F1),
@@ -122,7 +137,7 @@ WORKSPACE = WorkspaceType([
     ("jac_u", _F1), ("psi", _F2), ("kern", _F2), ("bits", _I1), ("powers", _F1), ("temps", _F1),
     ("forecast", _F1), ("correction", _F1), ("w0", _F1), ("mean_moments", _F2), ("slope_moments", _F2),
     ("variance_moments", _F2), ("powers_of_w0", _F2), ("feats", _F1), ("gp_t_slope", _F1), ("rems", _F1),
-    ("has_step", types.boolean), ("width", types.int64)])
+    ("mapped", _F1), ("mapped_slope", _F1), ("has_step", types.boolean), ("width", types.int64)])
 
 
 class Estimator(structref.StructRefProxy):
@@ -130,11 +145,11 @@ class Estimator(structref.StructRefProxy):
     x̂[k|k−1] the last update's prediction of this state completed with the power applied; after a
     turn the one-step error is kept by state since the turn (:func:`estimate`).
 
-    Fields: ``gain`` L; ``b0``, ``q0``, ``e0``, ``log_output`` (the model's terms in p[k] that
-    complete the prediction); ``disturbance_m2`` d̂ [m²]; ``has_prediction`` (an x̂[k|k−1] is
-    held); ``z_base`` its z without the p[k] terms, ``t_ahead_k`` [K] and ``correction_m2`` [m²] in
-    it; ``turn_errors`` [m²] and ``turn_error_seen`` by state since the turn. Build with
-    :func:`new_estimator`.
+    Fields: ``gain`` L; ``b0``, ``q0``, ``e0``, ``map_scale_w``, ``log_output`` (the model's terms in
+    p[k] that complete the prediction, ``b0 p + q0 φ(p) + e0 T p``, :func:`map_power`);
+    ``disturbance_m2`` d̂ [m²]; ``has_prediction`` (an x̂[k|k−1] is held); ``z_base`` its z without
+    the p[k] terms, ``t_ahead_k`` [K] and ``correction_m2`` [m²] in it; ``turn_errors`` [m²] and
+    ``turn_error_seen`` by state since the turn. Build with :func:`new_estimator`.
     """
 
     __slots__ = ()
@@ -179,10 +194,10 @@ class Estimator(structref.StructRefProxy):
 
 class Predictor(structref.StructRefProxy):
     """The delay-aware model's constants (:mod:`gp_model.narx`): ``intercept`` c₀; ``b``, ``q``
-    (powers, squared), ``cc``, ``d`` (temperatures, squared), ``e`` (power × temperature)
-    coefficients; the residual GP's input mean and scale, prior and noise variances, largest
-    ``|W_a0|`` (``w0_max``), per training point ``gp_points`` (rows ``W_a`` and ``−‖W_a‖²/2``),
-    ``gp_beta`` β_a, ``gp_slope_weights`` W_a2 β_a, ``var_factor`` σ_f L⁻¹ and ``series_weights``
+    (powers, mapped by φ: ``map_scale_w``, :func:`map_power`), ``cc``, ``d`` (temperatures,
+    squared), ``e`` (power × temperature) coefficients; the residual GP's input mean and scale, prior
+    and noise variances, largest ``|W_a0|`` (``w0_max``), per training point ``gp_points`` (rows ``W_a`` and
+    ``−‖W_a‖²/2``), ``gp_beta`` β_a, ``gp_slope_weights`` W_a2 β_a, ``var_factor`` σ_f L⁻¹ and ``series_weights``
     (N, 2 MOMENTS: β_a W_a0ʲ then W_a2 β_a W_a0ʲ); the T-ahead forecast's ``decay`` ρʲ;
     ``log_output``; ``n_variance`` rows with a variance; ``steps_cap`` of the steps-since-start
     input; the turnaround feature's (:mod:`gp_model.plan_feature`) coefficients ``g`` [z/K] (empty
@@ -249,10 +264,11 @@ def carve(shapes: dict[str, tuple[int, ...]], dtype: type = float) -> dict[str, 
 
 
 @njit(cache=True)
-def new_estimator(gain, b0, q0, e0, log_output, turn_errors, turn_error_seen):  # pragma: no cover (compiled)
+def new_estimator(gain, b0, q0, e0, map_scale_w, log_output, turn_errors,
+                  turn_error_seen):  # pragma: no cover (compiled)
     """An :class:`Estimator` with d̂ = 0 and no prediction held."""
     st = structref.new(ESTIMATOR)
-    st.gain, st.b0, st.q0, st.e0, st.log_output = gain, b0, q0, e0, log_output
+    st.gain, st.b0, st.q0, st.e0, st.map_scale_w, st.log_output = gain, b0, q0, e0, map_scale_w, log_output
     st.turn_errors, st.turn_error_seen = turn_errors, turn_error_seen
     reset_estimator(st)
     return st
@@ -286,7 +302,7 @@ def estimate(st, power_w, area_m2, after_turn, since):  # pragma: no cover (comp
     prediction. Returns d̂ [m²]."""
     if not st.has_prediction:
         return st.disturbance_m2
-    z = st.z_base + (st.b0 + st.q0 * power_w + st.e0 * st.t_ahead_k) * power_w
+    z = st.z_base + (st.b0 + st.e0 * st.t_ahead_k) * power_w + st.q0 * map_power(power_w, st.map_scale_w)
     predicted = (math.exp(z) if st.log_output else z) + st.correction_m2
     error = area_m2 - predicted - st.disturbance_m2
     if after_turn and 0 <= since < st.turn_errors.size:
@@ -307,13 +323,14 @@ def _set_disturbance(st, value):  # pragma: no cover (compiled)
 
 
 @njit(cache=True)
-def new_predictor(intercept, b, q, cc, d, e, gp_input_mean, gp_input_scale, gp_prior_variance, gp_noise_variance,
+def new_predictor(intercept, b, q, map_scale_w, cc, d, e, gp_input_mean, gp_input_scale, gp_prior_variance,
+                  gp_noise_variance,
                   w0_max, gp_points, gp_beta, gp_slope_weights, var_factor, series_weights, decay, log_output,
                   n_variance, steps_cap, g, feature_kernel, feature_jac, has_feature, feature_gain,
                   feature_mean, remnant_kernel, remnant_offsets):  # pragma: no cover (compiled)
     """A :class:`Predictor` of these constants."""
     st = structref.new(PREDICTOR)
-    st.intercept, st.b, st.q, st.cc, st.d, st.e = intercept, b, q, cc, d, e
+    st.intercept, st.b, st.q, st.map_scale_w, st.cc, st.d, st.e = intercept, b, q, map_scale_w, cc, d, e
     st.gp_input_mean, st.gp_input_scale, st.gp_prior_variance = gp_input_mean, gp_input_scale, gp_prior_variance
     st.gp_noise_variance, st.w0_max, st.gp_points, st.gp_beta = gp_noise_variance, w0_max, gp_points, gp_beta
     st.gp_slope_weights, st.var_factor, st.series_weights, st.decay = gp_slope_weights, var_factor, series_weights, \
@@ -352,7 +369,7 @@ def new_run(p_hist, t_hist, plan, profile, current, following, p_long, f_hist, p
 @njit(cache=True)
 def new_workspace(gamma, hess, chol, c, predicted, z, std, f, v, areas, gp_slope, inv_diag, slopes, jac_u, psi, kern,
                   bits, powers, temps, forecast, correction, w0, mean_moments, slope_moments, variance_moments,
-                  powers_of_w0, feats, gp_t_slope, rems):  # pragma: no cover (compiled)
+                  powers_of_w0, feats, gp_t_slope, rems, mapped, mapped_slope):  # pragma: no cover (compiled)
     """A :class:`Workspace` of these arrays, with no step."""
     st = structref.new(WORKSPACE)
     st.gamma, st.hess, st.chol, st.c, st.predicted, st.z, st.std = gamma, hess, chol, c, predicted, z, std
@@ -362,7 +379,7 @@ def new_workspace(gamma, hess, chol, c, predicted, z, std, f, v, areas, gp_slope
     st.correction, st.w0, st.mean_moments, st.slope_moments = correction, w0, mean_moments, slope_moments
     st.variance_moments, st.powers_of_w0, st.feats, st.has_step, st.width = variance_moments, powers_of_w0, feats, \
         False, 0
-    st.gp_t_slope, st.rems = gp_t_slope, rems
+    st.gp_t_slope, st.rems, st.mapped, st.mapped_slope = gp_t_slope, rems, mapped, mapped_slope
     return st
 
 

@@ -5,15 +5,19 @@ temperature ahead acts with lags of 5–13 steps, so a one-step model ``x[k+1] =
 cannot represent it (docs/gp.md, "Delay-aware model"). This model keeps the pool's memory in its
 regressor, in lagged powers and temperatures only (no lagged areas):
 
-    z[k+1] = c₀ + Σ_{i<n_p} (b_i p[k+1−i] + q_i p[k+1−i]²) + Σ_{j<n_T} c_j T[k−j]
+    z[k+1] = c₀ + Σ_{i<n_p} (b_i p[k+1−i] + q_i φ(p[k+1−i])) + Σ_{j<n_T} c_j T[k−j]
              + Σ_{j<n_Tq} d_j T[k−j]² + Σ_{i<n_x} e_i p[k+1−i] T[k−i] + Σ_{l<n_F} g_l F[k+1−l]
              + c_s + h_s P̄ + r(ψ_k)
     x[k+1] = exp(z[k+1])  (output "log"; "identity": x = z),   r ~ GP(0, k_SE-ARD)
 
 * ``p[j]`` [W] is the power applied during the step j−1 → j (``state[j].power_w``; 0 before
   laser-on), ``T[j]`` [K] the temperature ahead in state j (before the first state: ``T[0]``).
-* The lag part (least squares in z on scaled columns) is the delay. Its squared lags and the
-  log output carry the area's nonlinearity in power and temperature; the lag-matched
+* The lag part (least squares in z on scaled columns) is the delay. Its power map φ, the
+  squared T lags and the log output carry the area's nonlinearity in power and temperature. The
+  power map is ``φ(p) = p²`` (``"square"``) or ``φ(p) = log(1 + p/p_s)`` (``"log1p"``, p_s =
+  :data:`LOG_POWER_SCALE_W`): the log map's gain ``1/(p_s + p)`` falls with power and keeps its sign
+  beyond the identification runs' powers, where fitted squares can turn the response around
+  (``benchmarks/power_sensitivity.py``). The lag-matched
   interactions ``p[k+1−i] T[k−i]`` give each past power the gain of the substrate it heated
   (``quadratic=False`` and ``interaction=False`` in :meth:`NarxGPModel.fit` leave them out).
 * ``F[j]`` [K] is the turnaround feature of :mod:`gp_model.plan_feature`: the previous track's heat
@@ -28,7 +32,10 @@ regressor, in lagged powers and temperatures only (no lagged areas):
 * The GP of eq. (1)–(5) (SE-ARD kernel, hyper-parameters by maximum marginal likelihood on
   seeded random samples, :mod:`gp_model.kernel`) learns the residual in z on
   ``ψ_k = (T[k] [K], log(1 + min(s_k, 100)), mean(p[k+2−n_p..k+1]) [W])`` with ``s_k`` the states
-  since the current track started, and gives the predictive variance.
+  since the current track started, and gives the predictive variance. Without its mean-power input
+  (``gp_power_input=False`` in :meth:`NarxGPModel.fit`) the GP is one of the first two: the response
+  to power is then the lag part's alone, which holds beyond the runs' powers (a GP reverts to its
+  zero mean there).
 * The lag part's least squares may carry a smoothness prior ``λ Σ (θ_{i+1} − θ_i)²`` over the
   consecutive lags of T ahead, its square, p × T and F (:func:`smoothing_rows`,
   :data:`SMOOTHED_GROUPS`): nearly collinear lags otherwise take alternating signs that cancel
@@ -72,13 +79,20 @@ from gp_model.plan_feature import RemnantFeature, TurnFeature, remnant_series, t
 from messages.types import LASER_POWER_MAX_W
 
 FORMAT_NAME = "meltloop-narx-gp-model"
-FORMAT_VERSION = 5
-READABLE_VERSIONS = (3, 4, 5)
-"""Format 4 is format 5 without the remnant terms (``remnant_feature`` null), format 3 also without the
-turnaround feature (``turn_feature`` null)."""
+FORMAT_VERSION = 6
+READABLE_VERSIONS = (3, 4, 5, 6)
+"""Format 5 is format 6 with the power map ``"square"``, the GP on all of :data:`RESIDUAL_INPUTS` and the
+map's coefficients under ``power_square_coefficients``; format 4 also without the remnant terms
+(``remnant_feature`` null), format 3 also without the turnaround feature (``turn_feature`` null)."""
 OUTPUTS = ("log", "identity")
 _LOG_AREA_MAX = 700.0  # exp overflows beyond ~709
 RESIDUAL_INPUTS = ("t_ahead_k", "log1p_steps_since_track_start", "mean_power_w")
+"""The residual GP's inputs ψ, in order; a GP without the mean-power input takes the first two."""
+POWER_MAPS = ("square", "log1p")
+LOG_POWER_SCALE_W = 25.0
+"""p_s [W] of the ``"log1p"`` power map ``log(1 + p/p_s)``: its gain ``1/(p_s + p)`` falls by 15× from 0 to
+350 W, near the plant's (its area's relative gain per watt falls from ~0.008 at 120 W to ~0.003 at 300 W,
+``benchmarks/power_sensitivity.py``)."""
 STEPS_SINCE_START_CAP = 100
 SPEED_TOLERANCE = 0.01
 """Relative difference of two scan speeds that makes them different processes (runs of one model, a
@@ -102,10 +116,22 @@ MONOTONE_POWER_W = (0.0, LASER_POWER_MAX_W)
 non-negative: every power a controller may command (the contract's bounds)."""
 
 
-def static_power_gains(sizes: Sequence[int], powers_w: Sequence[float], temperatures_k: Sequence[float]
-                       ) -> np.ndarray:
+def map_power(p: np.ndarray | float, power_map: str) -> np.ndarray:
+    """``φ(p)`` of the power map ``power_map`` (:data:`POWER_MAPS`) at powers ``p`` [W]."""
+    p = np.asarray(p, dtype=float)
+    return p * p if power_map == "square" else np.log1p(p / LOG_POWER_SCALE_W)
+
+
+def map_power_slope(p: np.ndarray | float, power_map: str) -> np.ndarray:
+    """``φ'(p)`` of the power map ``power_map`` at powers ``p`` [W]."""
+    p = np.asarray(p, dtype=float)
+    return 2.0 * p if power_map == "square" else 1.0 / (LOG_POWER_SCALE_W + p)
+
+
+def static_power_gains(sizes: Sequence[int], powers_w: Sequence[float], temperatures_k: Sequence[float],
+                       power_map: str = "square") -> np.ndarray:
     """Rows ``a`` with ``a @ θ`` the lag part's steady-state gain ``∂z/∂p`` [1/W] at each pair of a
-    power ``p`` and a temperature ahead ``T`` (every lag at that p and T): ``Σ b_i + 2 p Σ q_i +
+    power ``p`` and a temperature ahead ``T`` (every lag at that p and T): ``Σ b_i + φ'(p) Σ q_i +
     T Σ e_i``, for coefficients θ in the order of :meth:`NarxGPModel.design`; ``sizes`` the group
     sizes (n_p, n_p, n_T, n_Tq, n_x, n_F, n_R, n_R). Shape (len(powers) · len(temperatures), len(θ))."""
     n_p, _, n_t, n_tq, n_x, *_ = sizes
@@ -114,7 +140,7 @@ def static_power_gains(sizes: Sequence[int], powers_w: Sequence[float], temperat
         for t in temperatures_k:
             a = np.zeros(1 + sum(sizes))
             a[1:1 + n_p] = 1.0
-            a[1 + n_p:1 + 2 * n_p] = 2.0 * p
+            a[1 + n_p:1 + 2 * n_p] = map_power_slope(p, power_map)
             start = 1 + 2 * n_p + n_t + n_tq
             a[start:start + n_x] = t
             rows.append(a)
@@ -539,7 +565,7 @@ class ResidualGP:
 class NarxGPModel:
     """The delay-aware model of the module docstring (construct with :meth:`fit` or :meth:`load`).
 
-    ``z[k+1] = c₀ + Σ b_i p_i + Σ q_i p_i² + Σ c_j T_j + Σ d_j T_j² + Σ e_i p_i T_i + r(ψ_k)`` with the lagged
+    ``z[k+1] = c₀ + Σ b_i p_i + Σ q_i φ(p_i) + Σ c_j T_j + Σ d_j T_j² + Σ e_i p_i T_i + r(ψ_k)`` with the lagged
     powers ``p_i = p[k+1−i]`` and temperatures ``T_j = T[k−j]``, and ``x[k+1] = exp(z)`` for the
     ``"log"`` output (``z`` the log of the area in m²) or ``x = z`` for ``"identity"``.
 
@@ -549,8 +575,8 @@ class NarxGPModel:
         Δt the model was identified at [s].
     intercept : float
         ``c₀`` (units of z).
-    power_coefficients, power_square_coefficients : numpy.ndarray, shape (n_p,)
-        ``b_i`` [z/W] and ``q_i`` [z/W²], i = 0 for ``p[k+1]``.
+    power_coefficients, power_map_coefficients : numpy.ndarray, shape (n_p,)
+        ``b_i`` [z/W] and ``q_i`` [z per unit of φ], i = 0 for ``p[k+1]``.
     temperature_coefficients : numpy.ndarray, shape (n_T,)
         ``c_j`` [z/K], j = 0 for ``T[k]``.
     temperature_square_coefficients : numpy.ndarray, shape (n_Tq,), n_Tq <= n_T
@@ -562,7 +588,9 @@ class NarxGPModel:
         k−i → k+1−i acts on material whose temperature ahead was ``T[k−i]`` when it was applied
         (a hotter substrate gives another power gain).
     residual : ResidualGP
-        GP on ψ (:data:`RESIDUAL_INPUTS`), in units of z.
+        GP on ψ (the first 2 or all 3 of :data:`RESIDUAL_INPUTS`, :attr:`gp_inputs`), in units of z.
+    power_map : {"square", "log1p"}
+        φ of the power lags (:func:`map_power`).
     turn_feature : gp_model.plan_feature.TurnFeature or None
         Constants of the turnaround feature ``F`` (None: no feature).
     feature_coefficients : numpy.ndarray, shape (n_F,), optional
@@ -588,6 +616,8 @@ class NarxGPModel:
 
     Attributes
     ----------
+    gp_inputs : tuple of str
+        The names of the residual GP's inputs ψ, in order.
     material : str or None
         The material of the identification runs (``None``: not recorded).
     powder_layer_m : float or None
@@ -596,9 +626,9 @@ class NarxGPModel:
     """
 
     def __init__(self, *, sample_period_s: float, intercept: float, power_coefficients: np.ndarray,
-                 power_square_coefficients: np.ndarray, temperature_coefficients: np.ndarray,
+                 power_map_coefficients: np.ndarray, temperature_coefficients: np.ndarray,
                  temperature_square_coefficients: np.ndarray, output: str, residual: ResidualGP,
-                 power_temperature_coefficients: np.ndarray | None = None,
+                 power_map: str = "square", power_temperature_coefficients: np.ndarray | None = None,
                  turn_feature: TurnFeature | None = None, feature_coefficients: np.ndarray | None = None,
                  feature_temperature_gain: float = 0.0, feature_profile_k: np.ndarray | None = None,
                  remnant_feature: RemnantFeature | None = None, remnant_coefficients: np.ndarray | None = None,
@@ -608,7 +638,7 @@ class NarxGPModel:
         self.sample_period_s = float(sample_period_s)
         self.intercept = float(intercept)
         self.power_coefficients = np.asarray(power_coefficients, dtype=float)
-        self.power_square_coefficients = np.asarray(power_square_coefficients, dtype=float)
+        self.power_map_coefficients = np.asarray(power_map_coefficients, dtype=float)
         self.temperature_coefficients = np.asarray(temperature_coefficients, dtype=float)
         self.temperature_square_coefficients = np.asarray(temperature_square_coefficients, dtype=float)
         self.power_temperature_coefficients = np.asarray(
@@ -624,6 +654,7 @@ class NarxGPModel:
         self.remnant_offsets = np.asarray(() if remnant_offsets is None else remnant_offsets, dtype=float)
         self.output = output
         self.residual = residual
+        self.power_map = power_map
         self.turn_profile_k = np.asarray(turn_profile_k, dtype=float)
         self.forecast_persistence = float(forecast_persistence)
         self.speed_m_s = float(speed_m_s)
@@ -637,13 +668,19 @@ class NarxGPModel:
                                                 and not isinstance(self.powder_layer_m, bool)
                                                 and 0 <= self.powder_layer_m < 1e-2)):
             raise ModelFormatError("NARX model: provenance.process.powder_layer_m must be a number in [0, 0.01) m")
-        arrays = (self.power_coefficients, self.power_square_coefficients, self.temperature_coefficients,
+        arrays = (self.power_coefficients, self.power_map_coefficients, self.temperature_coefficients,
                   self.temperature_square_coefficients, self.turn_profile_k, self.power_temperature_coefficients,
                   self.feature_coefficients, self.feature_profile_k, self.remnant_coefficients, self.remnant_offsets)
         if output not in OUTPUTS:
             raise ModelFormatError(f"NARX model: output must be one of {OUTPUTS}, got {output!r}")
+        if power_map not in POWER_MAPS:
+            raise ModelFormatError(f"NARX model: power_map must be one of {POWER_MAPS}, got {power_map!r}")
+        if residual.inputs.ndim != 2 or residual.inputs.shape[1] not in (2, len(RESIDUAL_INPUTS)):
+            raise ModelFormatError("NARX model: the residual GP takes the first 2 or all 3 of "
+                                   f"{RESIDUAL_INPUTS}, got inputs of shape {residual.inputs.shape}")
+        self.gp_inputs = RESIDUAL_INPUTS[:residual.inputs.shape[1]]
         if not (self.sample_period_s > 0 and self.speed_m_s > 0 and all(a.ndim == 1 for a in arrays)
-                and self.power_square_coefficients.size == self.power_coefficients.size > 0
+                and self.power_map_coefficients.size == self.power_coefficients.size > 0
                 and 0 <= self.temperature_square_coefficients.size <= self.temperature_coefficients.size > 0
                 and self.power_temperature_coefficients.size <= min(self.power_coefficients.size,
                                                                     self.temperature_coefficients.size)
@@ -720,7 +757,9 @@ class NarxGPModel:
         """Definition of every input (recorded in the model file)."""
         return {
             "p[k+1-i], i=0..n_p-1": "laser power applied during step k-i -> k+1-i [W] "
-                                    "(state[k+1-i].power_w; 0 before laser-on); linear and squared",
+                                    "(state[k+1-i].power_w; 0 before laser-on); linear and mapped by power_map",
+            "power_map": "phi(p) of the power_map_coefficients: 'square' p^2, 'log1p' "
+                         f"log(1 + p / {LOG_POWER_SCALE_W:g} W)",
             "T[k-j], j=0..n_T-1": "temperature ahead of the laser in state k-j [K] "
                                   "(state.t_ahead_k; T[0] before the first state); linear, squared for j < n_Tq",
             "p[k+1-i] T[k-i], i=0..n_x-1": "interaction of each lagged power with the temperature ahead in the "
@@ -737,7 +776,7 @@ class NarxGPModel:
             "c_s + h_s Pbar": "remnant terms: for the state k+1 that is s < remnant_feature.n_states states after a "
                               "turn, offset remnant_offsets[s] plus remnant_coefficients[s] [1/W] times Pbar, the "
                               "mean power of the previous track's last remnant_feature.n_sources steps [W]",
-            "mean_power_w": "GP input: mean of p[k+1-i], i=0..n_p-1 [W]",
+            "mean_power_w": "GP input (if in residual_gp.inputs_names): mean of p[k+1-i], i=0..n_p-1 [W]",
             "output": "melt-pool area x[k+1] [m2] (state[k+1].area_mm2 * 1e-6) "
                       "= exp(z) for output 'log', z for 'identity'",
             "sample_period_s": "duration of one step; the model is valid only at this period",
@@ -758,23 +797,25 @@ class NarxGPModel:
         return P, T, F, self.remnant_inputs(run)[1:]
 
     def design(self, P: np.ndarray, T: np.ndarray, F: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """Regressor rows ``[1, p, p², T, T², p×T, F, P̄ columns, 1 columns]`` for lag matrices ``P`` (m, n_p),
+        """Regressor rows ``[1, p, φ(p), T, T², p×T, F, P̄ columns, 1 columns]`` for lag matrices ``P`` (m, n_p),
         ``T`` (m, n_T), ``F`` (m, n_F) and the remnant's regressors ``R`` (m, 2 n_R)."""
         n_tq, n_x = self.temperature_square_coefficients.size, self.power_temperature_coefficients.size
-        return np.column_stack([np.ones(P.shape[0]), P, P * P, T, T[:, :n_tq] ** 2, P[:, :n_x] * T[:, :n_x], F, R])
+        return np.column_stack([np.ones(P.shape[0]), P, map_power(P, self.power_map), T, T[:, :n_tq] ** 2,
+                                P[:, :n_x] * T[:, :n_x], F, R])
 
     def coefficients(self) -> np.ndarray:
         """All coefficients in the order of :meth:`design`."""
-        return np.r_[self.intercept, self.power_coefficients, self.power_square_coefficients,
+        return np.r_[self.intercept, self.power_coefficients, self.power_map_coefficients,
                      self.temperature_coefficients, self.temperature_square_coefficients,
                      self.power_temperature_coefficients, self.feature_coefficients, self.remnant_coefficients,
                      self.remnant_offsets]
 
     def residual_inputs(self, run: RunSeries) -> np.ndarray:
-        """ψ for every target index j = 1..n−1, shape (n−1, 3)."""
-        P = self._lagged(run)[0]
+        """ψ (:attr:`gp_inputs`) for every target index j = 1..n−1, shape (n−1, 2 or 3)."""
         s = steps_since_start_feature(run.steps_since_track_start()[:-1])
-        return np.column_stack([run.t_ahead_k[:-1], s, P.mean(axis=1)])
+        if len(self.gp_inputs) == 2:
+            return np.column_stack([run.t_ahead_k[:-1], s])
+        return np.column_stack([run.t_ahead_k[:-1], s, self._lagged(run)[0].mean(axis=1)])
 
     def predict_run(self, run: RunSeries) -> tuple[np.ndarray, np.ndarray]:
         """One-step mean [m²] and latent variance [m⁴] of ``x[j]``, j = 1..n−1, with measured T
@@ -819,23 +860,24 @@ class NarxGPModel:
             remnant: RemnantFeature | None = None, smoothing: float = 0.0, output: str = "log",
             n_train: int = 150, bounds: HyperBounds = DEFAULT_BOUNDS, seed: int = 0, n_restarts: int = 4,
             profile_length: int = 200, speed_m_s: float | None = None,
-            monotone_power_w: tuple[float, float] | None = MONOTONE_POWER_W,
-            provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
+            monotone_power_w: tuple[float, float] | None = MONOTONE_POWER_W, power_map: str = "square",
+            gp_power_input: bool = True, provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
         """Least squares in z for the lag part, then the residual GP on ``n_train`` seeded random samples.
 
         Samples whose target is in the build-up of a run or of a layer (:func:`~gp_model.build_up.build_up_steps`
         states at the runs' period: :data:`~gp_model.build_up.BUILD_UP_STEPS` at the FE step), or has no
-        pool (area 0), are not fitted (the lags still see their powers). ``quadratic=False``
-        leaves out the squared lags (a plain FIR part); ``interaction`` adds the lag-matched
-        p × T terms; ``feature_lags`` > 0 the lagged turnaround features ``F[k+1−l]``, l < feature_lags,
-        of ``turn_feature``; ``remnant`` the remnant terms (least squares on the lag part's residual, per
-        state after a turn); ``smoothing`` λ > 0 the smoothness prior on every lag kernel
+        pool (area 0), are not fitted (the lags still see their powers). ``power_map`` is φ of
+        the power lags (:data:`POWER_MAPS`); ``quadratic=False`` leaves out φ and the squared T lags
+        (a plain FIR part); ``gp_power_input=False`` leaves the mean power out of the GP's inputs;
+        ``interaction`` adds the lag-matched p × T terms; ``feature_lags`` > 0 the lagged turnaround features
+        ``F[k+1−l]``, l < feature_lags, of ``turn_feature``; ``remnant`` the remnant terms (least squares on the lag
+        part's residual, per state after a turn); ``smoothing`` λ > 0 the smoothness prior on every lag kernel
         (:func:`smoothing_rows`). The turnaround profile spans ``profile_length`` states, at least the
         feature's ``n_targets`` (the forecast's feature part is fitted against it). The model's scan
         speed is the runs' (:attr:`RunSeries.speed_m_s`), or ``speed_m_s``
         [m/s] for runs that record none. The lag part's steady-state gain in power
         (:func:`static_power_gains`) is held non-negative over ``monotone_power_w`` [W] and the runs'
-        range of T ahead (at its corners: the gain is linear in p and T), so that beyond the staircases'
+        range of T ahead (at its corners: the gain is monotone in p and linear in T), so that beyond the staircases'
         powers the fitted squares do not turn the model's response to power around (``None``: unconstrained).
 
         Raises
@@ -847,6 +889,8 @@ class NarxGPModel:
             raise DatasetError("no runs to fit")
         if output not in OUTPUTS:
             raise DatasetError(f"output must be one of {OUTPUTS}, got {output!r}")
+        if power_map not in POWER_MAPS:
+            raise DatasetError(f"power_map must be one of {POWER_MAPS}, got {power_map!r}")
         periods = {round(r.sample_period_s, 12) for r in runs}
         if len(periods) != 1:
             raise DatasetError(f"runs have different sample periods: {sorted(periods)} s")
@@ -862,7 +906,7 @@ class NarxGPModel:
             raise DatasetError(f"feature_lags must be >= 0, and 0 without a turn_feature, got {feature_lags}")
         feature = turn_feature
         probe = cls._probe(n_power_lags, n_temperature_lags, n_tq, runs[0].sample_period_s, n_x, feature_lags,
-                           feature, speed, remnant)
+                           feature, speed, remnant, power_map, gp_power_input)
         X, Y, PSI = [], [], []
         for run in runs:
             lagged = probe._lagged(run)
@@ -886,7 +930,8 @@ class NarxGPModel:
         X[:, X.shape[1] - 2 * n_r:] = 0.0          # the remnant terms: fitted on what the rest leaves (below)
         t_ahead = np.concatenate([r.t_ahead_k for r in runs])
         gains = (np.zeros((0, X.shape[1])) if monotone_power_w is None
-                 else static_power_gains(sizes, monotone_power_w, (float(t_ahead.min()), float(t_ahead.max()))))
+                 else static_power_gains(sizes, monotone_power_w, (float(t_ahead.min()), float(t_ahead.max())),
+                                         power_map))
         theta = least_squares_with_gains(np.vstack([X / scale, rows]), np.r_[target, np.zeros(rows.shape[0])],
                                          gains / scale) / scale
         residual = target - X @ theta
@@ -910,14 +955,14 @@ class NarxGPModel:
         theta, h, c = theta[:split], theta[split:split + n_r], theta[split + n_r:]
         theta, g = (theta[:theta.size - n_f], theta[theta.size - n_f:]) if n_f else (theta, None)
         return cls(sample_period_s=runs[0].sample_period_s, intercept=theta[0], power_coefficients=theta[1:1 + n_p],
-                   power_square_coefficients=theta[1 + n_p:1 + 2 * n_p],
+                   power_map_coefficients=theta[1 + n_p:1 + 2 * n_p],
                    temperature_coefficients=theta[1 + 2 * n_p:1 + 2 * n_p + n_t],
                    temperature_square_coefficients=theta[1 + 2 * n_p + n_t:1 + 2 * n_p + n_t + n_tq],
                    power_temperature_coefficients=theta[1 + 2 * n_p + n_t + n_tq:], turn_feature=feature,
                    feature_coefficients=g, feature_temperature_gain=gain, feature_profile_k=feature_profile,
                    remnant_feature=remnant, remnant_coefficients=h if n_r else None,
                    remnant_offsets=c if n_r else None,
-                   output=output, residual=gp,
+                   output=output, residual=gp, power_map=power_map,
                    turn_profile_k=profile, forecast_persistence=fit_persistence(runs, profile), speed_m_s=speed,
                    provenance=record)
 
@@ -943,7 +988,8 @@ class NarxGPModel:
     @classmethod
     def _probe(cls, n_p: int, n_t: int, n_tq: int, period: float, n_x: int = 0, n_f: int = 0,
                feature: TurnFeature | None = None, speed_m_s: float = 1.0,
-               remnant: RemnantFeature | None = None) -> NarxGPModel:
+               remnant: RemnantFeature | None = None, power_map: str = "square",
+               gp_power_input: bool = True) -> NarxGPModel:
         """A shell with the right lag counts (for building regressors before the fit)."""
         if n_p < 1 or n_t < 1 or not 0 <= n_tq <= n_t:
             raise DatasetError(f"lag counts must be >= 1 (squared T lags <= T lags), got {n_p}, {n_t}, {n_tq}")
@@ -956,6 +1002,7 @@ class NarxGPModel:
         n_r = 0 if remnant is None else remnant.n_states
         obj.remnant_feature, obj.remnant_coefficients, obj.remnant_offsets = remnant, np.zeros(n_r), np.zeros(n_r)
         obj.sample_period_s, obj.speed_m_s = period, speed_m_s
+        obj.power_map, obj.gp_inputs = power_map, RESIDUAL_INPUTS if gp_power_input else RESIDUAL_INPUTS[:2]
         return obj
 
     # ------------------------------------------------------------------ persistence
@@ -967,15 +1014,16 @@ class NarxGPModel:
             "speed_m_s": self.speed_m_s,
             "inputs": self.input_definitions(),
             "structure": (
-                "z[k+1] = c0 + sum_i (b_i p[k+1-i] + q_i p[k+1-i]^2) + sum_j c_j T[k-j] + sum_{j<n_Tq} d_j T[k-j]^2"
+                "z[k+1] = c0 + sum_i (b_i p[k+1-i] + q_i phi(p[k+1-i])) + sum_j c_j T[k-j] + sum_{j<n_Tq} d_j T[k-j]^2"
                 " + sum_{i<n_x} e_i p[k+1-i] T[k-i] + sum_{l<n_F} g_l F[k+1-l] + c_s + h_s Pbar + r(psi_k),"
                 " r ~ GP(0, SE-ARD);"
                 " x[k+1] = exp(z) (output 'log') or z"
             ),
             "output": self.output,
+            "power_map": self.power_map,
             "intercept": self.intercept,
             "power_coefficients": self.power_coefficients.tolist(),
-            "power_square_coefficients": self.power_square_coefficients.tolist(),
+            "power_map_coefficients": self.power_map_coefficients.tolist(),
             "temperature_coefficients": self.temperature_coefficients.tolist(),
             "temperature_square_coefficients": self.temperature_square_coefficients.tolist(),
             "power_temperature_coefficients": self.power_temperature_coefficients.tolist(),
@@ -986,7 +1034,7 @@ class NarxGPModel:
             "remnant_feature": None if self.remnant_feature is None else self.remnant_feature.to_dict(),
             "remnant_coefficients": self.remnant_coefficients.tolist(),
             "remnant_offsets": self.remnant_offsets.tolist(),
-            "residual_gp": {"inputs_names": list(RESIDUAL_INPUTS), **self.residual.to_dict()},
+            "residual_gp": {"inputs_names": list(self.gp_inputs), **self.residual.to_dict()},
             "turn_profile_k": self.turn_profile_k.tolist(),
             "forecast_persistence": self.forecast_persistence,
             "provenance": self.provenance,
@@ -1011,13 +1059,20 @@ class NarxGPModel:
             feature = None if feature is None else TurnFeature.from_dict(feature)
             remnant = doc.get("remnant_feature")
             remnant = None if remnant is None else RemnantFeature.from_dict(remnant)
+            version = doc["format_version"]
+            names = tuple(g["inputs_names"]) if version >= 6 else RESIDUAL_INPUTS
+            if names != RESIDUAL_INPUTS[:len(names)] or np.shape(g["inputs"])[1:] != (len(names),):
+                raise ModelFormatError(f"{path}: residual_gp.inputs_names must be the first 2 or all 3 of "
+                                       f"{list(RESIDUAL_INPUTS)}, one per column of its inputs, got {list(names)}")
             residual = ResidualGP(inputs=np.array(g["inputs"]), targets=np.array(g["targets"]),
                                   signal_std=g["signal_std"], noise_std=g["noise_std"],
                                   length_scales=np.array(g["length_scales"]), input_mean=np.array(g["input_mean"]),
                                   input_scale=np.array(g["input_scale"]), target_scale=g["target_scale"])
             return cls(sample_period_s=doc["sample_period_s"], intercept=doc["intercept"],
                        power_coefficients=np.array(doc["power_coefficients"]),
-                       power_square_coefficients=np.array(doc["power_square_coefficients"]),
+                       power_map_coefficients=np.array(doc["power_map_coefficients" if version >= 6
+                                                           else "power_square_coefficients"]),
+                       power_map=doc["power_map"] if version >= 6 else "square",
                        temperature_coefficients=np.array(doc["temperature_coefficients"]),
                        temperature_square_coefficients=np.array(doc["temperature_square_coefficients"]),
                        power_temperature_coefficients=np.array(doc["power_temperature_coefficients"]),

@@ -54,7 +54,7 @@ from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.evaluate import evaluate, plot_narx
 from gp_trainer.jobs import JobResult
 from gp_trainer.learn import LearnSettings, design_from_record, learn, process_record, refit, retune
-from gp_trainer.narx_fit import evaluate_model, rollout_key, select_and_fit
+from gp_trainer.narx_fit import POWER_FORM_NAMES, evaluate_model, rollout_key, select_and_fit
 from gp_trainer.provenance import REPO_ROOT
 from gp_trainer.train import TrainSettings, train
 from messages.cli import UsageError
@@ -213,6 +213,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drop", nargs="+", default=(), metavar="RUN",
                    help="leave these training runs out (a model that never saw their plans, e.g. for "
                         "bench_suite.py --model; give --out)")
+    p.add_argument("--power-form", choices=POWER_FORM_NAMES, default=None,
+                   help="the power map and GP inputs: 'square' p² lags and the GP's mean-power input (format 5), "
+                        "'log1p' log(1 + p/25 W) lags and a GP of T ahead and track position (default: as the model)")
     p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
     return parser
 
@@ -516,7 +519,8 @@ def _refit(args: argparse.Namespace) -> int:
         raise DatasetError(f"--remnant-states/--remnant-sources: {exc}") from None
     if args.drop and args.out is None:
         raise LearnError("--drop needs --out (the model without those runs is not the one it was refitted from)")
-    best = refit(args.model, out, remnant, tuple(args.drop))
+    best = refit(args.model, out, remnant, tuple(args.drop),
+                 None if args.power_form is None else POWER_FORM_NAMES[args.power_form])
     key = rollout_key(NarxGPModel.load(out).sample_period_s)
     print(f"refitted {args.model} -> {out}: held-out R² {best['r2']:.3f}, {key} {best[key]:.2f} %", file=sys.stderr)
     if args.json:

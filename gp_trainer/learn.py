@@ -242,7 +242,7 @@ def retune(model_path: Path) -> dict[str, Any]:
 
 
 def refit(model_path: Path, out: Path, remnant: RemnantFeature | None | Literal["keep"] = "keep",
-          drop: Sequence[str] = ()) -> dict[str, Any]:
+          drop: Sequence[str] = (), power_form: tuple[str, bool] | None = None) -> dict[str, Any]:
     """Refit a learned model with the current code (``python -m gp_trainer refit``): the candidate it was
     selected as (:func:`~gp_trainer.narx_fit.candidate_of`), its seed and GP points, on its training runs in
     their recorded order and scored on its design's held-out runs, all read from the recordings directory
@@ -250,7 +250,9 @@ def refit(model_path: Path, out: Path, remnant: RemnantFeature | None | Literal[
     For a change of the model's definition (e.g. the turnaround feature's extent) on the same data without
     a new selection; ``remnant`` replaces the candidate's remnant terms (None: none; "keep": the model's);
     ``drop`` names training runs to leave out (a model that never saw their plans, to be judged off its
-    training set), recorded as ``provenance.dropped_runs``. Returns the held-out row.
+    training set), recorded as ``provenance.dropped_runs``; ``power_form`` replaces its (power map, GP's
+    mean-power input) (:data:`~gp_trainer.narx_fit.POWER_FORM_NAMES`; None: the model's). Returns the
+    held-out row.
 
     Raises
     ------
@@ -271,10 +273,14 @@ def refit(model_path: Path, out: Path, remnant: RemnantFeature | None | Literal[
     dropped = [*old.provenance.get("dropped_runs", []), *drop]
     if dropped:
         provenance["dropped_runs"] = dropped
+    candidate = list(candidate_of(old))
+    if remnant != "keep":
+        candidate[-1] = remnant
+    if power_form is not None:
+        candidate[-2] = tuple(power_form)
     model, best, _ = select_and_fit(train, held, seed=int(old.provenance.get("seed", 0)),
                                     n_train=int(old.provenance.get("n_train", 150)), provenance=provenance,
-                                    candidates=[candidate_of(old) if remnant == "keep"
-                                                else (*candidate_of(old)[:-1], remnant)])
+                                    candidates=[tuple(candidate)])
     model.save(out)
     return best
 

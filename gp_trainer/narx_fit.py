@@ -39,6 +39,12 @@ FEATURES = ((False, 0), (True, 0), (True, 24))
 lags in the regressor)."""
 LENGTH_SCALE_FLOORS = (0.5, 2.0)
 """Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
+POWER_FORM_NAMES = {"square": ("square", True), "log1p": ("log1p", False)}
+"""The named (power map, GP's mean-power input) forms (``refit --power-form``)."""
+POWER_FORM = POWER_FORM_NAMES["log1p"]
+"""The (power map, GP's mean-power input) of every candidate of the selection (:meth:`NarxGPModel.fit`'s
+``power_map`` and ``gp_power_input``). Not selected: the held-out runs' powers do not tell the forms
+apart, the response beyond them does (``benchmarks/power_sensitivity.py``, docs/gp.md)."""
 SMOOTHINGS = (0.0, 0.1)
 """Candidate weights λ of the smoothness prior on the lag kernels (:func:`gp_model.narx.smoothing_rows`):
 without it the lags of one signal, nearly collinear, are fitted with alternating signs that cancel along a
@@ -123,17 +129,20 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int |
 def _fit_candidate(train: Sequence[RunSeries], held_out: Sequence[RunSeries], candidate: tuple, seed: int,
                    n_train: int, provenance: Mapping[str, Any] | None) -> tuple[NarxGPModel, dict[str, Any]]:
     """Fit one candidate of :func:`select_and_fit` and score it on ``held_out``: the model and its row."""
-    (n_p, n_t), (output, quadratic, with_x), (with_f, n_f), floor, smoothing, remnant = candidate
+    (n_p, n_t), (output, quadratic, with_x), (with_f, n_f), floor, smoothing, (power_map, gp_power), remnant = \
+        candidate
     period = train[0].sample_period_s
     feature = TurnFeature(n_targets=steps_at(TurnFeature.n_targets, period),
                           n_sources=steps_at(TurnFeature.n_sources, period))
     model = NarxGPModel.fit(train, n_power_lags=n_p, n_temperature_lags=n_t, n_train=n_train, seed=seed,
                             output=output, quadratic=quadratic, interaction=with_x, feature_lags=n_f,
                             turn_feature=feature if with_f else None, remnant=remnant, smoothing=smoothing,
-                            bounds=HyperBounds(length_scale=(floor, 100.0)), provenance=provenance)
+                            bounds=HyperBounds(length_scale=(floor, 100.0)), power_map=power_map,
+                            gp_power_input=gp_power, provenance=provenance)
     row = {"n_power_lags": n_p, "n_temperature_lags": n_t, "output": output, "quadratic": quadratic,
            "interaction": with_x, "turn_feature": with_f, "feature_lags": n_f, "length_scale_floor": floor,
-           "smoothing": smoothing, "remnant": None if remnant is None else remnant.to_dict(),
+           "smoothing": smoothing, "power_map": power_map, "gp_power_input": gp_power,
+           "remnant": None if remnant is None else remnant.to_dict(),
            **evaluate_model(model, held_out)}
     return model, row
 
@@ -141,7 +150,8 @@ def _fit_candidate(train: Sequence[RunSeries], held_out: Sequence[RunSeries], ca
 def candidate_of(model: NarxGPModel) -> tuple:
     """The candidate of :func:`select_and_fit` that ``model`` was fitted as: its (power lags, temperature
     lags), (output map, squared lags, p × T terms), (turnaround feature, its lags), length-scale floor,
-    smoothness prior λ (from ``provenance.bounds`` and ``provenance.smoothing``) and remnant terms."""
+    smoothness prior λ (from ``provenance.bounds`` and ``provenance.smoothing``), (power map, GP's
+    mean-power input) and remnant terms."""
     try:
         floor = float(model.provenance["bounds"]["length_scale"][0])
         smoothing = float(model.provenance["smoothing"])
@@ -150,7 +160,8 @@ def candidate_of(model: NarxGPModel) -> tuple:
     return ((model.n_power_lags, model.n_temperature_lags),
             (model.output, model.temperature_square_coefficients.size > 0,
              model.power_temperature_coefficients.size > 0),
-            (model.turn_feature is not None, model.n_feature_lags), floor, smoothing, model.remnant_feature)
+            (model.turn_feature is not None, model.n_feature_lags), floor, smoothing,
+            (model.power_map, "mean_power_w" in model.gp_inputs), model.remnant_feature)
 
 
 def select_and_fit(
@@ -164,16 +175,16 @@ def select_and_fit(
     candidates: Sequence[tuple] | None = None,
 ) -> tuple[NarxGPModel, dict[str, Any], list[dict[str, Any]]]:
     """Fit every candidate (lags, output map, squared lags, interactions, feature lags, length-scale floor,
-    smoothness prior; no remnant terms: :func:`gp_trainer.learn.refit` adds them to a selected one) on
-    ``train``; keep the one with the smallest 40-step rollout error on ``held_out`` (not the one-step fit).
-    Returns it, its row and the whole table; ``provenance`` goes into every candidate's. ``workers`` > 1 fits
-    the candidates in that many forked processes (each fit is deterministic: the same model either way).
-    ``candidates`` (default: every combination of the module's candidate lists) restricts the choice, e.g.
-    to :func:`candidate_of` a selected model (refitting it on other data or with another feature)."""
+    smoothness prior; the power form :data:`POWER_FORM`; no remnant terms: :func:`gp_trainer.learn.refit`
+    adds them to a selected one) on ``train``; keep the one with the smallest 40-step rollout error on
+    ``held_out`` (not the one-step fit). Returns it, its row and the whole table; ``provenance`` goes into every
+    candidate's. ``workers`` > 1 fits the candidates in that many forked processes (each fit is deterministic: the
+    same model either way). ``candidates`` (default: every combination of the module's candidate lists) restricts the
+    choice, e.g. to :func:`candidate_of` a selected model (refitting it on other data or with another feature)."""
     period = train[0].sample_period_s if train else held_out[0].sample_period_s
     if candidates is None:
         candidates = list(itertools.product(structures(period), FORMS, features(period), LENGTH_SCALE_FLOORS,
-                                            SMOOTHINGS, [None]))
+                                            SMOOTHINGS, [POWER_FORM], [None]))
     fit = functools.partial(_fit_candidate, train, held_out, seed=seed, n_train=n_train, provenance=provenance)
     if workers > 1:
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:

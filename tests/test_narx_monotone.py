@@ -34,7 +34,7 @@ def _fit(runs, monotone_power_w):
 
 
 def _static_gain(model: NarxGPModel, power_w: float) -> float:
-    return float(model.power_coefficients.sum() + 2.0 * power_w * model.power_square_coefficients.sum())
+    return float(model.power_coefficients.sum() + 2.0 * power_w * model.power_map_coefficients.sum())
 
 
 def test_the_fit_keeps_the_power_gain_non_negative_up_to_the_highest_power():

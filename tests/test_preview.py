@@ -195,7 +195,7 @@ def test_prediction_matches_the_model_along_the_previous_plan(turn_at):
                              speed_m_s=SPEED_M_S)
     model = NarxGPModel(  # every term made visible: squares and interactions of a size that matters
         sample_period_s=DT, intercept=fitted.intercept, power_coefficients=fitted.power_coefficients,
-        power_square_coefficients=np.full(8, 2e-6), temperature_coefficients=fitted.temperature_coefficients + 1e-3,
+        power_map_coefficients=np.full(8, 2e-6), temperature_coefficients=fitted.temperature_coefficients + 1e-3,
         temperature_square_coefficients=np.full(2, 1e-6), power_temperature_coefficients=np.full(5, -2e-6),
         output="log", residual=fitted.residual, turn_profile_k=fitted.turn_profile_k, forecast_persistence=1.0,
         speed_m_s=0.8)
@@ -263,7 +263,7 @@ def test_jacobian_of_lag_matched_interactions_uses_each_powers_own_temperature()
     assert fitted.power_temperature_coefficients.size == 5
     model = NarxGPModel(
         sample_period_s=DT, intercept=fitted.intercept, power_coefficients=fitted.power_coefficients,
-        power_square_coefficients=np.zeros(8), temperature_coefficients=fitted.temperature_coefficients,
+        power_map_coefficients=np.zeros(8), temperature_coefficients=fitted.temperature_coefficients,
         temperature_square_coefficients=np.zeros(0), power_temperature_coefficients=np.array([4, 3, 2, 1, 0.5]) * 1e-14,
         output="identity", residual=fitted.residual, turn_profile_k=fitted.turn_profile_k, forecast_persistence=1.0,
         speed_m_s=0.8)

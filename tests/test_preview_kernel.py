@@ -268,7 +268,7 @@ def test_the_observer_compares_the_state_with_the_last_prediction(model, after_t
     estimator = work.estimator
     assert work.update(StateContext(0, 0.0, 0, False, 5, False, -1, after_turn, 950.0, True, 0), 1000.0, 0.0) in (0, 1)
     u1 = work.powers[work.p_hist.size]                  # ū[0] = p[k+1] of row 0
-    b0, q0 = model.power_coefficients[0], model.power_square_coefficients[0]
+    b0, q0 = model.power_coefficients[0], model.power_map_coefficients[0]
     e0 = model.power_temperature_coefficients[0]
     base = work.z[0] - (b0 + q0 * u1 + e0 * 1000.0) * u1
     z_base, t_ahead_k, correction_m2 = estimator.prediction
@@ -292,7 +292,7 @@ def test_the_estimator_steps_as_do_mpcs_make_step(model):
     kernel = Kernel(model, qp, 1, 0.0, len(model.turn_profile_k), 60, 0.3)
     estimator = kernel.estimator
     assert estimator.make_step(SP, 240.0, 3) == 0.0 and not estimator.has_prediction
-    b0, q0 = model.power_coefficients[0], model.power_square_coefficients[0]
+    b0, q0 = model.power_coefficients[0], model.power_map_coefficients[0]
     e0 = model.power_temperature_coefficients[0]
     z_base = math.log(SP) - (b0 + q0 * 240.0 + e0 * 900.0) * 240.0 + 0.01
     for since_turn in (None, 3):

@@ -63,7 +63,7 @@ def test_the_fit_takes_the_feature_and_the_file_records_it(tmp_path):
     assert again.turn_feature == FEATURE
     assert np.array_equal(again.predict_run(held_out)[0], with_feature.predict_run(held_out)[0])
     doc = json.loads(path.read_text())
-    assert doc["format_version"] == 5 and doc["turn_feature"]["hatch_m"] == FEATURE.hatch_m
+    assert doc["format_version"] == 6 and doc["turn_feature"]["hatch_m"] == FEATURE.hatch_m
     old = dict(without.to_dict(), format_version=3)               # a format-3 file: no feature
     for key in ("turn_feature", "feature_coefficients", "feature_temperature_gain", "feature_profile_k",
                 "remnant_feature", "remnant_coefficients", "remnant_offsets"):
@@ -196,7 +196,7 @@ def test_a_power_cut_before_the_turn_lowers_the_predicted_area_after_it(model):
 
 def _constructor_args(model: NarxGPModel) -> dict:
     return dict(sample_period_s=model.sample_period_s, intercept=model.intercept,
-                power_coefficients=model.power_coefficients, power_square_coefficients=model.power_square_coefficients,
+                power_coefficients=model.power_coefficients, power_map_coefficients=model.power_map_coefficients,
                 temperature_coefficients=model.temperature_coefficients,
                 temperature_square_coefficients=model.temperature_square_coefficients, output=model.output,
                 residual=model.residual, power_temperature_coefficients=model.power_temperature_coefficients,
