@@ -214,8 +214,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="leave these training runs out (a model that never saw their plans, e.g. for "
                         "bench_suite.py --model; give --out)")
     p.add_argument("--power-form", choices=POWER_FORM_NAMES, default=None,
-                   help="the power map and GP inputs: 'square' p² lags and the GP's mean-power input (format 5), "
-                        "'log1p' log(1 + p/25 W) lags and a GP of T ahead and track position (default: as the model)")
+                   help="the power lags' map and the GP's inputs: 'square' p² (the models of format 5), 'log1p' "
+                        "log(1 + p/25 W), each with the GP's mean-power input; 'log1p-no-gp-power' without it "
+                        "(default: as the model)")
     p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
     return parser
 

@@ -39,7 +39,7 @@ FEATURES = ((False, 0), (True, 0), (True, 24))
 lags in the regressor)."""
 LENGTH_SCALE_FLOORS = (0.5, 2.0)
 """Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
-POWER_FORM_NAMES = {"square": ("square", True), "log1p": ("log1p", False)}
+POWER_FORM_NAMES = {"square": ("square", True), "log1p": ("log1p", True), "log1p-no-gp-power": ("log1p", False)}
 """The named (power map, GP's mean-power input) forms (``refit --power-form``)."""
 POWER_FORM = POWER_FORM_NAMES["log1p"]
 """The (power map, GP's mean-power input) of every candidate of the selection (:meth:`NarxGPModel.fit`'s

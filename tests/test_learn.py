@@ -238,7 +238,8 @@ def test_refitting_a_selected_model_fits_the_candidate_it_was_selected_as(monkey
     model, row, table = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40)
     candidate = narx_fit.candidate_of(model)
     assert candidate == ((8, 5), (row["output"], row["quadratic"], row["interaction"]), (False, 0),
-                         row["length_scale_floor"], row["smoothing"], None)
+                         row["length_scale_floor"], row["smoothing"], narx_fit.POWER_FORM, None)
+    assert (row["power_map"], row["gp_power_input"]) == narx_fit.POWER_FORM == ("log1p", True)
     again, again_row, again_table = narx_fit.select_and_fit(runs[:3], runs[3:], n_train=40, candidates=[candidate])
     assert len(table) == 8 and len(again_table) == 1 and again_row == row
     assert again.to_dict() == model.to_dict()

@@ -64,14 +64,15 @@ def test_the_fit_takes_the_feature_and_the_file_records_it(tmp_path):
     assert np.array_equal(again.predict_run(held_out)[0], with_feature.predict_run(held_out)[0])
     doc = json.loads(path.read_text())
     assert doc["format_version"] == 6 and doc["turn_feature"]["hatch_m"] == FEATURE.hatch_m
-    old = dict(without.to_dict(), format_version=3)               # a format-3 file: no feature
+    old = dict(without.to_dict(), format_version=3)               # a format-3 file: no feature, squares
+    old["power_square_coefficients"] = old.pop("power_map_coefficients")
     for key in ("turn_feature", "feature_coefficients", "feature_temperature_gain", "feature_profile_k",
-                "remnant_feature", "remnant_coefficients", "remnant_offsets"):
+                "remnant_feature", "remnant_coefficients", "remnant_offsets", "power_map"):
         del old[key]
     (tmp_path / "old.json").write_text(json.dumps(old))
     assert NarxGPModel.load(tmp_path / "old.json").turn_feature is None
     (tmp_path / "older.json").write_text(json.dumps(dict(old, format_version=2)))
-    with pytest.raises(ModelVersionError, match="format version 2, this code reads 3, 4, 5; retrain it"):
+    with pytest.raises(ModelVersionError, match="format version 2, this code reads 3, 4, 5, 6; retrain it"):
         NarxGPModel.load(tmp_path / "older.json")
 
 
