@@ -89,6 +89,8 @@ _LOG_AREA_MAX = 700.0  # exp overflows beyond ~709
 RESIDUAL_INPUTS = ("t_ahead_k", "log1p_steps_since_track_start", "mean_power_w")
 """The residual GP's inputs ψ, in order; a GP without the mean-power input takes the first two."""
 POWER_MAPS = ("square", "log1p")
+DEFAULT_POWER_MAP = "log1p"
+"""The power map of a model fitted without another (:meth:`NarxGPModel.fit`); files of format ≤ 5 are ``"square"``."""
 LOG_POWER_SCALE_W = 25.0
 """p_s [W] of the ``"log1p"`` power map ``log(1 + p/p_s)``: its gain ``1/(p_s + p)`` falls by 15× from 0 to
 350 W, near the plant's (its area's relative gain per watt falls from ~0.008 at 120 W to ~0.003 at 300 W,
@@ -860,7 +862,7 @@ class NarxGPModel:
             remnant: RemnantFeature | None = None, smoothing: float = 0.0, output: str = "log",
             n_train: int = 150, bounds: HyperBounds = DEFAULT_BOUNDS, seed: int = 0, n_restarts: int = 4,
             profile_length: int = 200, speed_m_s: float | None = None,
-            monotone_power_w: tuple[float, float] | None = MONOTONE_POWER_W, power_map: str = "square",
+            monotone_power_w: tuple[float, float] | None = MONOTONE_POWER_W, power_map: str = DEFAULT_POWER_MAP,
             gp_power_input: bool = True, provenance: Mapping[str, Any] | None = None) -> NarxGPModel:
         """Least squares in z for the lag part, then the residual GP on ``n_train`` seeded random samples.
 

@@ -20,7 +20,7 @@ from controller_node.report import TURNAROUND_STEPS
 from gp_model.build_up import ROLLOUT_STRIDE, build_up_steps, rollout_horizon, steps_at
 from gp_model.errors import DatasetError
 from gp_model.kernel import HyperBounds
-from gp_model.narx import NarxGPModel, RunSeries
+from gp_model.narx import DEFAULT_POWER_MAP, NarxGPModel, RunSeries
 from gp_model.plan_feature import TurnFeature
 
 STRUCTURES = ((24, 30), (32, 40))
@@ -41,7 +41,7 @@ LENGTH_SCALE_FLOORS = (0.5, 2.0)
 """Candidate lower bounds of the GP length-scales (in standard deviations of each input)."""
 POWER_FORM_NAMES = {"square": ("square", True), "log1p": ("log1p", True), "log1p-no-gp-power": ("log1p", False)}
 """The named (power map, GP's mean-power input) forms (``refit --power-form``)."""
-POWER_FORM = POWER_FORM_NAMES["log1p"]
+POWER_FORM = (DEFAULT_POWER_MAP, True)
 """The (power map, GP's mean-power input) of every candidate of the selection (:meth:`NarxGPModel.fit`'s
 ``power_map`` and ``gp_power_input``). Not selected: the held-out runs' powers do not tell the forms
 apart, the response beyond them does (``benchmarks/power_sensitivity.py``, docs/gp.md)."""

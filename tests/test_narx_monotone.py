@@ -1,6 +1,6 @@
 """The delay-aware model's response to power keeps its sign over every commandable power
 (gp_model.narx.least_squares_with_gains, static_power_gains and ``monotone_power_w`` of
-NarxGPModel.fit): a fit of the squared power lags on staircases between 150 and 250 W would
+NarxGPModel.fit): a fit of the squared power lags (``power_map="square"``) on staircases between 150 and 250 W would
 otherwise put the vertex of its parabola inside the controller's range, where a model that says
 "more power, smaller pool" drives the preview MPC to full power above its set point."""
 
@@ -30,7 +30,7 @@ def _run(seed: int, n: int = 400) -> RunSeries:
 
 def _fit(runs, monotone_power_w):
     return NarxGPModel.fit(runs, n_power_lags=4, n_temperature_lags=2, output="log", n_train=40, n_restarts=1,
-                           profile_length=10, monotone_power_w=monotone_power_w)
+                           profile_length=10, monotone_power_w=monotone_power_w, power_map="square")
 
 
 def _static_gain(model: NarxGPModel, power_w: float) -> float:
