@@ -93,7 +93,7 @@ DEFAULT_POWER_MAP = "log1p"
 """The power map of a model fitted without another (:meth:`NarxGPModel.fit`); files of format ≤ 5 are ``"square"``."""
 LOG_POWER_SCALE_W = 25.0
 """p_s [W] of the ``"log1p"`` power map ``log(1 + p/p_s)``: its gain ``1/(p_s + p)`` falls by 15× from 0 to
-350 W, near the plant's (its area's relative gain per watt falls from ~0.008 at 120 W to ~0.003 at 300 W,
+350 W, as the plant's gain in log area falls from ~0.009/W at 120 W to ~0.003/W at 300 W (+30 W steps,
 ``benchmarks/power_sensitivity.py``)."""
 STEPS_SINCE_START_CAP = 100
 SPEED_TOLERANCE = 0.01
