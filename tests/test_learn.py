@@ -290,3 +290,32 @@ def test_refit_can_leave_out_training_runs_and_records_them(monkeypatch, tmp_pat
         assert main(["refit", *argv]) == 2
         err = capsys.readouterr().err
         assert says in err and err.count("\n") == 1 and not (tmp_path / "x.json").exists()
+
+
+def test_refit_takes_another_power_form(monkeypatch, tmp_path):
+    """``refit --power-form F`` fits the model's candidate with F's (power map, GP's mean-power input) and
+    nothing else changed; without it the candidate keeps the model's own form."""
+    import shutil
+
+    from gp_trainer import learn as learn_module
+    from gp_trainer import narx_fit
+
+    seen = []
+
+    class Saved:
+        def save(self, out):
+            shutil.copy(DEFAULT_MODEL_PATH, out)
+
+    def select(train, held, **kwargs):
+        seen.append(kwargs["candidates"][0])
+        return Saved(), {"r2": 1.0, "rollout_h40_mape_pct": 1.0}, []
+
+    monkeypatch.setattr(learn_module, "read_states", lambda path: path.stem)
+    monkeypatch.setattr(learn_module, "series_from_states", lambda states, name: name)
+    monkeypatch.setattr(learn_module, "select_and_fit", select)
+    own = narx_fit.candidate_of(NarxGPModel.load(DEFAULT_MODEL_PATH))
+    learn_module.refit(DEFAULT_MODEL_PATH, tmp_path / "a.json")
+    assert main(["refit", "--power-form", "log1p-no-gp-power", "--out", str(tmp_path / "b.json")]) == 0
+    assert main(["refit", "--power-form", "square", "--out", str(tmp_path / "c.json")]) == 0
+    assert seen[0] == own and own[-2] == ("log1p", True)
+    assert seen[1] == (*own[:-2], ("log1p", False), own[-1]) and seen[2] == (*own[:-2], ("square", True), own[-1])
