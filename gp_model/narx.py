@@ -131,11 +131,12 @@ def map_power_slope(p: np.ndarray | float, power_map: str) -> np.ndarray:
 
 
 def static_power_gains(sizes: Sequence[int], powers_w: Sequence[float], temperatures_k: Sequence[float],
-                       power_map: str = "square") -> np.ndarray:
+                       power_map: str) -> np.ndarray:
     """Rows ``a`` with ``a @ θ`` the lag part's steady-state gain ``∂z/∂p`` [1/W] at each pair of a
     power ``p`` and a temperature ahead ``T`` (every lag at that p and T): ``Σ b_i + φ'(p) Σ q_i +
-    T Σ e_i``, for coefficients θ in the order of :meth:`NarxGPModel.design`; ``sizes`` the group
-    sizes (n_p, n_p, n_T, n_Tq, n_x, n_F, n_R, n_R). Shape (len(powers) · len(temperatures), len(θ))."""
+    T Σ e_i`` of the power map ``power_map``, for coefficients θ in the order of
+    :meth:`NarxGPModel.design`; ``sizes`` the group sizes (n_p, n_p, n_T, n_Tq, n_x, n_F, n_R, n_R).
+    Shape (len(powers) · len(temperatures), len(θ))."""
     n_p, _, n_t, n_tq, n_x, *_ = sizes
     rows = []
     for p in powers_w:

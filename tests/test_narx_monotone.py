@@ -53,7 +53,7 @@ def test_the_gain_rows_are_the_steady_state_derivative_of_the_lag_part():
     rng = np.random.default_rng(1)
     theta = rng.standard_normal(1 + sum(sizes))
     b, q, e = theta[1:3], theta[3:5], theta[9:11]
-    rows = static_power_gains(sizes, (0.0, 350.0), (300.0, 900.0))
+    rows = static_power_gains(sizes, (0.0, 350.0), (300.0, 900.0), "square")
     expected = [b.sum() + 2 * p * q.sum() + t * e.sum() for p in (0.0, 350.0) for t in (300.0, 900.0)]
     np.testing.assert_allclose(rows @ theta, expected, rtol=1e-12)
 
