@@ -116,13 +116,14 @@ def surface_load(xs: np.ndarray, ys: np.ndarray, positions: np.ndarray, power_w:
     if power_w == 0.0 or len(positions) == 0:
         return load
     reach = LOAD_REACH_SIGMAS * sigma
-    ys_unique, inverse = np.unique(positions[:, 1], return_inverse=True)
-    for j, yl in enumerate(ys_unique):
-        xl = positions[inverse == j, 0]
-        i = _nodes_within(xs, xl.min() - reach, xl.max() + reach)
-        k = _nodes_within(ys, yl - reach, yl + reach)
-        gx = hat_gaussian_integrals(xs[i], xl[:, None], sigma).sum(axis=0)
-        load[i, k] += np.outer(gx, hat_gaussian_integrals(ys[k], yl, sigma))
+    x, y = positions[:, 0], positions[:, 1]
+    i = _nodes_within(xs, x.min() - reach, x.max() + reach)
+    k = _nodes_within(ys, y.min() - reach, y.max() + reach)
+    gx = hat_gaussian_integrals(xs[i], x[:, None], sigma)
+    if np.all(y == y[0]):          # a track along x: the y factor is common
+        load[i, k] = np.outer(gx.sum(axis=0), hat_gaussian_integrals(ys[k], y[0], sigma))
+    else:                          # sum over the positions of their separable loads
+        load[i, k] = gx.T @ hat_gaussian_integrals(ys[k], y[:, None], sigma)
     return load * (absorptivity * power_w / load.sum())
 
 

@@ -75,6 +75,17 @@ def test_surface_load_on_its_window_equals_the_whole_surface_integral(monkeypatc
         assert np.abs(load - whole).max() <= 1e-14 * whole.max()
 
 
+def test_surface_load_of_an_oblique_path_is_the_mean_of_its_positions_loads():
+    """Positions at different y (a hatch rotated by 67°) take the one-matrix path: the mean of each
+    position's own load (each beam inside the surface, so each deposits a P)."""
+    xs, ys = np.linspace(-5e-4, 5e-4, 41), np.linspace(-4e-4, 4e-4, 33)
+    step = 2.5e-6 * np.array([np.cos(np.radians(67.0)), np.sin(np.radians(67.0))])
+    pos = np.array([1e-5, -2e-5]) + np.arange(6)[:, None] * step
+    each = np.mean([surface_load(xs, ys, p[None, :], 237.0, 0.4, 50e-6) for p in pos], axis=0)
+    load = surface_load(xs, ys, pos, 237.0, 0.4, 50e-6)
+    assert np.abs(load - each).max() <= 1e-13 * each.max()
+
+
 @pytest.fixture(scope="module")
 def coarse_track():
     s = Settings(**COARSE)
