@@ -64,10 +64,15 @@ def element_apply_box(corners: np.ndarray, ke: np.ndarray, u_box: np.ndarray, j0
                       nx: int, out: np.ndarray) -> None:
     """``out += sum_e K_e u`` as :func:`element_apply`, for ``u`` zero outside a box of nodes that
     starts at (``j0``, ``k0``, ``i0``) of a grid with ``nz``, ``nx`` nodes along z, x, ``u_box``
-    (its shape) its values there; elements with no corner in the box are skipped."""
+    (its shape) its values there; elements with no corner in the box are skipped (from their first
+    corner, the lowest in y, z and x, alone)."""
     ny_b, nz_b, nx_b = u_box.shape
     vals = np.empty(8)
     for e in range(corners.shape[0]):
+        c = corners[e, 0]
+        j, k, i = c // (nz * nx) - j0, (c // nx) % nz - k0, c % nx - i0
+        if not (-1 <= j < ny_b and -1 <= k < nz_b and -1 <= i < nx_b):
+            continue
         inside = False
         for b in range(8):
             c = corners[e, b]
