@@ -34,7 +34,7 @@ same seed gives the same profile. The levels are not clipped to the 150-300 W wi
 the shipped 1.5 mm x 0.5 mm cylinder, :data:`fe_node.part.EXAMPLE_STL`) sliced every
 ``powder_layer_m`` (the preset's: 25 µm on ``physical``; 50 µm on ``bare-plate``) and hatched every
 ``hatch_m`` (default 0.1 mm) by PySLM (:mod:`fe_node.part`, needs ``pythonslm``); ``n_layers``
-defaults to all the part's layers.
+defaults to all the part's layers; on the multi-level mesh (:data:`PART_MESH`).
 ``hatch_rotation_deg`` (default 67) turns the hatch from one layer to the next; ``contours``
 (default true) scans each slice's outline before its hatch; ``island_width_m`` > 0 hatches in
 square islands of that side (default 0: no islands).
@@ -89,6 +89,12 @@ DEFAULT = "layer"
 
 # identification overrides and their defaults (ident-* scenarios only)
 IDENT_DEFAULTS = {"ident_seed": 0, "ident_mean_w": 250.0, "ident_amplitude_w": 60.0}
+PART_MESH = "multilevel"
+"""The mesh of the ``part`` and ``ident-part`` scenarios unless ``[plant] mesh`` names another: the
+multi-level mesh that moves with the laser (:mod:`fe_node.multilevel`), whose cost per step does not
+grow with the part's size or its layers (docs/fe-scale.md); ``mesh = "uniform"`` is the reference.
+"""
+
 PART_POWER_W = 100.0
 """Open-loop power of the ``part`` scenario [W]; ``launch.py`` starts every controller from it on a part.
 On a 50 µm powder layer over the small part, 250 W (the bare plate's) gives 3-4× the bare plate's
@@ -241,6 +247,7 @@ def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w
     check_type("scenario override 'contours'", contours, "bool")
     check_type("scenario override 'island_width_m'", island_width_m, "float")
     layer_m = settings_kw.setdefault("powder_layer_m", 50e-6)
+    settings_kw.setdefault("mesh", PART_MESH)
     stl = Path(EXAMPLE_STL if part_stl is None else part_stl)
     plans = part_plans(stl, layer_m, hatch_m, float(hatch_rotation_deg), contours, float(island_width_m))
     n = settings_kw.setdefault("n_layers", len(plans))

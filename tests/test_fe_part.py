@@ -49,7 +49,8 @@ def test_shipped_block_builds_50_layers_of_5_by_5_mm_contoured_and_turning_67_de
 
 
 def test_part_scenario_builds_layer_by_layer():
-    sc = scenario("part", preset=BARE, n_layers=2, hatch_m=0.6e-3, h_fine_m=50e-6, powder_layer_m=50e-6)
+    sc = scenario("part", preset=BARE, n_layers=2, hatch_m=0.6e-3, h_fine_m=50e-6, powder_layer_m=50e-6,
+                  mesh="uniform")
     assert sc.settings.n_layers == 2 and len(sc.layer_plans) == 2 and sc.plan == sc.layer_plans[0]
     model = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
     layers, scenes = set(), {}
