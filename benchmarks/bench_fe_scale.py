@@ -1,13 +1,14 @@
 """Cost per FE step against part size, the multi-level mesh against the uniform one, and their
 agreement on the default layer.
 
-Usage: ``python benchmarks/bench_fe_scale.py [--sides-mm 2 4 8 16] [--layers 1 10 25 50] [--steps 50]
+Usage: ``python benchmarks/bench_fe_scale.py [--sides-mm 2 4 8 16] [--layers 1 10 25 50] [--steps 64]
 [--repeats 3] [--layer-steps N] [--json]``.  Last line of stdout is JSON.
 
 Side sweep: for each side L a square layer of L / hatch tracks of length L (hatch 0.1 mm) on the
 default plant (the ``layer`` scenario's settings and power) is built with ``mesh = "uniform"``
 (the whole-plan fine band) and ``mesh = "multilevel"`` (:mod:`fe_node.multilevel`).  After 5
-warm-up steps, ``--steps`` steps are timed one by one, the two meshes alternating so both see the
+warm-up steps, ``--steps`` steps (default :data:`~fe_node.multilevel.PART_STEPS`, so that a window
+holds one step of the part level) are timed one by one, the two meshes alternating so both see the
 same machine load; ``ms_per_step`` is the mean CPU time of a step in this process (BLAS on one
 thread, so on a quiet machine it is the wall time, and other jobs on a shared machine do not
 inflate it), the multi-level mesh's moves included; ``wall_ms_per_step`` the mean wall time. Each
@@ -47,7 +48,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from fe_node.multilevel import plant_model  # noqa: E402
+from fe_node.multilevel import PART_STEPS, plant_model  # noqa: E402
 from fe_node.scenarios import scenario  # noqa: E402
 from messages.bus import single_threaded_blas  # noqa: E402
 
@@ -172,7 +173,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sides-mm", type=float, nargs="+", default=[2.0, 4.0, 8.0, 16.0])
     parser.add_argument("--layers", type=int, nargs="+", default=[1, 10, 25, 50])
-    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--steps", type=int, default=PART_STEPS, help="timed steps of a side case")
     parser.add_argument("--repeats", type=int, default=3, help="runs of each timed window from its start (median)")
     parser.add_argument("--layer-steps", type=int, default=None, help="steps of the default layer (default: all)")
     parser.add_argument("--json", action="store_true", help="(the last line is JSON either way)")
