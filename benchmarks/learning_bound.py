@@ -26,8 +26,8 @@ import numpy as np
 import scipy.linalg
 
 from controller_node.report import Trace, metrics, window_mask
+from fe_node.multilevel import plant_model
 from fe_node.scenarios import Scenario
-from fe_node.solver import ThermalModel
 from gp_trainer.pid_tuning import Fopdt
 from messages.types import LASER_POWER_MAX_W
 
@@ -61,9 +61,10 @@ class BoundSettings:
 
 
 def run_profile(sc: Scenario, powers_w: np.ndarray, max_steps: int | None) -> Trace:
-    """One open-loop FE run of ``sc`` with the power ``powers_w[k]`` on step k → k+1 (the last value
-    beyond the profile) at the plan's speed; the trace of its states (step 0 first)."""
-    plant = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
+    """One open-loop FE run of ``sc`` on the mesh its settings name (:func:`~fe_node.multilevel.plant_model`)
+    with the power ``powers_w[k]`` on step k → k+1 (the last value beyond the profile) at the plan's
+    speed; the trace of its states (step 0 first)."""
+    plant = plant_model(sc.settings, sc.plan, sc.layer_plans)
     states = [plant.initial_observation()]
     while not plant.done and (max_steps is None or plant.step_index < max_steps):
         k = plant.step_index
