@@ -140,6 +140,7 @@ def test_each_node_receives_only_what_its_role_reads(monkeypatch, hub, run_id):
             queryable = buses["probe"].session.declare_queryable(
                 key_expr(run_id, PLANT_STATE), lambda query: query.reply(query.key_expr, b"forged"))
             presence = buses["probe"].watch_presence("plant")
+            time.sleep(0.5)     # the subscriptions reach the hub before the plant's start event is sent
             buses["plant"].ready()
             buses["probe"].wait_for_nodes(["plant"], StopFlag(), timeout_s=10)  # liveliness: everyone
             time.sleep(0.5)
