@@ -327,7 +327,7 @@ class MultiLevelModel(ThermalModel):
     def _mark_outside(self, name: str) -> None:
         """Note the finer level's energy outside the nodes level ``name`` takes from it (after a step
         of that level or a change of either grid)."""
-        finer, h, level = (self.grid, self._h, self.mid) if name == "mid" else (self.mid.grid, self.mid.h, self.part)
+        h = self._h if name == "mid" else self.mid.h
         self._outside[name] = self._restriction(name).outside(h)
 
     def _restriction(self, name: str) -> Restriction:
