@@ -79,6 +79,9 @@ def test_part_scenario_errors():
         scenario("part", part_stl="/nonexistent.stl")
     with pytest.raises(ValueError, match="unknown scenario override"):
         scenario("part", bogus=1)
+    with pytest.raises(ValueError, match=r"window_m = 0.002 needs mesh = 'uniform' \(a part's default mesh is 'multi"):
+        scenario("part", window_m=2e-3)
+    assert scenario("part", n_layers=1, window_m=2e-3, mesh="uniform").settings.window_m == 2e-3
 
 
 def test_part_model_sits_where_its_scan_paths_are():
