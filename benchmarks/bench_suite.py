@@ -4,16 +4,18 @@ Every case is one ``python launch.py --config CASE.toml --controller C --json`` 
 (physical) plant, with the case's ``[plant]`` overrides; the figures are launch's, on its common
 window (from 1 ms after laser-on). A case is *in-sample* when one of the model's training runs
 (``provenance.runs`` of the model) scanned the same plan (tracks, track length, hatch) on the same
-process (no speed, preheat or absorptivity override): its figure is then not a test of
-generalisation, and the record says so.
+process (no speed, preheat or absorptivity override but those of the model's own ``[plant]`` table):
+its figure is then not a test of generalisation, and the record says so.
 
 The cases (:data:`CASES`):
 
 * ``default-layer``: 4 x 10 mm at 100 µm hatch, 0.063 mm² (the shipped model's training includes
   runs on this plan: in-sample);
 * geometry: ``tight-6x4mm-h80``, ``short-8x2mm``, ``wide-2x10mm-h120``;
-* speed: ``speed-0.6``, ``speed-1.0`` (a model learned at another speed refuses them, exit 2; the
-  record carries the refusal);
+* speed: ``speed-0.6``, ``speed-1.0``, each on the model learned at its speed
+  (``gp_model/models/in625_narx_gp_0.6mps.json``, ``..._1.0mps.json``: ``python -m gp_trainer learn
+  --config docs/physical-0.6mps.toml`` and ``...-1.0mps.toml``), the PID on that model's process record
+  (a model learned at another speed refuses them: exit 2, and the record carries the refusal);
 * preheat: ``preheat-500K``;
 * plant mismatch: ``absorptivity+10pct``, ``absorptivity-10pct`` (dense and powder absorptivity
   both scaled; the model was learned on the calibrated plant);
@@ -81,6 +83,10 @@ class Case:
         ``layer`` or ``part``.
     layers : int
         Layers built (``part``; 1 otherwise).
+    model : str or None
+        The model learned on the case's process (repository path, ``python -m gp_trainer learn``): the
+        preview MPC's and the scan-plan feed-forward's model and the PID's process record (``--process``)
+        unless ``--model`` is given; None: launch's model of the plant.
     """
 
     name: str
@@ -88,6 +94,7 @@ class Case:
     setpoint_mm2: float = 0.063
     scenario: str = "layer"
     layers: int = 1
+    model: str | None = None
 
     def plan(self) -> tuple[int, float, float] | None:
         """(tracks, track length [m], hatch [m]) of the case's plan; None for a part."""
@@ -110,8 +117,8 @@ CASES = (
     Case("tight-6x4mm-h80", {"n_tracks": 6, "track_length_m": 4e-3, "hatch_m": 80e-6}),
     Case("short-8x2mm", {"n_tracks": 8, "track_length_m": 2e-3}),
     Case("wide-2x10mm-h120", {"n_tracks": 2, "hatch_m": 120e-6}),
-    Case("speed-0.6", {"speed_m_s": 0.6}),
-    Case("speed-1.0", {"speed_m_s": 1.0}),
+    Case("speed-0.6", {"speed_m_s": 0.6}, model="gp_model/models/in625_narx_gp_0.6mps.json"),
+    Case("speed-1.0", {"speed_m_s": 1.0}, model="gp_model/models/in625_narx_gp_1.0mps.json"),
     Case("preheat-500K", {"t0_k": 500.0}),
     Case("absorptivity+10pct", _absorptivity(1.1)),
     Case("absorptivity-10pct", _absorptivity(0.9)),
@@ -142,12 +149,14 @@ PROCESS_KEYS = ("speed_m_s", "t0_k", "absorptivity", "powder_absorptivity")
 """``[plant]`` keys that change the process away from the one the model was learned on."""
 
 
-def in_sample(case: Case, plans: set[tuple[int, float, float]]) -> bool:
-    """Whether a training run scanned the case's plan on the model's own process (no :data:`PROCESS_KEYS`
-    override; a part is never in a plate model's training)."""
+def in_sample(case: Case, plans: set[tuple[int, float, float]], process: dict[str, Any] | None = None) -> bool:
+    """Whether a training run scanned the case's plan on the model's own process: no :data:`PROCESS_KEYS`
+    override other than the model's ``[plant]`` table ``process`` sets alike (a part is never in a plate
+    model's training)."""
     plan = case.plan()
+    process = process or {}
     return (plan is not None and (plan[0], round(plan[1], 9), round(plan[2], 9)) in plans
-            and not any(key in case.plant for key in PROCESS_KEYS))
+            and all(case.plant[key] == process.get(key) for key in PROCESS_KEYS if key in case.plant))
 
 
 MODEL_CONTROLLERS = ("preview-mpc", "scan-feedforward")
@@ -156,8 +165,8 @@ MODEL_CONTROLLERS = ("preview-mpc", "scan-feedforward")
 
 def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None,
              model: Path | None = None) -> dict[str, Any]:
-    """One launch.py run of ``case`` under ``controller`` (on ``model`` for :data:`MODEL_CONTROLLERS`; None:
-    launch's model of the plant); launch's JSON summary (or the refusal)."""
+    """One launch.py run of ``case`` under ``controller`` (on ``model`` for :data:`MODEL_CONTROLLERS`, the
+    PID on its process record; None: launch's model of the plant); launch's JSON summary (or the refusal)."""
     config = out_dir / f"{case.name}.toml"
     lines = ["[plant]"] + [f"{k} = {json.dumps(v)}" for k, v in sorted(case.plant.items())]
     config.write_text("\n".join(lines) + "\n")
@@ -168,8 +177,8 @@ def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None,
         cmd += ["--layers", str(case.layers)]
     if max_steps is not None:
         cmd += ["--max-steps", str(max_steps)]
-    if model is not None and controller in MODEL_CONTROLLERS:
-        cmd += ["--model", str(model)]
+    if model is not None:
+        cmd += ["--model" if controller in MODEL_CONTROLLERS else "--process", str(model)]
     done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     last = (done.stdout.strip().splitlines() or [""])[-1]
     try:
@@ -180,26 +189,29 @@ def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None,
     return summary
 
 
-def record(case: Case, controller: str, summary: dict[str, Any], plans: set) -> dict[str, Any]:
-    """The suite's record of one run (launch's figures, the case's plan and whether it is in-sample)."""
+def record(case: Case, controller: str, summary: dict[str, Any], plans: set, process: dict[str, Any] | None = None
+           ) -> dict[str, Any]:
+    """The suite's record of one run (launch's figures, the case's plan and whether it is in-sample on the
+    model's training ``plans`` and ``[plant]`` table ``process``)."""
     plan = case.plan() or (None, None, float(case.plant.get("hatch_m", 1e-4)))
     return {"case": case.name, "controller": controller, "status": summary.get("status"),
             "overshoot_pct": summary.get("overshoot_pct"), "undershoot_pct": summary.get("undershoot_pct"),
             "rmse_pct": summary.get("steady_rmse_pct"), "rmse_turnaround_pct": summary.get("rmse_turnaround_pct"),
-            "rmse_along_pct": summary.get("rmse_along_pct"), "in_sample": in_sample(case, plans),
+            "rmse_along_pct": summary.get("rmse_along_pct"), "in_sample": in_sample(case, plans, process),
             "layers": case.layers, "track_length_m": plan[1], "hatch_m": plan[2],
             "speed_m_s": float(case.plant.get("speed_m_s", 0.8)), "setpoint_mm2": case.setpoint_mm2,
             "wall_s": summary.get("wall_s"), "refused": summary.get("refused")}
 
 
-def bound_from(provenance: dict[str, Any], args: argparse.Namespace) -> BoundSettings:
+def bound_from(provenance: dict[str, Any], args: argparse.Namespace, model: Path | None = None) -> BoundSettings:
     """The learning bound's settings: the process's FOPDT gain and dead time (``provenance.controller.pid.fopdt``
-    of the model, ``python -m gp_trainer tune-pid``) and operating power; exits 2 naming what is missing."""
+    of the model ``model``, ``python -m gp_trainer tune-pid``) and operating power; exits 2 naming what is
+    missing."""
     controller = provenance.get("controller") or {}
     fopdt = (controller.get("pid") or {}).get("fopdt") or {}
     needed = ("gain_m2_per_w", "delay_steps", "time_constant_s", "sample_period_s")
     if any(key not in fopdt for key in needed) or "nominal_power_w" not in controller:
-        sys.exit(f"bench_suite.py: error: --bound: {args.model or DEFAULT_MODEL_PATH} records no "
+        sys.exit(f"bench_suite.py: error: --bound: {model or DEFAULT_MODEL_PATH} records no "
                  "provenance.controller.pid.fopdt (run python -m gp_trainer tune-pid --model on it)")
     try:
         return BoundSettings(iterations=args.bound_iterations, gain=args.bound_gain, process=Fopdt(**fopdt),
@@ -225,8 +237,9 @@ def main() -> int:
     parser.add_argument("--controllers", nargs="+", default=list(CONTROLLERS), choices=CONTROLLERS)
     parser.add_argument("--max-steps", type=int, help="end each run after this many plant steps (a quick check)")
     parser.add_argument("--model", type=Path,
-                        help="the model of preview-mpc and scan-feedforward, whose training runs decide in_sample "
-                             "(default: the shipped model of each case's plant; in_sample from the physical plate's)")
+                        help="the model of preview-mpc and scan-feedforward and the PID's process record, whose "
+                             "training runs decide in_sample (default: the case's learned model if it names one, "
+                             "else the shipped model of each case's plant; in_sample from the physical plate's)")
     parser.add_argument("--out-dir", type=Path, help="recordings, configs and JSON records (default: a temp folder)")
     parser.add_argument("--json", action="store_true", help="print the records as JSON on the last line")
     parser.add_argument("--bound", action="store_true",
@@ -235,9 +248,9 @@ def main() -> int:
     parser.add_argument("--bound-gain", type=float, default=0.5, help="its learning gain (default %(default)s)")
     args = parser.parse_args()
     cases = [c for c in CASES if args.cases is None or c.name in args.cases]
-    provenance = read_document(args.model or DEFAULT_MODEL_PATH).get("provenance", {})
-    plans = training_plans(list(provenance.get("runs", [])))
-    bound_settings = bound_from(provenance, args) if args.bound else None
+    if args.bound:                                  # a model without the FOPDT fails before any run
+        for model in {args.model or (None if c.model is None else REPO / c.model) for c in cases}:
+            bound_from(read_document(model or DEFAULT_MODEL_PATH).get("provenance", {}), args, model)
     with tempfile.TemporaryDirectory() as tmp:
         out_dir = args.out_dir or Path(tmp)
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -245,10 +258,13 @@ def main() -> int:
         print(f"{'case':22s} {'controller':12s} {'over %':>7s} {'under %':>7s} {'RMSE %':>7s} {'turn %':>7s} "
               f"{'along %':>7s}  in-sample", flush=True)
         for case in cases:
-            bound = {} if bound_settings is None else case_bound(case, bound_settings, args.max_steps)
+            model = args.model or (None if case.model is None else REPO / case.model)
+            learned = read_document(model or DEFAULT_MODEL_PATH).get("provenance", {})
+            bound = case_bound(case, bound_from(learned, args, model), args.max_steps) if args.bound else {}
+            plans, process = training_plans(list(learned.get("runs", []))), (learned.get("process") or {}).get("plant")
             for controller in args.controllers:
-                rec = record(case, controller, run_case(case, controller, out_dir, args.max_steps, args.model),
-                             plans) | bound
+                rec = record(case, controller, run_case(case, controller, out_dir, args.max_steps, model),
+                             plans, process) | bound
                 (out_dir / f"{case.name}-{controller}.json").write_text(json.dumps(rec, indent=1) + "\n")
                 records.append(rec)
                 figures = " ".join(f"{_cell(rec[k]):>7s}" for k in ("overshoot_pct", "undershoot_pct", "rmse_pct",

@@ -179,6 +179,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out-dir", type=Path, default=LearnSettings.out_dir,
                    help="recordings, report and plots (a re-run skips complete recordings)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fits")
+    p.add_argument("--structure-of", type=Path, default=None, metavar="MODEL",
+                   help="fit the candidate a learned model was selected as (its structure) in both stages instead of "
+                        "selecting among all (default: select)")
     p.add_argument("--frame-period-s", type=float, default=None, metavar="P",
                    help="learn at a camera's frame period P [s], a whole number of FE steps: the runs hold each "
                         "command over a frame and record every P/dt_s-th FE state ([plant] frame_period_s; "
@@ -529,6 +532,18 @@ def _refit(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_structure(path: Path, period_s: float) -> None:
+    """:class:`UsageError` naming ``--structure-of`` unless ``path`` is a delay-aware model learned at
+    ``period_s`` [s]."""
+    try:
+        model = NarxGPModel.load(path)
+    except (GPError, OSError, ValueError) as err:
+        raise UsageError(f"--structure-of: {' '.join(str(err).split())}") from None
+    if not math.isclose(model.sample_period_s, period_s, rel_tol=1e-9):
+        raise UsageError(f"--structure-of {path}: learned at a sample period of {model.sample_period_s:g} s, "
+                         f"this process's is {period_s:g} s")
+
+
 def _learn(args: argparse.Namespace) -> int:
     try:
         data = load_toml(args.config)
@@ -553,12 +568,14 @@ def _learn(args: argparse.Namespace) -> int:
         if args.set_point_mm2 is not None and not (math.isfinite(args.set_point_mm2) and args.set_point_mm2 > 0):
             raise UsageError(f"--set-point-mm2 (set_point) must be > 0, got {args.set_point_mm2}")
         controller = build(ControllerSettings, table, f"{args.config} [controller]", **overrides)
+        if args.structure_of is not None:
+            _check_structure(args.structure_of, period_s)
     except UsageError as err:
         raise LearnError(str(err)) from None
     settings = LearnSettings(plant=tuple(plant.items()), set_point_m2=controller.set_point_m2,
                              power_min_w=controller.power_min_w, power_max_w=controller.power_max_w,
                              model_out=args.out, search_plant=tuple(search.items()), seed=args.seed,
-                             **_runner_settings(args))
+                             structure_of=args.structure_of, **_runner_settings(args))
     try:
         report = learn(settings, progress=not args.no_progress,
                        log=(lambda m: None) if args.no_progress else (lambda m: print(m, file=sys.stderr)))

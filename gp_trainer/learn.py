@@ -165,6 +165,11 @@ class LearnSettings(RunnerSettings):
         Extra ``[plant]`` keys of the operating-point search only (e.g. a coarser mesh in tests).
     seed : int
         Seed of the fits.
+    structure_of : Path or None
+        A learned model whose selected candidate (:func:`~gp_trainer.narx_fit.candidate_of`: lags, output
+        map, squares, p×T, feature, length-scale floor, smoothness prior, power form, remnant) both stages
+        fit, instead of selecting among every candidate: a new process learned in the structure of a known
+        one, at a fraction of the fitting time. None: select.
     """
 
     plant: tuple[tuple[str, Any], ...] = ()
@@ -175,6 +180,7 @@ class LearnSettings(RunnerSettings):
     out_dir: Path = Path("recordings/learn")
     search_plant: tuple[tuple[str, Any], ...] = field(default=())
     seed: int = 0
+    structure_of: Path | None = None
 
     @property
     def stage1_out(self) -> Path:
@@ -295,7 +301,10 @@ def _fit(settings: LearnSettings, design: ProcessDesign, runs, out: Path, proven
     train = [r for r in series if r.name not in held_names]
     paths = [job_recording(settings, r.job()) for r in runs]
     record = {**provenance, "process": {**process_record(paths), "plant": dict(settings.plant)}}
-    model, best, _ = select_and_fit(train, held, seed=settings.seed, provenance=record,
+    candidates = None if settings.structure_of is None else [candidate_of(NarxGPModel.load(settings.structure_of))]
+    if candidates is not None:
+        record["structure_of"] = str(settings.structure_of)
+    model, best, _ = select_and_fit(train, held, seed=settings.seed, provenance=record, candidates=candidates,
                                     workers=1 if settings.sequential else settings.workers)
     model.save(out)
     return model, best, held

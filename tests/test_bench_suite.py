@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from tests.conftest import REPO
 
@@ -36,6 +37,10 @@ def test_a_case_is_in_sample_only_on_a_trained_plan_and_process():
     assert not bench_suite.in_sample(cases["default-layer"], bench_suite.training_plans(RUNS[1:2]))
     for name in ("tight-6x4mm-h80", "speed-1.0", "preheat-500K", "absorptivity-10pct", "part-2-layers"):
         assert not bench_suite.in_sample(cases[name], plans), name
+    at_1mps = {"preset": "physical", "speed_m_s": 1.0}                # the [plant] of a model learned at 1 m/s
+    assert bench_suite.in_sample(cases["speed-1.0"], plans, at_1mps)
+    assert not bench_suite.in_sample(cases["speed-0.6"], plans, at_1mps)
+    assert not bench_suite.in_sample(cases["preheat-500K"], plans, at_1mps)
 
 
 def test_a_short_case_runs_through_launch_and_is_recorded(tmp_path):
@@ -55,7 +60,8 @@ def test_a_short_case_runs_through_launch_and_is_recorded(tmp_path):
 
 def test_the_model_goes_to_launch_for_the_controllers_that_use_it(monkeypatch, tmp_path):
     """``--model`` reaches ``launch.py`` for preview-mpc and scan-feedforward (else the suite would score the
-    shipped model whatever was given), never for PID; without it launch picks the plant's model."""
+    shipped model whatever was given), and to PID as its process record (``--process``: its operating power
+    and gains learned on that process); without it launch picks the plant's model."""
     commands = []
 
     def run(cmd, **kwargs):
@@ -69,6 +75,22 @@ def test_the_model_goes_to_launch_for_the_controllers_that_use_it(monkeypatch, t
     bench_suite.run_case(case, "preview-mpc", tmp_path, None)
     given = [cmd[cmd.index("--model") + 1] if "--model" in cmd else None for cmd in commands]
     assert given == [str(tmp_path / "m.json"), None, str(tmp_path / "m.json"), None]
+    process = [cmd[cmd.index("--process") + 1] if "--process" in cmd else None for cmd in commands]
+    assert process == [None, str(tmp_path / "m.json"), None, None]
+
+
+@pytest.mark.parametrize("name, speed", [("speed-0.6", 0.6), ("speed-1.0", 1.0)])
+def test_the_speed_cases_name_a_model_learned_at_their_speed(name, speed):
+    """Each speed case runs on the shipped model learned at its speed (its provenance records that process
+    and the default layer's plan among its training runs), so its record is in-sample on that process."""
+    from gp_model.narx import NarxGPModel
+
+    case = next(c for c in bench_suite.CASES if c.name == name)
+    model = NarxGPModel.load(REPO / case.model)
+    assert model.speed_m_s == case.plant["speed_m_s"] == speed
+    provenance = model.provenance
+    assert provenance["process"]["plant"] == {"preset": "physical", "speed_m_s": speed}
+    assert bench_suite.in_sample(case, bench_suite.training_plans(provenance["runs"]), provenance["process"]["plant"])
 
 
 PROCESS = Fopdt(gain_m2_per_w=5e-10, time_constant_s=0.715e-3, dead_time_s=0.125e-3, delay_steps=2,

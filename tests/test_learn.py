@@ -121,6 +121,9 @@ def _config(tmp_path: Path, text: str) -> Path:
     ('[plant]\n[controller]\npower_max_w = -5.0\n', [], "power"),
     ('[plant]\n[other]\n', [], "other"),
     ('[plant]\n', ["--h-um", "100"], "h_fine_m"),
+    ('[plant]\n', ["--structure-of", str(REPO_ROOT / "README.md")], "--structure-of: model file"),
+    ('[plant]\n', ["--structure-of", str(REPO_ROOT / "gp_model/models/in625_narx_gp_1ms.json")],
+     "learned at a sample period of 0.001 s"),
 ])
 def test_learn_refuses_in_one_line_with_exit_2_naming_the_key(tmp_path, capsys, text, argv, key):
     config = _config(tmp_path, text)
@@ -217,6 +220,35 @@ def test_the_pid_is_tuned_on_the_training_staircases_of_the_scenarios_own_plans(
     assert seen["runs"] == ["ident-layer-p104-s1", "ident-layer-p156-s3", "ident-double-track-p104-s4",
                             "ident-double-track-p156-s6"]
     assert record["nominal_power_w"] == 130.0
+
+
+def test_learning_in_the_structure_of_a_model_fits_only_its_candidate(monkeypatch, tmp_path):
+    """``learn --structure-of M``: each stage's fit is the one candidate M was selected as
+    (:func:`~gp_trainer.narx_fit.candidate_of`), recorded in the provenance; without it, every candidate."""
+    from gp_trainer import learn as learn_module
+    from gp_trainer.learn import LearnSettings
+    from gp_trainer.narx_fit import candidate_of
+
+    seen = []
+
+    class Saved:
+        def save(self, out):
+            return out
+
+    def select(train, held, **kwargs):
+        seen.append((kwargs["candidates"], kwargs["provenance"].get("structure_of")))
+        return Saved(), {}, []
+
+    monkeypatch.setattr(learn_module, "_series", lambda directory, runs: [])
+    monkeypatch.setattr(learn_module, "job_recording", lambda settings, job: tmp_path / "none.mcap")
+    monkeypatch.setattr(learn_module, "process_record", lambda paths: {})
+    monkeypatch.setattr(learn_module, "select_and_fit", select)
+    design = ProcessDesign(130.0, 0.07, "m.json")
+    for structure in (DEFAULT_MODEL_PATH, None):
+        settings = LearnSettings(structure_of=structure, sequential=True)
+        learn_module._fit(settings, design, design.stage1_runs(), tmp_path / "m.json", {})
+    assert seen[0] == ([candidate_of(NarxGPModel.load(DEFAULT_MODEL_PATH))], str(DEFAULT_MODEL_PATH))
+    assert seen[1] == (None, None)
 
 
 def test_refitting_a_selected_model_fits_the_candidate_it_was_selected_as(monkeypatch):
