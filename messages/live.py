@@ -301,6 +301,16 @@ class LiveServer:
         import foxglove
 
         self._context = foxglove.Context()
+        # the channels exist before the server listens: a client that connects at once sees them all
+        self.channels: dict[str, Any] = {
+            topic.suffix: foxglove.Channel(
+                topic.channel,
+                schema=foxglove.Schema(name=topic.schema_name, encoding="jsonschema", data=schema_bytes(topic)),
+                message_encoding="json",
+                context=self._context,
+            )
+            for topic in TOPICS.values()
+        }
         host, port = ("127.0.0.1", 0) if settings.token else (settings.host, settings.port)
         try:
             self.server = foxglove.start_server(name=name, host=host, port=port,
@@ -314,15 +324,6 @@ class LiveServer:
             except OSError as err:
                 self.server.stop()
                 raise _port_error(settings, err.strerror or str(err)) from None
-        self.channels: dict[str, Any] = {
-            topic.suffix: foxglove.Channel(
-                topic.channel,
-                schema=foxglove.Schema(name=topic.schema_name, encoding="jsonschema", data=schema_bytes(topic)),
-                message_encoding="json",
-                context=self._context,
-            )
-            for topic in TOPICS.values()
-        }
 
     @property
     def port(self) -> int:

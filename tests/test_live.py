@@ -210,7 +210,7 @@ def test_launch_live_serves_the_default_nodes_run(tmp_path):
     proc = subprocess.Popen([sys.executable, "launch.py", "--live", str(port), "--max-steps", "150", "--h-um", "40",
                              *BARE_ARGS, "--controller", "pid", "--out", str(out), "--no-progress"], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    steps, started, subscribed_s = [], time.monotonic(), None
+    steps, statuses, started, subscribed_s = [], [], time.monotonic(), None
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
@@ -235,11 +235,13 @@ def test_launch_live_serves_the_default_nodes_run(tmp_path):
                     break
                 if isinstance(frame, bytes) and frame[0] == 1:  # message data: op, subscription, log time, payload
                     steps.append(json.loads(frame[13:])["step"])
+                elif isinstance(frame, str) and json.loads(frame).get("op") == "status":
+                    statuses.append(json.loads(frame)["message"])
     finally:
         status, output = finish(proc, timeout=120)
     assert status == 0, output
     live = [line for line in output.splitlines() if line.startswith(("[live]", "[plant]"))]
-    assert steps and steps == sorted(steps) and steps[-1] == 150, (steps[:5], steps[-5:], subscribed_s, live)
+    assert steps and steps == sorted(steps) and steps[-1] == 150, (steps[:5], steps[-5:], subscribed_s, statuses, live)
 
 
 def test_with_a_token_only_a_client_that_gives_it_is_served(monkeypatch):
