@@ -159,6 +159,11 @@ def in_sample(case: Case, plans: set[tuple[int, float, float]], process: dict[st
             and all(case.plant[key] == process.get(key) for key in PROCESS_KEYS if key in case.plant))
 
 
+def case_model(case: Case, model: Path | None) -> Path | None:
+    """The model a case runs on: ``model`` (``--model``), else the case's learned model, else None (launch's)."""
+    return model or (None if case.model is None else REPO / case.model)
+
+
 MODEL_CONTROLLERS = ("preview-mpc", "scan-feedforward")
 """The controllers of :data:`CONTROLLERS` that run on the delay-aware model (``--model``)."""
 
@@ -249,7 +254,7 @@ def main() -> int:
     args = parser.parse_args()
     cases = [c for c in CASES if args.cases is None or c.name in args.cases]
     if args.bound:                                  # a model without the FOPDT fails before any run
-        for model in {args.model or (None if c.model is None else REPO / c.model) for c in cases}:
+        for model in {case_model(c, args.model) for c in cases}:
             bound_from(read_document(model or DEFAULT_MODEL_PATH).get("provenance", {}), args, model)
     with tempfile.TemporaryDirectory() as tmp:
         out_dir = args.out_dir or Path(tmp)
@@ -258,7 +263,7 @@ def main() -> int:
         print(f"{'case':22s} {'controller':12s} {'over %':>7s} {'under %':>7s} {'RMSE %':>7s} {'turn %':>7s} "
               f"{'along %':>7s}  in-sample", flush=True)
         for case in cases:
-            model = args.model or (None if case.model is None else REPO / case.model)
+            model = case_model(case, args.model)
             learned = read_document(model or DEFAULT_MODEL_PATH).get("provenance", {})
             bound = case_bound(case, bound_from(learned, args, model), args.max_steps) if args.bound else {}
             plans, process = training_plans(list(learned.get("runs", []))), (learned.get("process") or {}).get("plant")

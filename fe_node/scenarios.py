@@ -247,9 +247,10 @@ def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w
     check_type("scenario override 'contours'", contours, "bool")
     check_type("scenario override 'island_width_m'", island_width_m, "float")
     layer_m = settings_kw.setdefault("powder_layer_m", 50e-6)
-    if "mesh" not in settings_kw and (settings_kw.get("window_m", 0.0) != 0.0
-                                       or settings_kw.get("operator", "tensor") != "tensor"):
-        key = "window_m" if settings_kw.get("window_m", 0.0) != 0.0 else "operator"
+    conflict = [key for key, default in (("window_m", 0.0), ("operator", "tensor"))
+                if settings_kw.get(key, default) != default]
+    if "mesh" not in settings_kw and conflict:
+        key = conflict[0]
         raise ValueError(f"scenario {name}: {key} = {settings_kw[key]!r} needs mesh = 'uniform' "
                          f"(a part's default mesh is {PART_MESH!r})")
     settings_kw.setdefault("mesh", PART_MESH)
