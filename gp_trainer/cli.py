@@ -27,6 +27,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 
+from controller_node.process import process_mismatch
 from controller_node.settings import ControllerSettings
 from fe_node.frames import frame_ratio
 from fe_node.part import require_pyslm
@@ -59,6 +60,7 @@ from gp_trainer.provenance import REPO_ROOT
 from gp_trainer.train import TrainSettings, train
 from messages.cli import UsageError
 from messages.config import build, load_toml
+from messages.recording import run_config
 
 PROG = "python -m gp_trainer"
 DEFAULT_DATASET = Path("out/gp/dataset.npz")
@@ -129,6 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-identify", action="store_true",
                    help="a delay-aware model's held-out runs missing in --recordings-dir are an error (exit 2) "
                         "instead of being recorded first, as `identify --runs` would")
+    p.add_argument("--runs", nargs="+", type=Path, default=None, metavar="RECORDING",
+                   help="evaluate a delay-aware model on these MCAP recordings (any run on its process: simulated, "
+                        "closed loop, or from hardware) instead of its held-out runs")
 
     p = sub.add_parser("narx", formatter_class=fmt,
                        help="select, fit and evaluate the delay-aware model (FIR + residual GP) of the preview MPC")
@@ -353,6 +358,8 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
     its ``provenance.design`` records (``learn``), else on those of ``--plant``."""
 
     model = NarxGPModel.load(args.model)
+    if args.runs is not None:
+        return _evaluate_narx_on(model, args)
     record = model.provenance.get("design")
     if record is not None:
         design, default_dir = design_from_record(record)
@@ -398,6 +405,29 @@ def _evaluate_narx(args: argparse.Namespace) -> int:
             print(f"turnaround windows ({result['n_turnaround']} samples): MAPE {result['mape_turnaround_pct']:.2f} %, "
                   f"coverage {result['coverage_95_turnaround_pct']:.1f} %; along the tracks: MAPE "
                   f"{result['mape_along_pct']:.2f} %, coverage {result['coverage_95_along_pct']:.1f} %")
+    return 0
+
+
+def _evaluate_narx_on(model: NarxGPModel, args: argparse.Namespace) -> int:
+    """``evaluate --runs``: the held-out metrics of :func:`gp_trainer.narx_fit.evaluate_model` on the given
+    recordings; ``training_runs`` names those that are among the model's training runs (in-sample)."""
+    runs = []
+    for path in args.runs:
+        run = series_from_states(read_states(path), path.stem)
+        settings = run_config(path).get("plant", {}).get("settings", {})   # none in a hardware node's recording
+        why = process_mismatch(model, run.speed_m_s, run.sample_period_s, settings.get("material", {}).get("name"),
+                               settings.get("powder_layer_m"))
+        if why is not None:
+            raise DatasetError(f"--runs {path.name}: {why}")
+        runs.append(run)
+    result = evaluate_model(model, runs)
+    trained = set(model.provenance.get("runs", []))
+    result["runs"] = result.pop("held_out")
+    result["training_runs"] = [r.name for r in runs if r.name in trained]
+    print(json.dumps(result) if args.json else
+          f"on {len(runs)} recording(s), {result['n_valid']} samples: one-step MAPE {result['mape_pct']:.2f} % "
+          f"(turnarounds {result['mape_turnaround_pct'] or 0:.2f} %, bias {result['bias_turnaround_pct'] or 0:+.2f} %; "
+          f"along {result['mape_along_pct'] or 0:.2f} %, bias {result['bias_along_pct'] or 0:+.2f} %)")
     return 0
 
 

@@ -86,7 +86,9 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int |
     Coverage counts held-out one-step targets inside ``mean ± 1.96 sqrt(var + σ_n²)``, over all of
     them and separately in the turnaround windows (the first
     :data:`controller_node.report.TURNAROUND_STEPS` states of every track but a layer's first) and
-    along the tracks, with the one-step MAPE of each: where the model is overconfident.
+    along the tracks, with the one-step MAPE of each: where the model is overconfident. The one-step
+    bias (mean signed relative error, model minus plant) of each tells what a disturbance estimate
+    would have to absorb there.
     """
     period = model.sample_period_s
     horizon = rollout_horizon(period) if horizon is None else horizon
@@ -106,7 +108,8 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int |
             if since_laser_on[k] >= build_up and np.all(truth > 0):
                 rollouts.append(float(np.mean(np.abs(model.rollout(run, k, horizon) - truth) / truth)))
     y, mean, sd, turn = np.concatenate(ys), np.concatenate(means), np.concatenate(sds), np.concatenate(turns)
-    inside, error = np.abs(mean - y) <= 1.96 * sd, np.abs(mean - y) / y
+    inside, signed = np.abs(mean - y) <= 1.96 * sd, (mean - y) / y
+    error = np.abs(signed)
 
     def share(values: np.ndarray, where: np.ndarray) -> float | None:
         return float(100.0 * np.mean(values[where])) if np.any(where) else None
@@ -121,6 +124,8 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int |
         "coverage_95_along_pct": share(inside, ~turn),
         "mape_turnaround_pct": share(error, turn),
         "mape_along_pct": share(error, ~turn),
+        "bias_turnaround_pct": share(signed, turn),
+        "bias_along_pct": share(signed, ~turn),
         "n_turnaround": int(np.sum(turn)),
         "held_out": [r.name for r in runs],
     }

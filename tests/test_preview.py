@@ -556,6 +556,47 @@ def test_evaluate_splits_error_and_coverage_between_turnarounds_and_tracks():
     assert result["n_turnaround"] == 50
     assert result["coverage_95_along_pct"] > 85.0 and result["coverage_95_turnaround_pct"] < 10.0
     assert result["mape_turnaround_pct"] > 5 * result["mape_along_pct"]
+    assert -5.0 < result["bias_turnaround_pct"] < -2.5 and abs(result["bias_along_pct"]) < 0.5   # model minus plant
+
+
+def _record_run(path, run: RunSeries, speed_mm_s: float = 1e3 * SPEED_M_S):
+    """``run`` as the ``/plant/state`` messages of an MCAP recording at ``path``."""
+    import time
+
+    from messages import MeltPoolState, encode
+    from messages.recorder import McapRecorder
+    from messages.topics import PLANT_STATE
+
+    recorder = McapRecorder(path, "evaluate-test", path.open("wb"))
+    for k in range(len(run)):
+        msg = MeltPoolState(run_id="evaluate-test", step=k, time_s=k * DT, laser_x_mm=0.0, laser_y_mm=0.0,
+                            scan_dir_x=1.0, scan_dir_y=0.0, track=int(run.track[k]),
+                            area_mm2=float(1e6 * run.area_m2[k]), t_ahead_k=float(run.t_ahead_k[k]),
+                            power_w=float(run.power_w[k]), speed_mm_s=speed_mm_s)
+        recorder.write(PLANT_STATE, encode(msg), msg, time.time_ns())
+    recorder.finish({"complete": "true"})
+    return path
+
+
+def test_evaluate_on_recordings_reports_the_bias_and_refuses_another_process(tmp_path, model, capsys):
+    """``evaluate --runs REC``: the model judged on any recording of its process (bias after the turns where
+    the plant's area is 0.2 C0, 3-4 %, above the model's), and a recording at another speed refused in one line."""
+    from gp_trainer.cli import main
+
+    path = model.save(tmp_path / "model.json")
+    run = synthetic_run(11)
+    after_turn = (run.track > 0) & (run.steps_since_track_start() < 50)
+    bumped = RunSeries(run.name, run.area_m2 + np.where(after_turn, 0.2 * C0, 0.0), run.t_ahead_k, run.power_w,
+                       run.track, DT)
+    assert main(["evaluate", "--model", str(path), "--runs", str(_record_run(tmp_path / "run.mcap", bumped)),
+                 "--json"]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["runs"] == ["run"] and result["training_runs"] == [] and result["n_turnaround"] == 50
+    assert -5.0 < result["bias_turnaround_pct"] < -2.5 and abs(result["bias_along_pct"]) < 0.5
+    fast = _record_run(tmp_path / "fast.mcap", run, speed_mm_s=1000.0)
+    assert main(["evaluate", "--model", str(path), "--runs", str(fast)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--runs fast.mcap: the plant scans at 1000 mm/s" in err[0]
 
 
 def test_a_new_controller_answers_as_one_reset_after_a_run():
