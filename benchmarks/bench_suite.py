@@ -25,7 +25,11 @@ The cases (:data:`CASES`):
 Prints one table, writes one JSON record per case and controller to ``--out-dir`` and, as the last
 line, ``{"cases": [{"case", "controller", "status", "overshoot_pct", "undershoot_pct", "rmse_pct",
 "rmse_turnaround_pct", "rmse_along_pct", "in_sample", "layers", "track_length_m", "hatch_m",
-"speed_m_s", "setpoint_mm2", "wall_s", "refused"}, ...]}``; with ``--bound`` each record also carries
+"speed_m_s", "setpoint_mm2", "wall_s", "refused"}, ...]}``. The runs on the delay-aware model (preview MPC,
+scan-feedforward) also carry how well that model predicts their own recording one step ahead, with the measured
+T ahead and powers (:func:`gp_trainer.narx_fit.evaluate_model`, as ``python -m gp_trainer evaluate --runs``):
+``model_mape_turnaround_pct``, ``model_bias_turnaround_pct`` (mean signed error, model minus plant),
+``model_mape_along_pct``, ``model_bias_along_pct``. With ``--bound`` each record also carries
 the case's learning bound, ``bound_rmse_pct`` and ``bound_iteration`` (:mod:`learning_bound`: iterative
 learning control of the open-loop power against the FE plant, the best that power alone reached).
 The bound needs ``provenance.controller.pid.fopdt`` in the model (``python -m gp_trainer tune-pid``).
@@ -54,8 +58,12 @@ from learning_bound import BoundSettings, learning_bound  # noqa: E402
 
 from fe_node.scenarios import scenario  # noqa: E402
 from gp_model.files import read_document  # noqa: E402
+from gp_model.narx import NarxGPModel, series_from_states  # noqa: E402
 from gp_model.shipped import DEFAULT_MODEL_PATH  # noqa: E402
+from gp_trainer.dataset import read_states  # noqa: E402
+from gp_trainer.narx_fit import evaluate_model  # noqa: E402
 from gp_trainer.pid_tuning import Fopdt  # noqa: E402
+from messages.recording import run_config  # noqa: E402
 
 LAYER_PLAN = (4, 10e-3, 1e-4)
 """(tracks, track length [m], hatch [m]) of the ``layer`` scenario."""
@@ -194,6 +202,18 @@ def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None,
     return summary
 
 
+MODEL_FIT_KEYS = ("mape_turnaround_pct", "bias_turnaround_pct", "mape_along_pct", "bias_along_pct")
+"""The keys of :func:`gp_trainer.narx_fit.evaluate_model` a model controller's record carries (``model_`` first)."""
+
+
+def model_fit(recording: Path) -> dict[str, float | None]:
+    """How the model the run's controller used (its configuration in ``recording``) predicts the run one step
+    ahead: :data:`MODEL_FIT_KEYS`, each ``model_``-prefixed."""
+    model = NarxGPModel.load(run_config(recording)["controller"]["model"])
+    fit = evaluate_model(model, [series_from_states(read_states(recording), recording.stem)])
+    return {f"model_{key}": fit[key] for key in MODEL_FIT_KEYS}
+
+
 def record(case: Case, controller: str, summary: dict[str, Any], plans: set, process: dict[str, Any] | None = None
            ) -> dict[str, Any]:
     """The suite's record of one run (launch's figures, the case's plan and whether it is in-sample on the
@@ -268,8 +288,10 @@ def main() -> int:
             bound = case_bound(case, bound_from(learned, args, model), args.max_steps) if args.bound else {}
             plans, process = training_plans(list(learned.get("runs", []))), (learned.get("process") or {}).get("plant")
             for controller in args.controllers:
-                rec = record(case, controller, run_case(case, controller, out_dir, args.max_steps, model),
-                             plans, process) | bound
+                summary = run_case(case, controller, out_dir, args.max_steps, model)
+                rec = record(case, controller, summary, plans, process) | bound
+                if controller in MODEL_CONTROLLERS and summary.get("status") == 0:
+                    rec |= model_fit(Path(summary["recording"]))
                 (out_dir / f"{case.name}-{controller}.json").write_text(json.dumps(rec, indent=1) + "\n")
                 records.append(rec)
                 figures = " ".join(f"{_cell(rec[k]):>7s}" for k in ("overshoot_pct", "undershoot_pct", "rmse_pct",

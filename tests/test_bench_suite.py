@@ -44,12 +44,24 @@ def test_a_case_is_in_sample_only_on_a_trained_plan_and_process():
 
 
 def test_a_short_case_runs_through_launch_and_is_recorded(tmp_path):
+    """Each controller's record (launch's figures, the plan, the bound); the preview MPC's also how its model
+    predicts that very run (the figures ``python -m gp_trainer evaluate --runs`` gives on the recording)."""
+    from gp_model.narx import NarxGPModel, series_from_states
+    from gp_model.shipped import DEFAULT_MODEL_PATH
+    from gp_trainer.dataset import read_states
+    from gp_trainer.narx_fit import evaluate_model
+
     out = subprocess.run([sys.executable, "benchmarks/bench_suite.py", "--cases", "short-8x2mm", "--controllers",
-                          "pid", "--max-steps", "40", "--out-dir", str(tmp_path), "--json", "--bound",
+                          "pid", "preview-mpc", "--max-steps", "60", "--out-dir", str(tmp_path), "--json", "--bound",
                           "--bound-iterations", "1"],
                          cwd=REPO, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    (record,) = json.loads(out.stdout.strip().splitlines()[-1])["cases"]
+    record, mpc = json.loads(out.stdout.strip().splitlines()[-1])["cases"]
+    assert not any(k.startswith("model_") for k in record)
+    recording = tmp_path / "short-8x2mm-preview-mpc.mcap"
+    fit = evaluate_model(NarxGPModel.load(DEFAULT_MODEL_PATH), [series_from_states(read_states(recording), "r")])
+    assert fit["n_turnaround"] > 0
+    assert {k: mpc[f"model_{k}"] for k in bench_suite.MODEL_FIT_KEYS} == {k: fit[k] for k in bench_suite.MODEL_FIT_KEYS}
     assert record["case"] == "short-8x2mm" and record["controller"] == "pid" and record["status"] == 0
     assert record["track_length_m"] == 2e-3 and record["hatch_m"] == 1e-4 and record["in_sample"] is False
     assert all(record[k] is not None and record[k] >= 0 for k in ("overshoot_pct", "undershoot_pct", "rmse_pct"))
