@@ -448,6 +448,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     args.model = args.model or (DEFAULT_MODEL_PATH if args.plant is None else IDENT_SETS[args.plant].model_path)
     if is_model_file(args.model, narx.FORMAT_NAME):
         return _evaluate_narx(args)
+    if args.runs is not None:
+        raise DatasetError(f"--runs: {args.model} is a one-step model; --runs evaluates a delay-aware one")
     model = GPModel.load(args.model)
     samples, _ = load_samples(args.dataset)
     result = evaluate(model, samples, args.plots_dir, rollout_source=args.rollout_source)

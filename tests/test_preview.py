@@ -593,6 +593,10 @@ def test_evaluate_on_recordings_reports_the_bias_and_refuses_another_process(tmp
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert result["runs"] == ["run"] and result["training_runs"] == [] and result["n_turnaround"] == 50
     assert -5.0 < result["bias_turnaround_pct"] < -2.5 and abs(result["bias_along_pct"]) < 0.5
+    from gp_model.shipped import ONE_STEP_MODEL_PATH
+
+    assert main(["evaluate", "--model", str(ONE_STEP_MODEL_PATH), "--runs", str(tmp_path / "run.mcap")]) == 2
+    assert "--runs evaluates a delay-aware one" in capsys.readouterr().err
     fast = _record_run(tmp_path / "fast.mcap", run, speed_mm_s=1000.0)
     assert main(["evaluate", "--model", str(path), "--runs", str(fast)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
