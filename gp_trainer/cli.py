@@ -424,10 +424,14 @@ def _evaluate_narx_on(model: NarxGPModel, args: argparse.Namespace) -> int:
     trained = set(model.provenance.get("runs", []))
     result["runs"] = result.pop("held_out")
     result["training_runs"] = [r.name for r in runs if r.name in trained]
+
+    def pct(key: str, sign: str = "") -> str:
+        return "n/a" if result[key] is None else f"{result[key]:{sign}.2f} %"
+
     print(json.dumps(result) if args.json else
-          f"on {len(runs)} recording(s), {result['n_valid']} samples: one-step MAPE {result['mape_pct']:.2f} % "
-          f"(turnarounds {result['mape_turnaround_pct'] or 0:.2f} %, bias {result['bias_turnaround_pct'] or 0:+.2f} %; "
-          f"along {result['mape_along_pct'] or 0:.2f} %, bias {result['bias_along_pct'] or 0:+.2f} %)")
+          f"on {len(runs)} recording(s), {result['n_valid']} samples: one-step MAPE {pct('mape_pct')} "
+          f"(turnarounds {pct('mape_turnaround_pct')}, bias {pct('bias_turnaround_pct', '+')}; "
+          f"along {pct('mape_along_pct')}, bias {pct('bias_along_pct', '+')})")
     return 0
 
 
