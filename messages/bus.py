@@ -54,6 +54,12 @@ REQUIRE_TIMEOUT_S = 60.0
 LOW_LATENCY_MAX_BYTES = 32 * 1024
 """Largest message a session on zenoh's low-latency transport publishes [bytes] (it does not
 fragment; 300 random sizes in 32-64 KiB lost 19 on loopback, 2 300 up to 32 KiB none)."""
+SHARED_MEMORY = False
+"""Whether meltloop's sessions (nodes, hub, the hub's node configurations) let zenoh pass messages
+through shared memory: no. With it (zenoh's default) a message above 3 KiB between two processes on
+one host, such as a temperature image, goes into shared memory, and zenoh has dropped such messages
+silently when the receiver was descheduled for ~100 ms before mapping them (eclipse-zenoh/zenoh
+issue 2628), a loss the recorder can only report. Over the socket the message is copied."""
 GREATER_ZID_ONLY = '{peer: {to_router: "always", to_peer: "greater-zid"}}'
 """Gossip autoconnect strategy of a low-latency session: of two peers, only the one with the
 greater zenoh id opens their link (:func:`zenoh_config`)."""
@@ -182,6 +188,7 @@ def zenoh_config(settings: BusSettings, credentials: tuple[str, str] | None = No
         config = zenoh.Config()
         config.insert_json5("mode", '"client"' if credentials else '"peer"')
         config.insert_json5("scouting/multicast/enabled", "false")
+        config.insert_json5("transport/shared_memory/enabled", json.dumps(SHARED_MEMORY))
     if settings.low_latency:
         config.insert_json5("transport/unicast/lowlatency", "true")
         config.insert_json5("transport/unicast/qos/enabled", "false")

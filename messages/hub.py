@@ -27,7 +27,7 @@ import json
 from pathlib import Path
 
 from messages.auth import ROLES, RunCredentials
-from messages.bus import BusSettings, StopFlag, is_name, zenoh_config
+from messages.bus import SHARED_MEMORY, BusSettings, StopFlag, is_name, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
 
 
@@ -91,7 +91,8 @@ def write_node_configs(credentials: RunCredentials, endpoint: str, out_dir: Path
             "mode": "client",
             "connect": {"endpoints": [endpoint]},
             "scouting": {"multicast": {"enabled": False}},
-            "transport": {"auth": {"usrpwd": {"user": node, "password": password}}},
+            "transport": {"auth": {"usrpwd": {"user": node, "password": password}},
+                          "shared_memory": {"enabled": SHARED_MEMORY}},
         }
         if ca is not None:
             config["transport"]["link"] = {"tls": tls_settings(ca)}

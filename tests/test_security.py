@@ -226,3 +226,31 @@ def test_the_credentials_of_a_killed_run_are_removed_at_the_next_start(tmp_path,
         assert not stale.exists()
         assert (alive / "credentials.txt").exists()
     assert sorted(tmp_path.iterdir()) == [alive]
+
+
+def test_no_hop_passes_a_large_message_through_shared_memory(monkeypatch, tmp_path, hub, run_id):
+    """A 40 kB payload (a temperature image's size) from the plant to the recorder through the run's
+    hub travels over the sockets: no zenoh shared-memory segment is mapped into this process, which
+    holds both nodes and the hub (with zenoh's default one is, and a receiver descheduled at the
+    wrong moment loses the message silently: messages.bus.SHARED_MEMORY). The configurations the
+    hub writes for other nodes keep it off too."""
+    import zenoh
+
+    from messages.hub import router_config, write_node_configs
+    from messages.topics import PLANT_TEMPERATURE
+
+    received = []
+    key = key_expr(run_id, PLANT_TEMPERATURE, "plant")
+    with RunCredentials(run_id, ROLES) as creds, zenoh.open(router_config(creds, hub)):
+        with _node(monkeypatch, creds, "plant", hub) as plant, _node(monkeypatch, creds, "recorder", hub) as rec:
+            rec.session.declare_subscriber(key, lambda s: received.append(len(s.payload.to_bytes())))
+            deadline = time.monotonic() + 10
+            while not received and time.monotonic() < deadline:
+                plant.session.put(key, bytes(40_000))
+                time.sleep(0.1)
+            with open("/proc/self/maps") as maps:
+                shared = [line for line in maps if line.rstrip().endswith(".zenoh")]
+        paths = write_node_configs(creds, hub, tmp_path, None)
+    assert received and received[0] == 40_000
+    assert shared == []
+    assert all(json.loads(p.read_text())["transport"]["shared_memory"]["enabled"] is False for p in paths)
