@@ -77,11 +77,9 @@ def _hub(credentials: RunCredentials, endpoint: str):
     """The run's authenticating hub, as launch.py opens it."""
     import zenoh
 
-    config = zenoh_config(BusSettings(run_id=credentials.run_id, connect=(), listen=(endpoint,)))
-    config.insert_json5("mode", '"router"')
-    for key, value in credentials.hub_settings().items():
-        config.insert_json5(key, value)
-    return zenoh.open(config)
+    from messages.hub import router_config
+
+    return zenoh.open(router_config(credentials, endpoint))
 
 
 def _node(monkeypatch, credentials: RunCredentials, name: str, endpoint: str, password: str | None = None) -> NodeBus:
@@ -234,14 +232,13 @@ def test_no_hop_passes_a_large_message_through_shared_memory(monkeypatch, tmp_pa
     holds both nodes and the hub (with zenoh's default one is, and a receiver descheduled at the
     wrong moment loses the message silently: messages.bus.SHARED_MEMORY). The configurations the
     hub writes for other nodes keep it off too."""
-    import zenoh
 
-    from messages.hub import router_config, write_node_configs
+    from messages.hub import write_node_configs
     from messages.topics import PLANT_TEMPERATURE
 
     received = []
     key = key_expr(run_id, PLANT_TEMPERATURE, "plant")
-    with RunCredentials(run_id, ROLES) as creds, zenoh.open(router_config(creds, hub)):
+    with RunCredentials(run_id, ROLES) as creds, _hub(creds, hub):
         with _node(monkeypatch, creds, "plant", hub) as plant, _node(monkeypatch, creds, "recorder", hub) as rec:
             rec.session.declare_subscriber(key, lambda s: received.append(len(s.payload.to_bytes())))
             deadline = time.monotonic() + 10
