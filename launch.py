@@ -27,7 +27,7 @@ from controller_node.report import main as report_main
 from controller_node.settings import ControllerSettings, merged_over
 from controller_node.summary import comparison_table, summarise, table_line
 from fe_node.commands import CommandPolicy
-from fe_node.scenarios import NAMES, PART_NAMES, PART_POWER_W, Scenario, scenario
+from fe_node.scenarios import NAMES, PART_NAMES, PART_POWER_W, Scenario, check_description, scenario
 from gp_model.shipped import DEFAULT_MODEL_PATH, PART_MODEL_PATH, default_model_path
 from messages.bus import BusSettings, StopFlag, zenoh_config
 from messages.cli import ArgumentParser, UsageError, exit_error, exit_usage, run_main
@@ -127,6 +127,7 @@ def check_config(opts: RunOptions) -> None:
                          "[controller]")
     try:
         plant = run_scenario(opts)
+        check_description(plant)
     except (ValueError, TypeError) as err:
         raise UsageError(f"{opts.config} [plant]: {err}" if opts.config else str(err)) from None
     model = load_model(opts.controller, opts.model or default_model(opts))  # refused here, before any node starts

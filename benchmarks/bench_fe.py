@@ -1,5 +1,5 @@
-"""Benchmark of the FE plant: the default 4 x 10 mm layer (1000 steps, IN625) vs the
-textbook scikit-fem approach on the same mesh.
+"""Benchmark of the FE plant: the default 4 x 10 mm layer (1000 steps, IN625) on the uniform mesh
+vs the textbook scikit-fem approach on the same mesh.
 
 Usage: ``python benchmarks/bench_fe.py [--preset physical] [--h-um 25] [--compare-steps 100]
 [--baseline-steps 5] [--baseline-mem-gb 16] [--baseline-timeout-s 600]``.  Last line of stdout is
@@ -42,7 +42,7 @@ def baseline(preset: str, h_um: float, n_steps: int) -> dict:
     from fe_node.scenarios import scenario
     from fe_node.solver import build_grid
 
-    sc = scenario("layer", preset=preset, h_fine_m=h_um * 1e-6)
+    sc = scenario("layer", preset=preset, h_fine_m=h_um * 1e-6, mesh="uniform")
     mesh, _ = build_grid(sc.settings, sc.plan).skfem_mesh()
     t0 = time.perf_counter()
     basis = Basis(mesh, ElementHex1(), intorder=2)
@@ -96,7 +96,7 @@ def layer(preset: str, h_um: float) -> dict:
     from fe_node.solver import ThermalModel
 
     t0 = time.perf_counter()
-    sc = scenario("layer", preset=preset, h_fine_m=h_um * 1e-6)
+    sc = scenario("layer", preset=preset, h_fine_m=h_um * 1e-6, mesh="uniform")
     model = ThermalModel(sc.settings, sc.plan)
     t1 = time.perf_counter()
     n = 0
@@ -117,7 +117,7 @@ def compare_operators(preset: str, h_um: float, n_steps: int) -> dict:
     from fe_node.scenarios import scenario
     from fe_node.solver import ThermalModel
 
-    sc = scenario("layer", preset=preset, h_fine_m=h_um * 1e-6)
+    sc = scenario("layer", preset=preset, h_fine_m=h_um * 1e-6, mesh="uniform")
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     csr = ThermalModel(dataclasses.replace(sc.settings, operator="csr"), sc.plan)

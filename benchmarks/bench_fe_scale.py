@@ -6,7 +6,8 @@ Usage: ``python benchmarks/bench_fe_scale.py [--sides-mm 2 4 8 16] [--layers 1 1
 
 Side sweep: for each side L a square layer of L / hatch tracks of length L (hatch 0.1 mm) on the
 default plant (the ``layer`` scenario's settings and power) is built with ``mesh = "uniform"``
-(the whole-plan fine band) and ``mesh = "multilevel"`` (:mod:`fe_node.multilevel`).  After 5
+(the whole-plan fine band) and ``mesh = "multilevel"`` (:mod:`fe_node.multilevel`, the parts' 2.4 mm
+fine box).  After 5
 warm-up steps, ``--steps`` steps (default :data:`~fe_node.multilevel.PART_STEPS`, so that a window
 holds one step of the part level) are timed one by one, the two meshes alternating so both see the
 same machine load; ``ms_per_step`` is the mean CPU time of a step in this process (BLAS on one
@@ -22,7 +23,8 @@ layers), both meshes alternating; ``ms_per_step`` is the mean over the steps of 
 ``--layers`` (the uniform grid gains a row of elements per layer, the multi-level fine box does
 not: buried layers coarsen).
 
-Default layer: the ``layer`` scenario run to its end (or ``--layer-steps``) on both meshes,
+Default layer: the ``layer`` scenario run to its end (or ``--layer-steps``) on its default mesh
+(multi-level with a 3.2 mm fine box, :data:`fe_node.scenarios.LAYER_MESH`) and on the uniform mesh,
 alternating; the melt-pool area traces are compared from step 20 on, as a share of the uniform
 mesh's mean area.
 
@@ -147,8 +149,9 @@ def layer_cases(layers: list[int], repeats: int) -> list[dict]:
 
 
 def default_layer(max_steps: int | None) -> dict:
-    """Both meshes over the default layer: cost and the area traces' difference."""
-    scs = [scenario("layer", mesh=m) for m in MESHES]
+    """Both meshes over the default layer (its multi-level mesh, :data:`fe_node.scenarios.LAYER_MESH`,
+    against the uniform one): cost and the area traces' difference."""
+    scs = [scenario("layer", mesh="uniform"), scenario("layer")]
     models = [plant_model(sc.settings, sc.plan) for sc in scs]
     areas, times = [[], []], [[], []]
     while not models[0].done and (max_steps is None or models[0].step_index < max_steps):

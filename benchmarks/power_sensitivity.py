@@ -53,7 +53,7 @@ def series(name: str, states: list, sample_period_s: float) -> RunSeries:
 def case(preset: str, model: NarxGPModel, power_w: float, delta_w: float, settle: int, after: int) -> dict:
     """Plant's and model's change of the area [% of the unstepped one] ``after`` steps after a step of
     ``delta_w`` from ``power_w``."""
-    sc = scenario("layer", preset=preset, n_tracks=1)
+    sc = scenario("layer", preset=preset, n_tracks=1, mesh="uniform")   # the plant the models were learned on
     plant = ThermalModel(sc.settings, sc.plan)
     states = [plant.initial_observation(), *plant_run(plant, [power_w] * settle)]
     twin = copy.deepcopy(plant)

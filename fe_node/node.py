@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import threading
 import time
@@ -33,7 +32,7 @@ from fe_node.freerun import state_message
 from fe_node.image import temperature_image
 from fe_node.multilevel import plant_model
 from fe_node.observe import Observation
-from fe_node.scenarios import NAMES, PART_NAMES, Scenario
+from fe_node.scenarios import NAMES, PART_NAMES, Scenario, check_description, describe
 from fe_node.scenarios import scenario as build_scenario
 from fe_node.scene import fitted_scene, laser_pose
 from fe_node.solver import ThermalModel
@@ -93,14 +92,6 @@ def n_steps(scenario: Scenario) -> int:
     v_min = scenario.profile.speed_m_s.range()[0]
     plans = scenario.layer_plans or (scenario.plan,) * scenario.settings.n_layers
     return sum(math.ceil(p.total_length / (v_min * scenario.settings.dt_s) - 1e-9) for p in plans)
-
-
-def describe(scenario: Scenario) -> dict:
-    """JSON-able description of a scenario (recorded as the plant's configuration)."""
-    return json.loads(json.dumps(
-        {"scenario": scenario.name, "settings": dataclasses.asdict(scenario.settings),
-         "plan": dataclasses.asdict(scenario.plan), "profile": dataclasses.asdict(scenario.profile)},
-        default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
 def fe_state(run_id: str, obs: Observation) -> MeltPoolState:
@@ -300,6 +291,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.part is not None and args.scenario not in PART_NAMES:
                 raise ValueError("--part needs --scenario part or ident-part")
             scenario = build_scenario(args.scenario, **{**plant_table, **overrides})
+            check_description(scenario)
         except ValueError as err:
             raise UsageError(str(err)) from None
     except UsageError as err:

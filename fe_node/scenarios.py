@@ -21,7 +21,7 @@ Profile S (speed, mm/s, 2 ms each): 800, 1000, 700, 900, 600, 850, repeating the
 Profile P (power, W, 1.5 ms each): 250, 180, 300, 200, 275, 150, 225, repeating the last.
 Double tracks are bidirectional.  Other names: ``single-track`` (5 mm), ``double-track``
 (2 x 5 mm, hatch 0.1 mm), ``layer`` (default; 4 x 10 mm, hatch 0.1 mm, the paper's MPC
-test), all at 250 W, 800 mm/s.
+test; on the multi-level mesh, :data:`LAYER_MESH`), all at 250 W, 800 mm/s.
 
 Identification scenarios (GP training data beyond Table 2): ``ident-layer`` (the ``layer``
 geometry) and ``ident-double-track`` (the ``double-track`` geometry) play a seeded random
@@ -44,9 +44,10 @@ identification runs choose lower means, :data:`gp_trainer.campaign.IDENT_PART_RU
 """
 from __future__ import annotations
 
+import json
 import math
 import numbers
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +58,7 @@ from fe_node.presets import preset
 from fe_node.scan import Profile, ScanPlan, Signal
 from fe_node.settings import Settings, check_type
 from fe_node.solver import check_grid_size
+from messages.types import CONFIG_JSON_MAX_CHARS
 
 P_SINE = Signal(mean=225.0, amplitude=75.0, period_s=2e-3)
 P_PROFILE = Signal(times_s=tuple(i * 1.5e-3 for i in range(7)),
@@ -93,6 +95,14 @@ PART_MESH = "multilevel"
 """The mesh of the ``part`` and ``ident-part`` scenarios unless ``[plant] mesh`` names another: the
 multi-level mesh that moves with the laser (:mod:`fe_node.multilevel`), whose cost per step does not
 grow with the part's size or its layers (docs/fe-scale.md); ``mesh = "uniform"`` is the reference.
+"""
+
+LAYER_MESH = {"mesh": "multilevel", "fine_box_m": 3.2e-3}
+"""The ``layer`` scenario's mesh unless ``[plant] mesh`` names one: the multi-level mesh with a 3.2 mm
+fine box, which matches the uniform mesh there (``benchmarks/bench_fe_scale.py``: area trace within
+1 % rms and 3 % at most; the preview MPC's closed loop within 0.2 points, docs/fe-scale.md) at about a
+third of its cost. The box side was chosen on that comparison (2.4 mm, the part default, put the
+overshoot 0.38 points below the uniform mesh's); ``mesh = "uniform"`` is the reference.
 """
 
 PART_POWER_W = 100.0
@@ -145,7 +155,8 @@ def ident_power(seed: int, mean_w: float, amplitude_w: float, n_steps: int, dt_s
 
 @dataclass(frozen=True)
 class Scenario:
-    """A runnable case: ``ThermalModel(sc.settings, sc.plan)`` driven by ``sc.profile``."""
+    """A runnable case: ``plant_model(sc.settings, sc.plan, sc.layer_plans)`` (:mod:`fe_node.multilevel`)
+    driven by ``sc.profile``."""
 
     name: str
     settings: Settings
@@ -215,6 +226,8 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
         else:
             raise ValueError(f"unknown scenario override {key!r}")
     ident = _ident_options(name, ident_kw)
+    if name == "layer":
+        settings_kw = _default_mesh(name, settings_kw, LAYER_MESH)
     settings = replace(Settings(), **settings_kw)
     plan = ScanPlan.layer(**plan_kw)
     if "power_w" in overrides and ident_kw:
@@ -228,6 +241,46 @@ def scenario(name: str = DEFAULT, **overrides) -> Scenario:
                             n_steps, settings.dt_s)
     check_grid_size(settings, plan)
     return Scenario(name=name, settings=settings, plan=plan, profile=Profile(power, speed, settings.dt_s))
+
+
+DESCRIPTION_ROOM_CHARS = 4096
+"""Characters of a start event's configuration left for the plant node's own entries beside the
+scenario's description (:func:`check_description`)."""
+
+
+def describe(scenario: Scenario) -> dict:
+    """JSON-able description of a scenario (recorded as the plant's configuration)."""
+    return json.loads(json.dumps(
+        {"scenario": scenario.name, "settings": asdict(scenario.settings),
+         "plan": asdict(scenario.plan), "profile": asdict(scenario.profile)},
+        default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+
+
+def check_description(scenario: Scenario) -> None:
+    """``ValueError`` (one line) if the scenario's description (:func:`describe`), which the plant
+    records in its start event, is longer than that event carries
+    (:data:`messages.types.CONFIG_JSON_MAX_CHARS`): a plan of thousands of tracks."""
+    n = len(json.dumps(describe(scenario), sort_keys=True))
+    limit = CONFIG_JSON_MAX_CHARS - DESCRIPTION_ROOM_CHARS
+    if n > limit:
+        raise ValueError(f"the scenario's description ({len(scenario.plan.tracks)} tracks) would take {n:,} "
+                         f"characters of the plant's start event, more than {limit:,}: shorten the scan plan "
+                         "(n_tracks, track_length_m)")
+
+
+def _default_mesh(name: str, settings_kw: dict, default: dict) -> dict:
+    """``settings_kw`` with the scenario's ``default`` multi-level mesh settings under it, unless it
+    names a mesh; ``ValueError`` (one line) if it sets an option of the uniform mesh only
+    (``window_m``, ``operator``) without naming the mesh."""
+    if "mesh" in settings_kw:
+        return settings_kw
+    for key, value in (("window_m", 0.0), ("operator", "tensor")):
+        given = settings_kw.get(key, value)
+        if given != value and isinstance(given, type(value)):     # (a value of another kind: Settings names it)
+            what = "a part's" if name in PART_NAMES else f"the {name} scenario's"
+            raise ValueError(f"scenario {name}: {key} = {settings_kw[key]!r} needs mesh = 'uniform' "
+                             f"({what} default mesh is {default['mesh']!r})")
+    return {**default, **settings_kw}
 
 
 def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w: float | None = None,
@@ -247,13 +300,7 @@ def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w
     check_type("scenario override 'contours'", contours, "bool")
     check_type("scenario override 'island_width_m'", island_width_m, "float")
     layer_m = settings_kw.setdefault("powder_layer_m", 50e-6)
-    conflict = [key for key, default in (("window_m", 0.0), ("operator", "tensor"))
-                if settings_kw.get(key, default) != default]
-    if "mesh" not in settings_kw and conflict:
-        key = conflict[0]
-        raise ValueError(f"scenario {name}: {key} = {settings_kw[key]!r} needs mesh = 'uniform' "
-                         f"(a part's default mesh is {PART_MESH!r})")
-    settings_kw.setdefault("mesh", PART_MESH)
+    settings_kw.update(_default_mesh(name, settings_kw, {"mesh": PART_MESH}))
     stl = Path(EXAMPLE_STL if part_stl is None else part_stl)
     plans = part_plans(stl, layer_m, hatch_m, float(hatch_rotation_deg), contours, float(island_width_m))
     n = settings_kw.setdefault("n_layers", len(plans))

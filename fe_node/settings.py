@@ -240,8 +240,6 @@ class Settings:
             raise ValueError(f"settings: operator must be one of {', '.join(OPERATORS)}, got {self.operator!r}")
         if self.mesh not in MESHES:
             raise ValueError(f"settings: mesh must be one of {', '.join(MESHES)}, got {self.mesh!r}")
-        if self.mesh == "multilevel":
-            self._check_levels()
         if self.h_conv_w_m2k < 0:
             raise ValueError(f"settings: h_conv_w_m2k must be >= 0, got {self.h_conv_w_m2k}")
         if not 1 <= self.growth <= 2:
@@ -255,6 +253,8 @@ class Settings:
             raise ValueError(f"settings: window_m must be 0 (off) or >= 8 h_fine_m, got {self.window_m}")
         if self.fine_pad_m > self.margin_m or self.fine_depth_m > self.depth_m:
             raise ValueError("settings: refined band must lie inside the domain")
+        if self.mesh == "multilevel":
+            self._check_levels()
 
     def _check_levels(self) -> None:
         """The multi-level mesh's sizes nest: fine box < intermediate box, fine < mid < coarse elements."""

@@ -155,6 +155,10 @@ class PlantDiagnostics(Message, frozen=True, kw_only=True):
     command_source: Literal["controller", "open-loop", "fallback-hold", "fallback-safe"] = "controller"
 
 
+CONFIG_JSON_MAX_CHARS = 200_000
+"""Longest configuration a start event carries (:attr:`RunEvent.config_json`) [characters]."""
+
+
 class RunEvent(Message, frozen=True, kw_only=True):
     """Life-cycle event of one node: ``start`` (with its resolved configuration), ``end`` (with
     how many messages it published per topic, so the recorder can prove nothing was lost) or
@@ -164,7 +168,7 @@ class RunEvent(Message, frozen=True, kw_only=True):
     node: NodeName
     event: Literal["start", "end", "fault"]
     time_s: TimeS
-    config_json: Annotated[str, msgspec.Meta(max_length=200_000)] = ""
+    config_json: Annotated[str, msgspec.Meta(max_length=CONFIG_JSON_MAX_CHARS)] = ""
     total_steps: Annotated[int, msgspec.Meta(ge=0)] | None = None
     published: dict[Annotated[str, msgspec.Meta(max_length=64)], Annotated[int, msgspec.Meta(ge=0)]] = {}
     detail: Annotated[str, msgspec.Meta(max_length=2000)] = ""

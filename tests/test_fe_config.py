@@ -28,8 +28,9 @@ BAD_OVERRIDES = [
     ({"t0_k": "hot"}, "settings: t0_k must be a finite number, got 'hot'"),
     ({"evaporation": 1}, "settings: evaporation must be true or false, got 1"),
     ({"operator": 3}, "settings: operator must be a string, got 3"),
-    ({"n_tracks": 100_000}, "the FE grid would have"),
-    ({"track_length_m": 1e9}, "the FE grid would have"),
+    ({"n_tracks": 100_000, "mesh": "uniform"}, "the FE grid would have"),
+    ({"track_length_m": 1e9, "mesh": "uniform"}, "the FE grid would have"),
+    ({"track_length_m": 1e9}, "the multi-level mesh would have"),   # the layer's default mesh
 ]
 
 
@@ -67,7 +68,7 @@ def test_graded_axis_size_counts_graded_axis(args):
 
 
 def test_the_largest_plan_under_the_limit_is_accepted_and_the_next_refused():
-    base = scenario("layer")
+    base = scenario("layer", mesh="uniform")
     length, hatch = float(base.plan.lengths[0]), abs(base.plan.tracks[1][0][1] - base.plan.tracks[0][0][1])
 
     def nodes(n_tracks):
@@ -77,17 +78,23 @@ def test_the_largest_plan_under_the_limit_is_accepted_and_the_next_refused():
     while over - under > 1:                      # nodes() grows with the number of tracks
         mid = (under + over) // 2
         under, over = (mid, over) if nodes(mid) <= MAX_GRID_NODES else (under, mid)
-    assert scenario("layer", n_tracks=under).plan.tracks
+    assert scenario("layer", n_tracks=under, mesh="uniform").plan.tracks
     with pytest.raises(ValueError, match=f"the FE grid would have {nodes(over):,} nodes"):
-        scenario("layer", n_tracks=over)
+        scenario("layer", n_tracks=over, mesh="uniform")
 
 
-def test_launch_refuses_an_oversized_plan_before_starting_a_node(tmp_path):
+@pytest.mark.parametrize("mesh, message", [
+    ('mesh = "uniform"\n', "[plant]: the FE grid would have"),
+    ("", "[plant]: the scenario's description (100000 tracks) would take"),   # the layer's multi-level mesh
+])
+def test_launch_refuses_an_oversized_plan_before_starting_a_node(tmp_path, mesh, message):
+    """On the uniform mesh the grid is too large; the multi-level mesh holds it, but the plan's
+    description would not fit in the plant's start event (the plant would exit at its start)."""
     config = tmp_path / "big.toml"
-    config.write_text("[plant]\nn_tracks = 100000\n")
+    config.write_text("[plant]\nn_tracks = 100000\n" + mesh)
     run = forked_cli.run("launch.py", "--config", str(config))
     assert run.returncode == 2 and run.stdout == "", run.stdout
-    assert run.stderr.count("\n") == 1 and "[plant]: the FE grid would have" in run.stderr, run.stderr
+    assert run.stderr.count("\n") == 1 and message in run.stderr, run.stderr
 
 
 def test_an_array_of_tables_is_refused(tmp_path):

@@ -63,7 +63,7 @@ def test_nodes_that_stay_fine_keep_their_values():
 
 
 def test_window_on_the_default_layer_scenario_and_its_validation():
-    sc = scenario("layer", h_fine_m=40e-6)
+    sc = scenario("layer", h_fine_m=40e-6, mesh="uniform")
     model = ThermalModel(replace(sc.settings, window_m=2e-3), sc.plan)
     for _ in range(5):
         model.step(250.0, 0.8)
@@ -117,7 +117,7 @@ def test_lattice_fraction_counts_only_the_cells_under_the_grid():
 
 
 def test_both_operators_follow_the_window_alike():
-    sc = scenario("layer", preset=BARE, h_fine_m=40e-6)
+    sc = scenario("layer", preset=BARE, h_fine_m=40e-6, mesh="uniform")
     traces = {}
     for operator in ("tensor", "csr"):
         model = ThermalModel(replace(sc.settings, window_m=1.6e-3, operator=operator), sc.plan)
