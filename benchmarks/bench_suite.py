@@ -1,11 +1,12 @@
 """Off-design suite: each controller on cases of geometry, speed, preheat, plant mismatch and set point.
 
 Every case is one ``python launch.py --config CASE.toml --controller C --json`` run on the default
-(physical) plant, with the case's ``[plant]`` overrides; the figures are launch's, on its common
-window (from 1 ms after laser-on). A case is *in-sample* when one of the model's training runs
-(``provenance.runs`` of the model) scanned the same plan (tracks, track length, hatch) on the same
-process (no speed, preheat or absorptivity override but those of the model's own ``[plant]`` table):
-its figure is then not a test of generalisation, and the record says so.
+(physical) plant, with the case's ``[plant]`` overrides, a layer case on the uniform mesh
+(:data:`SUITE_MESH`); the figures are launch's, on its common window (from 1 ms after laser-on). A
+case is *in-sample* when one of the model's training runs (``provenance.runs`` of the model) scanned
+the same plan (tracks, track length, hatch) on the same process (no speed, preheat or absorptivity
+override but those of the model's own ``[plant]`` table): its figure is then not a test of
+generalisation, and the record says so.
 
 The cases (:data:`CASES`):
 
@@ -75,6 +76,12 @@ training staircases, ``gp_trainer.pid_tuning``) and the scan-plan feed-forward (
 plan with no feedback, :mod:`controller_node.scan_feedforward`)."""
 
 
+SUITE_MESH = "uniform"
+"""The mesh of the layer cases: the uniform fine mesh, the reference, so that no case's figure depends on how
+well the default layer's multi-level mesh (:data:`fe_node.scenarios.LAYER_MESH`, matched to it on the default
+layer only) holds on another plan; the part case runs on a part's default mesh."""
+
+
 @dataclass(frozen=True)
 class Case:
     """One off-design case: the ``layer`` scenario (or the part) with ``[plant]`` overrides.
@@ -103,6 +110,10 @@ class Case:
     scenario: str = "layer"
     layers: int = 1
     model: str | None = None
+
+    def plant_table(self) -> dict[str, Any]:
+        """The run's ``[plant]`` table: the case's overrides, on :data:`SUITE_MESH` for a layer case."""
+        return ({"mesh": SUITE_MESH} if self.scenario == "layer" else {}) | self.plant
 
     def plan(self) -> tuple[int, float, float] | None:
         """(tracks, track length [m], hatch [m]) of the case's plan; None for a part."""
@@ -181,7 +192,7 @@ def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None,
     """One launch.py run of ``case`` under ``controller`` (on ``model`` for :data:`MODEL_CONTROLLERS`, the
     PID on its process record; None: launch's model of the plant); launch's JSON summary (or the refusal)."""
     config = out_dir / f"{case.name}.toml"
-    lines = ["[plant]"] + [f"{k} = {json.dumps(v)}" for k, v in sorted(case.plant.items())]
+    lines = ["[plant]"] + [f"{k} = {json.dumps(v)}" for k, v in sorted(case.plant_table().items())]
     config.write_text("\n".join(lines) + "\n")
     cmd = [sys.executable, "launch.py", "--config", str(config), "--scenario", case.scenario,
            "--controller", controller, "--setpoint-mm2", str(case.setpoint_mm2), "--json", "--no-progress",
@@ -247,7 +258,7 @@ def bound_from(provenance: dict[str, Any], args: argparse.Namespace, model: Path
 
 def case_bound(case: Case, settings: BoundSettings, max_steps: int | None) -> dict[str, Any]:
     """``bound_rmse_pct`` and ``bound_iteration`` of ``case`` (:func:`learning_bound.learning_bound`)."""
-    overrides = dict(case.plant) | ({"n_layers": case.layers} if case.scenario == "part" else {})
+    overrides = case.plant_table() | ({"n_layers": case.layers} if case.scenario == "part" else {})
     result = learning_bound(scenario(case.scenario, **overrides), case.setpoint_mm2 * 1e-6, settings, max_steps)
     return {"bound_rmse_pct": result["bound_rmse_pct"], "bound_iteration": result["bound_iteration"]}
 
