@@ -1,11 +1,12 @@
 """Does the preview MPC's model see what power before a turnaround does after it? Plant vs model.
 
 Runs ``preview-mpc`` with the shipped delay-aware model in closed loop on the FE plant (in
-process, as ``bench_preview.py``). ``--before`` states before the chosen turnaround it copies the
-plant and replays the next ``--horizon`` commands twice from that copy: as applied, and with
-``--delta-w`` added to the first ``--steps`` of them. The plant's change of the area and of the
-temperature ahead is set beside the change the controller's own linearisation at that state
-predicts (``Γ Δv`` of the QP it solved, :mod:`controller_node.preview_qp`).
+process, as ``bench_preview.py``; on the uniform mesh, the one its models were learned on).
+``--before`` states before the chosen turnaround it copies the plant and replays the next
+``--horizon`` commands twice from that copy: as applied, and with ``--delta-w`` added to the first
+``--steps`` of them. The plant's change of the area and of the temperature ahead is set beside the
+change the controller's own linearisation at that state predicts (``Γ Δv`` of the QP it solved,
+:mod:`controller_node.preview_qp`).
 
 Prints a table and the ratio of the model's to the plant's mean change of the area over the states
 15–30 after the turn; with ``--json``, then, as the last line, JSON with ``state`` (states after the
@@ -56,7 +57,7 @@ def main() -> None:
                         help="delay-aware model file (default: the shipped model of the plant's layer)")
     parser.add_argument("--json", action="store_true", help="print the JSON record as the last line")
     args = parser.parse_args()
-    sc = scenario(args.scenario, preset=args.preset)
+    sc = scenario(args.scenario, preset=args.preset, mesh="uniform")   # the plant the models were learned on
     plant = ThermalModel(sc.settings, sc.plan)
     sp = args.setpoint_mm2 * 1e-6
     model = NarxGPModel.load(args.model or default_model_path(sc.settings.powder_layer_m))
