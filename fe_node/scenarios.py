@@ -100,8 +100,8 @@ grow with the part's size or its layers (docs/fe-scale.md); ``mesh = "uniform"``
 LAYER_MESH = {"mesh": "multilevel", "fine_box_m": 3.2e-3}
 """The ``layer`` scenario's mesh unless ``[plant] mesh`` names one: the multi-level mesh with a 3.2 mm
 fine box, which matches the uniform mesh there (``benchmarks/bench_fe_scale.py``: area trace within
-1 % rms and 3 % at most; the preview MPC's closed loop within 0.2 points, docs/fe-scale.md) at about a
-third of its cost. The box side was chosen on that comparison (2.4 mm, the part default, put the
+1 % rms and 3 % at most; the preview MPC's closed loop within 0.2 points, docs/fe-scale.md) at 2.4-2.6
+times less cost per step. The box side was chosen on that comparison (2.4 mm, the part default, put the
 overshoot 0.38 points below the uniform mesh's); ``mesh = "uniform"`` is the reference.
 """
 
