@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from controller_node.process import process_mismatch
+from fe_node.scenarios import scenario
 from gp_model.narx import NarxGPModel
 from gp_model.shipped import DEFAULT_MODEL_PATH, PLATE_MODEL_PATH
 from gp_trainer.campaign import IDENT_RUNS, PLATE_DESIGN, FeedbackRun, IdentRun, ProcessDesign
@@ -83,6 +84,8 @@ def test_design_scales_the_runs_to_the_operating_point_and_the_set_point():
         plant = tomllib.loads(plant_toml(job.plant, job.controller_table))
         own_t0_k = run.t0_k if isinstance(run, FeedbackRun) and run.t0_k is not None else 320.0
         assert plant["plant"]["preset"] == "physical" and plant["plant"]["t0_k"] == own_t0_k
+        # every run on one mesh, the uniform one: the closed-loop runs on the layer too (its default is multi-level)
+        assert scenario(run.scenario, **plant["plant"]).settings.mesh == "uniform"
     assert closed[-1].job().controller_table == (("nominal_power_w", 130.0),)
     assert all(r.job().args[-2:] == ("--model", str(REPO_ROOT / "models/stage1.json")) for r in stage2)
     held = design.held_out()
