@@ -142,7 +142,8 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
     for run, job in zip(feedback[:7], jobs[6:]):
         out = tmp_path / f"{job.name}.partial.mcap"
         nominal = {"nominal_power_w": 250.0} if run.controller == "feedforward" else {}  # the plate's operating power
-        assert dict(job.controller_table) == nominal and dict(job.plant) == {"preset": "bare-plate"}
+        on_layer = {"mesh": "uniform"} if run.scenario == "layer" else {}     # (the layer's default is multi-level)
+        assert dict(job.controller_table) == nominal and dict(job.plant) == {"preset": "bare-plate", **on_layer}
         config = tmp_path / "cfg.toml"
         assert job_command(settings, job, out, config) == [
             "PY",
@@ -168,7 +169,8 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
         command = job_command(settings, job, out, config)
         assert command[command.index("--model") + 1] == str(REPO_ROOT / PLATE_STAGE1_MODEL)
         assert dict(job.plant) == {"preset": "bare-plate", **({} if run.hatch_m is None else
-                                                              {"hatch_m": run.hatch_m, "t0_k": run.t0_k})}
+                                                              {"hatch_m": run.hatch_m, "t0_k": run.t0_k}),
+                                   **({"mesh": "uniform"} if run.scenario == "layer" else {})}
     assert (REPO_ROOT / PLATE_STAGE1_MODEL).is_file()
     assert [(r.scenario, r.mean_w, r.seed) for r in open_loop] == [
         ("ident-layer", 200.0, 1), ("ident-layer", 250.0, 2), ("ident-layer", 300.0, 3),
