@@ -266,8 +266,9 @@ class Settings:
             raise ValueError(f"settings: fine_box_depth_m must be in [fine_depth_m, depth_m], "
                              f"got {self.fine_box_depth_m}")
         if not self.h_fine_m < self.mid_h_m < self.coarse_h_m:
-            raise ValueError(f"settings: need h_fine_m < mid_h_m < coarse_h_m, got {self.h_fine_m}, {self.mid_h_m}, "
-                             f"{self.coarse_h_m}")
+            raise ValueError(f"settings: the multi-level mesh needs h_fine_m < mid_h_m < coarse_h_m, got "
+                             f"{self.h_fine_m}, {self.mid_h_m}, {self.coarse_h_m}: raise mid_h_m (and coarse_h_m), "
+                             "or set mesh = 'uniform'")
         if not self.mid_box_m >= self.fine_box_m + 4 * self.mid_h_m:
             raise ValueError(f"settings: mid_box_m must be >= fine_box_m + 4 mid_h_m, got {self.mid_box_m}")
 

@@ -31,6 +31,8 @@ BAD_OVERRIDES = [
     ({"n_tracks": 100_000, "mesh": "uniform"}, "the FE grid would have"),
     ({"track_length_m": 1e9, "mesh": "uniform"}, "the FE grid would have"),
     ({"track_length_m": 1e9}, "the multi-level mesh would have"),   # the layer's default mesh
+    ({"h_fine_m": 5e-5}, "the multi-level mesh needs h_fine_m < mid_h_m < coarse_h_m, got 5e-05, 5e-05, 0.0002: "
+                         "raise mid_h_m"),   # (then it names mesh = "uniform", the other way out)
 ]
 
 
