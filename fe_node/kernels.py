@@ -60,34 +60,30 @@ def element_apply(corners: np.ndarray, ke: np.ndarray, u: np.ndarray, out: np.nd
 
 
 @numba.njit(cache=True, nogil=True)
-def element_apply_box(corners: np.ndarray, ke: np.ndarray, u_box: np.ndarray, j0: int, k0: int, i0: int, nz: int,
-                      nx: int, out: np.ndarray) -> None:
+def element_apply_box(first: np.ndarray, ke: np.ndarray, u_box: np.ndarray, j0: int, k0: int, i0: int,
+                      out: np.ndarray) -> None:
     """``out += sum_e K_e u`` as :func:`element_apply`, for ``u`` zero outside a box of nodes that
-    starts at (``j0``, ``k0``, ``i0``) of a grid with ``nz``, ``nx`` nodes along z, x, ``u_box``
-    (its shape) its values there; elements with no corner in the box are skipped (from their first
-    corner, the lowest in y, z and x, alone)."""
+    starts at node (``j0``, ``k0``, ``i0``), ``u_box`` (its shape) its values there; ``first`` (n, 3)
+    the (y, z, x) node of each element's first corner (its local node ``4 b_y + 2 b_z + b_x`` is that
+    node plus (b_y, b_z, b_x)) and ``out`` of the grid's node shape (ny, nz, nx). Elements with no
+    corner in the box are skipped."""
     ny_b, nz_b, nx_b = u_box.shape
     vals = np.empty(8)
-    for e in range(corners.shape[0]):
-        c = corners[e, 0]
-        j, k, i = c // (nz * nx) - j0, (c // nx) % nz - k0, c % nx - i0
+    for e in range(first.shape[0]):
+        j, k, i = first[e, 0] - j0, first[e, 1] - k0, first[e, 2] - i0
         if not (-1 <= j < ny_b and -1 <= k < nz_b and -1 <= i < nx_b):
             continue
-        inside = False
         for b in range(8):
-            c = corners[e, b]
-            j, k, i = c // (nz * nx) - j0, (c // nx) % nz - k0, c % nx - i0
-            if 0 <= j < ny_b and 0 <= k < nz_b and 0 <= i < nx_b:
-                vals[b] = u_box[j, k, i]
-                inside = True
+            jb, kb, ib = j + (b >> 2), k + ((b >> 1) & 1), i + (b & 1)
+            if 0 <= jb < ny_b and 0 <= kb < nz_b and 0 <= ib < nx_b:
+                vals[b] = u_box[jb, kb, ib]
             else:
                 vals[b] = 0.0
-        if inside:
-            for a in range(8):
-                s = 0.0
-                for b in range(8):
-                    s += ke[e, a, b] * vals[b]
-                out[corners[e, a]] += s
+        for a in range(8):
+            s = 0.0
+            for b in range(8):
+                s += ke[e, a, b] * vals[b]
+            out[first[e, 0] + (a >> 2), first[e, 1] + ((a >> 1) & 1), first[e, 2] + (a & 1)] += s
 
 
 @numba.njit(cache=True, nogil=True)
@@ -252,7 +248,8 @@ def warm() -> None:
     piecewise_linear(one, 0.0, 1.0, 1, one, one, np.empty(2))
     corners = np.zeros((1, 8), dtype=np.intp)
     element_apply(corners, np.zeros((1, 8, 8)), one, np.zeros(2))
-    element_apply_box(corners, np.zeros((1, 8, 8)), np.ones((1, 1, 1)), 0, 0, 0, 1, 1, np.zeros(2))
+    element_apply_box(np.zeros((1, 3), dtype=np.intp), np.zeros((1, 8, 8)), np.ones((1, 1, 1)), 0, 0, 0,
+                      np.zeros((2, 2, 2)))
     evaporate_nodes(one * 2000.0, one, 1.0, 3000.0, 1000.0, 1.0, 1.0, 1.0, 2, np.empty(2))
     drill_columns(np.ones((1, 2, 1)), np.ones((1, 2, 1)), 2.0, 1, np.empty((1, 1), dtype=np.bool_))
     melt_powder(np.ones((2, 2, 2)), 2.0, np.zeros((1, 1, 1), dtype=np.bool_), 1, np.empty(1, dtype=np.intp))

@@ -173,17 +173,20 @@ def box_stiffness(hx, hy, hz, vertical_only: bool = False, nodal: bool = False) 
     ndarray, shape (n, 8, 8)
         Local node ``4 b_y + 2 b_z + b_x`` (corner bits along y, z, x).
     """
-    def k1(h):
-        return np.array([[1.0, -1.0], [-1.0, 1.0]])[None] / h[:, None, None]
+    hx, hy, hz = (np.asarray(h, dtype=float) for h in (hx, hy, hz))
+    terms = _UNIT_BOX_TERMS[nodal]
+    z = (hx * hy / hz)[:, None] * terms[2]
+    if not vertical_only:      # K_x, K_y, K_z scale as hy hz / hx, hx hz / hy, hx hy / hz
+        z = z + (hy * hz / hx)[:, None] * terms[0] + (hx * hz / hy)[:, None] * terms[1]
+    return z.reshape(-1, 8, 8)
 
-    def m1(h):
-        return _mass1(h, nodal)
 
-    def kron3(a, b, c):   # kron(a, b, c) per box: rows (y, z, x), columns (y, z, x)
-        return np.einsum("nab,ncd,nef->nacebdf", a, b, c).reshape(-1, 8, 8)
-
-    z = kron3(m1(hy), k1(hz), m1(hx))
-    return z if vertical_only else kron3(m1(hy), m1(hz), k1(hx)) + kron3(k1(hy), m1(hz), m1(hx)) + z
+def _unit_box_terms(nodal: bool) -> np.ndarray:
+    """The x, y and z terms of the unit cube's ``conduction`` matrix, shape (3, 64) (local node
+    ``4 b_y + 2 b_z + b_x``): ``kron(M, M, K)``, ``kron(K, M, M)``, ``kron(M, K, M)`` over (y, z, x),
+    ``K``, ``M`` the 1-D unit stiffness and (``nodal``: lumped) mass."""
+    k, m = np.array([[1.0, -1.0], [-1.0, 1.0]]), _mass1(np.ones(1), nodal)[0]
+    return np.stack([np.kron(np.kron(m, m), k), np.kron(np.kron(k, m), m), np.kron(np.kron(m, k), m)]).reshape(3, 64)
 
 
 class _Correction:
@@ -206,6 +209,7 @@ class _Correction:
         self._kze = np.empty((0, 8, 8))
         self.n_elements = 0
         """Element matrices added so far (an element added twice counts twice)."""
+        self._first = np.empty((0, 3), dtype=np.intp)
 
     def add(self, corners: np.ndarray, ke: np.ndarray, kze: np.ndarray | None) -> None:
         """Add element matrices ``ke`` (and ``kze``), shape (n, 8, 8), on nodes ``corners`` (n, 8)."""
@@ -244,11 +248,15 @@ class _Correction:
         """``out += K_z u`` (``out`` flat) for ``u`` zero outside the node box ``box``, ``u_box`` its values there."""
         from fe_node.kernels import element_apply_box
 
-        n = self.n_elements
-        if n:
-            _, nz, nx = self.shape
-            element_apply_box(self._corners[:n], self._kze[:n], np.ascontiguousarray(u_box, dtype=float),
-                              box[0].start, box[1].start, box[2].start, nz, nx, out)
+        if self.n_elements:
+            element_apply_box(self._first_corners(), self._kze, np.ascontiguousarray(u_box, dtype=float),
+                              box[0].start, box[1].start, box[2].start, out.reshape(self.shape))
+
+    def _first_corners(self) -> np.ndarray:
+        """The (y, z, x) node of each element's first corner, shape (n_elements, 3) (kept until elements are added)."""
+        if len(self._first) != self.n_elements:
+            self._first = np.stack(np.unravel_index(self._corners[:self.n_elements, 0], self.shape), axis=1)
+        return self._first
 
     def matrix(self, n_nodes: int) -> sp.csr_matrix:
         """``K`` on all ``n_nodes`` nodes."""
@@ -261,6 +269,9 @@ def _mass1(h: np.ndarray, nodal: bool) -> np.ndarray:
     """1-D linear-element masses [m] of edges ``h`` (shape (n,)), consistent or (``nodal``) lumped, shape (n, 2, 2)."""
     local = np.eye(2) / 2.0 if nodal else np.array([[2.0, 1.0], [1.0, 2.0]]) / 6.0
     return local[None] * h[:, None, None]
+
+
+_UNIT_BOX_TERMS = {nodal: _unit_box_terms(nodal) for nodal in (False, True)}
 
 
 def _assemble_yz(hy: np.ndarray, hz: np.ndarray, w: np.ndarray, y: str, z: str, nodal: bool = False) -> sp.csr_matrix:
