@@ -1,12 +1,13 @@
 """Off-design suite: each controller on cases of geometry, speed, preheat, plant mismatch and set point.
 
 Every case is one ``python launch.py --config CASE.toml --controller C --json`` run on the default
-(physical) plant, with the case's ``[plant]`` overrides, a layer case on the uniform mesh
-(:data:`SUITE_MESH`); the figures are launch's, on its common window (from 1 ms after laser-on). A
-case is *in-sample* when one of the model's training runs (``provenance.runs`` of the model) scanned
-the same plan (tracks, track length, hatch) on the same process (no speed, preheat or absorptivity
-override but those of the model's own ``[plant]`` table): its figure is then not a test of
-generalisation, and the record says so.
+(physical) plant, with the case's ``[plant]`` overrides, a layer case on the models' training mesh
+(:data:`fe_node.scenarios.TRAINING_MESH`, the uniform reference: no figure depends on how well the default
+layer's multi-level mesh holds on another plan), the part case on a part's default mesh; the figures are
+launch's, on its common window (from 1 ms after laser-on). A case is *in-sample* when one of
+the model's training runs (``provenance.runs`` of the model) scanned the same plan (tracks, track length,
+hatch) on the same process (no speed, preheat or absorptivity override but those of the model's own
+``[plant]`` table): its figure is then not a test of generalisation, and the record says so.
 
 The cases (:data:`CASES`):
 
@@ -57,7 +58,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from learning_bound import BoundSettings, learning_bound  # noqa: E402
 
-from fe_node.scenarios import scenario  # noqa: E402
+from fe_node.scenarios import TRAINING_MESH, scenario  # noqa: E402
 from gp_model.files import read_document  # noqa: E402
 from gp_model.narx import NarxGPModel, series_from_states  # noqa: E402
 from gp_model.shipped import DEFAULT_MODEL_PATH  # noqa: E402
@@ -75,11 +76,6 @@ CONTROLLERS = ("preview-mpc", "pid", "scan-feedforward")
 training staircases, ``gp_trainer.pid_tuning``) and the scan-plan feed-forward (the same model and
 plan with no feedback, :mod:`controller_node.scan_feedforward`)."""
 
-
-SUITE_MESH = "uniform"
-"""The mesh of the layer cases: the uniform fine mesh, the reference, so that no case's figure depends on how
-well the default layer's multi-level mesh (:data:`fe_node.scenarios.LAYER_MESH`, matched to it on the default
-layer only) holds on another plan; the part case runs on a part's default mesh."""
 
 
 @dataclass(frozen=True)
@@ -112,8 +108,9 @@ class Case:
     model: str | None = None
 
     def plant_table(self) -> dict[str, Any]:
-        """The run's ``[plant]`` table: the case's overrides, on :data:`SUITE_MESH` for a layer case."""
-        return ({"mesh": SUITE_MESH} if self.scenario == "layer" else {}) | self.plant
+        """The run's ``[plant]`` table: the case's overrides, on :data:`~fe_node.scenarios.TRAINING_MESH` for a
+        layer case."""
+        return ({"mesh": TRAINING_MESH} if self.scenario == "layer" else {}) | self.plant
 
     def plan(self) -> tuple[int, float, float] | None:
         """(tracks, track length [m], hatch [m]) of the case's plan; None for a part."""

@@ -29,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from fe_node.presets import DEFAULT, NAMES  # noqa: E402
-from fe_node.scenarios import scenario  # noqa: E402
+from fe_node.scenarios import TRAINING_MESH, scenario  # noqa: E402
 from fe_node.solver import ThermalModel  # noqa: E402
 from gp_model.narx import NarxGPModel, RunSeries  # noqa: E402
 from gp_model.shipped import default_model_path  # noqa: E402
@@ -53,7 +53,7 @@ def series(name: str, states: list, sample_period_s: float) -> RunSeries:
 def case(preset: str, model: NarxGPModel, power_w: float, delta_w: float, settle: int, after: int) -> dict:
     """Plant's and model's change of the area [% of the unstepped one] ``after`` steps after a step of
     ``delta_w`` from ``power_w``."""
-    sc = scenario("layer", preset=preset, n_tracks=1, mesh="uniform")   # the plant the models were learned on
+    sc = scenario("layer", preset=preset, n_tracks=1, mesh=TRAINING_MESH)   # the plant the models were learned on
     plant = ThermalModel(sc.settings, sc.plan)
     states = [plant.initial_observation(), *plant_run(plant, [power_w] * settle)]
     twin = copy.deepcopy(plant)

@@ -36,7 +36,7 @@ from bench_preview import measurement  # noqa: E402
 
 from controller_node import ControllerSettings, make_controller  # noqa: E402
 from fe_node.presets import DEFAULT, NAMES  # noqa: E402
-from fe_node.scenarios import scenario  # noqa: E402
+from fe_node.scenarios import TRAINING_MESH, scenario  # noqa: E402
 from fe_node.solver import ThermalModel  # noqa: E402
 from gp_model.narx import NarxGPModel  # noqa: E402
 from gp_model.shipped import default_model_path  # noqa: E402
@@ -57,7 +57,7 @@ def main() -> None:
                         help="delay-aware model file (default: the shipped model of the plant's layer)")
     parser.add_argument("--json", action="store_true", help="print the JSON record as the last line")
     args = parser.parse_args()
-    sc = scenario(args.scenario, preset=args.preset, mesh="uniform")   # the plant the models were learned on
+    sc = scenario(args.scenario, preset=args.preset, mesh=TRAINING_MESH)   # the plant the models were learned on
     plant = ThermalModel(sc.settings, sc.plan)
     sp = args.setpoint_mm2 * 1e-6
     model = NarxGPModel.load(args.model or default_model_path(sc.settings.powder_layer_m))

@@ -105,6 +105,13 @@ times less cost per step. The box side was chosen on that comparison (2.4 mm, th
 overshoot 0.38 points below the uniform mesh's); ``mesh = "uniform"`` is the reference.
 """
 
+TRAINING_MESH = "uniform"
+"""The mesh of the plate models' training runs: the identification staircases' (the plate scenarios'
+default) and, in place of :data:`LAYER_MESH`, that of a learning campaign's closed-loop runs on the ``layer``
+(``gp_trainer.campaign``), so that all of a model's training runs are on one mesh. The off-design suite's
+layer cases and the sensitivity benchmarks run the plant on it too.
+"""
+
 PART_POWER_W = 100.0
 """Open-loop power of the ``part`` scenario [W]; ``launch.py`` starts every controller from it on a part.
 On a 50 µm powder layer over the small part, 250 W (the bare plate's) gives 3-4× the bare plate's

@@ -49,7 +49,7 @@ from typing import Any
 
 from fe_node.presets import NAMES as PRESETS
 from fe_node.presets import preset
-from fe_node.scenarios import scenario
+from fe_node.scenarios import TRAINING_MESH, scenario
 from fe_node.settings import Settings
 from gp_model.shipped import PART_MODEL_PATH, PLATE_MODEL_PATH
 from gp_trainer.distributed import check_scheduler_address, dask_client, run_on_dask
@@ -365,12 +365,6 @@ def _merged(process: tuple[tuple[str, Any], ...], run: tuple[tuple[str, Any], ..
     return tuple((k, v) for k, v in process if k not in own) + run
 
 
-CLOSED_LOOP_MESH = "uniform"
-"""The mesh of a closed-loop run on the ``layer`` scenario unless the process's ``[plant]`` names one: the
-uniform mesh of the staircases (``ident-layer``), not the default layer's multi-level mesh
-(:data:`fe_node.scenarios.LAYER_MESH`), so that all of a model's training runs are on one mesh."""
-
-
 @dataclass(frozen=True)
 class FeedbackRun:
     """A closed-loop identification run: one of the project's controllers at one set point.
@@ -410,7 +404,7 @@ class FeedbackRun:
         plant = _merged(self.plant, tuple((k, float(v)) for k, v in (("hatch_m", self.hatch_m), ("t0_k", self.t0_k))
                                           if v is not None))
         if self.scenario == "layer":
-            plant = _merged((("mesh", CLOSED_LOOP_MESH),), plant)
+            plant = _merged((("mesh", TRAINING_MESH),), plant)
         controller = () if self.nominal_power_w is None else (("nominal_power_w", float(self.nominal_power_w)),)
         return Job(self.name, self.scenario, plant=plant,
                    args=("--setpoint-mm2", repr(self.setpoint_mm2), *layers, *model), controller=self.controller,

@@ -109,15 +109,15 @@ def test_an_array_of_tables_is_refused(tmp_path):
 def test_the_default_layer_is_on_the_multilevel_mesh_and_the_uniform_one_a_key_away():
     """``layer`` (launch.py's default) is built on the multi-level mesh with its own box
     (:data:`fe_node.scenarios.LAYER_MESH`); ``mesh = "uniform"`` is the reference; the other plate
-    scenarios (the identification runs among them) stay uniform; a uniform-only option without the
-    mesh is refused in one line naming it."""
-    from fe_node.scenarios import LAYER_MESH
+    scenarios (the identification runs among them) stay on the models' training mesh; a uniform-only
+    option without the mesh is refused in one line naming it."""
+    from fe_node.scenarios import LAYER_MESH, TRAINING_MESH
 
     default = scenario("layer").settings
     assert (default.mesh, default.fine_box_m) == ("multilevel", LAYER_MESH["fine_box_m"]) != ("multilevel", 2.4e-3)
     assert scenario("layer", fine_box_m=4e-3).settings.fine_box_m == 4e-3
     assert scenario("layer", mesh="uniform").settings.mesh == "uniform"
-    assert {scenario(name).settings.mesh for name in ("double-track", "ident-layer", "single-track")} == {"uniform"}
+    assert {scenario(name).settings.mesh for name in ("double-track", "ident-layer", "single-track")} == {TRAINING_MESH}
     with pytest.raises(ValueError, match=r"^scenario layer: window_m = 0.002 needs mesh = 'uniform' \(the layer "
                                          r"scenario's default mesh is 'multilevel'\)$"):
         scenario("layer", window_m=2e-3)

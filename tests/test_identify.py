@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fe_node.scenarios import IDENT_DEFAULTS, IDENT_HOLD_STEPS, scenario
+from fe_node.scenarios import IDENT_DEFAULTS, IDENT_HOLD_STEPS, TRAINING_MESH, scenario
 from gp_model.shipped import PLATE_MODEL_PATH
 from gp_trainer.campaign import (
     IDENT_RUNS,
@@ -142,7 +142,7 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
     for run, job in zip(feedback[:7], jobs[6:]):
         out = tmp_path / f"{job.name}.partial.mcap"
         nominal = {"nominal_power_w": 250.0} if run.controller == "feedforward" else {}  # the plate's operating power
-        on_layer = {"mesh": "uniform"} if run.scenario == "layer" else {}     # (the layer's default is multi-level)
+        on_layer = {"mesh": TRAINING_MESH} if run.scenario == "layer" else {}     # (the layer's default is multi-level)
         assert dict(job.controller_table) == nominal and dict(job.plant) == {"preset": "bare-plate", **on_layer}
         config = tmp_path / "cfg.toml"
         assert job_command(settings, job, out, config) == [
@@ -170,7 +170,7 @@ def test_identify_jobs_are_the_default_runs_with_their_command_lines(tmp_path):
         assert command[command.index("--model") + 1] == str(REPO_ROOT / PLATE_STAGE1_MODEL)
         assert dict(job.plant) == {"preset": "bare-plate", **({} if run.hatch_m is None else
                                                               {"hatch_m": run.hatch_m, "t0_k": run.t0_k}),
-                                   **({"mesh": "uniform"} if run.scenario == "layer" else {})}
+                                   **({"mesh": TRAINING_MESH} if run.scenario == "layer" else {})}
     assert (REPO_ROOT / PLATE_STAGE1_MODEL).is_file()
     assert [(r.scenario, r.mean_w, r.seed) for r in open_loop] == [
         ("ident-layer", 200.0, 1), ("ident-layer", 250.0, 2), ("ident-layer", 300.0, 3),
