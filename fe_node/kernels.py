@@ -60,6 +60,26 @@ def element_apply(corners: np.ndarray, ke: np.ndarray, u: np.ndarray, out: np.nd
 
 
 @numba.njit(cache=True, nogil=True)
+def csr_box_rows(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, nz: int, j_rows: int, k_rows: int,
+                 j0: int, k0: int, sj: int, sk: int, u_box: np.ndarray, i0: int, out: np.ndarray) -> None:
+    """``out += A u`` on the rows of a (y, z) node box of ``A`` (CSR, rows and columns ``j nz + k``), for
+    ``u`` zero outside the node box that starts at (``sj``, ``sk``), ``u_box`` (nj, nk, n) its values
+    there: ``out[(j - j0) k_rows + (k - k0), i0:i0 + n]`` for the ``j_rows`` × ``k_rows`` rows from
+    (``j0``, ``k0``)."""
+    nj, nk = u_box.shape[0], u_box.shape[1]
+    for a in range(j_rows):
+        for b in range(k_rows):
+            r, o = (j0 + a) * nz + k0 + b, a * k_rows + b
+            for q in range(indptr[r], indptr[r + 1]):
+                c = indices[q]
+                jc, kc = c // nz - sj, c % nz - sk
+                if 0 <= jc < nj and 0 <= kc < nk:
+                    v = data[q]
+                    for i in range(u_box.shape[2]):
+                        out[o, i0 + i] += v * u_box[jc, kc, i]
+
+
+@numba.njit(cache=True, nogil=True)
 def element_apply_box(first: np.ndarray, ke: np.ndarray, u_box: np.ndarray, j0: int, k0: int, i0: int,
                       out: np.ndarray) -> None:
     """``out += sum_e K_e u`` as :func:`element_apply`, for ``u`` zero outside a box of nodes that
@@ -248,6 +268,8 @@ def warm() -> None:
     piecewise_linear(one, 0.0, 1.0, 1, one, one, np.empty(2))
     corners = np.zeros((1, 8), dtype=np.intp)
     element_apply(corners, np.zeros((1, 8, 8)), one, np.zeros(2))
+    csr_box_rows(np.array([0, 1], dtype=np.int32), np.zeros(1, dtype=np.int32), one[:1], 1, 1, 1, 0, 0, 0, 0,
+                 np.ones((1, 1, 2)), 0, np.zeros((1, 2)))
     element_apply_box(np.zeros((1, 3), dtype=np.intp), np.zeros((1, 8, 8)), np.ones((1, 1, 1)), 0, 0, 0,
                       np.zeros((2, 2, 2)))
     evaporate_nodes(one * 2000.0, one, 1.0, 3000.0, 1000.0, 1.0, 1.0, 1.0, 2, np.empty(2))

@@ -361,7 +361,6 @@ class TensorOperator:
         cz = _assemble_yz(hy, hz, wz, "m", "k", self.nodal)
         self._ab = sp.vstack([a, _assemble_yz(hy, hz, w, "k", "m", self.nodal) + cz]).tocsr()
         self._cz = cz if self._vertical else None
-        self._cz_blocks = {}
         self._p = a.shape[0]
         self._corr = _Correction(self.shape, self._vertical)
         dk = self.kw - w[:, :, None]
@@ -424,19 +423,15 @@ class TensorOperator:
     def add_vertical(self, u_box: np.ndarray, box: tuple[slice, slice, slice], out: np.ndarray) -> None:
         """``out += K_z u`` for ``u`` zero outside the node box ``box`` (slices along y, z, x with
         explicit bounds), ``u_box`` its values there; only ``box`` and its neighbours are touched."""
+        from fe_node.kernels import csr_box_rows
+
         nz = self.shape[1]
         sj, sk, si = box
         jo, ko, io = (slice(max(s.start - 1, 0), min(s.stop + 1, n)) for s, n in zip(box, self.shape))
-        key = (sj.start, sj.stop, sk.start, sk.stop)
-        if key not in self._cz_blocks:        # the (y, z) box moves slowly: its block is reused
-            if len(self._cz_blocks) >= 256:
-                self._cz_blocks.clear()
-            rows = (np.arange(jo.start, jo.stop)[:, None] * nz + np.arange(ko.start, ko.stop)).ravel()
-            cols = (np.arange(sj.start, sj.stop)[:, None] * nz + np.arange(sk.start, sk.stop)).ravel()
-            self._cz_blocks[key] = self._cz[rows][:, cols]
-        block = self._cz_blocks[key]
-        w = np.zeros((block.shape[0], io.stop - io.start))
-        w[:, si.start - io.start:si.stop - io.start] = block @ u_box.reshape(block.shape[1], -1)
+        w = np.zeros(((jo.stop - jo.start) * (ko.stop - ko.start), io.stop - io.start))
+        cz = self._cz
+        csr_box_rows(cz.indptr, cz.indices, cz.data, nz, jo.stop - jo.start, ko.stop - ko.start, jo.start, ko.start,
+                     sj.start, sk.start, np.ascontiguousarray(u_box, dtype=float), si.start - io.start, w)
         res = w * self._md[io]
         mo = self._mo[io.start:io.stop - 1]
         res[:, 1:] += w[:, :-1] * mo
@@ -487,7 +482,7 @@ class TensorOperator:
         new.grid = grid
         new.kw, new.kw_z, new.rho_w = self.kw.copy(), self.kw_z.copy(), self.rho_w.copy()
         new._ratio, new.lumped_mass = self._ratio.copy(), self.lumped_mass.copy()
-        new._corr, new._cz_blocks = self._corr.copy(), dict(self._cz_blocks)
+        new._corr = self._corr.copy()
         changed = np.flatnonzero((kw != self.kw.ravel()) | (kw != self.kw_z.ravel()) | (rho_w != self.rho_w.ravel()))
         if len(changed):
             new.reweight(changed, kw[changed], rho_w[changed])

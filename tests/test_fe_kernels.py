@@ -78,7 +78,7 @@ def test_warm_compiles_every_kernel_with_the_plants_types():
 
     warm()
     compiled = {name: len(getattr(kernels, name).signatures) for name in
-                ("x_pass", "piecewise_linear", "element_apply", "element_apply_box", "evaporate_nodes",
+                ("x_pass", "piecewise_linear", "element_apply", "csr_box_rows", "element_apply_box", "evaporate_nodes",
                  "drill_columns", "melt_powder", "area_and_extent", "deepest_line")}
     sc = scenario("double-track", h_fine_m=50e-6, track_length_m=1e-3)
     model = ThermalModel(sc.settings, sc.plan)
