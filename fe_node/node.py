@@ -37,7 +37,15 @@ from fe_node.scenarios import scenario as build_scenario
 from fe_node.scene import fitted_scene, laser_pose
 from fe_node.solver import ThermalModel
 from messages import LaserCommand, LogLevel, MeltPoolState, PlantDiagnostics
-from messages.bus import Inbox, NodeBus, StopFlag, add_bus_arguments, bus_settings_from_args, run_node
+from messages.bus import (
+    Inbox,
+    NodeBus,
+    StopFlag,
+    add_bus_arguments,
+    bus_settings_from_args,
+    run_node,
+    single_threaded_blas,
+)
 from messages.cli import ArgumentParser, UsageError, exit_usage, run_main
 from messages.config import load_toml
 from messages.topics import LASER_COMMAND, PLANT_DIAGNOSTICS, PLANT_LASER, PLANT_SCENE, PLANT_STATE, PLANT_TEMPERATURE
@@ -275,6 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the node mode of ``python -m fe_node``."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    single_threaded_blas()
     try:
         bus_settings = bus_settings_from_args(args)
         settings = settings_from_args(args)

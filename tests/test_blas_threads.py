@@ -12,6 +12,7 @@ import pytest
 
 import controller_node.node as controller_main
 import fe_node.example_sensor as sensor_main
+import fe_node.node as plant_main
 import fe_node.surrogate as surrogate_main
 
 BLAS_THREADS = (
@@ -55,3 +56,19 @@ def test_example_sensor_limits_blas(monkeypatch):
     monkeypatch.setattr(sensor_main, "single_threaded_blas", lambda: calls.append("blas"))
     assert sensor_main.main(["--power-w", "-1"]) == 2  # out of the command bounds: refused after the limit
     assert calls == ["blas"]
+
+
+def test_fe_plant_limits_blas_before_building_its_plant(monkeypatch):
+    """The FE plant node too: with two BLAS threads its workers spin beside the controller and the
+    bus threads on a two-core machine."""
+    calls: list[str] = []
+
+    def build_plant(*args):
+        calls.append("plant")
+        raise SystemExit(3)     # (stop before the bus)
+
+    monkeypatch.setattr(plant_main, "single_threaded_blas", lambda: calls.append("blas"))
+    monkeypatch.setattr(plant_main, "plant_model", build_plant)
+    with pytest.raises(SystemExit):
+        plant_main.main(["--scenario", "single-track"])
+    assert calls == ["blas", "plant"]
