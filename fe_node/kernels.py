@@ -2,9 +2,10 @@
 over the nodes.
 
 The numpy forms they replace took about ten passes over the grid each.  The table
-(:func:`piecewise_linear`: Kirchhoff variable and temperature), the x factor (:func:`x_pass`) and the
-powder's consolidation (:func:`melt_powder`) are bitwise equal to those forms (same IEEE operations in
-the same order, no fast-math; ``tests/test_fe_kernels.py``); the operator's element-wise correction,
+(:func:`piecewise_linear`: Kirchhoff variable and temperature), the tensor operator's product
+(:func:`tensor_apply`, equal to scipy's sparse product and the x passes) and the powder's consolidation
+(:func:`melt_powder`) are bitwise equal to those forms (same IEEE operations in the same order, no
+fast-math; ``tests/test_fe_kernels.py``); the operator's element-wise correction,
 the evaporation solve, the keyhole's column walk (:func:`drill_columns`) and the melt-pool geometry
 (:func:`area_and_extent`, :func:`deepest_line`) agree with the library or numpy results to rounding
 (``tests/test_fe_operators.py`` against the scikit-fem forms, the evaporation residual test,
@@ -18,19 +19,35 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
-def x_pass(v: np.ndarray, w: np.ndarray, kd: np.ndarray, ko: np.ndarray, md: np.ndarray, mo: np.ndarray,
-           out: np.ndarray) -> None:
-    """``out = V Kx + W Mx`` for tridiagonal symmetric ``Kx`` (diagonal ``kd``, off-diagonal ``ko``)
-    and ``Mx`` (``md``, ``mo``), ``V, W, out`` of shape (p, nx): the x factor of
-    :class:`~fe_node.operators.TensorOperator`."""
-    p, nx = v.shape
+def tensor_apply(a_ptr: np.ndarray, a_idx: np.ndarray, a_val: np.ndarray, b_ptr: np.ndarray, b_idx: np.ndarray,
+                 b_val: np.ndarray, u: np.ndarray, kd: np.ndarray, ko: np.ndarray, md: np.ndarray, mo: np.ndarray,
+                 out: np.ndarray) -> None:
+    """``out = (A U) Kx + (B U) Mx`` for the (y, z) factors ``A``, ``B`` (CSR: row pointers, column
+    indices, values), ``U`` and ``out`` of shape (p, nx) and the tridiagonal symmetric ``Kx``, ``Mx``
+    (diagonals ``kd``, ``md``, off-diagonals ``ko``, ``mo``): the product of
+    :class:`~fe_node.operators.TensorOperator`, one row of ``out`` at a time, without the (2p, nx)
+    intermediate of ``[A; B] @ U`` (the same operations in the same order as scipy's sparse product
+    followed by the x passes)."""
+    p, nx = u.shape
+    v = np.empty(nx)
+    w = np.empty(nx)
     for r in range(p):
+        v[:] = 0.0
+        w[:] = 0.0
+        for q in range(a_ptr[r], a_ptr[r + 1]):
+            c, s = a_idx[q], a_val[q]
+            for i in range(nx):
+                v[i] += s * u[c, i]
+        for q in range(b_ptr[r], b_ptr[r + 1]):
+            c, s = b_idx[q], b_val[q]
+            for i in range(nx):
+                w[i] += s * u[c, i]
         for i in range(nx):
-            s = v[r, i] * kd[i] + w[r, i] * md[i]
+            s = v[i] * kd[i] + w[i] * md[i]
             if i > 0:
-                s += v[r, i - 1] * ko[i - 1] + w[r, i - 1] * mo[i - 1]
+                s += v[i - 1] * ko[i - 1] + w[i - 1] * mo[i - 1]
             if i < nx - 1:
-                s += v[r, i + 1] * ko[i] + w[r, i + 1] * mo[i]
+                s += v[i + 1] * ko[i] + w[i + 1] * mo[i]
             out[r, i] = s
 
 
@@ -264,7 +281,8 @@ def warm() -> None:
     passes, on tiny arrays: a plant calls it when it is built, so its first step runs at speed
     (a fresh install compiles them once, about a second)."""
     one, two = np.ones(2), np.ones((2, 2))
-    x_pass(two, two, one, one[:1], one, one[:1], np.empty((2, 2)))
+    ptr, idx = np.array([0, 1, 2], dtype=np.int32), np.array([0, 1], dtype=np.int32)
+    tensor_apply(ptr, idx, one, ptr, idx, one, two, one, one[:1], one, one[:1], np.empty((2, 2)))
     piecewise_linear(one, 0.0, 1.0, 1, one, one, np.empty(2))
     corners = np.zeros((1, 8), dtype=np.intp)
     element_apply(corners, np.zeros((1, 8, 8)), one, np.zeros(2))

@@ -53,7 +53,14 @@ def region_energy(grid: Grid, h: np.ndarray, box: tuple[tuple[float, float], ...
     ``((x0, x1), (y0, y1), (z0, z1))`` [m]: the sum of ``h`` times each node's dual volume inside it
     (every element's heat-capacity weight is 1, :data:`fe_node.powder.RHO_W`)."""
     wx, wy, wz = (dual_lengths(c, *b) for c, b in zip((grid.xs, grid.ys, grid.zs), box))
-    return float(np.einsum("j,k,i,jki->", wy, wz, wx, h))
+    return separable_sum(wy, wz, wx, h)
+
+
+def separable_sum(wy: np.ndarray, wz: np.ndarray, wx: np.ndarray, h: np.ndarray) -> float:
+    """``sum_jki wy_j wz_k wx_i h_jki`` for ``h`` of shape (ny, nz, nx), as three vector products (the
+    four-operand ``einsum`` multiplies all four operands in every term)."""
+    ny, nz, nx = h.shape
+    return float(wz @ (wy @ h.reshape(ny, nz * nx)).reshape(nz, nx) @ wx)
 
 
 class Interpolation:
@@ -157,7 +164,7 @@ class Restriction:
 
     def held_energy(self, h_fine: np.ndarray) -> float:
         """Lumped energy [J] of the fine field ``h_fine`` over the dual cells of the held nodes."""
-        return 0.0 if self.held is None else float(np.einsum("j,k,i,jki->", self._wy, self._wz, self._wx, h_fine))
+        return 0.0 if self.held is None else separable_sum(self._wy, self._wz, self._wx, h_fine)
 
     def outside(self, h_fine: np.ndarray) -> float:
         """Lumped energy [J] of the fine field outside the dual cells of the held nodes: the part of

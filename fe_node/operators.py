@@ -359,7 +359,7 @@ class TensorOperator:
         hy, hz = self._h[0], self._h[1]
         a = _assemble_yz(hy, hz, w, "m", "m", self.nodal)
         cz = _assemble_yz(hy, hz, wz, "m", "k", self.nodal)
-        self._ab = sp.vstack([a, _assemble_yz(hy, hz, w, "k", "m", self.nodal) + cz]).tocsr()
+        self._a, self._b = a.tocsr(), (_assemble_yz(hy, hz, w, "k", "m", self.nodal) + cz).tocsr()
         self._cz = cz if self._vertical else None
         self._p = a.shape[0]
         self._corr = _Correction(self.shape, self._vertical)
@@ -398,15 +398,17 @@ class TensorOperator:
     def __call__(self, u: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Return ``K_w u`` with the shape of ``u`` (solver order, flat or (ny, nz, nx)).
 
-        ``out`` (contiguous, ``u``'s size) receives the result; a step then allocates only the
-        (y, z) product (the x pass is one compiled loop, :func:`fe_node.kernels.x_pass`).
+        ``out`` (contiguous, ``u``'s size) receives the result, so that a step allocates nothing
+        (the product is one compiled pass, :func:`fe_node.kernels.tensor_apply`).
         """
-        from fe_node.kernels import x_pass
+        from fe_node.kernels import tensor_apply
 
         p, nx = self._p, self.shape[2]
-        vw = self._ab @ np.reshape(u, (p, nx))
+        a, b = self._a, self._b
         res = np.empty((p, nx)) if out is None else np.reshape(out, (p, nx))
-        x_pass(vw[:p], vw[p:], self._kd, self._ko, self._md, self._mo, res)
+        tensor_apply(a.indptr, a.indices, a.data, b.indptr, b.indices, b.data,
+                     np.ascontiguousarray(np.reshape(u, (p, nx)), dtype=float), self._kd, self._ko, self._md, self._mo,
+                     res)
         self._corr.apply(np.ravel(u), res.reshape(-1))
         return res.reshape(np.shape(u)) if out is None else out
 
@@ -496,5 +498,5 @@ class TensorOperator:
         """The full sparse ``K_w`` in solver order (for tests)."""
         kx = sp.diags([self._kd, self._ko, self._ko], [0, -1, 1])
         mx = sp.diags([self._md, self._mo, self._mo], [0, -1, 1])
-        k = sp.kron(self._ab[: self._p], kx) + sp.kron(self._ab[self._p:], mx)
+        k = sp.kron(self._a, kx) + sp.kron(self._b, mx)
         return (k + self._corr.matrix(self.n_nodes)).tocsr()
