@@ -28,10 +28,17 @@ Default layer: the ``layer`` scenario run to its end (or ``--layer-steps``) on i
 alternating; the melt-pool area traces are compared from step 20 on, as a share of the uniform
 mesh's mean area.
 
+Across the cases: this host's speed drifts by tens of percent within minutes, and the cases run
+one after the other, so after the sweeps every case's multi-level window is run again ``--repeats``
+times from its start copy, the cases taking turns (round ``r`` runs every case once before round
+``r + 1``); ``ms_per_step_multilevel_interleaved`` is the median of those windows' means, and
+``cost_ratio_max_min`` is taken over it.
+
 Keys: ``cases`` (per side: ``side_mm``, and per layer count: ``layers``; each with
 ``nodes_uniform``, ``nodes_multilevel``, ``ms_per_step_uniform``, ``ms_per_step_multilevel``,
-``wall_ms_per_step_uniform``, ``wall_ms_per_step_multilevel``), ``cost_ratio_max_min`` (the
-multi-level ``ms_per_step`` over all cases, max / min), ``max_nodes`` (the largest multi-level node
+``wall_ms_per_step_uniform``, ``wall_ms_per_step_multilevel`` (the two meshes alternating within the case),
+``ms_per_step_multilevel_interleaved``), ``cost_ratio_max_min`` (the multi-level
+``ms_per_step_multilevel_interleaved`` over all cases, max / min), ``max_nodes`` (the largest multi-level node
 count), ``speedup_vs_uniform`` (CPU time) and ``wall_speedup_vs_uniform``, ``area_rms_diff_pct``,
 ``area_max_diff_pct``, ``layer_steps``, ``layer_ms_per_step_uniform``,
 ``layer_ms_per_step_multilevel`` (CPU) and ``layer_wall_ms_per_step_*``, ``load_avg``.
@@ -94,8 +101,9 @@ def repeated(scs, start: list, steps: int, repeats: int) -> list[list[list[tuple
                                    for _ in range(repeats - 1)))] if repeats > 1 else [[] for _ in start]
 
 
-def side_case(side_mm: float, steps: int, repeats: int) -> dict:
-    """Time both meshes on a square layer of side ``side_mm``."""
+def side_case(side_mm: float, steps: int, repeats: int) -> tuple[dict, tuple]:
+    """Time both meshes on a square layer of side ``side_mm``; the case, and its multi-level window
+    (:func:`interleaved`)."""
     side = side_mm * 1e-3
     scs = [scenario("layer", n_tracks=max(1, round(side / HATCH_M)), track_length_m=side, hatch_m=HATCH_M, mesh=m)
            for m in MESHES]
@@ -111,15 +119,15 @@ def side_case(side_mm: float, steps: int, repeats: int) -> dict:
     print(f"{side_mm:g} mm: uniform {case['nodes_uniform']} nodes {case['ms_per_step_uniform']} ms/step; "
           f"multilevel {case['nodes_multilevel']} nodes {case['ms_per_step_multilevel']} ms/step "
           f"({models[1].n_remeshes} moves)", file=sys.stderr, flush=True)
-    return case
+    return case, (scs[1], start[1], steps)
 
 
-def layer_cases(layers: list[int], repeats: int) -> list[dict]:
+def layer_cases(layers: list[int], repeats: int) -> tuple[list[dict], list[tuple]]:
     """Time both meshes in layers ``layers`` (1-based) of a one-track build, each layer but its first two
-    steps (the first spreads the powder)."""
+    steps (the first spreads the powder); the cases, and their multi-level windows (:func:`interleaved`)."""
     scs = [scenario("layer", n_tracks=1, track_length_m=2e-3, n_layers=max(layers), mesh=m) for m in MESHES]
     models = [plant_model(sc.settings, sc.plan, sc.layer_plans) for sc in scs]
-    windows, nodes_at = {}, {}
+    windows, nodes_at, starts = {}, {}, {}
     while not models[0].done:
         n = models[0].layer + 1 + (models[0].layer_done and models[0].step_index > 0)   # the layer of the next step
         if n in layers and n not in windows:
@@ -132,6 +140,7 @@ def layer_cases(layers: list[int], repeats: int) -> list[dict]:
                     first[i] += t
                 count += 1
             windows[n] = [[first[i], *w] for i, w in enumerate(repeated(scs, start, count, repeats))]
+            starts[n] = (scs[1], copy.deepcopy(start[1]), count)
             nodes_at[n] = [nodes(m) for m in models]
         else:
             timed_window(scs, models, 1)
@@ -145,7 +154,18 @@ def layer_cases(layers: list[int], repeats: int) -> list[dict]:
               f"multilevel {case['nodes_multilevel']} nodes {case['ms_per_step_multilevel']} ms/step",
               file=sys.stderr, flush=True)
         cases.append(case)
-    return cases
+    return cases, [starts[n] for n in layers]
+
+
+def interleaved(windows: list[tuple], repeats: int) -> list[float]:
+    """Per multi-level window ``(scenario, plant at its start, steps)``, the median over ``repeats`` rounds
+    of its mean CPU ms per step, each round running every window once from a copy of its start."""
+    means = [[] for _ in windows]
+    for _ in range(repeats):
+        for i, (sc, start, steps) in enumerate(windows):
+            times = timed_window([sc], [copy.deepcopy(start)], steps)[0]
+            means[i].append(1e3 * statistics.fmean(t[0] for t in times))
+    return [round(statistics.median(m), 2) for m in means]
 
 
 def default_layer(max_steps: int | None) -> dict:
@@ -185,9 +205,12 @@ def main() -> None:
     load = [round(os.getloadavg()[0], 2)]
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
-    cases = [side_case(side, args.steps, args.repeats) for side in args.sides_mm] + layer_cases(args.layers,
-                                                                                             args.repeats)
-    ml = [c["ms_per_step_multilevel"] for c in cases]
+    sides = [side_case(side, args.steps, args.repeats) for side in args.sides_mm]
+    layer_records, layer_windows = layer_cases(args.layers, args.repeats)
+    cases = [case for case, _ in sides] + layer_records
+    ml = interleaved([window for _, window in sides] + layer_windows, args.repeats)
+    for case, ms in zip(cases, ml):
+        case["ms_per_step_multilevel_interleaved"] = ms
     result = {"cases": cases, "repeats": args.repeats, "cost_ratio_max_min": round(max(ml) / min(ml), 3),
               "max_nodes": max(c["nodes_multilevel"] for c in cases), **default_layer(args.layer_steps)}
     load.append(round(os.getloadavg()[0], 2))
