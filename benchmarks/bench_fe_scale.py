@@ -140,7 +140,7 @@ def layer_cases(layers: list[int], repeats: int) -> tuple[list[dict], list[tuple
                     first[i] += t
                 count += 1
             windows[n] = [[first[i], *w] for i, w in enumerate(repeated(scs, start, count, repeats))]
-            starts[n] = (scs[1], copy.deepcopy(start[1]), count)
+            starts[n] = (scs[1], start[1], count)        # (repeated() steps copies of it)
             nodes_at[n] = [nodes(m) for m in models]
         else:
             timed_window(scs, models, 1)
