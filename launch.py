@@ -327,7 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
     add("--json", action="store_true", help="print a JSON summary as the last line")
     add("--compare", action="store_true", help=f"run {', '.join(CONTROLLERS)} on the same plant; table and figure")
     add("--report", type=Path, metavar="RECORDING", help="only the Table 4 metrics and figure of a recording")
-    add("--nodes", type=Path, metavar="FILE", help="TOML node list replacing the default nodes (docs/node-contract.md)")
+    add("--nodes", type=Path, metavar="FILE", help="TOML node list replacing the default nodes (docs/launch.md)")
     add("--run-id", help="run identifier (default: derived from the recording name)")
     add("--hub", metavar="ENDPOINT", help="zenoh endpoint of the run's hub (default: a free loopback port)")
     add("--zenoh-config", type=Path, metavar="FILE", help="zenoh JSON5 file for hub and nodes (no per-run credentials)")

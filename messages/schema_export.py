@@ -9,7 +9,7 @@
   payload, who publishes it, whether the key ends with the publishing node, and the unit of each
   field whose name carries one (``area_mm2`` -> mm²).
 
-``--doc FILE`` also rewrites the generated field tables of the node contract between its
+``--doc FILE`` also rewrites the generated field tables of ``docs/messages.md`` between its
 ``<!-- fields:begin -->`` and ``<!-- fields:end -->`` markers. ``--check`` writes nothing and
 exits 1, listing what differs, if a file is not what the code generates (CI runs it through
 ``tests/test_contract_schemas.py``).

@@ -65,7 +65,7 @@ def test_contract_states_what_the_launch_service_appends_and_sets():
     from messages.auth import PASSWORD_ENV, USER_ENV
     from messages.bus import SUPERVISOR_ENV
 
-    doc = (REPO / "docs" / "node-contract.md").read_text(encoding="utf-8")
+    doc = (REPO / "docs" / "launch.md").read_text(encoding="utf-8")
     tail = NodeSpec("n", command=(sys.executable,)).argv("RUN", "ENDPOINT")[1:]
     assert f"COMMAND... ARGS... {' '.join(tail)}" in doc
     for variable in (USER_ENV, PASSWORD_ENV, SUPERVISOR_ENV, "PYTHONUNBUFFERED"):

@@ -1,4 +1,4 @@
-"""The shipped contract files (``messages/schemas/``, the doc's field tables) are what the code generates."""
+"""The shipped contract files (``messages/schemas/``, the tables in ``docs/messages.md``) match the code."""
 
 from __future__ import annotations
 
@@ -22,13 +22,13 @@ def test_shipped_schema_files_are_what_the_code_generates():
     shipped = {p.name: p.read_text(encoding="utf-8") for p in SHIPPED.glob("*.json")}
     generated = schema_export.generated_files()
     stale = sorted(n for n in generated.keys() | shipped.keys() if shipped.get(n) != generated.get(n))
-    assert not stale, f"run `python -m messages.schema_export --doc docs/node-contract.md`; out of date: {stale}"
+    assert not stale, f"run `python -m messages.schema_export --doc docs/messages.md`; out of date: {stale}"
 
 
 def test_doc_field_tables_are_what_the_code_generates():
-    doc = (REPO / "docs" / "node-contract.md").read_text(encoding="utf-8")
+    doc = (REPO / "docs" / "messages.md").read_text(encoding="utf-8")
     assert schema_export.with_field_tables(doc) == doc, "run `python -m messages.schema_export --doc " \
-                                                         "docs/node-contract.md`"
+                                                         "docs/messages.md`"
 
 
 def test_check_names_a_stale_file_and_write_repairs_it(tmp_path, capsys):
