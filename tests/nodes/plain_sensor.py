@@ -1,4 +1,4 @@
-"""A plant node written from ``docs/node-contract.md`` alone: plain JSON over zenoh, no meltloop import.
+"""A plant node written from the contract docs alone (``docs/node-contract.md``, ``messages.md``, ``launch.md``).
 
 ``python tests/nodes/plain_sensor.py --run-id RUN --connect ENDPOINT [options]`` is what
 ``launch.py --nodes`` runs for ``command = ["python", "tests/nodes/plain_sensor.py"]``. Like a
