@@ -107,6 +107,10 @@ def conserve(h: np.ndarray, mass: np.ndarray, interpolated: np.ndarray, energy_j
     return factor
 
 
+SHARES_KEPT = 6
+"""Grids whose :meth:`ConsolidationLattice.fraction` is kept (the three levels, and the boxes a move compares)."""
+
+
 class ConsolidationLattice:
     """Which powder has consolidated, on the cells of the whole-plan band's lattice.
 
@@ -127,11 +131,14 @@ class ConsolidationLattice:
     def __init__(self, band_x: tuple[float, float], band_y: tuple[float, float], h: float, n_layers: int):
         self.edges = [np.linspace(lo, hi, max(1, math.ceil((hi - lo) / h - 1e-9)) + 1) for lo, hi in (band_x, band_y)]
         self.melted = np.zeros((len(self.edges[1]) - 1, n_layers, len(self.edges[0]) - 1), dtype=bool)
+        self._versions = np.zeros(n_layers, dtype=np.int64)   # per layer: changes marked so far
+        self._shares: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}   # fraction()'s last results, by grid
 
     def grow(self, n_layers: int) -> None:
         """``n_layers`` new powder element layers on top."""
         ny, _, nx = self.melted.shape
         self.melted = np.concatenate([self.melted, np.zeros((ny, n_layers, nx), dtype=bool)], axis=1)
+        self._versions = np.concatenate([self._versions, np.zeros(n_layers, dtype=np.int64)])
 
     def _cells(self, axis: int, coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per element of ``coords``: the lattice cells ``a <= c < b`` whose centres it contains."""
@@ -144,14 +151,39 @@ class ConsolidationLattice:
         (ax, bx), (ay, by) = self._cells(0, xs), self._cells(1, ys)
         for j, k, i in zip(*elements):
             self.melted[ay[j]:by[j], k, ax[i]:bx[i]] = True
+        self._versions[np.unique(elements[1])] += 1
 
     def fraction(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         """Consolidated share [-] of every powder element of the grid (xs, ys), shape (ny - 1, n_layers, nx - 1);
-        0 for elements that hold no lattice cell (outside the band)."""
+        0 for elements that hold no lattice cell (outside the band). Read-only: the result is kept per grid,
+        and a later call for that grid computes again only the layers :meth:`mark` or :meth:`grow` changed
+        since (a layer's shares depend on its cells alone; buried layers no longer change)."""
+        key = xs.tobytes() + ys.tobytes()
+        kept = self._shares.pop(key, None)
+        n = self._versions.size
+        if kept is None:
+            share, stale = np.empty((len(ys) - 1, n, len(xs) - 1)), np.arange(n)
+        else:
+            share, versions = kept
+            stale = np.flatnonzero(self._versions[:versions.size] != versions)
+            if versions.size < n:                                   # layers grown since
+                share = np.concatenate([share, np.empty((share.shape[0], n - versions.size, share.shape[2]))], axis=1)
+                stale = np.concatenate([stale, np.arange(versions.size, n)])
+        if stale.size:
+            share.flags.writeable = True
+            share[:, stale, :] = self._layer_shares(xs, ys, stale)
+            share.flags.writeable = False
+        self._shares[key] = (share, self._versions.copy())
+        while len(self._shares) > SHARES_KEPT:                      # the oldest grid first
+            del self._shares[next(iter(self._shares))]
+        return share
+
+    def _layer_shares(self, xs: np.ndarray, ys: np.ndarray, layers: np.ndarray) -> np.ndarray:
+        """:meth:`fraction` of the powder layers ``layers`` only, shape (ny - 1, len(layers), nx - 1)."""
         (ax, bx), (ay, by) = self._cells(0, xs), self._cells(1, ys)
         x0, y0 = int(ax.min()), int(ay.min())                     # the cells under the grid only
         ax, bx, ay, by = ax - x0, bx - x0, ay - y0, by - y0
-        cells = self.melted[y0:y0 + int(by.max()), :, x0:x0 + int(bx.max())]
+        cells = self.melted[y0:y0 + int(by.max()), layers, x0:x0 + int(bx.max())]
         s = np.zeros((cells.shape[0] + 1, cells.shape[1], cells.shape[2] + 1))
         s[1:, :, 1:] = cells.cumsum(axis=0).cumsum(axis=2)        # summed-area table (integer counts)
         total = s[by][:, :, bx] - s[ay][:, :, bx] - s[by][:, :, ax] + s[ay][:, :, ax]

@@ -115,6 +115,27 @@ def test_lattice_fraction_counts_only_the_cells_under_the_grid():
         np.testing.assert_allclose(lattice.fraction(x, y), expected, rtol=1e-15, atol=0)
 
 
+def test_kept_lattice_fractions_follow_marks_and_new_layers():
+    """``fraction`` keeps its result per grid and recomputes only the layers marked or grown since:
+    after every change it equals the fraction computed afresh, bit for bit, on three grids in turn."""
+    rng = np.random.default_rng(11)
+    lattice = ConsolidationLattice((0.0, 2e-3), (0.0, 1e-3), 25e-6, n_layers=2)
+    grids = [(np.linspace(0.0, 2e-3, 21), np.linspace(0.0, 1e-3, 11)),
+             (np.linspace(0.3e-3, 0.9e-3, 25), np.linspace(0.2e-3, 0.5e-3, 13)),
+             (np.array([-0.5e-3, 0.0, 0.35e-3, 2.5e-3]), np.array([0.0, 0.6e-3, 1.2e-3]))]
+    for change in range(12):
+        xs, ys = grids[change % 3]
+        if change % 4 == 3:
+            lattice.grow(1)
+        n = lattice.melted.shape[1]
+        elements = (rng.integers(0, len(ys) - 1, 5), rng.integers(max(n - 2, 0), n, 5), rng.integers(0, len(xs) - 1, 5))
+        lattice.mark(xs, ys, elements)
+        for x, y in grids:
+            kept = lattice.fraction(x, y)
+            assert not kept.flags.writeable
+            np.testing.assert_array_equal(kept, lattice._layer_shares(x, y, np.arange(n)))
+
+
 def test_both_operators_follow_the_window_alike():
     plan = ScanPlan.layer(2, 3e-3, 1e-4)
     traces = {}
