@@ -131,8 +131,9 @@ class ConsolidationLattice:
     def __init__(self, band_x: tuple[float, float], band_y: tuple[float, float], h: float, n_layers: int):
         self.edges = [np.linspace(lo, hi, max(1, math.ceil((hi - lo) / h - 1e-9)) + 1) for lo, hi in (band_x, band_y)]
         self.melted = np.zeros((len(self.edges[1]) - 1, n_layers, len(self.edges[0]) - 1), dtype=bool)
+        # (changed through mark() and grow() only: they keep the versions fraction() relies on)
         self._versions = np.zeros(n_layers, dtype=np.int64)   # per layer: changes marked so far
-        self._shares: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}   # fraction()'s last results, by grid
+        self._shares: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}   # fraction()'s last results, by grid
 
     def grow(self, n_layers: int) -> None:
         """``n_layers`` new powder element layers on top."""
@@ -158,7 +159,7 @@ class ConsolidationLattice:
         0 for elements that hold no lattice cell (outside the band). Read-only: the result is kept per grid,
         and a later call for that grid computes again only the layers :meth:`mark` or :meth:`grow` changed
         since (a layer's shares depend on its cells alone; buried layers no longer change)."""
-        key = xs.tobytes() + ys.tobytes()
+        key = (xs.size, xs.tobytes(), ys.tobytes())
         kept = self._shares.pop(key, None)
         n = self._versions.size
         if kept is None:
