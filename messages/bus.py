@@ -333,11 +333,13 @@ class StopFlag:
 
 
 def wait_for_nodes(session: zenoh.Session, run_id: str, nodes: list[str], stop: StopFlag | threading.Event,
-                   timeout_s: float, check: Callable[[], None] | None = None) -> None:
+                   timeout_s: float, check: Callable[[], bool] | None = None) -> None:
     """Block until every node in ``nodes`` holds its liveliness token in run ``run_id``: the one
     readiness mechanism of nodes and of the launch service.
 
-    ``check()`` is called between queries and may raise to give up (e.g. a node process exited).
+    ``check()`` is called between queries: it may raise to give up (e.g. a node process failed) or
+    return ``True`` to end the wait (e.g. the node already finished with status 0, faster than its
+    token could be seen).
 
     Raises
     ------
@@ -347,8 +349,8 @@ def wait_for_nodes(session: zenoh.Session, run_id: str, nodes: list[str], stop: 
     missing = set(nodes)
     deadline = time.monotonic() + timeout_s
     while missing and not stop.is_set() and time.monotonic() < deadline:
-        if check is not None:
-            check()
+        if check is not None and check():
+            return
         for reply in session.liveliness().get(liveliness_key(run_id), timeout=0.5):
             if reply.ok is not None:
                 missing.discard(str(reply.ok.key_expr).rsplit("/", 1)[-1])

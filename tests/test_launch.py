@@ -102,6 +102,17 @@ def test_failing_node_ends_the_run_with_a_clear_message(tmp_path):
     validate_recording(out)  # readable up to the fault
 
 
+def test_a_node_that_finishes_before_it_is_seen_ready_ends_the_run_with_0(tmp_path):
+    """A short run can end with status 0 faster than the launch's readiness query sees its token:
+    the launch then judges the run by the exit status, not as a failure to become ready."""
+    nodes = tmp_path / "nodes.toml"
+    nodes.write_text('[[node]]\nname = "quick"\nmodule = "tests.nodes.finished"\nmain = true\n')
+    run = subprocess.run([sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(tmp_path / "run.mcap")],
+                         cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "before it was ready" not in run.stdout + run.stderr
+
+
 def test_bad_node_list_exit_2(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[[node]]\nname='x'\n")

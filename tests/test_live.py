@@ -137,7 +137,7 @@ def test_client_receives_every_state_images_at_most_30_hz_and_the_recorders_chan
     assert all(log_time == m["timestamp"]["sec"] * 10**9 + m["timestamp"]["nsec"] for _, log_time, m in got_images)
     # images decimated to <= 30 Hz of wall clock while N_STATES arrived at RATE_HZ
     assert 2 <= len(got_images) <= 30 * publish_s + 2, (len(got_images), publish_s)
-    assert len(got_images) < N_STATES / 4
+    assert len(got_images) < len(got_states)  # (N_STATES / publish_s is far above 30 Hz, however slow the host)
     assert end and "images decimated" in end[0].detail and "0 dropped" in end[0].detail, end
     assert "went away" in output
 

@@ -171,11 +171,14 @@ class NodeProcess:
         """The exit status, or ``None`` while running."""
         return self.process.poll()
 
-    def check_alive(self) -> None:
-        """Raise :class:`ChildProcessError` if the node has exited (e.g. while waiting for it to be ready)."""
-        if self.process.poll() is not None:
-            raise ChildProcessError(f"node {self.name} exited with status {self.process.returncode} before it was "
-                                    "ready")
+    def finished_before_ready(self) -> bool:
+        """Whether the node has already ended with status 0 (a short run can finish before its
+        liveliness token is seen); raise :class:`ChildProcessError` if it ended with another status
+        while the launch waited for it to be ready."""
+        code = self.process.poll()
+        if code not in (None, 0):
+            raise ChildProcessError(f"node {self.name} exited with status {code} before it was ready")
+        return code == 0
 
     def stop(self) -> None:
         """Stop the node's process group (the node and anything it started, e.g. a wrapper script's

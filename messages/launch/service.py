@@ -194,7 +194,8 @@ class LaunchService:
                     node = NodeProcess.spawn(spec, self.run_id, self.hub, env, self.console.emit, self.say)
                     self.nodes.append(node)
                     if spec.wait_ready:
-                        wait_for_nodes(session, self.run_id, [node.name], stop, self.ready_timeout_s, node.check_alive)
+                        wait_for_nodes(session, self.run_id, [node.name], stop, self.ready_timeout_s,
+                                       node.finished_before_ready)
                 return self._supervise(stop)
             except (RunFailed, ChildProcessError) as err:
                 self.say(f"error: {err}; stopping the run")
