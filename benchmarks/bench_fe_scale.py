@@ -37,7 +37,8 @@ times from its start copy, the cases taking turns (round ``r`` runs every case o
 Keys: ``cases`` (per side: ``side_mm``, and per layer count: ``layers``; each with
 ``nodes_uniform``, ``nodes_multilevel``, ``ms_per_step_uniform``, ``ms_per_step_multilevel``,
 ``wall_ms_per_step_uniform``, ``wall_ms_per_step_multilevel`` (the two meshes alternating within the case),
-``ms_per_step_multilevel_interleaved``), ``cost_ratio_max_min`` (the multi-level
+``ms_per_step_multilevel_interleaved``, and ``area_mm2_uniform``, ``area_mm2_multilevel``: the mean melt-pool
+area over the case's window, as a step's cost grows with the pool), ``cost_ratio_max_min`` (the multi-level
 ``ms_per_step_multilevel_interleaved`` over all cases, max / min), ``max_nodes`` (the largest multi-level node
 count), ``speedup_vs_uniform`` (CPU time) and ``wall_speedup_vs_uniform``, ``area_rms_diff_pct``,
 ``area_max_diff_pct``, ``layer_steps``, ``layer_ms_per_step_uniform``,
@@ -77,24 +78,27 @@ def timed_step(sc, model):
     return time.process_time() - c0, time.perf_counter() - w0, obs
 
 
-def record(case: dict, mesh: str, windows: list[list[tuple[float, float]]]) -> None:
+def record(case: dict, mesh: str, windows: list[list[tuple[float, float, float]]]) -> None:
     """Put the median over ``windows`` of their mean CPU and wall ms per step (each window a list of
-    (CPU s, wall s) per step) into ``case``."""
+    (CPU s, wall s, area m²) per step) into ``case``, and the mean melt-pool area of the first window [mm²]
+    (the windows repeat the same steps)."""
     for key, k in ((f"ms_per_step_{mesh}", 0), (f"wall_ms_per_step_{mesh}", 1)):
         case[key] = round(1e3 * statistics.median(statistics.fmean(t[k] for t in w) for w in windows), 2)
+    case[f"area_mm2_{mesh}"] = round(1e6 * statistics.fmean(t[2] for t in windows[0]), 4)
 
 
-def timed_window(scs, models, steps: int) -> list[list[tuple[float, float]]]:
-    """Step ``models`` (one per scenario of ``scs``) ``steps`` times, alternating: per model, (CPU s, wall s)
-    per step."""
+def timed_window(scs, models, steps: int) -> list[list[tuple[float, float, float]]]:
+    """Step ``models`` (one per scenario of ``scs``) ``steps`` times, alternating: per model, (CPU s, wall s,
+    melt-pool area m²) per step."""
     times = [[] for _ in models]
     for _ in range(steps):
         for i, (sc, model) in enumerate(zip(scs, models)):
-            times[i].append(timed_step(sc, model)[:2])
+            cpu, wall, obs = timed_step(sc, model)
+            times[i].append((cpu, wall, obs.area_m2))
     return times
 
 
-def repeated(scs, start: list, steps: int, repeats: int) -> list[list[list[tuple[float, float]]]]:
+def repeated(scs, start: list, steps: int, repeats: int) -> list[list[list[tuple[float, float, float]]]]:
     """``repeats - 1`` more runs of a window of ``steps`` steps from copies of the plants ``start`` taken at its
     start: per model, its windows."""
     return [list(w) for w in zip(*(timed_window(scs, [copy.deepcopy(m) for m in start], steps)
