@@ -278,11 +278,12 @@ class MultiLevelModel(ThermalModel):
         return False
 
     def step(self, power_w: float, speed_m_s: float) -> Observation:
-        """Advance one step ``dt_s`` (:meth:`ThermalModel.step`), the fine box moved first if it must,
-        the coarser levels stepped when due."""
+        """Advance one step ``dt_s`` (:meth:`ThermalModel.step`): the coarser levels stepped first if due
+        (:meth:`prepare`), then the fine box moved if it must."""
         check_command(power_w, speed_m_s)
         if self.done:
             raise RuntimeError("scan plan finished: no more steps")
+        self.prepare()
         if self.layer_done:
             self.add_layer()
         total = self.plan.total_length
@@ -300,12 +301,16 @@ class MultiLevelModel(ThermalModel):
                     centre = there
             self.sync("mid")
             self.move(centre)
-        obs = super().step(power_w, speed_m_s)
+        return super().step(power_w, speed_m_s)
+
+    def prepare(self) -> None:
+        """Step the coarser levels that are due (``mid_every`` / ``part_every`` fine steps since their
+        last step): the part of the next step that does not depend on its command, which a lockstep node
+        does while the command is in flight (:meth:`step` does it first if it was not done)."""
         if self.step_index - self._synced["mid"] >= self.mid_every:
             self.sync("mid")
         if self.step_index - self._synced["part"] >= self.part_every:
             self.sync("part")
-        return obs
 
     def sync(self, name: str) -> None:
         """Step level ``"mid"`` or ``"part"`` (the finer levels first) over the steps since its last

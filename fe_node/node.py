@@ -196,6 +196,9 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
             images.put(temperature_image(image, obs.time_s, t_min, t_max))
         if obs.step >= total or model.done:
             break
+        t0 = time.perf_counter()
+        model.prepare()                                 # while the command is in flight
+        prepared_s = time.perf_counter() - t0
         source = "open-loop"
         if waiter is None:
             power_w, speed_m_s = scenario.profile.command(obs.step * k)
@@ -220,7 +223,8 @@ def run(bus: NodeBus, scenario: Scenario, model: ThermalModel, settings: PlantSe
         else:
             obs = camera_frame([model.step(power_w, speed_m_s) for _ in range(k)], obs.step + 1, period_s)
         diagnostics.put(PlantDiagnostics(
-            run_id=bus.run_id, step=obs.step, time_s=obs.time_s, step_wall_ms=(time.perf_counter() - t0) * 1e3,
+            run_id=bus.run_id, step=obs.step, time_s=obs.time_s,
+            step_wall_ms=(prepared_s + time.perf_counter() - t0) * 1e3,
             absorbed_j=obs.energy_absorbed_j, stored_j=obs.energy_stored_j, lost_j=obs.energy_lost_j,
             energy_error_pct=obs.energy_error_pct, n_fallbacks=n_fallbacks,
             n_stale_commands=waiter.gate.n_stale if waiter else 0,

@@ -464,6 +464,11 @@ class ThermalModel:
         outside take the nearest boundary value)."""
         return self.law.temperature(interpolate_points(self.grid, self._h, np.asarray(points, dtype=float)))
 
+    def prepare(self) -> None:
+        """Do the part of the next step that does not depend on its command, ahead of it (a lockstep
+        node calls it while the command is in flight): nothing on this mesh; the multi-level mesh steps
+        its coarser levels (:meth:`fe_node.multilevel.MultiLevelModel.prepare`)."""
+
     def step(self, power_w: float, speed_m_s: float) -> Observation:
         """Advance one step ``dt_s`` with laser power [W] and scan speed [m/s].
 

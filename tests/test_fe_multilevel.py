@@ -336,3 +336,28 @@ def test_the_fine_operator_moves_with_the_box(monkeypatch):
     while not ml.done:
         ml.step(150.0, 0.8)
     assert len(builds) <= 4 < ml.n_remeshes - 3
+
+
+def test_prepare_steps_the_due_levels_ahead_and_changes_nothing(monkeypatch):
+    """``prepare`` between two steps (the lockstep node calls it while the command is in flight) steps
+    the coarser levels that are due, so none is due when the next step starts; the plant's states and
+    fields are bit for bit those of steps alone (which step the due levels first)."""
+    s = Settings(**COARSE, powder_layer_m=50e-6, fine_box_m=1.6e-3, mid_box_m=3.2e-3, mid_h_m=100e-6,
+                 coarse_h_m=300e-6)
+    plan = ScanPlan.layer(2, 3e-3, 1e-4)
+    alone, ahead = model(s, plan), model(s, plan)
+    synced = []
+    sync = MultiLevelModel.sync
+    monkeypatch.setattr(MultiLevelModel, "sync", lambda self, name: synced.append(name) or sync(self, name))
+    n_prepared = 0
+    while not alone.done:
+        obs_alone = alone.step(150.0, 0.8)
+        synced.clear()
+        ahead.prepare()
+        n_prepared += len(synced)
+        assert all(ahead.step_index - ahead._synced[name] < every
+                   for name, every in (("mid", ahead.mid_every), ("part", ahead.part_every)))
+        assert ahead.step(150.0, 0.8) == obs_alone
+    assert n_prepared >= ahead.step_index // ahead.mid_every - ahead.n_remeshes   # (a move steps "mid" itself)
+    for a, b in ((alone._h, ahead._h), (alone.mid.h, ahead.mid.h), (alone.part.h, ahead.part.h)):
+        assert np.array_equal(a, b)
