@@ -104,6 +104,7 @@ def powder_runs():
     areas, held = [], None
     while not ml.done:
         areas.append((ml.step(150.0, 0.8).area_m2, un.step(150.0, 0.8).area_m2))
+        ml.prepare()                                    # the due levels step now, as in the lockstep node
         if held is None and ml.step_index >= 100 and ml._synced["mid"] == ml.step_index:   # the mid level just stepped
             again = ml.mid.h.copy()
             Restriction(ml.grid, ml.mid.grid).apply(ml._h, again)
