@@ -17,7 +17,6 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-from scipy.sparse.linalg import LinearOperator, cg
 
 from fe_node.boundary import loss_flux, loss_flux_slope
 from fe_node.settings import Settings
@@ -48,6 +47,8 @@ def implicit_step(h: np.ndarray, operator, law, m: np.ndarray, dt: float, b: np.
     rtol : float
         CG relative tolerance.
     """
+    from scipy.sparse.linalg import LinearOperator, cg  # here: only a dwell needs it, not every node's start
+
     shape, n = h.shape, h.size
     k_ref = law.k_ref
     phi = law.kirchhoff(h)

@@ -26,7 +26,6 @@ import copy
 import numpy as np
 import scipy.sparse as sp
 
-from fe_node.forms import conduction, conduction_z, facet_area, mass
 from fe_node.mesh import Grid, fe1d, lumped1d
 
 
@@ -72,7 +71,9 @@ class CsrOperator:
     """
 
     def __init__(self, mesh, kw=None, rho_w=None, order=None, intorder: int = 2, vertical: bool = False):
-        from skfem import Basis
+        from skfem import Basis  # scikit-fem here, not at the top: the tensor operator's nodes start without it
+
+        from fe_node.forms import conduction, conduction_z, mass
 
         basis = Basis(mesh, mesh.elem(), intorder=intorder)
         n, nt, nb = basis.N, basis.nelems, basis.Nbfun
@@ -120,6 +121,8 @@ class CsrOperator:
     def facet_areas(self, facets: np.ndarray) -> np.ndarray:
         """Lumped areas [m²] of boundary ``facets`` (``facet_area`` on a ``FacetBasis``), shape (n_nodes,)."""
         from skfem import FacetBasis
+
+        from fe_node.forms import facet_area
 
         areas = facet_area.assemble(FacetBasis(self.mesh, self.mesh.elem(), facets=facets, intorder=2))
         out = np.empty_like(areas)

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 
 _LOG_2PI = math.log(2.0 * math.pi)
 # Returned to the optimiser when K_y is numerically not positive definite: L-BFGS-B backtracks.
@@ -155,6 +154,8 @@ def fit_hyperparameters(
     tuple[np.ndarray, float]
         The best ``theta`` (shape (2 + d,)) and its log marginal likelihood.
     """
+    import scipy.optimize  # here, not at the top: a node that only evaluates a model never fits one
+
     if n_restarts < 1:
         raise ValueError(f"n_restarts must be at least 1, got {n_restarts}")
     D2 = squared_differences(U)
