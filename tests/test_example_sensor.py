@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from fe_node.commands import CommandPolicy
 from messages.bus import BusSettings, NodeBus, StopFlag
 from messages.topics import LASER_COMMAND, PLANT_STATE
 from tests.conftest import finish, spawn
@@ -35,8 +36,8 @@ def test_example_sensor_closes_the_loop_with_the_controller_node(hub, run_id):
     assert stats["steps"] == 400 and stats["rejected_commands"] <= above
     assert stats["commands"] + above >= 1 and stats["rtt_median_us"] > 0
     applied = {c.power_w for c in seen_commands if c.power_w <= 300.0} | {250.0}
-    if stats["fallback_steps"]:  # a loaded host can leave it 0.5 s without a command: the safe power, 0 W
-        applied.add(0.0)
+    if stats["fallback_steps"]:  # a loaded host can leave it 0.5 s without a command: the default safe power
+        applied.add(CommandPolicy().safe_power_w)
     assert all(s.power_w in applied for s in seen_states)  # the plant echoes an applied power
     assert seen_states[-1].power_w != 250.0  # the controller's commands were applied
     status, out = finish(controller, timeout=20)
