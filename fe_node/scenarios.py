@@ -34,7 +34,8 @@ same seed gives the same profile. The levels are not clipped to the 150-300 W wi
 the shipped 1.5 mm x 0.5 mm cylinder, :data:`fe_node.part.EXAMPLE_STL`) sliced every
 ``powder_layer_m`` (the preset's: 25 µm on ``physical``; 50 µm on ``bare-plate``) and hatched every
 ``hatch_m`` (default 0.1 mm) by PySLM (:mod:`fe_node.part`, needs ``pythonslm``); ``n_layers``
-defaults to all the part's layers; on the multi-level mesh (:data:`PART_MESH`).
+defaults to all the part's layers; on the multi-level mesh (:data:`PART_MESH`), with
+:data:`PART_DWELL_S` between layers.
 ``hatch_rotation_deg`` (default 67) turns the hatch from one layer to the next; ``contours``
 (default true) scans each slice's outline before its hatch; ``island_width_m`` > 0 hatches in
 square islands of that side (default 0: no islands).
@@ -95,6 +96,15 @@ PART_MESH = "multilevel"
 """The mesh of the ``part`` and ``ident-part`` scenarios unless ``[plant] mesh`` names another: the
 multi-level mesh that moves with the laser (:mod:`fe_node.multilevel`), whose cost per step does not
 grow with the part's size or its layers (docs/fe-scale.md); ``mesh = "uniform"`` is the reference.
+"""
+
+PART_DWELL_S = 10.0
+"""The ``part`` and ``ident-part`` scenarios' time between layers [s] (``dwell_s``) unless ``[plant] dwell_s``
+sets it: the recoater's pass and the platform's move with the laser off, during which the part cools. The
+inter-layer time changes a part's heat accumulation and melt pools (Mohr, Altenburg, Hilgenberg, Additive
+Manufacturing 32 (2020) 101080); 10 s is this project's choice of a short single-laser recoating cycle. Set
+it to the machine's layer time: at 0 s a part's layers follow each other within milliseconds and it heats
+layer after layer as no machine builds it.
 """
 
 LAYER_MESH = {"mesh": "multilevel", "fine_box_m": 3.2e-3}
@@ -307,6 +317,7 @@ def _part(name: str, part_stl: str | None = None, hatch_m: float = 1e-4, power_w
     check_type("scenario override 'contours'", contours, "bool")
     check_type("scenario override 'island_width_m'", island_width_m, "float")
     layer_m = settings_kw.setdefault("powder_layer_m", 50e-6)
+    settings_kw.setdefault("dwell_s", PART_DWELL_S)
     settings_kw.update(_default_mesh(name, settings_kw, {"mesh": PART_MESH}))
     stl = Path(EXAMPLE_STL if part_stl is None else part_stl)
     plans = part_plans(stl, layer_m, hatch_m, float(hatch_rotation_deg), contours, float(island_width_m))
