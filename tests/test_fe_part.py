@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from fe_node.part import EXAMPLE_STL, part_plans
-from fe_node.scenarios import scenario
+from fe_node.scenarios import PART_DWELL_S, scenario
 from fe_node.scene import laser_pose, part_model, scene_update
 from fe_node.solver import ThermalModel
 from messages import decode, encode
@@ -68,6 +68,13 @@ def test_part_scenario_builds_layer_by_layer():
         assert len(points) == 2 * len(sc.layer_plans[layer].tracks)
         assert [p.z for p in points] == pytest.approx([50e-6 * (layer + 1)] * len(points))
     assert abs(obs.energy_error_pct) < 1e-6 and model.powder.consolidated.sum() > 0
+
+
+def test_a_part_cools_for_a_recoating_time_between_layers_unless_the_plant_sets_another():
+    assert PART_DWELL_S == 10.0 and scenario("part", n_layers=1).settings.dwell_s == PART_DWELL_S
+    assert scenario("ident-part", n_layers=1).settings.dwell_s == PART_DWELL_S
+    assert scenario("part", n_layers=1, dwell_s=0.0).settings.dwell_s == 0.0
+    assert scenario("layer").settings.dwell_s == 0.0          # the plate's layer: one layer, nothing to wait for
 
 
 def test_part_scenario_errors():
