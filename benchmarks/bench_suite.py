@@ -61,7 +61,7 @@ from learning_bound import BoundSettings, learning_bound  # noqa: E402
 from fe_node.scenarios import TRAINING_MESH, scenario  # noqa: E402
 from gp_model.files import read_document  # noqa: E402
 from gp_model.narx import NarxGPModel, series_from_states  # noqa: E402
-from gp_model.shipped import DEFAULT_MODEL_PATH  # noqa: E402
+from gp_model.shipped import DEFAULT_MODEL_PATH, PART_MODEL_PATH  # noqa: E402
 from gp_trainer.dataset import read_states  # noqa: E402
 from gp_trainer.narx_fit import evaluate_model  # noqa: E402
 from gp_trainer.pid_tuning import Fopdt  # noqa: E402
@@ -71,6 +71,9 @@ LAYER_PLAN = (4, 10e-3, 1e-4)
 """(tracks, track length [m], hatch [m]) of the ``layer`` scenario."""
 SCENARIO_PLANS = {"layer": LAYER_PLAN, "double-track": (2, 5e-3, 1e-4)}
 """The plans of the scenarios the identification runs use (``ident-<scenario>`` and controller runs)."""
+EXAMPLE_PART = "example-part"
+""":func:`training_plans`' entry for a run on the shipped example part (``ident-part-p100-s12``,
+``ident-pid-part-a0.063``: :data:`gp_trainer.campaign.IDENT_PART_RUNS`, each over its first 4 layers)."""
 CONTROLLERS = ("preview-mpc", "pid", "scan-feedforward")
 """The controllers the suite runs: the preview MPC and its two baselines, PID (tuned on the model's
 training staircases, ``gp_trainer.pid_tuning``) and the scan-plan feed-forward (the same model and
@@ -144,11 +147,15 @@ CASES = (
 )
 
 
-def training_plans(runs: list[str]) -> set[tuple[int, float, float]]:
+def training_plans(runs: list[str]) -> set[tuple[int, float, float] | str]:
     """The plans (tracks, length [m], hatch [m]) the named training runs scanned, from their names
-    (``ident-layer-p174-s2``, ``ident-preview-mpc-layer-a0.061-h110um-450K``, ``ident-layer-8x5mm-p174-s7``)."""
+    (``ident-layer-p174-s2``, ``ident-preview-mpc-layer-a0.061-h110um-450K``, ``ident-layer-8x5mm-p174-s7``),
+    and :data:`EXAMPLE_PART` if one built the example part (``ident-part-p60-s11``)."""
     plans = set()
     for run in runs:
+        if re.search(r"-part(-|$)", run):
+            plans.add(EXAMPLE_PART)
+            continue
         scenario = next((s for s in SCENARIO_PLANS if re.search(rf"-{s}(-|$)", run)), None)
         if scenario is None:
             continue
@@ -165,14 +172,22 @@ PROCESS_KEYS = ("speed_m_s", "t0_k", "absorptivity", "powder_absorptivity")
 """``[plant]`` keys that change the process away from the one the model was learned on."""
 
 
-def in_sample(case: Case, plans: set[tuple[int, float, float]], process: dict[str, Any] | None = None) -> bool:
-    """Whether a training run scanned the case's plan on the model's own process: no :data:`PROCESS_KEYS`
-    override other than the model's ``[plant]`` table ``process`` sets alike (a part is never in a plate
-    model's training)."""
-    plan = case.plan()
+def in_sample(case: Case, plans: set[tuple[int, float, float] | str], process: dict[str, Any] | None = None) -> bool:
+    """Whether a training run scanned the case's plan (for a part: built the example part, whose first layers
+    every part run scans) on the model's own process: no :data:`PROCESS_KEYS` override other than the model's
+    ``[plant]`` table ``process`` sets alike."""
     process = process or {}
-    return (plan is not None and (plan[0], round(plan[1], 9), round(plan[2], 9)) in plans
-            and all(case.plant[key] == process.get(key) for key in PROCESS_KEYS if key in case.plant))
+    if case.scenario == "part":
+        trained = "part_stl" not in case.plant and EXAMPLE_PART in plans
+    else:
+        plan = case.plan()
+        trained = (plan[0], round(plan[1], 9), round(plan[2], 9)) in plans
+    return trained and all(case.plant[key] == process.get(key) for key in PROCESS_KEYS if key in case.plant)
+
+
+def shipped_model(case: Case) -> Path:
+    """The model launch.py gives the case's plant when none is named: the part model on a part."""
+    return PART_MODEL_PATH if case.scenario == "part" else DEFAULT_MODEL_PATH
 
 
 def case_model(case: Case, model: Path | None) -> Path | None:
@@ -292,7 +307,7 @@ def main() -> int:
               f"{'along %':>7s}  in-sample", flush=True)
         for case in cases:
             model = case_model(case, args.model)
-            learned = read_document(model or DEFAULT_MODEL_PATH).get("provenance", {})
+            learned = read_document(model or shipped_model(case)).get("provenance", {})
             bound = case_bound(case, bound_from(learned, args, model), args.max_steps) if args.bound else {}
             plans, process = training_plans(list(learned.get("runs", []))), (learned.get("process") or {}).get("plant")
             for controller in args.controllers:

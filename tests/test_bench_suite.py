@@ -26,7 +26,7 @@ RUNS = ["ident-layer-p139-s1", "ident-pid-double-track-a0.055", "ident-preview-m
 
 def test_training_plans_are_read_from_the_run_names():
     assert bench_suite.training_plans(RUNS) == {(4, 0.01, 0.0001), (2, 0.005, 0.0001), (4, 0.01, 0.00011),
-                                                (8, 0.005, 0.0001)}
+                                                (8, 0.005, 0.0001), bench_suite.EXAMPLE_PART}
 
 
 def test_a_case_is_in_sample_only_on_a_trained_plan_and_process():
@@ -35,8 +35,10 @@ def test_a_case_is_in_sample_only_on_a_trained_plan_and_process():
     assert bench_suite.in_sample(cases["default-layer"], plans)
     assert bench_suite.in_sample(cases["setpoint-0.09"], plans)  # another reference on a trained plan
     assert not bench_suite.in_sample(cases["default-layer"], bench_suite.training_plans(RUNS[1:2]))
-    for name in ("tight-6x4mm-h80", "speed-1.0", "preheat-500K", "absorptivity-10pct", "part-2-layers"):
+    for name in ("tight-6x4mm-h80", "speed-1.0", "preheat-500K", "absorptivity-10pct"):
         assert not bench_suite.in_sample(cases[name], plans), name
+    assert bench_suite.in_sample(cases["part-2-layers"], plans)        # ident-part-p100-s1 built the example part
+    assert not bench_suite.in_sample(cases["part-2-layers"], bench_suite.training_plans(RUNS[:4]))
     at_1mps = {"preset": "physical", "speed_m_s": 1.0}                # the [plant] of a model learned at 1 m/s
     assert bench_suite.in_sample(cases["speed-1.0"], plans, at_1mps)
     assert not bench_suite.in_sample(cases["speed-0.6"], plans, at_1mps)
