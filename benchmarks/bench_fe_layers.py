@@ -4,14 +4,16 @@ Usage: ``python benchmarks/bench_fe_layers.py [--layers 10] [--points 64] [--jso
 stdout is JSON.
 
 The example part (``part`` scenario, default plant: 25 µm layers, 67° hatch rotation, contours,
-100 W) is built ``--layers`` layers high with ``mesh = "uniform"`` and ``mesh = "multilevel"``,
-both stepped alternately.  At the start of each layer after the first (when the last layer is
-done, before the new powder is spread on it), the temperature is sampled on the top surface at
-``--points`` points evenly spaced along the next layer's scan path; the record is the mean rise
-above the preheat temperature.
+100 W, :data:`~fe_node.scenarios.PART_DWELL_S` between layers) is built ``--layers`` layers high with
+``mesh = "uniform"`` and ``mesh = "multilevel"``, both stepped alternately.  When a layer is done the
+temperature is sampled on its top surface at ``--points`` points evenly spaced along the next layer's
+scan path, twice: at its end (before the dwell) and at the next layer's start (after the dwell and the
+new powder, at the same points, now under the powder); each record is the mean rise above the preheat
+temperature.
 
-Keys: ``layers`` (per layer start: ``layer``, ``rise_k_uniform``, ``rise_k_multilevel``,
-``diff_pct``), ``layer_start_max_diff_pct`` (the largest ``|diff_pct|``), ``steps``,
+Keys: ``layers`` (per layer start: ``layer``, ``rise_k_uniform``, ``rise_k_multilevel``, ``diff_pct`` at the
+layer's start; ``end_rise_k_uniform``, ``end_rise_k_multilevel``, ``end_diff_pct`` at the previous layer's
+end), ``layer_start_max_diff_pct`` (the largest ``|diff_pct|``), ``layer_end_max_diff_pct``, ``steps``,
 ``ms_per_step_uniform``, ``ms_per_step_multilevel``, ``load_avg``.
 """
 from __future__ import annotations
@@ -40,6 +42,19 @@ def surface_points(plan, top_m: float, n: int) -> np.ndarray:
     return np.hstack([xy, np.full((n, 1), top_m)])
 
 
+def mean_rise(models, points: np.ndarray, t0_k: float) -> list[float]:
+    """Mean temperature rise [K] above ``t0_k`` at ``points`` [m], shape (n, 3), on the uniform and the
+    multi-level model (its fields gathered onto the part level first)."""
+    models[1].sync("part")
+    return [float(np.mean(m.temperature_at(points))) - t0_k for m in models]
+
+
+def compared(rise: list[float], prefix: str) -> dict:
+    """The two meshes' rises [K] and the multi-level one's difference [%] under keys starting ``prefix``."""
+    return {f"{prefix}rise_k_uniform": round(rise[0], 2), f"{prefix}rise_k_multilevel": round(rise[1], 2),
+            f"{prefix}diff_pct": round(100 * (rise[1] - rise[0]) / rise[0], 2)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--layers", type=int, default=10)
@@ -54,13 +69,11 @@ def main() -> None:
     while not models[0].done:
         if models[0].layer_done:
             points = surface_points(scs[0].layer_plans[models[0].layer + 1], float(models[0].grid.zs[-1]), args.points)
-            models[1].sync("part")
-            rise = [float(np.mean(m.temperature_at(points))) - t0_k for m in models]
+            end = mean_rise(models, points, t0_k)
             for model in models:
                 model.add_layer()
-            records.append({"layer": models[0].layer + 1, "rise_k_uniform": round(rise[0], 2),
-                            "rise_k_multilevel": round(rise[1], 2),
-                            "diff_pct": round(100 * (rise[1] - rise[0]) / rise[0], 2)})
+            start = mean_rise(models, points, t0_k)
+            records.append({"layer": models[0].layer + 1, **compared(start, ""), **compared(end, "end_")})
             print(records[-1], file=sys.stderr, flush=True)
         for i, (sc, model) in enumerate(zip(scs, models)):
             t0 = time.perf_counter()
@@ -68,6 +81,7 @@ def main() -> None:
             times[i].append(time.perf_counter() - t0)
     load.append(round(os.getloadavg()[0], 2))
     result = {"layers": records, "layer_start_max_diff_pct": max(abs(r["diff_pct"]) for r in records),
+              "layer_end_max_diff_pct": max(abs(r["end_diff_pct"]) for r in records),
               "steps": len(times[0]), "ms_per_step_uniform": round(1e3 * statistics.fmean(times[0]), 2),
               "ms_per_step_multilevel": round(1e3 * statistics.fmean(times[1]), 2), "load_avg": load}
     print(json.dumps(result))
