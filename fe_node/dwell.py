@@ -66,8 +66,8 @@ def implicit_step(h: np.ndarray, operator, law, m: np.ndarray, dt: float, b: np.
 
 
 def cool(h: np.ndarray, duration_s: float, dt_explicit: float, explicit_step: Callable[[], None],
-         implicit: Callable[[float], float], max_step_s: float, temperature: Callable, t_amb_k: float
-         ) -> list[float]:
+         implicit: Callable[[float], float], max_step_s: float, temperature: Callable, t_amb_k: float,
+         fallback: Callable[[float], float] | None = None) -> list[float]:
     """Cool ``h`` (nodal enthalpy [J/m³], in place) for ``duration_s`` [s] with no heat input.
 
     The first :data:`EXPLICIT_S` in explicit steps of ``dt_explicit`` [s] (``explicit_step()``, which
@@ -76,8 +76,11 @@ def cool(h: np.ndarray, duration_s: float, dt_explicit: float, explicit_step: Ca
     :data:`EXPLICIT_S` up to ``max_step_s``.  The trilinear stiffness is no M-matrix, so a long
     implicit step over the steep gradients of a fresh track can undershoot: a step that cools any
     node below the coldest temperature before it (``temperature(h)`` [K], floored at ``t_amb_k``)
-    or whose CG fails is undone and retried at an eighth of its length.  Returns the energies
-    [J] lost in the accepted implicit steps, in order, as a list.
+    or whose CG fails is undone and retried at an eighth of its length.  On graded elements a step
+    can undershoot even at ``dt_explicit``; from there the dwell goes on with ``fallback`` (the same
+    step on an operator that is an M-matrix, e.g. :class:`~fe_node.operators.TensorOperator` with
+    ``nodal=True``), or raises ``RuntimeError`` without one.  Returns the energies [J] lost in the
+    accepted implicit steps, in order, as a list.
     """
     n_explicit = min(math.ceil(EXPLICIT_S / dt_explicit), math.floor(duration_s / dt_explicit))
     for _ in range(n_explicit):
@@ -93,9 +96,13 @@ def cool(h: np.ndarray, duration_s: float, dt_explicit: float, explicit_step: Ca
         except RuntimeError:
             lost = None
         if lost is None or float(temperature(h.min())) < t_floor:
+            h[...] = before
             if dt <= dt_explicit:
-                raise RuntimeError("dwell: implicit step failed at the explicit step size")
-            h[...], dt = before, dt / 8
+                if fallback is None or implicit is fallback:
+                    raise RuntimeError("dwell: implicit step failed at the explicit step size")
+                implicit, dt = fallback, dt / 2           # the same step again, on the fallback
+            else:
+                dt /= 8
             continue
         lost_j.append(lost)
         left -= dt

@@ -372,16 +372,29 @@ class ThermalModel:
 
     def _dwell(self, duration_s: float) -> None:
         """Cool for ``duration_s`` with the laser off, explicit sub-steps then implicit steps
-        (:func:`fe_node.dwell.cool`); losses counted."""
+        (:func:`fe_node.dwell.cool`; where they undershoot on graded elements, on the corner-rule
+        stiffness of the same element weights, ``TensorOperator(nodal=True)``: an M-matrix on any
+        box grid); losses counted."""
         s = self.settings
         no_load = np.zeros((1, 1))
-        for lost in cool(self._h, duration_s, self._dt_sub, lambda: self._substep(no_load), self._implicit_dwell_step,
-                         s.dwell_step_s, self.law.temperature, s.t_amb_k):
+        corner = None
+
+        def on_corners(dt: float) -> float:
+            nonlocal corner
+            if corner is None:
+                kw, rho_w = self._element_weights()
+                corner = TensorOperator(self.grid, kw, rho_w, nodal=True)
+            return self._implicit_dwell_step(dt, corner)
+
+        for lost in cool(self._h, duration_s, self._dt_sub, lambda: self._substep(no_load),
+                         lambda dt: self._implicit_dwell_step(dt, self.operator), s.dwell_step_s,
+                         self.law.temperature, s.t_amb_k, fallback=on_corners):
             self._lost += lost
 
-    def _implicit_dwell_step(self, dt: float) -> float:
-        """One implicit dwell step of ``dt`` [s] with the top and plate losses; returns the energy lost [J]."""
-        return implicit_cooling_step(self._h, self.operator, self.law, self._m, self._a_top, self._a_bottom,
+    def _implicit_dwell_step(self, dt: float, operator) -> float:
+        """One implicit dwell step of ``dt`` [s] on ``operator`` with the top and plate losses; returns the
+        energy lost [J]."""
+        return implicit_cooling_step(self._h, operator, self.law, self._m, self._a_top, self._a_bottom,
                                      self.settings, dt)
 
     def reweight(self, elements, kw, rho_w) -> None:

@@ -57,3 +57,25 @@ def test_dwell_between_layers_cools_implicitly():
     assert max(abs(o.energy_error_pct) for o in second) < 1e-6
     lost = [r[1][1][-1].energy_lost_j for r in runs.values()]
     assert lost[0] == pytest.approx(lost[1], rel=0.02)         # converged in the dwell step
+
+
+def test_a_dwell_step_that_undershoots_at_the_explicit_step_goes_on_with_the_fallback_operator():
+    """``cool``: a step that cools a node below the floor even at the explicit step size is undone and the
+    dwell goes on with ``fallback`` (the uniform mesh's corner-rule operator); without one it raises."""
+    from fe_node.dwell import EXPLICIT_S, cool
+
+    def undershooting(dt):                      # the trilinear operator on graded elements, say
+        h[0, 0, 0] = -5.0
+        return 0.0
+
+    def on_corners(dt):                         # an M-matrix step: cools, never below the floor
+        h[...] *= 0.5
+        return dt
+
+    h = np.ones((2, 2, 2))
+    lost = cool(h, 0.1, 1e-3, lambda: None, undershooting, 0.05, lambda x: x, 0.0, fallback=on_corners)
+    assert sum(lost) == pytest.approx(0.1 - EXPLICIT_S) and h.min() > 0.0      # every step on the fallback
+    h = np.ones((2, 2, 2))
+    with pytest.raises(RuntimeError, match="failed at the explicit step size"):
+        cool(h, 0.1, 1e-3, lambda: None, undershooting, 0.05, lambda x: x, 0.0)
+    assert h.min() == 1.0                                                      # the failed step undone
