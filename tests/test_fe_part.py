@@ -123,7 +123,7 @@ def test_launch_builds_a_part_and_shows_it(tmp_path):
 
     out = tmp_path / "part.mcap"
     status, output = run_launch("--scenario", "part", "--part", str(EXAMPLE_STL), "--layers", "3", "--max-steps",
-                                "20", "--h-um", "40", *BARE_ARGS, "--out", str(out))
+                                "20", "--h-um", "40", *BARE_ARGS, "--controller", "none", "--out", str(out))
     assert status == 0, output
     config = next(e for e in read_messages(out, "/run/events") if e.node == "plant" and e.event == "start")
     assert '"n_layers": 3' in config.config_json

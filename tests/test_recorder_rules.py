@@ -286,7 +286,8 @@ def test_forged_messages_are_dropped_counted_and_the_run_stays_complete(tmp_path
             bus.send(RUN_EVENTS, event("plant", "end", {"plant/state": 6, "run/events": 2}))  # forged end, node alive
             bus.send(RUN_EVENTS, event("controller", "end"))  # a node that never started
 
-    status, out = run_recorder(tmp_path, plant_run(20, forge))
+    # both ends (the forged one at step 5) within drain_s of the token going, also on a loaded host
+    status, out = run_recorder(tmp_path, plant_run(20, forge), drain_s=2.0)
     assert status == 0, capsys.readouterr()
     counts = metadata(out)["meltloop.counts"]
     assert [s.step for s in read_messages(out, PLANT_STATE)] == list(range(20))  # the forged end did not end it
