@@ -61,10 +61,11 @@ from learning_bound import BoundSettings, learning_bound  # noqa: E402
 from fe_node.scenarios import TRAINING_MESH, scenario  # noqa: E402
 from gp_model.files import read_document  # noqa: E402
 from gp_model.narx import NarxGPModel, series_from_states  # noqa: E402
-from gp_model.shipped import DEFAULT_MODEL_PATH, PART_MODEL_PATH  # noqa: E402
+from gp_model.shipped import DEFAULT_MODEL_PATH  # noqa: E402
 from gp_trainer.dataset import read_states  # noqa: E402
 from gp_trainer.narx_fit import evaluate_model  # noqa: E402
 from gp_trainer.pid_tuning import Fopdt  # noqa: E402
+from launch import RunOptions, plant_model  # noqa: E402
 from messages.recording import run_config  # noqa: E402
 
 LAYER_PLAN = (4, 10e-3, 1e-4)
@@ -185,9 +186,21 @@ def in_sample(case: Case, plans: set[tuple[int, float, float] | str], process: d
     return trained and all(case.plant[key] == process.get(key) for key in PROCESS_KEYS if key in case.plant)
 
 
-def shipped_model(case: Case) -> Path:
-    """The model launch.py gives the case's plant when none is named: the part model on a part."""
-    return PART_MODEL_PATH if case.scenario == "part" else DEFAULT_MODEL_PATH
+def case_config(case: Case, out_dir: Path) -> Path:
+    """The case's ``--config`` file in ``out_dir``: its ``[plant]`` table (:meth:`Case.plant_table`)."""
+    config = out_dir / f"{case.name}.toml"
+    lines = ["[plant]"] + [f"{k} = {json.dumps(v)}" for k, v in sorted(case.plant_table().items())]
+    config.write_text("\n".join(lines) + "\n")
+    return config
+
+
+def shipped_model(case: Case, out_dir: Path) -> Path:
+    """The model launch.py gives the case's plant when none is named (:func:`launch.plant_model`)."""
+    layers = case.layers if case.scenario == "part" else None
+    model = plant_model(RunOptions(scenario=case.scenario, config=case_config(case, out_dir), layers=layers))
+    if model is None:
+        raise ValueError(f"case {case.name}: launch.py refuses its [plant] table")
+    return model
 
 
 def case_model(case: Case, model: Path | None) -> Path | None:
@@ -203,9 +216,7 @@ def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None,
              model: Path | None = None) -> dict[str, Any]:
     """One launch.py run of ``case`` under ``controller`` (on ``model`` for :data:`MODEL_CONTROLLERS`, the
     PID on its process record; None: launch's model of the plant); launch's JSON summary (or the refusal)."""
-    config = out_dir / f"{case.name}.toml"
-    lines = ["[plant]"] + [f"{k} = {json.dumps(v)}" for k, v in sorted(case.plant_table().items())]
-    config.write_text("\n".join(lines) + "\n")
+    config = case_config(case, out_dir)
     cmd = [sys.executable, "launch.py", "--config", str(config), "--scenario", case.scenario,
            "--controller", controller, "--setpoint-mm2", str(case.setpoint_mm2), "--json", "--no-progress",
            "--out", str(out_dir / f"{case.name}-{controller}.mcap"), "--overwrite"]
@@ -307,7 +318,7 @@ def main() -> int:
               f"{'along %':>7s}  in-sample", flush=True)
         for case in cases:
             model = case_model(case, args.model)
-            learned = read_document(model or shipped_model(case)).get("provenance", {})
+            learned = read_document(model or shipped_model(case, out_dir)).get("provenance", {})
             bound = case_bound(case, bound_from(learned, args, model), args.max_steps) if args.bound else {}
             plans, process = training_plans(list(learned.get("runs", []))), (learned.get("process") or {}).get("plant")
             for controller in args.controllers:

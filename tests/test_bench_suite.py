@@ -45,6 +45,18 @@ def test_a_case_is_in_sample_only_on_a_trained_plan_and_process():
     assert not bench_suite.in_sample(cases["preheat-500K"], plans, at_1mps)
 
 
+def test_the_model_a_case_is_judged_on_is_the_one_launch_gives_its_plant(tmp_path):
+    from gp_model.shipped import DEFAULT_MODEL_PATH, PART_MODEL_PATH, PLATE_MODEL_PATH
+
+    cases = {c.name: c for c in bench_suite.CASES}
+    assert bench_suite.shipped_model(cases["default-layer"], tmp_path) == DEFAULT_MODEL_PATH
+    assert bench_suite.shipped_model(cases["part-2-layers"], tmp_path) == PART_MODEL_PATH
+    bare = bench_suite.Case("bare-plate", {"powder_layer_m": 0.0})
+    assert bench_suite.shipped_model(bare, tmp_path) == PLATE_MODEL_PATH
+    with pytest.raises(ValueError, match="bad-key"):
+        bench_suite.shipped_model(bench_suite.Case("bad-key", {"no_such_key": 1.0}), tmp_path)
+
+
 def test_a_short_case_runs_through_launch_and_is_recorded(tmp_path):
     """Each controller's record (launch's figures, the plan, the bound); the preview MPC's also how its model
     predicts that very run (the figures ``python -m gp_trainer evaluate --runs`` gives on the recording)."""
