@@ -144,10 +144,9 @@ def run(bus: NodeBus, controller, settings: ControllerSettings, stop: StopFlag, 
     return 1 if lost else 0
 
 
-PLANT_END_WAIT_S = 2.0
-"""How long after the plant's token went its ``end`` event may still arrive [s]. It is published about
-50 ms before the token goes, but on a starved host the token's loss can be seen first: with 0.5 s a plant
-that ended cleanly was once reported lost (a CI run beside a long run at a higher priority)."""
+PLANT_END_WAIT_S = 0.5
+"""How long after the plant's token went its ``end`` event may still arrive (it is published
+about 50 ms before the token goes)."""
 
 
 def ended(events: Inbox, node: str, wait_s: float) -> bool:
