@@ -279,7 +279,6 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
         controller += ["--model", str(model)] if model else []
         process = process_model(opts)
         controller += ["--process", str(process)] if process else []
-        controller += ["--preset", "part"] if opts.scenario in PART_NAMES else []
         nominal = part_nominal_power(opts)
         controller += ["--nominal-power-w", repr(nominal)] if nominal is not None else []
         speed = plant_speed(opts)

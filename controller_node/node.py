@@ -26,7 +26,7 @@ from typing import Any
 
 from controller_node.process import process_table
 from controller_node.registry import CONTROLLERS, MODELS, make_controller, model_class
-from controller_node.settings import PLANT_PRESETS, ControllerSettings, merged_over, with_preset
+from controller_node.settings import ControllerSettings, merged_over
 from controller_node.types import ConfigurationError, Measurement
 from gp_model.atomic import atomic_write_bytes
 from gp_model.files import load_for_node
@@ -360,9 +360,6 @@ def build_parser() -> argparse.ArgumentParser:
                              "0.8 m/s; launch.py passes the plant's)")
     parser.add_argument("--config", type=Path,
                         help="TOML run configuration; its [controller] table holds ControllerSettings fields")
-    parser.add_argument("--preset", choices=tuple(PLANT_PRESETS),
-                        help="settings for another plant than the bare plate, under --config's "
-                             "(launch.py passes 'part' on a part scenario)")
     parser.add_argument("--process", type=Path, metavar="MODEL",
                         help="a model learned by `python -m gp_trainer learn`: its recorded operating power and PID "
                              "tuning (controller_node.process) under --config's [controller] values (launch.py passes "
@@ -379,11 +376,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
-    """The ``[controller]`` table of ``--config`` over ``--preset`` over ``--process``'s record, then
+    """The ``[controller]`` table of ``--config`` over ``--process``'s record, then
     ``--setpoint-mm2``, ``--nominal-power-w`` and ``--nominal-speed-m-s`` (:class:`UsageError` naming a bad key)."""
     table = dict(load_toml(args.config).get("controller", {}))
     table.pop("name", None)  # the controller's name is a launch option
-    table = with_preset(table, args.preset)
     if args.process is not None:
         table = merged_over(process_table(args.process), table)
     set_point = None if args.setpoint_mm2 is None else args.setpoint_mm2 * 1e-6

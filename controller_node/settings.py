@@ -405,21 +405,6 @@ class ControllerSettings:
                "ControllerSettings.set_point_m2 must lie inside the MPC area bounds")
 
 
-PLANT_PRESETS: dict[str, dict] = {
-    "part": {"preview": {"observer_gain": 1.0, "turn_learning_gain": 0.0, "learn_turn_profile": False, "r": 1.0}},
-}
-"""``[controller]`` values for a plant other than the bare plate, under the run's own ``[controller]``
-table (which wins). ``part`` (``launch.py --scenario part`` passes ``--preset part``): short hatch
-vectors of different lengths, so what one turnaround teaches does not carry to the next (κ = 0, no
-learned turn profile), and a part model whose error moves fast along a hatch (observer gain 1).
-Chosen by the sweep in CHANGELOG.md ("Parts: the preset sweep"), at the move weight r = 1 it was made with."""
-
-
-def with_preset(table: dict, preset: str | None) -> dict:
-    """``table`` (a ``[controller]`` TOML table) over ``PLANT_PRESETS[preset]``, nested tables merged."""
-    return dict(table) if preset is None else merged_over(PLANT_PRESETS[preset], table)
-
-
 def merged_over(base: dict, table: dict) -> dict:
     """``table`` (a ``[controller]`` TOML table) over ``base``, nested tables merged (``table`` wins)."""
     merged = {k: dict(v) if isinstance(v, dict) else v for k, v in base.items()}

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from controller_node.settings import PLANT_PRESETS, ControllerSettings, with_preset
+from controller_node.settings import ControllerSettings
 from fe_node.scenarios import PART_POWER_W, scenario
 from gp_model.narx import NarxGPModel
 from gp_model.shipped import PART_MODEL_PATH, PLATE_MODEL_PATH
@@ -14,7 +14,6 @@ from gp_trainer.campaign import IDENT_PART_RUNS, IDENT_RUNS, IDENT_SETS, Feedbac
 from gp_trainer.cli import main as gp_main
 from gp_trainer.jobs import plant_toml
 from launch import RunOptions, default_nodes
-from messages.config import build
 
 
 def _controller_args(opts: RunOptions, tmp_path: Path) -> list[str]:
@@ -62,14 +61,14 @@ def test_ident_part_scenario_is_a_seeded_staircase_over_every_layer():
         scenario("ident-part", ident_seed=1, power_w=90.0)
 
 
-def test_launch_gives_a_part_run_the_part_model_preset_and_power(tmp_path):
+def test_launch_gives_a_part_run_the_part_model_and_power(tmp_path):
     args = _controller_args(RunOptions(scenario="part"), tmp_path)
     assert _value(args, "--model") == str(PART_MODEL_PATH)
-    assert _value(args, "--preset") == "part" and float(_value(args, "--nominal-power-w")) == PART_POWER_W
+    assert float(_value(args, "--nominal-power-w")) == PART_POWER_W
     pid = _controller_args(RunOptions(scenario="part", controller="pid"), tmp_path)
     assert _value(pid, "--model") is None and float(_value(pid, "--nominal-power-w")) == PART_POWER_W
     layer = _controller_args(RunOptions(scenario="layer"), tmp_path)
-    assert {"--preset", "--nominal-power-w"}.isdisjoint(layer)  # the model of the default plant's layer:
+    assert "--nominal-power-w" not in layer  # the model of the default plant's layer:
     bare = scenario("layer").settings.powder_layer_m == 0     # the plate's without powder, else the shipped default
     assert _value(layer, "--model") == (str(PLATE_MODEL_PATH) if bare else None)
     config = tmp_path / "c.toml"
@@ -78,31 +77,19 @@ def test_launch_gives_a_part_run_the_part_model_preset_and_power(tmp_path):
                         "--nominal-power-w")) == 80.0
     config.write_text("[controller]\nnominal_power_w = 120.0\n")   # the user's own nominal power is kept
     own = _controller_args(RunOptions(scenario="part", config=config), tmp_path)
-    assert "--nominal-power-w" not in own and _value(own, "--preset") == "part"
+    assert "--nominal-power-w" not in own
     other = tmp_path / "m.json"
     other.write_text("{}")
     assert _value(_controller_args(RunOptions(scenario="part", model=other), tmp_path), "--model") == str(other)
 
 
-def test_preset_lies_under_the_runs_own_controller_table():
-    settings = build(ControllerSettings, with_preset({}, "part"), "[controller]")
-    assert settings.preview.observer_gain == 1.0 and settings.preview.turn_learning_gain == 0.0
-    assert settings.preview.learn_turn_profile is False
-    own = with_preset({"preview": {"observer_gain": 0.3}, "nominal_power_w": 90.0}, "part")
-    settings = build(ControllerSettings, own, "[controller]")
-    assert settings.preview.observer_gain == 0.3 and settings.preview.turn_learning_gain == 0.0
-    assert settings.nominal_power_w == 90.0
-    assert with_preset({"pid": {"kp_w": 1.0}}, None) == {"pid": {"kp_w": 1.0}}
-    assert PLANT_PRESETS["part"]["preview"]["observer_gain"] == 1.0   # with_preset did not change it
-
-
-def test_controller_node_applies_preset_and_nominal_power(tmp_path):
+def test_controller_node_applies_nominal_power_and_no_part_specific_settings(tmp_path):
     from controller_node.node import build_parser, settings_from_args
 
     parse = build_parser().parse_args
-    settings = settings_from_args(parse(["--preset", "part", "--nominal-power-w", "100", "--setpoint-mm2", "0.06"]))
-    assert settings.nominal_power_w == 100.0 and settings.preview.observer_gain == 1.0
-    assert settings.set_point_m2 == pytest.approx(0.06e-6)
+    settings = settings_from_args(parse(["--nominal-power-w", "100", "--setpoint-mm2", "0.06"]))
+    assert settings.nominal_power_w == 100.0 and settings.set_point_m2 == pytest.approx(0.06e-6)
+    assert settings.preview == ControllerSettings().preview   # a part runs the layer's preview settings
     assert settings_from_args(parse([])) == ControllerSettings()
 
 
