@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LEARNING_FORMAT", "PATH_TOLERANCE_M", "learned_paths", "parse_learning_state", "plan_mismatch"]
+__all__ = ["LEARNING_FORMAT", "PATH_TOLERANCE_M", "parse_learning_state", "plan_mismatch"]
 
 LEARNING_FORMAT = "meltloop-preview-learning-3"
 """The format name of a learning-state document (``-3``: it records the plan it was learned on)."""
@@ -44,23 +44,15 @@ def parse_learning_state(doc: object, sample_period_s: float, n_correction: int,
     return correction, [c.copy() for c in by_turn], profile
 
 
-def learned_paths(doc: dict) -> list[float]:
-    """The path lengths [m] of the plan a learning-state document was learned on (``ValueError`` if its
-    ``path_lengths_m`` is not a list of numbers)."""
-    try:
-        return [float(v) for v in doc.get("path_lengths_m")]
-    except (TypeError, ValueError):
-        raise ValueError("path_lengths_m must be a list of numbers") from None
-
-
 def plan_mismatch(doc: dict, path_lengths_m) -> str | None:
     """Why a learning-state document (checked by :func:`parse_learning_state`) was learned on another
     scan plan than one whose paths have the lengths ``path_lengths_m`` [m] (its turns would be another
     plan's turns; one line), or None."""
+    learned = doc.get("path_lengths_m")
     try:
-        learned = learned_paths(doc)
-    except ValueError as err:
-        return str(err)
+        learned = [float(v) for v in learned]
+    except (TypeError, ValueError):
+        return "path_lengths_m must be a list of numbers"
     planned = [float(v) for v in path_lengths_m]
     if len(learned) == len(planned) and all(abs(a - b) <= PATH_TOLERANCE_M for a, b in zip(learned, planned)):
         return None

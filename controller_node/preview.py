@@ -39,10 +39,7 @@ run's first (no turnaround).
 Learning over turnarounds (iterative learning control on the model's one-step error after a
 turn, :meth:`PreviewMPC._learn_turn_correction`): within a layer each turn starts from the latest
 learned correction; in the next layer (of the same build, or through :meth:`learning_state`)
-turn j starts from what turn j learned, since a later turn of a layer is on a hotter plate, as long
-as the layer repeats the previous layer's plan (its paths so far have the previous layer's lengths).
-On a layer with another plan (a part's hatches rotated from layer to layer) turn j is another
-geometry, and each turn starts from the latest learned correction.
+turn j starts from what turn j learned, since a later turn of a layer is on a hotter plate.
 
 A state whose sample period or scan speed differs from the model's by more than 1 % is refused
 (:class:`~controller_node.types.ConfigurationError` with the line of
@@ -57,7 +54,7 @@ import math
 import numpy as np
 
 from .base import Controller, Proposal
-from .learning_state import LEARNING_FORMAT, PATH_TOLERANCE_M, learned_paths, parse_learning_state
+from .learning_state import LEARNING_FORMAT, parse_learning_state
 from .preview_kernel import Kernel
 from .preview_qp import PreviewQP
 from .preview_stages import StateContext
@@ -143,7 +140,6 @@ class PreviewMPC(Controller):
         self._turn = -1                          # index of the current turn in the layer (-1: first track)
         self.turn_corrections_by_turn_m2: list[np.ndarray] = []   # learned for turn j of this layer
         self._prior_by_turn: list[np.ndarray] = []                # learned for turn j of the previous layer
-        self._prior_paths_m: list[float] = []                     # the previous layer's path lengths [m]
         self._learned = False
         self._sync_corrections()
         self._last_qp: int | None = None        # blind rows of the QP in the workspace (see last_qp)
@@ -176,7 +172,6 @@ class PreviewMPC(Controller):
         if new_path and m.track_remaining_s is not None and m.track_elapsed_s is not None \
                 and m.track_elapsed_s <= 1.5 * self.model.sample_period_s:   # the first state of a path
             self.path_lengths_m.append((m.track_elapsed_s + m.track_remaining_s) * m.speed_m_s)
-            self._sync_corrections()             # whether this layer still repeats the previous one's plan
         if self._turn_base_k is not None:
             self._observed.append(m.t_ahead_k - self._turn_base_k)
 
@@ -196,7 +191,7 @@ class PreviewMPC(Controller):
         new_layer = prev is not None and m.layer is not None and m.layer != prev.layer
         if new_layer:  # a new pool on fresh powder: no turnaround to learn from or forecast
             self._layer_start_step = self._track_start_step = m.step
-            self._prior_paths_m, self.path_lengths_m = self.path_lengths_m, []
+            self.path_lengths_m = []
             self._first_track, self._turn_base_k, self._observed = m.track, None, []
             self._kernel.start_track(False)
             self._learn_turn_correction()
@@ -216,17 +211,8 @@ class PreviewMPC(Controller):
 
     def _correction_for(self, turn: int) -> np.ndarray:
         """The correction applied after turn ``turn`` of the layer: what the previous layer learned at
-        the same turn if this layer has so far repeated the previous layer's plan, else the latest
-        learned in this run."""
-        if 0 <= turn < len(self._prior_by_turn) and self._repeats_prior_plan():
-            return self._prior_by_turn[turn]
-        return self.turn_correction_m2
-
-    def _repeats_prior_plan(self) -> bool:
-        """Whether the paths of this layer seen so far have the lengths of the previous layer's first
-        paths (within :data:`~controller_node.learning_state.PATH_TOLERANCE_M`)."""
-        seen, prior = self.path_lengths_m, self._prior_paths_m
-        return len(seen) <= len(prior) and all(abs(a - b) <= PATH_TOLERANCE_M for a, b in zip(seen, prior))
+        the same turn, else the latest learned in this run."""
+        return self._prior_by_turn[turn] if 0 <= turn < len(self._prior_by_turn) else self.turn_correction_m2
 
     def _sync_corrections(self) -> None:
         """Copy the corrections after the current track's turn and after the next turn into the kernel
@@ -268,7 +254,7 @@ class PreviewMPC(Controller):
         correction, by_turn, profile = parse_learning_state(doc, self.model.sample_period_s,
                                                             self.turn_correction_m2.size, self._profile.size)
         self.turn_correction_m2[:] = correction
-        self._prior_by_turn, self._prior_paths_m = by_turn, learned_paths(doc)
+        self._prior_by_turn = by_turn
         self._profile[:] = profile
         self._learned = bool(np.any(correction)) or any(bool(np.any(c)) for c in by_turn)
         self._sync_corrections()

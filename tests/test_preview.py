@@ -414,37 +414,6 @@ def test_the_learning_state_records_the_paths_the_states_show(model):
     assert ctrl.learning_state()["path_lengths_m"] == pytest.approx([20 * dt * 0.8, 40 * dt * 0.8, 20 * dt * 0.8])
 
 
-def test_a_layer_on_another_plan_starts_each_turn_from_the_latest_correction(model):
-    """Learning over layers is tied to the plan: turn j of the next layer starts from what turn j learned
-    only while that layer repeats the previous layer's paths; on another plan (a part's rotated hatches)
-    each turn starts from the latest learned correction."""
-    def run_layer(ctrl, layer, lengths, k):
-        for track, n in enumerate(lengths):
-            for j in range(n):
-                ctrl.update(Measurement(step=k, time_s=k * dt, area_m2=6.3e-8, t_ahead_k=900.0, power_w=250.0,
-                                        speed_m_s=0.8, track=track, layer=layer, track_elapsed_s=j * dt,
-                                        track_remaining_s=(n - 1 - j) * dt, next_track=track < len(lengths) - 1))
-                k += 1
-        return k
-
-    dt = 50e-6
-    for second_layer, repeats in (((30, 30, 30), True), ((30, 40, 30), False)):
-        ctrl = PreviewMPC(ControllerSettings(set_point_m2=6.3e-8), model)
-        k = run_layer(ctrl, 0, (30, 30, 30), 0)
-        by_turn = [np.full(ctrl.turn_correction_m2.size, (j + 1) * 1e-9) for j in range(2)]
-        ctrl.turn_corrections_by_turn_m2 = by_turn     # as if the first layer had learned these
-        ctrl.turn_correction_m2[:] = -1e-9
-        k = run_layer(ctrl, 1, second_layer[:1], k)    # the second layer's first path
-        ctrl.update(Measurement(step=k, time_s=k * dt, area_m2=6.3e-8, t_ahead_k=900.0, power_w=250.0,
-                                speed_m_s=0.8, track=1, layer=1, track_elapsed_s=0.0,
-                                track_remaining_s=(second_layer[1] - 1) * dt, next_track=True))
-        current = ctrl._kernel.current
-        if repeats:
-            assert np.array_equal(current, by_turn[0])
-        else:   # the track after turn 0 is 40 states long, not 30: the latest learned correction
-            assert np.array_equal(current, ctrl.turn_correction_m2) and not np.array_equal(current, by_turn[0])
-
-
 def test_learning_state_round_trip_and_refusal(model):
     settings = ControllerSettings(set_point_m2=1.5e-8, preview=PreviewSettings(horizon=10, turn_learning_steps=5))
     first = PreviewMPC(settings, model)

@@ -244,8 +244,7 @@ def test_each_turn_of_a_layer_predicts_with_the_previous_layers_correction_of_th
     ctrl.load_learning_state({"format": LEARNING_FORMAT, "sample_period_s": model.sample_period_s,
                               "turn_correction_m2": [0.0] * 60,
                               "turn_corrections_by_turn_m2": [c.tolist() for c in by_turn],
-                              "turn_profile_k": list(model.turn_profile_k),
-                              "path_lengths_m": [24 * 50e-6 * 0.8] * 4})   # the plan below
+                              "turn_profile_k": list(model.turn_profile_k)})
     for k in range(100):  # four tracks of 25 states: turns 0, 1, 2
         track = k // 25
         ctrl.update(Measurement(step=k, time_s=k * 50e-6, area_m2=SP * min(1.0, k / 20), t_ahead_k=900.0 + 5 * k,
