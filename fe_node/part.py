@@ -17,8 +17,9 @@ Coordinates are centred on the part's plan-view bounding box and converted from 
 m; PySLM rounds them to 10 nm, so a hatch line's direction is within about 0.01° of its angle.
 
 The example part :data:`EXAMPLE_STL` is a cylinder 1.5 mm across and 0.5 mm high (10 layers
-of 50 µm); ``parts/block_5mm.stl`` is a 5 x 5 x 1.5 mm box (60 layers of 25 µm; its generating
-command: docs/fe.md, "Parts in Foxglove and on the command line").  PySLM is an optional
+of 50 µm); ``parts/block_5mm.stl`` is a 5 x 5 x 1.5 mm box (60 layers of 25 µm) and
+``parts/l_bracket_3mm.stl`` an L-shaped bracket 3 mm across and 0.5 mm high (their generating
+commands: docs/fe.md, "Parts in Foxglove and on the command line").  PySLM is an optional
 dependency: ``pip install pythonslm``.
 """
 from __future__ import annotations

@@ -345,9 +345,12 @@ class IdentRun:
 
     @property
     def name(self) -> str:
-        """Run id and recording stem, e.g. ``ident-layer-p250-s2``, ``ident-layer-8x5mm-p174-s7``."""
+        """Run id and recording stem, e.g. ``ident-layer-p250-s2``, ``ident-layer-8x5mm-p174-s7``,
+        ``ident-part-block_5mm-p60-s21`` (a part other than the example: its STL's stem)."""
         plan = "" if self.tracks is None else f"-{self.tracks[0]}x{self.tracks[1] * 1e3:g}mm"
-        return f"{self.scenario}{plan}-p{self.mean_w:g}-s{self.seed}"
+        stl = dict(self.plant).get("part_stl")
+        part = "" if stl is None else f"-{Path(stl).stem}"
+        return f"{self.scenario}{part}{plan}-p{self.mean_w:g}-s{self.seed}"
 
     def job(self) -> Job:
         """The launcher job: the scenario with its ``[plant]`` ``ident_*`` (and ``n_layers``, plan) overrides."""
@@ -526,12 +529,17 @@ PREVIEW_RUNS = PLATE_DESIGN.stage2_runs()
 
 PART_IDENT_LAYERS = 4
 DEFAULT_PART_IDENT_DIR = Path("recordings/identification-part")
+BLOCK_STL = "fe_node/parts/block_5mm.stl"
+"""The second part of the part model's runs (relative to the repository)."""
 IDENT_PART_RUNS = tuple(
     IdentRun("ident-part", mean, 40.0, seed, PART_IDENT_LAYERS) for mean, seed in ((60.0, 11), (100.0, 12), (140.0, 13))
-) + tuple(FeedbackRun("part", "pid", a, PART_IDENT_LAYERS) for a in (0.055, 0.063, 0.07))
-"""The runs for a model of the ``part`` scenario (powder on a small part: far less power than the
-bare plate, 75 W median under PID at 0.063 mm²): random staircases at 60, 100, 140 W ± 40 W and the
-PID baseline at three set points, 4 layers each."""
+) + tuple(FeedbackRun("part", "pid", a, PART_IDENT_LAYERS) for a in (0.055, 0.063, 0.07)) + tuple(
+    IdentRun("ident-part", mean, 40.0, seed, 1, plant=(("part_stl", str(REPO_ROOT / BLOCK_STL)),))
+    for mean, seed in ((60.0, 21), (100.0, 22), (140.0, 23)))
+"""The runs for a model of the ``part`` scenario (powder on small parts: far less power than the
+bare plate, 75 W median under PID at 0.063 mm²): on the example cylinder, random staircases at 60,
+100, 140 W ± 40 W and the PID baseline at three set points, 4 layers each; on the 5 mm block
+(:data:`BLOCK_STL`), the same three staircases over its first layer (6 508 states each)."""
 
 
 @dataclass(frozen=True)

@@ -55,7 +55,7 @@ from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.evaluate import evaluate, plot_narx
 from gp_trainer.jobs import JobResult
 from gp_trainer.learn import LearnSettings, design_from_record, learn, process_record, refit, retune
-from gp_trainer.narx_fit import POWER_FORM_NAMES, evaluate_model, rollout_key, select_and_fit
+from gp_trainer.narx_fit import POWER_FORM_NAMES, candidate_of, evaluate_model, rollout_key, select_and_fit
 from gp_trainer.provenance import REPO_ROOT
 from gp_trainer.train import TrainSettings, train
 from messages.cli import UsageError
@@ -145,6 +145,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None,
                    help="model file (default: the --plant's model in gp_model/models/)")
     p.add_argument("--seed", type=int, default=0, help="seed of the GP point choice and optimiser restarts")
+    p.add_argument("--structure-of", type=Path, default=None, metavar="MODEL",
+                   help="fit the candidate a delay-aware model was selected as (its structure) instead of "
+                        "selecting among all (default: select)")
     p.add_argument("--json", action="store_true", help="print the held-out metrics as JSON (last line)")
 
     p = sub.add_parser("campaign", formatter_class=fmt, help="record the Table 2 cases open loop (on Dask)",
@@ -521,7 +524,15 @@ def _narx(args: argparse.Namespace) -> int:
         raise DatasetError("need both training and held-out runs; "
                            f"held out {[r.name for r in held]} of {[r.name for r in runs]}")
     process = {**process_record(paths), "plant": ident.name}
-    model, best, table = select_and_fit(train, held, seed=args.seed, provenance={"process": process})
+    provenance, candidates = {"process": process}, None
+    if args.structure_of is not None:
+        try:
+            _check_structure(args.structure_of, train[0].sample_period_s)
+        except UsageError as err:
+            raise DatasetError(str(err)) from None
+        candidates = [candidate_of(NarxGPModel.load(args.structure_of))]
+        provenance["structure_of"] = str(args.structure_of)
+    model, best, table = select_and_fit(train, held, seed=args.seed, provenance=provenance, candidates=candidates)
     out = model.save(args.out or ident.model_path)
     for row in table:
         print(f"lags p {row['n_power_lags']:2d}, T {row['n_temperature_lags']:2d}, output {row['output']:8s}, "

@@ -114,8 +114,8 @@ def test_default_layer_on_the_physical_plant():
 
 def test_first_layer_of_the_example_part():
     """Layer 1 of the example part under the settings ``launch.py --scenario part`` gives (in sample: the part
-    model's training runs built the part's first four layers). Measured: 39.92 / 40.44 / 13.28 % (over /
-    under / RMSE); with the settings of the part preset that was removed (observer gain 1, no learning over
-    turnarounds, r = 1): 51.26 / 73.46 / 22.15 %."""
+    model's training runs built the part's first four layers). Measured: 41.55 / 37.29 / 13.65 % (over /
+    under / RMSE); with no learning over turnarounds (κ = 0): 47.49 / 46.29 / 15.20 %; with the settings of
+    the part preset that was removed (observer gain 1, κ = 0, r = 1): 42.90 / 61.40 / 21.65 %."""
     m = part_closed_loop(1)
     assert m.overshoot_pct <= 45.0 and m.undershoot_pct <= 45.0 and m.steady_rmse_pct <= 15.0, m

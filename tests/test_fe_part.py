@@ -48,6 +48,21 @@ def test_shipped_block_builds_50_layers_of_5_by_5_mm_contoured_and_turning_67_de
     assert np.diff(angles_deg) % 180.0 == pytest.approx([67.0, 67.0], abs=0.05)
 
 
+def test_shipped_l_bracket_is_hatched_inside_its_l():
+    """``fe_node/parts/l_bracket_3mm.stl``: 20 layers of 25 µm; each layer's contour is the L (3 × 3 mm, 1.2 mm
+    arms: 12 mm around) and no hatch point lies in the square the L leaves out."""
+    sc = scenario("part", part_stl=str(BLOCK_STL.parent / "l_bracket_3mm.stl"))
+    assert len(sc.layer_plans) == 20
+    for plan in sc.layer_plans[:2]:
+        tracks = np.array(plan.tracks)
+        closes = next(k for k, t in enumerate(tracks) if np.array_equal(t[1], tracks[0, 0]))
+        contour, hatch = tracks[:closes + 1], tracks[closes + 1:]
+        assert np.hypot(*(contour[:, 1] - contour[:, 0]).T).sum() == pytest.approx(12e-3, rel=1e-3)
+        points = hatch.reshape(-1, 2) + 1.5e-3                     # back to the STL's frame (centred on its box)
+        assert np.all(points >= -1e-6) and np.all(points <= 3e-3 + 1e-6)
+        assert not np.any((points[:, 0] > 1.2e-3 + 1e-6) & (points[:, 1] > 1.2e-3 + 1e-6))   # the cut-out square
+
+
 def test_part_scenario_builds_layer_by_layer():
     sc = scenario("part", preset=BARE, n_layers=2, hatch_m=0.6e-3, h_fine_m=50e-6, powder_layer_m=50e-6,
                   mesh="uniform")

@@ -10,9 +10,10 @@ from controller_node.settings import ControllerSettings
 from fe_node.scenarios import PART_POWER_W, scenario
 from gp_model.narx import NarxGPModel
 from gp_model.shipped import PART_MODEL_PATH, PLATE_MODEL_PATH
-from gp_trainer.campaign import IDENT_PART_RUNS, IDENT_RUNS, IDENT_SETS, FeedbackRun, IdentRun
+from gp_trainer.campaign import BLOCK_STL, IDENT_PART_RUNS, IDENT_RUNS, IDENT_SETS, FeedbackRun, IdentRun
 from gp_trainer.cli import main as gp_main
 from gp_trainer.jobs import plant_toml
+from gp_trainer.provenance import REPO_ROOT
 from launch import RunOptions, default_nodes
 
 
@@ -28,12 +29,16 @@ def _value(args: list[str], flag: str) -> str | None:
 def test_part_identification_runs_build_four_layers_and_hold_out_named_runs():
     open_loop = [r for r in IDENT_PART_RUNS if isinstance(r, IdentRun)]
     feedback = [r for r in IDENT_PART_RUNS if isinstance(r, FeedbackRun)]
-    assert [r.name for r in open_loop] == ["ident-part-p60-s11", "ident-part-p100-s12", "ident-part-p140-s13"]
+    assert [r.name for r in open_loop] == ["ident-part-p60-s11", "ident-part-p100-s12", "ident-part-p140-s13",
+                                           "ident-part-block_5mm-p60-s21", "ident-part-block_5mm-p100-s22",
+                                           "ident-part-block_5mm-p140-s23"]
     assert [r.name for r in feedback] == ["ident-pid-part-a0.055", "ident-pid-part-a0.063", "ident-pid-part-a0.07"]
     for run in open_loop:
         plant = tomllib.loads(plant_toml(run.job().plant))["plant"]
+        block = {"part_stl": str(REPO_ROOT / BLOCK_STL)} if "block" in run.name else {}
         assert plant == {"ident_seed": run.seed, "ident_mean_w": run.mean_w, "ident_amplitude_w": 40.0,
-                         "n_layers": 4}
+                         "n_layers": 1 if block else 4, **block}
+    assert (REPO_ROOT / BLOCK_STL).is_file()
     for run in feedback:
         assert run.job().args == ("--setpoint-mm2", repr(run.setpoint_mm2), "--layers", "4")
         assert run.job().controller == "pid" and run.job().scenario == "part"
@@ -116,3 +121,32 @@ def test_identify_part_without_pyslm_is_one_line_before_any_run(tmp_path, monkey
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "needs PySLM" in err and "--plant part" in err
     assert not any(tmp_path.iterdir())                               # no run was started
+
+
+def test_narx_in_the_structure_of_a_model_fits_only_its_candidate(monkeypatch, tmp_path, capsys):
+    """``narx --structure-of M`` fits the one candidate M was selected as, recorded in the provenance; a file
+    that is no delay-aware model is refused in one line (exit 2)."""
+    from types import SimpleNamespace
+
+    from gp_trainer import cli
+    from gp_trainer.narx_fit import candidate_of
+
+    seen = []
+
+    def select(train, held, **kwargs):
+        seen.append((kwargs["candidates"], kwargs["provenance"].get("structure_of")))
+        return NarxGPModel.load(PART_MODEL_PATH), {"quadratic": False, "interaction": False}, []
+
+    monkeypatch.setattr(cli, "read_states", lambda path: path)
+    monkeypatch.setattr(cli, "series_from_states", lambda states, name: SimpleNamespace(name=name,
+                                                                                       sample_period_s=5e-5))
+    monkeypatch.setattr(cli, "process_record", lambda paths: {})
+    monkeypatch.setattr(cli, "select_and_fit", select)
+    runs = [str(tmp_path / "ident-part-p60-s11.mcap"), str(tmp_path / "ident-part-p100-s12.mcap")]
+    out = str(tmp_path / "m.json")
+    assert gp_main(["narx", "--plant", "part", *runs, "--out", out, "--structure-of", str(PART_MODEL_PATH)]) == 0
+    assert gp_main(["narx", "--plant", "part", *runs, "--out", out]) == 0
+    assert seen == [([candidate_of(NarxGPModel.load(PART_MODEL_PATH))], str(PART_MODEL_PATH)), (None, None)]
+    capsys.readouterr()
+    assert gp_main(["narx", "--plant", "part", *runs, "--out", out, "--structure-of", str(tmp_path / "no.json")]) == 2
+    assert "--structure-of" in capsys.readouterr().err
