@@ -23,6 +23,8 @@ The cases (:data:`CASES`):
   both scaled; the model was learned on the calibrated plant);
 * set point: ``setpoint-0.05``, ``setpoint-0.09``;
 * ``part-2-layers``: the example part's first two layers (``--scenario part --layers 2``).
+* ``l-bracket-3-layers``: the first three layers of the L-shaped bracket, a part no model was trained on
+  (``--scenario part --part fe_node/parts/l_bracket_3mm.stl --layers 3``).
 
 Prints one table, writes one JSON record per case and controller to ``--out-dir`` and, as the last
 line, ``{"cases": [{"case", "controller", "status", "overshoot_pct", "undershoot_pct", "rmse_pct",
@@ -145,6 +147,7 @@ CASES = (
     Case("setpoint-0.05", setpoint_mm2=0.05),
     Case("setpoint-0.09", setpoint_mm2=0.09),
     Case("part-2-layers", scenario="part", layers=2),
+    Case("l-bracket-3-layers", {"part_stl": "fe_node/parts/l_bracket_3mm.stl"}, scenario="part", layers=3),
 )
 
 
