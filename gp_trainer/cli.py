@@ -527,10 +527,10 @@ def _narx(args: argparse.Namespace) -> int:
     provenance, candidates = {"process": process}, None
     if args.structure_of is not None:
         try:
-            _check_structure(args.structure_of, train[0].sample_period_s)
+            structure = _check_structure(args.structure_of, train[0].sample_period_s)
         except UsageError as err:
             raise DatasetError(str(err)) from None
-        candidates = [candidate_of(NarxGPModel.load(args.structure_of))]
+        candidates = [candidate_of(structure)]
         provenance["structure_of"] = str(args.structure_of)
     model, best, table = select_and_fit(train, held, seed=args.seed, provenance=provenance, candidates=candidates)
     out = model.save(args.out or ident.model_path)
@@ -579,9 +579,9 @@ def _refit(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_structure(path: Path, period_s: float) -> None:
-    """:class:`UsageError` naming ``--structure-of`` unless ``path`` is a delay-aware model learned at
-    ``period_s`` [s]."""
+def _check_structure(path: Path, period_s: float) -> NarxGPModel:
+    """The delay-aware model at ``path``; :class:`UsageError` naming ``--structure-of`` unless it is one
+    learned at ``period_s`` [s]."""
     try:
         model = NarxGPModel.load(path)
     except (GPError, OSError, ValueError) as err:
@@ -589,6 +589,7 @@ def _check_structure(path: Path, period_s: float) -> None:
     if not math.isclose(model.sample_period_s, period_s, rel_tol=1e-9):
         raise UsageError(f"--structure-of {path}: learned at a sample period of {model.sample_period_s:g} s, "
                          f"this process's is {period_s:g} s")
+    return model
 
 
 def _learn(args: argparse.Namespace) -> int:
