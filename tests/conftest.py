@@ -186,7 +186,7 @@ args = ["--controller", "{controller}", "--setpoint-mm2", "0.063", "--require", 
 """
 
 
-ATTACK_STEPS = 150
+ATTACK_STEPS = 300
 """Plant steps of the lockstep runs that a fuzzer or a rogue node attacks (tests/test_fuzz.py,
 tests/test_rogue.py) and of the clean run they are compared with."""
 ATTACK_COUNT = 10_000
