@@ -22,6 +22,8 @@ from messages.recording import RecordingError, read_all
 from messages.topics import LASER_COMMAND, PLANT_STATE
 
 NODE_NAME = "plant"
+LAST_ANSWER_TIMEOUT_S = 2.0
+"""How long the node waits after its last state for the command that answers it [s]."""
 
 
 def load_states(path: Path) -> list[MeltPoolState]:
@@ -51,7 +53,13 @@ def replay(bus: NodeBus, states: list[MeltPoolState], offsets: list[float], stop
             break
         pub.put(msgspec.structs.replace(state, run_id=bus.run_id, source="replay"))
         n_sent += 1
-    stop.wait(0.2)  # answers to the last state
+    last_step = states[n_sent - 1].step if n_sent else -1
+    deadline = time.monotonic() + LAST_ANSWER_TIMEOUT_S
+    while not stop.is_set() and (remaining := deadline - time.monotonic()) > 0:  # the answer to the last state
+        cmd = commands.get(timeout=remaining)
+        n_commands += cmd is not None
+        if cmd is not None and cmd.step > last_step:
+            break
     n_commands += sum(1 for _ in commands.drain())
     bus.log(LogLevel.INFO, f"replayed {n_sent} of {len(states)} states; {n_commands} commands received "
             f"(not applied), {commands.n_invalid} invalid", time_s=states[n_sent - 1].time_s if n_sent else 0.0)

@@ -65,7 +65,7 @@ def test_shipped_l_bracket_is_hatched_inside_its_l():
 
 def test_part_scenario_builds_layer_by_layer():
     sc = scenario("part", preset=BARE, n_layers=2, hatch_m=0.6e-3, h_fine_m=50e-6, powder_layer_m=50e-6,
-                  mesh="uniform")
+                  mesh="uniform", dwell_s=5e-3)  # a short dwell: the dwell has tests of its own
     assert sc.settings.n_layers == 2 and len(sc.layer_plans) == 2 and sc.plan == sc.layer_plans[0]
     model = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
     layers, scenes = set(), {}

@@ -174,7 +174,7 @@ def _path_firsts(plan):
 def test_the_plant_builds_a_rotated_layer_with_energy_conserved_and_a_consistent_preview():
     pytest.importorskip("pyslm")
     sc = scenario("part", preset=BARE, n_layers=2, hatch_m=0.3e-3, h_fine_m=40e-6, window_m=0.6e-3,
-                  mesh="uniform")
+                  mesh="uniform", dwell_s=5e-3)  # a short dwell: the rotated layer is what is checked here
     model = ThermalModel(sc.settings, sc.plan, sc.layer_plans)
     v = sc.profile.command(0)[1]
     hatch_seen, contour_steps = set(), 0
