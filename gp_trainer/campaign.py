@@ -508,6 +508,113 @@ class ProcessDesign:
         return (*at_power, closed)
 
 
+PART_IDENT_LAYERS = 4
+"""Layers each identification run on a part builds (the example part's runs and :class:`PartDesign`'s default)."""
+
+
+@dataclass(frozen=True)
+class PartDesign:
+    """The identification runs of a part (an STL built layer by layer), designed around its operating point.
+
+    A small part holds its heat: it needs far less power than a single track of the same process. The
+    PID baseline finds the part's power: it runs at set points about the target (``setpoint_ratios`` ×
+    it), starting from the single track's operating power ``track_power_w``, and the median power of its
+    run at the target is the part's operating power (:func:`gp_trainer.learn.median_power_w`). Stage 1:
+    those PID runs and seeded random power staircases over the part's first ``n_layers`` layers (seeds
+    1-3, means ``power_ratios`` × the part's operating power, amplitude ``amplitude_ratio`` × it). Stage 2:
+    the preview MPC with the stage-1 model at two set points between the PID's (``preview_setpoint_ratios``).
+    The shipped example part's runs (:data:`IDENT_PART_RUNS`) are of the same form.
+
+    Attributes
+    ----------
+    operating_power_w : float
+        The part's operating power [W]: the staircases' centre, and where every controller starts.
+    setpoint_mm2 : float
+        The target set point [mm²].
+    stage1_model : str
+        The preview MPC's model in the stage-2 runs (relative to the repository, or absolute).
+    part_stl : str
+        The part (an STL path, absolute or relative to the repository).
+    n_layers : int
+        Layers each run builds.
+    plant : tuple[tuple[str, Any], ...]
+        ``[plant]`` table of the process, before each run's own keys (``part_stl`` is added).
+    track_power_w : float or None
+        The power that holds the target along a single track [W], where the PID runs start (None: the
+        operating power).
+    """
+
+    operating_power_w: float
+    setpoint_mm2: float
+    stage1_model: str
+    part_stl: str
+    n_layers: int = PART_IDENT_LAYERS
+    plant: tuple[tuple[str, Any], ...] = ()
+    track_power_w: float | None = None
+    power_ratios: tuple[float, ...] = (0.6, 1.0, 1.4)
+    amplitude_ratio: float = 0.4
+    setpoint_ratios: tuple[float, ...] = (55 / 63, 1.0, 70 / 63)
+    preview_setpoint_ratios: tuple[float, ...] = (60 / 63, 66 / 63)
+
+    def __post_init__(self) -> None:
+        for key in ("operating_power_w", "track_power_w"):
+            value = getattr(self, key)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise CampaignError(f"{key} must be > 0 W, got {value}")
+        if not (math.isfinite(self.setpoint_mm2) and self.setpoint_mm2 > 0):
+            raise CampaignError(f"set_point must be > 0 mm², got {self.setpoint_mm2}")
+        if not (isinstance(self.n_layers, int) and self.n_layers >= 1):
+            raise CampaignError(f"layers must be an integer >= 1, got {self.n_layers}")
+        if 1.0 not in self.power_ratios or not 0 <= self.amplitude_ratio < min(self.power_ratios):
+            raise CampaignError("the staircases need the operating power among their means and levels >= 0 W")
+
+    @property
+    def part_plant(self) -> tuple[tuple[str, Any], ...]:
+        """The process's ``[plant]`` table with the part."""
+        stl = Path(self.part_stl)
+        return _merged(self.plant, (("part_stl", str(stl if stl.is_absolute() else REPO_ROOT / stl)),))
+
+    def _setpoint(self, ratio: float) -> float:
+        return round(self.setpoint_mm2 * ratio, 4)
+
+    def _power(self, ratio: float) -> float:
+        return float(round(self.operating_power_w * ratio))
+
+    def pid_runs(self) -> tuple[FeedbackRun, ...]:
+        """The PID baseline at set points about the target, from :attr:`track_power_w`; the one at the
+        target (:attr:`target_pid_run`) gives the part's operating power."""
+        start = self.operating_power_w if self.track_power_w is None else self.track_power_w
+        return tuple(FeedbackRun("part", "pid", self._setpoint(ratio), self.n_layers, plant=self.part_plant,
+                                 nominal_power_w=start) for ratio in self.setpoint_ratios)
+
+    @property
+    def target_pid_run(self) -> FeedbackRun:
+        """The PID run at the target set point."""
+        return next(r for r in self.pid_runs() if r.setpoint_mm2 == self.setpoint_mm2)
+
+    def stage1_runs(self) -> tuple[IdentRun | FeedbackRun, ...]:
+        """The PID runs, then the staircases (seeds 1-3)."""
+        amplitude = self._power(self.amplitude_ratio)
+        return self.pid_runs() + tuple(IdentRun("ident-part", self._power(ratio), amplitude, seed, self.n_layers,
+                                                plant=self.part_plant)
+                                       for seed, ratio in enumerate(self.power_ratios, 1))
+
+    def stage2_runs(self) -> tuple[FeedbackRun, ...]:
+        """The preview MPC with :attr:`stage1_model`."""
+        return tuple(FeedbackRun("part", "preview-mpc", self._setpoint(ratio), self.n_layers, model=self.stage1_model,
+                                 plant=self.part_plant) for ratio in self.preview_setpoint_ratios)
+
+    def runs(self) -> tuple[IdentRun | FeedbackRun, ...]:
+        """Stage 1, then stage 2."""
+        return self.stage1_runs() + self.stage2_runs()
+
+    def held_out(self) -> tuple[str, ...]:
+        """Runs held out for selection and evaluation: the staircase at the operating power and the PID
+        run at the target."""
+        at_power = [r.name for r in self.stage1_runs() if isinstance(r, IdentRun) and r.mean_w == self._power(1.0)]
+        return (*at_power, self.target_pid_run.name)
+
+
 PREVIEW_VARIANTS = (
     ("double-track", 58 / 63, None, None), ("double-track", 68 / 63, None, None),
     ("layer", 60 / 63, None, None), ("layer", 66 / 63, None, None),
@@ -527,7 +634,6 @@ PLATE_DESIGN = ProcessDesign(250.0, 0.063, PLATE_STAGE1_MODEL, (("preset", "bare
 IDENT_RUNS = PLATE_DESIGN.runs()
 PREVIEW_RUNS = PLATE_DESIGN.stage2_runs()
 
-PART_IDENT_LAYERS = 4
 DEFAULT_PART_IDENT_DIR = Path("recordings/identification-part")
 BLOCK_STL = "fe_node/parts/block_5mm.stl"
 """The second part of the part model's runs (relative to the repository)."""

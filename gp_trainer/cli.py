@@ -30,7 +30,7 @@ import numpy as np
 from controller_node.process import process_mismatch
 from controller_node.settings import ControllerSettings
 from fe_node.frames import frame_ratio
-from fe_node.part import require_pyslm
+from fe_node.part import EXAMPLE_STL, require_pyslm
 from fe_node.scenarios import scenario
 from gp_model import narx
 from gp_model.build_up import ROLLOUT_HORIZON, rollout_horizon
@@ -43,6 +43,7 @@ from gp_model.shipped import DEFAULT_MODEL_PATH, ONE_STEP_MODEL_PATH
 from gp_trainer import dataset, synthetic
 from gp_trainer.campaign import (
     IDENT_SETS,
+    PART_IDENT_LAYERS,
     CampaignSettings,
     IdentifySettings,
     run_campaign,
@@ -173,10 +174,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "learn", formatter_class=fmt, help="learn a process: operating point, identification runs, delay-aware model",
-        description="Learn the delay-aware model of a plate process: find the power that holds the set point "
-        "along a track, record the identification runs designed around it (staircases, closed-loop runs, then "
-        "the preview MPC with the stage-1 model) on Dask, select and fit the model by its held-out rollout, and "
-        "write the model, its stage-1 model beside it, a JSON report (learn.json) and plots in --out-dir.")
+        description="Learn the delay-aware model of a process, on the plate or on a part: find the power that holds "
+        "the set point along a track, record the identification runs designed around it (staircases, closed-loop "
+        "runs, then the preview MPC with the stage-1 model) on Dask, select and fit the model by its held-out "
+        "rollout, and write the model, its stage-1 model beside it, a JSON report (learn.json) and plots in "
+        "--out-dir.")
+    p.add_argument("--scenario", choices=("layer", "part"), default="layer",
+                   help="layer: the runs are the plate's layer and double track; part: they build the first --layers "
+                        "layers of --part")
+    p.add_argument("--part", type=Path, default=None, metavar="STL",
+                   help="--scenario part: the part (default: the example part)")
+    p.add_argument("--layers", type=int, default=None,
+                   help=f"--scenario part: layers each run builds (default {PART_IDENT_LAYERS})")
     p.add_argument("--config", type=Path, required=True,
                    help="TOML file whose [plant] table is the process (launch.py's; [controller] sets the power "
                         "limits)")
@@ -592,6 +601,24 @@ def _check_structure(path: Path, period_s: float) -> NarxGPModel:
     return model
 
 
+def _learn_part(args: argparse.Namespace, plant: dict) -> dict:
+    """The part fields of :class:`LearnSettings` (``part_stl``, ``n_layers``) from ``--scenario part --part
+    --layers``; :class:`UsageError` naming the option."""
+    if args.scenario != "part":
+        for option, value in (("--part", args.part), ("--layers", args.layers)):
+            if value is not None:
+                raise UsageError(f"{option} needs --scenario part")
+        return {}
+    stl = Path(args.part or EXAMPLE_STL)
+    layers = PART_IDENT_LAYERS if args.layers is None else args.layers
+    try:
+        require_pyslm()
+        scenario("part", **plant, part_stl=str(stl), n_layers=layers)
+    except (ValueError, TypeError) as err:
+        raise UsageError(f"--scenario part --part {stl} --layers {layers}: {err}") from None
+    return {"part_stl": stl, "n_layers": layers}
+
+
 def _learn(args: argparse.Namespace) -> int:
     try:
         data = load_toml(args.config)
@@ -618,12 +645,13 @@ def _learn(args: argparse.Namespace) -> int:
         controller = build(ControllerSettings, table, f"{args.config} [controller]", **overrides)
         if args.structure_of is not None:
             _check_structure(args.structure_of, period_s)
+        part = _learn_part(args, plant)
     except UsageError as err:
         raise LearnError(str(err)) from None
     settings = LearnSettings(plant=tuple(plant.items()), set_point_m2=controller.set_point_m2,
                              power_min_w=controller.power_min_w, power_max_w=controller.power_max_w,
                              model_out=args.out, search_plant=tuple(search.items()), seed=args.seed,
-                             structure_of=args.structure_of, **_runner_settings(args))
+                             structure_of=args.structure_of, **part, **_runner_settings(args))
     try:
         report = learn(settings, progress=not args.no_progress,
                        log=(lambda m: None) if args.no_progress else (lambda m: print(m, file=sys.stderr)))

@@ -1,15 +1,16 @@
-"""Learning a process: ``python -m gp_trainer learn --config FILE.toml``.
+"""Learning a process: ``python -m gp_trainer learn --config FILE.toml [--scenario part --part X.stl]``.
 
-One command takes a plate process (a ``[plant]`` table, as ``launch.py --config`` takes it) to a
-delay-aware model of it:
+One command takes a process (a ``[plant]`` table, as ``launch.py --config`` takes it, on the plate or
+on a part built layer by layer) to a delay-aware model of it:
 
 1. **Operating point** (:func:`find_operating_power`): the power that holds the set point along a
    track, by regula falsi on the plant's steady area over a single track (a few short FE runs,
    :func:`fe_steady_area`), after checking that the set point is reachable within the controller's
    power limits.
-2. **Runs** (:class:`gp_trainer.campaign.ProcessDesign`): stage 1, open-loop staircases about the
-   operating power and closed-loop runs at set points about the target; stage 2, the preview MPC
-   with the stage-1 model. Both on the campaign's runner (:func:`gp_trainer.campaign.run_jobs`:
+2. **Runs** (:class:`gp_trainer.campaign.ProcessDesign`; on a part
+   :class:`gp_trainer.campaign.PartDesign`): stage 1, open-loop staircases about the operating power
+   and closed-loop runs at set points about the target; stage 2, the preview MPC with the stage-1
+   model. Both on the campaign's runner (:func:`gp_trainer.campaign.run_jobs`:
    Dask, partial/complete recordings, a re-run skips complete ones).
 3. **Fit** (:func:`gp_trainer.narx_fit.select_and_fit`: selection by the held-out 40-step rollout)
    after each stage, the held-out metrics and plots of the final model, and a JSON report.
@@ -27,7 +28,7 @@ import json
 import math
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -36,7 +37,7 @@ from gp_model.atomic import atomic_write
 from gp_model.build_up import rollout_horizon
 from gp_model.narx import NarxGPModel, RunSeries, series_from_states
 from gp_model.plan_feature import RemnantFeature
-from gp_trainer.campaign import IdentRun, ProcessDesign, run_jobs
+from gp_trainer.campaign import PART_IDENT_LAYERS, IdentRun, PartDesign, ProcessDesign, run_jobs
 from gp_trainer.dataset import read_states, recording_info
 from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.evaluate import plot_narx
@@ -134,6 +135,13 @@ def find_operating_power(steady_area_m2: Callable[[float], float], set_point_m2:
     return OperatingPoint(power, value, set_point_m2, tuple(evaluations))
 
 
+def median_power_w(recording: Path) -> float:
+    """The median power [W] a controller applied over a recorded run (every state after the first)."""
+    import numpy as np
+
+    return float(np.median([s.power_w for s in read_states(recording)[1:]]))
+
+
 def fe_steady_area(plant: dict[str, Any], scenario_name: str = SEARCH_SCENARIO) -> Callable[[float], float]:
     """``steady_area_m2(power_w)`` of the FE plant ``plant`` (a ``[plant]`` table): the mean area [m²]
     over the last fifth of a single track at that constant power (:func:`fe_node.driver.quasi_steady`)."""
@@ -165,6 +173,12 @@ class LearnSettings(RunnerSettings):
         Extra ``[plant]`` keys of the operating-point search only (e.g. a coarser mesh in tests).
     seed : int
         Seed of the fits.
+    part_stl : Path or None
+        The part (``--scenario part --part``): the runs build its first ``n_layers`` layers
+        (:class:`~gp_trainer.campaign.PartDesign`). None: a plate process
+        (:class:`~gp_trainer.campaign.ProcessDesign`).
+    n_layers : int
+        Layers each run on the part builds.
     structure_of : Path or None
         A learned model whose selected candidate (:func:`~gp_trainer.narx_fit.candidate_of`: lags, output
         map, squares, p×T, feature, length-scale floor, smoothness prior, power form, remnant) both stages
@@ -181,6 +195,8 @@ class LearnSettings(RunnerSettings):
     search_plant: tuple[tuple[str, Any], ...] = field(default=())
     seed: int = 0
     structure_of: Path | None = None
+    part_stl: Path | None = None
+    n_layers: int = PART_IDENT_LAYERS
 
     @property
     def stage1_out(self) -> Path:
@@ -197,7 +213,7 @@ def _series(recordings_dir: Path, runs) -> list[RunSeries]:
     return [series_from_states(read_states(recordings_dir / f"{r.name}.mcap"), r.name) for r in runs]
 
 
-def controller_record(recordings_dir: Path, design: ProcessDesign) -> dict[str, Any]:
+def controller_record(recordings_dir: Path, design: ProcessDesign | PartDesign) -> dict[str, Any]:
     """The model's ``provenance.controller``: ``nominal_power_w``, the operating power [W] (the power
     at laser-on and during the build-up of every controller on this process), and ``pid``, the PID
     baseline tuned on the design's training staircases of the scenarios' own plans (not the held-out
@@ -291,7 +307,7 @@ def refit(model_path: Path, out: Path, remnant: RemnantFeature | None | Literal[
     return best
 
 
-def _fit(settings: LearnSettings, design: ProcessDesign, runs, out: Path, provenance: dict[str, Any]
+def _fit(settings: LearnSettings, design: ProcessDesign | PartDesign, runs, out: Path, provenance: dict[str, Any]
          ) -> tuple[NarxGPModel, dict[str, Any], list[RunSeries]]:
     """Select and fit the model on ``runs`` but the design's held-out ones, write it to ``out``; the model,
     its held-out row and the held-out runs."""
@@ -310,8 +326,13 @@ def _fit(settings: LearnSettings, design: ProcessDesign, runs, out: Path, proven
     return model, best, held
 
 
-def design_record(design: ProcessDesign, recordings_dir: Path) -> dict[str, Any]:
+def design_record(design: ProcessDesign | PartDesign, recordings_dir: Path) -> dict[str, Any]:
     """The design as the model's ``provenance.design`` records it (what ``evaluate`` rebuilds it from)."""
+    if isinstance(design, PartDesign):
+        return {"operating_power_w": design.operating_power_w, "setpoint_mm2": design.setpoint_mm2,
+                "stage1_model": design.stage1_model, "plant": dict(design.plant), "part_stl": design.part_stl,
+                "n_layers": design.n_layers, "track_power_w": design.track_power_w,
+                "held_out": list(design.held_out()), "recordings_dir": str(recordings_dir)}
     return {"operating_power_w": design.operating_power_w, "setpoint_mm2": design.setpoint_mm2,
             "stage1_model": design.stage1_model, "plant": dict(design.plant),
             "feedback_controller": design.feedback_controller,
@@ -321,9 +342,16 @@ def design_record(design: ProcessDesign, recordings_dir: Path) -> dict[str, Any]
             "recordings_dir": str(recordings_dir)}
 
 
-def design_from_record(record: dict[str, Any]) -> tuple[ProcessDesign, Path]:
-    """The design and recordings directory a model's ``provenance.design`` records."""
+def design_from_record(record: dict[str, Any]) -> tuple[ProcessDesign | PartDesign, Path]:
+    """The design and recordings directory a model's ``provenance.design`` records (a part's if it names
+    ``part_stl``)."""
     try:
+        if "part_stl" in record:
+            return PartDesign(float(record["operating_power_w"]), float(record["setpoint_mm2"]),
+                              str(record["stage1_model"]), str(record["part_stl"]), int(record["n_layers"]),
+                              tuple(dict(record["plant"]).items()),
+                              None if record.get("track_power_w") is None else float(record["track_power_w"])
+                              ), Path(record["recordings_dir"])
         design = ProcessDesign(float(record["operating_power_w"]), float(record["setpoint_mm2"]),
                                str(record["stage1_model"]), tuple(dict(record["plant"]).items()),
                                str(record["feedback_controller"]), tuple(record["feedforward_scenarios"]),
@@ -358,21 +386,43 @@ def learn(settings: LearnSettings, *, progress: bool = True,
                               settings.power_min_w, settings.power_max_w)
     log(f"operating point: {op.power_w:.1f} W gives {op.area_m2 * 1e6:.4g} mm² ({len(op.evaluations)} FE runs)")
     stage1 = settings.stage1_out.absolute()
-    design = ProcessDesign(float(round(op.power_w)), round(settings.set_point_m2 * 1e6, 6),
-                           str(stage1.relative_to(REPO_ROOT) if stage1.is_relative_to(REPO_ROOT) else stage1),
-                           tuple(plant.items()))
+    stage1_name = str(stage1.relative_to(REPO_ROOT) if stage1.is_relative_to(REPO_ROOT) else stage1)
     report: dict[str, Any] = {
         "operating_point": {**asdict(op), "power_fraction_of_max": op.power_w / settings.power_max_w,
-                            "power_min_w": settings.power_min_w, "power_max_w": settings.power_max_w},
-        "plant": plant, "set_point_mm2": design.setpoint_mm2, "held_out": list(design.held_out()),
+                            "power_min_w": settings.power_min_w, "power_max_w": settings.power_max_w}}
+    if settings.part_stl is None:
+        design = ProcessDesign(float(round(op.power_w)), round(settings.set_point_m2 * 1e6, 6), stage1_name,
+                               tuple(plant.items()))
+    else:
+        stl = settings.part_stl.absolute()
+        design = PartDesign(float(round(op.power_w)), round(settings.set_point_m2 * 1e6, 6), stage1_name,
+                            str(stl.relative_to(REPO_ROOT) if stl.is_relative_to(REPO_ROOT) else stl),
+                            settings.n_layers, tuple(plant.items()), track_power_w=float(round(op.power_w)))
+        results = _stage(design.pid_runs(), settings, progress, log)
+        report["runs"] = [asdict(r) for r in results]
+        if failed := [r.name for r in results if r.status == "failed"]:
+            report.update(status="failed", failed=failed)
+            _write_report(settings.report_out, report)
+            return report
+        target = design.target_pid_run.name
+        part_power = median_power_w(settings.out_dir / f"{target}.mcap")
+        design = replace(design, operating_power_w=float(round(part_power)))
+        report["part_operating_point"] = {"power_w": part_power, "from_run": target,
+                                          "track_power_w": design.track_power_w}
+        log(f"part operating point: {part_power:.1f} W, the PID's median power in {target}")
+    report.update({
+        "plant": plant, "part_stl": None if settings.part_stl is None else str(settings.part_stl),
+        "n_layers": None if settings.part_stl is None else settings.n_layers,
+        "set_point_mm2": design.setpoint_mm2, "held_out": list(design.held_out()),
         "model": str(settings.model_out), "stage1_model": str(settings.stage1_out),
-        "recordings_dir": str(settings.out_dir)}
+        "recordings_dir": str(settings.out_dir)})
     provenance = {"design": design_record(design, settings.out_dir)}
     stages = ((design.stage1_runs(), design.stage1_runs(), settings.stage1_out, "stage1"),
               (design.stage2_runs(), design.runs(), settings.model_out, "metrics"))
     for stage, (record, fit_on, out, key) in enumerate(stages, 1):
         results = _stage(record, settings, progress, log)
-        report.setdefault("runs", []).extend(asdict(r) for r in results)
+        done = {r["name"] for r in report.get("runs", [])}
+        report.setdefault("runs", []).extend(asdict(r) for r in results if r.name not in done)
         if failed := [r.name for r in results if r.status == "failed"]:
             report.update(status="failed", failed=failed)
             _write_report(settings.report_out, report)

@@ -12,7 +12,7 @@ from controller_node.process import process_mismatch
 from fe_node.scenarios import scenario
 from gp_model.narx import NarxGPModel
 from gp_model.shipped import DEFAULT_MODEL_PATH, PLATE_MODEL_PATH
-from gp_trainer.campaign import IDENT_RUNS, PLATE_DESIGN, FeedbackRun, IdentRun, ProcessDesign
+from gp_trainer.campaign import IDENT_RUNS, PLATE_DESIGN, FeedbackRun, IdentRun, PartDesign, ProcessDesign
 from gp_trainer.cli import main
 from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.jobs import plant_toml
@@ -109,6 +109,51 @@ def test_the_plate_design_is_the_shipped_plate_runs():
         "ident-double-track-p200-s4", "ident-double-track-p250-s5", "ident-double-track-p300-s6"]
     assert PLATE_DESIGN.held_out() == ("ident-layer-p250-s2", "ident-double-track-p250-s5",
                                        "ident-mpc-double-track-a0.063")
+
+
+def test_a_part_design_builds_the_part_about_its_operating_point():
+    """``learn --scenario part``: the PID from the single track's power at set points about the target,
+    staircases over the part's layers at 0.6/1/1.4 × the part's operating power, the preview MPC with the
+    stage-1 model; the part in every run; the design survives the model's provenance record."""
+    stl = "fe_node/parts/l_bracket_3mm.stl"
+    design = PartDesign(70.0, 0.063, "models/stage1.json", stl, 2, (("preset", "physical"),), track_power_w=168.0)
+    stage1, stage2 = design.stage1_runs(), design.stage2_runs()
+    assert [r.name for r in stage1] == ["ident-pid-part-a0.055", "ident-pid-part-a0.063", "ident-pid-part-a0.07",
+                                        "ident-part-l_bracket_3mm-p42-s1", "ident-part-l_bracket_3mm-p70-s2",
+                                        "ident-part-l_bracket_3mm-p98-s3"]
+    assert design.pid_runs() == stage1[:3] and design.target_pid_run == stage1[1]
+    assert {r.amplitude_w for r in stage1 if isinstance(r, IdentRun)} == {28.0}
+    assert [(r.controller, r.setpoint_mm2) for r in stage2] == [("preview-mpc", 0.06), ("preview-mpc", 0.066)]
+    for run in design.runs():
+        job = run.job()
+        plant = tomllib.loads(plant_toml(job.plant, job.controller_table))["plant"]
+        assert plant["part_stl"] == str(REPO_ROOT / stl) and plant["preset"] == "physical"
+        layers = plant.get("n_layers") if isinstance(run, IdentRun) else int(job.args[job.args.index("--layers") + 1])
+        assert layers == 2
+    assert all(r.job().controller_table == (("nominal_power_w", 168.0),) for r in design.pid_runs())
+    assert all(r.job().args[-2:] == ("--model", str(REPO_ROOT / "models/stage1.json")) for r in stage2)
+    assert design.held_out() == ("ident-part-l_bracket_3mm-p70-s2", "ident-pid-part-a0.063")
+    assert set(design.held_out()) < {r.name for r in stage1}
+    assert design_from_record(json.loads(json.dumps(design_record(design, Path("rec"))))) == (design, Path("rec"))
+    for bad in ({"n_layers": 0}, {"operating_power_w": -1.0}, {"track_power_w": 0.0}):
+        with pytest.raises(CampaignError):
+            PartDesign(**{"operating_power_w": 70.0, "setpoint_mm2": 0.063, "stage1_model": "m.json",
+                          "part_stl": stl, **bad})
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--part", "fe_node/parts/l_bracket_3mm.stl"], "--part needs --scenario part"),
+    (["--layers", "2"], "--layers needs --scenario part"),
+    (["--scenario", "part", "--part", "no_such.stl"], "--part no_such.stl"),
+    (["--scenario", "part", "--layers", "0"], "--layers 0"),
+])
+def test_learn_on_a_part_refuses_bad_part_options_in_one_line(tmp_path, capsys, argv, says):
+    config = _config(tmp_path, "[plant]\n")
+    status = main(["learn", "--config", str(config), "--out", str(tmp_path / "m.json"), "--out-dir",
+                   str(tmp_path / "rec"), "--no-progress", *argv])
+    err = capsys.readouterr().err
+    assert status == 2 and says in err and err.count("\n") == 1, err
+    assert not (tmp_path / "m.json").exists() and not (tmp_path / "rec").exists()
 
 
 def _config(tmp_path: Path, text: str) -> Path:
