@@ -154,11 +154,14 @@ CASES = (
 def training_plans(runs: list[str]) -> set[tuple[int, float, float] | str]:
     """The plans (tracks, length [m], hatch [m]) the named training runs scanned, from their names
     (``ident-layer-p174-s2``, ``ident-preview-mpc-layer-a0.061-h110um-450K``, ``ident-layer-8x5mm-p174-s7``),
-    and :data:`EXAMPLE_PART` if one built the example part (``ident-part-p60-s11``)."""
+    and :data:`EXAMPLE_PART` if one built the example part (``ident-part-p60-s11``, ``ident-pid-part-a0.063``),
+    ``part:<stem>`` if one built another part (``ident-part-block_5mm-p60-s21``,
+    ``ident-pid-part-l_bracket_3mm-a0.063``: its STL's stem)."""
     plans = set()
     for run in runs:
         if re.search(r"-part(-|$)", run):
-            plans.add(EXAMPLE_PART)
+            m = re.search(r"-part(?:-(.+?))?-(?:p[\d.]+-s\d+|a[\d.]+)", run)
+            plans.add(EXAMPLE_PART if m is None or m.group(1) is None else f"part:{m.group(1)}")
             continue
         scenario = next((s for s in SCENARIO_PLANS if re.search(rf"-{s}(-|$)", run)), None)
         if scenario is None:
@@ -177,12 +180,13 @@ PROCESS_KEYS = ("speed_m_s", "t0_k", "absorptivity", "powder_absorptivity")
 
 
 def in_sample(case: Case, plans: set[tuple[int, float, float] | str], process: dict[str, Any] | None = None) -> bool:
-    """Whether a training run scanned the case's plan (for a part: built the example part, whose first layers
-    every part run scans) on the model's own process: no :data:`PROCESS_KEYS` override other than the model's
+    """Whether a training run scanned the case's plan (for a part: built that part, whose first layers every
+    part run scans) on the model's own process: no :data:`PROCESS_KEYS` override other than the model's
     ``[plant]`` table ``process`` sets alike."""
     process = process or {}
     if case.scenario == "part":
-        trained = "part_stl" not in case.plant and EXAMPLE_PART in plans
+        stl = case.plant.get("part_stl")
+        trained = (EXAMPLE_PART if stl is None else f"part:{Path(stl).stem}") in plans
     else:
         plan = case.plan()
         trained = (plan[0], round(plan[1], 9), round(plan[2], 9)) in plans

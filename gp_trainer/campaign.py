@@ -395,10 +395,13 @@ class FeedbackRun:
 
     @property
     def name(self) -> str:
-        """Run id and recording stem, e.g. ``ident-mpc-layer-a0.058``, ``ident-preview-mpc-layer-a0.065-h90um-350K``."""
+        """Run id and recording stem, e.g. ``ident-mpc-layer-a0.058``, ``ident-preview-mpc-layer-a0.065-h90um-350K``,
+        ``ident-pid-part-l_bracket_3mm-a0.063`` (a part other than the example: its STL's stem)."""
         plant = "" if self.hatch_m is None else f"-h{self.hatch_m * 1e6:g}um"
         plant += "" if self.t0_k is None else f"-{self.t0_k:g}K"
-        return f"ident-{self.controller}-{self.scenario}-a{self.setpoint_mm2:g}{plant}"
+        stl = dict(self.plant).get("part_stl")
+        part = "" if stl is None else f"-{Path(stl).stem}"
+        return f"ident-{self.controller}-{self.scenario}{part}-a{self.setpoint_mm2:g}{plant}"
 
     def job(self) -> Job:
         """The launcher job: the scenario under the controller (with its ``[plant]`` overrides)."""

@@ -378,7 +378,10 @@ def learn(settings: LearnSettings, *, progress: bool = True,
     -------
     dict
         The report: ``status`` (``ok``, or ``failed`` with the runs that failed, and no model),
-        ``operating_point``, ``runs``, ``held_out``, ``stage1`` and ``model`` metrics, paths.
+        ``operating_point`` (on a part also ``part_operating_point``), ``runs``, ``held_out``, ``stage1`` and
+        ``metrics`` (the model's held-out metrics), ``model_stage``: the stage whose fit predicts the held-out
+        runs better (its 40-step rollout) is the model (2 unless stage 2's closed-loop runs made it worse; then
+        ``stage2`` holds stage 2's metrics), paths.
     """
     plant = dict(settings.plant)
     log(f"operating point: searching the power that holds {settings.set_point_m2 * 1e6:g} mm² on a single track")
@@ -434,6 +437,13 @@ def learn(settings: LearnSettings, *, progress: bool = True,
         horizon = rollout_horizon(model.sample_period_s)
         log(f"stage {stage}: held-out {horizon}-step rollout {report[key][rollout_key(model.sample_period_s)]:.2f} % "
             f"-> {out}")
+    key = rollout_key(model.sample_period_s)
+    report["model_stage"] = 2
+    if report["stage1"][key] < report["metrics"][key]:  # stage 2's closed-loop runs made the held-out prediction worse
+        report["stage2"], report["metrics"], report["model_stage"] = report["metrics"], report["stage1"], 1
+        model = NarxGPModel.load(settings.stage1_out)
+        model.save(settings.model_out)
+        log(f"the stage-1 model predicts the held-out runs better: it is the model -> {settings.model_out}")
     report["plots"] = plot_narx(model, held, settings.out_dir)
     report["status"] = "ok"
     _write_report(settings.report_out, report)

@@ -39,6 +39,12 @@ def test_a_case_is_in_sample_only_on_a_trained_plan_and_process():
         assert not bench_suite.in_sample(cases[name], plans), name
     assert bench_suite.in_sample(cases["part-2-layers"], plans)        # ident-part-p100-s1 built the example part
     assert not bench_suite.in_sample(cases["part-2-layers"], bench_suite.training_plans(RUNS[:4]))
+    for runs, example, bracket in ((["ident-part-block_5mm-p60-s21"], False, False),   # another part: the STL's stem
+                                   (["ident-pid-part-l_bracket_3mm-a0.063"], False, True),
+                                   (["ident-pid-part-a0.063"], True, False)):
+        plans_of = bench_suite.training_plans(runs)
+        assert bench_suite.in_sample(cases["part-2-layers"], plans_of) is example
+        assert bench_suite.in_sample(cases["l-bracket-3-layers"], plans_of) is bracket
     at_1mps = {"preset": "physical", "speed_m_s": 1.0}                # the [plant] of a model learned at 1 m/s
     assert bench_suite.in_sample(cases["speed-1.0"], plans, at_1mps)
     assert not bench_suite.in_sample(cases["speed-0.6"], plans, at_1mps)

@@ -118,9 +118,8 @@ def test_a_part_design_builds_the_part_about_its_operating_point():
     stl = "fe_node/parts/l_bracket_3mm.stl"
     design = PartDesign(70.0, 0.063, "models/stage1.json", stl, 2, (("preset", "physical"),), track_power_w=168.0)
     stage1, stage2 = design.stage1_runs(), design.stage2_runs()
-    assert [r.name for r in stage1] == ["ident-pid-part-a0.055", "ident-pid-part-a0.063", "ident-pid-part-a0.07",
-                                        "ident-part-l_bracket_3mm-p42-s1", "ident-part-l_bracket_3mm-p70-s2",
-                                        "ident-part-l_bracket_3mm-p98-s3"]
+    assert [r.name for r in stage1] == [f"ident-pid-part-l_bracket_3mm-a{a}" for a in ("0.055", "0.063", "0.07")] + [
+        f"ident-part-l_bracket_3mm-p{p}-s{s}" for p, s in ((42, 1), (70, 2), (98, 3))]
     assert design.pid_runs() == stage1[:3] and design.target_pid_run == stage1[1]
     assert {r.amplitude_w for r in stage1 if isinstance(r, IdentRun)} == {28.0}
     assert [(r.controller, r.setpoint_mm2) for r in stage2] == [("preview-mpc", 0.06), ("preview-mpc", 0.066)]
@@ -132,7 +131,7 @@ def test_a_part_design_builds_the_part_about_its_operating_point():
         assert layers == 2
     assert all(r.job().controller_table == (("nominal_power_w", 168.0),) for r in design.pid_runs())
     assert all(r.job().args[-2:] == ("--model", str(REPO_ROOT / "models/stage1.json")) for r in stage2)
-    assert design.held_out() == ("ident-part-l_bracket_3mm-p70-s2", "ident-pid-part-a0.063")
+    assert design.held_out() == ("ident-part-l_bracket_3mm-p70-s2", "ident-pid-part-l_bracket_3mm-a0.063")
     assert set(design.held_out()) < {r.name for r in stage1}
     assert design_from_record(json.loads(json.dumps(design_record(design, Path("rec"))))) == (design, Path("rec"))
     for bad in ({"n_layers": 0}, {"operating_power_w": -1.0}, {"track_power_w": 0.0}):
@@ -229,11 +228,78 @@ def test_learn_end_to_end_on_a_short_coarse_case(tmp_path, capsys):
     assert len(report["runs"]) == 23 and all(r["status"] == "ok" for r in report["runs"])
     model = NarxGPModel.load(tmp_path / "m.json")
     assert model.powder_layer_m == 0.0 and model.provenance["design"]["held_out"] == report["held_out"]
-    assert NarxGPModel.load(tmp_path / "m_stage1.json").provenance["runs"] != model.provenance["runs"]
+    same_runs = NarxGPModel.load(tmp_path / "m_stage1.json").provenance["runs"] == model.provenance["runs"]
+    assert same_runs is (report["model_stage"] == 1)
     assert all(Path(p).is_file() for p in report["plots"].values())
     assert json.loads((tmp_path / "rec" / "learn.json").read_text())["metrics"] == report["metrics"]
     assert main(argv) == 0
     assert {r["status"] for r in json.loads(capsys.readouterr().out.strip().splitlines()[-1])["runs"]} == {"skipped"}
+
+
+@pytest.mark.slow
+def test_learn_end_to_end_on_a_part(tmp_path, capsys):
+    """``learn --scenario part --part STL --layers 1`` in the structure of the shipped part model, every run cut
+    to 150 steps on a 50 µm mesh: the PID's median power at the target is the part's operating power, the
+    staircases are about it, both stages fit; ``evaluate`` rebuilds the design from the model."""
+    from gp_model.shipped import PART_MODEL_PATH
+
+    config = _config(tmp_path, "[plant]\n")
+    out = tmp_path / "m.json"
+    argv = ["learn", "--config", str(config), "--scenario", "part", "--part", "fe_node/parts/l_bracket_3mm.stl",
+            "--layers", "1", "--structure-of", str(PART_MODEL_PATH), "--out", str(out), "--out-dir",
+            str(tmp_path / "rec"), "--h-um", "50", "--max-steps", "150", "--no-progress", "--json"]
+    assert main(argv) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["status"] == "ok" and len(report["runs"]) == 8
+    from gp_trainer.learn import median_power_w
+
+    part = report["part_operating_point"]
+    assert part["power_w"] == median_power_w(tmp_path / "rec" / f"{part['from_run']}.mcap")
+    design, _ = design_from_record(NarxGPModel.load(out).provenance["design"])
+    assert design.operating_power_w == round(part["power_w"]) and design.track_power_w == round(
+        report["operating_point"]["power_w"])
+    assert [r for r in design.runs() if isinstance(r, IdentRun)][1].mean_w == design.operating_power_w
+    assert main(["evaluate", "--model", str(out), "--json", "--plots-dir", str(tmp_path / "plots")]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["r2"] == report["metrics"]["r2"]
+
+
+@pytest.mark.parametrize("rollouts, chosen", [((30.0, 25.0), 2), ((25.0, 30.0), 1)])
+def test_the_model_is_the_stage_that_predicts_the_held_out_runs_better(monkeypatch, tmp_path, rollouts, chosen):
+    """Stage 2 adds the preview MPC's closed-loop runs; where they make the held-out 40-step rollout worse,
+    the stage-1 fit is written as the model (``model_stage`` 1, stage 2's figures kept as ``stage2``)."""
+    from gp_trainer import learn as learn_module
+    from gp_trainer.jobs import JobResult
+    from gp_trainer.learn import LearnSettings
+
+    class Fitted:
+        sample_period_s = 5e-5
+
+        def __init__(self, stage):
+            self.stage = stage
+
+        def save(self, out):
+            Path(out).write_text(json.dumps({"stage": self.stage}))
+
+    fits = iter((1, 2))
+
+    def fit(settings, design, runs, out, provenance):
+        stage = next(fits)
+        Fitted(stage).save(out)
+        return Fitted(stage), {"rollout_h40_mape_pct": rollouts[stage - 1]}, []
+
+    monkeypatch.setattr(learn_module, "fe_steady_area", lambda plant: lambda p: 0.063e-6 * p / 200.0)
+    monkeypatch.setattr(learn_module, "_stage", lambda runs, *a: [JobResult(r.name, "rec.mcap", "ok", 0.0, "") for r in runs])
+    monkeypatch.setattr(learn_module, "controller_record", lambda directory, design: {})
+    monkeypatch.setattr(learn_module, "_fit", fit)
+    monkeypatch.setattr(learn_module.NarxGPModel, "load",
+                        lambda path: Fitted(json.loads(Path(path).read_text())["stage"]))
+    monkeypatch.setattr(learn_module, "plot_narx", lambda model, held, out_dir: {})
+    settings = LearnSettings(model_out=tmp_path / "m.json", out_dir=tmp_path / "rec", sequential=True)
+    report = learn_module.learn(settings, progress=False, log=lambda m: None)
+    assert report["status"] == "ok" and report["model_stage"] == chosen
+    assert json.loads((tmp_path / "m.json").read_text())["stage"] == chosen
+    assert report["metrics"]["rollout_h40_mape_pct"] == min(rollouts)
+    assert ("stage2" in report) is (chosen == 1)
 
 
 def test_selection_in_forked_workers_gives_the_same_model(monkeypatch):
