@@ -288,7 +288,8 @@ def test_the_model_is_the_stage_that_predicts_the_held_out_runs_better(monkeypat
         return Fitted(stage), {"rollout_h40_mape_pct": rollouts[stage - 1]}, []
 
     monkeypatch.setattr(learn_module, "fe_steady_area", lambda plant: lambda p: 0.063e-6 * p / 200.0)
-    monkeypatch.setattr(learn_module, "_stage", lambda runs, *a: [JobResult(r.name, "rec.mcap", "ok", 0.0, "") for r in runs])
+    monkeypatch.setattr(learn_module, "_stage",
+                        lambda runs, *a: [JobResult(r.name, "rec.mcap", "ok", 0.0, "") for r in runs])
     monkeypatch.setattr(learn_module, "controller_record", lambda directory, design: {})
     monkeypatch.setattr(learn_module, "_fit", fit)
     monkeypatch.setattr(learn_module.NarxGPModel, "load",
