@@ -253,14 +253,18 @@ def plant_speed(opts: RunOptions) -> float | None:
     return float(plant.profile.command(0)[1])
 
 
-def part_nominal_power(opts: RunOptions) -> float | None:
+def part_nominal_power(opts: RunOptions, process: Path | None = None) -> float | None:
     """On a part scenario, every controller starts from the part's open-loop power (the scenario's,
     ``fe_node.scenarios.PART_POWER_W`` or ``[plant] power_w``) unless ``[controller]
-    nominal_power_w`` is set; ``None`` elsewhere (the controller's own default)."""
+    nominal_power_w`` is set or the process record of the model ``process`` has one (a part learned by
+    ``gp_trainer learn --scenario part``: its operating power); ``None`` elsewhere (the controller's own
+    default)."""
     if opts.scenario not in PART_NAMES:
         return None
     data = load_toml(opts.config)
     if "nominal_power_w" in data.get("controller", {}):
+        return None
+    if process is not None and process_table(process).get("nominal_power_w") is not None:
         return None
     return float(data.get("plant", {}).get("power_w", PART_POWER_W))
 
@@ -279,7 +283,7 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
         controller += ["--model", str(model)] if model else []
         process = process_model(opts)
         controller += ["--process", str(process)] if process else []
-        nominal = part_nominal_power(opts)
+        nominal = part_nominal_power(opts, process)
         controller += ["--nominal-power-w", repr(nominal)] if nominal is not None else []
         speed = plant_speed(opts)
         controller += ["--nominal-speed-m-s", repr(speed)] if speed is not None else []

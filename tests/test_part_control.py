@@ -1,6 +1,7 @@
 """Control of a part: its identification runs, its model and what launch.py gives its controller."""
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 
@@ -86,6 +87,13 @@ def test_launch_gives_a_part_run_the_part_model_and_power(tmp_path):
     other = tmp_path / "m.json"
     other.write_text("{}")
     assert _value(_controller_args(RunOptions(scenario="part", model=other), tmp_path), "--model") == str(other)
+    learned = tmp_path / "learned.json"     # a part learned by `learn --scenario part`: it starts from its own power
+    doc = json.loads(PART_MODEL_PATH.read_text())
+    doc["provenance"]["controller"] = {"nominal_power_w": 133.0, "pid": {"kp_w": 54.0, "ki_w": 2.9, "kd_w": 0.0}}
+    learned.write_text(json.dumps(doc))
+    for controller in ("preview-mpc", "pid"):
+        args = _controller_args(RunOptions(scenario="part", controller=controller, model=learned), tmp_path)
+        assert _value(args, "--process") == str(learned) and "--nominal-power-w" not in args
 
 
 def test_controller_node_applies_nominal_power_and_no_part_specific_settings(tmp_path):
