@@ -58,13 +58,7 @@ def pytest_configure(config: pytest.Config) -> None:
     the default run, every controller built once in a fresh interpreter started in the background,
     which compiles numba's cached functions (about 35 s of CPU on a fresh clone, loaded in a few
     seconds after). The workers run the :data:`NUMBA_FREE_MODULES` meanwhile; every other test waits
-    for it (:func:`pytest_runtest_setup`), so that no two workers or nodes compile at once.
-
-    In every run, bytecode caches are written (``PYTHONDONTWRITEBYTECODE`` unset for this process and what
-    it starts): the suite starts hundreds of node processes, each of which would otherwise compile the
-    project's modules from source."""
-    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
-    sys.dont_write_bytecode = False
+    for it (:func:`pytest_runtest_setup`), so that no two workers or nodes compile at once."""
     if not getattr(config.option, "numprocesses", None) or hasattr(config, "workerinput"):
         return
     for name in BLAS_THREAD_VARIABLES:  # inherited by the workers and everything they start
