@@ -88,19 +88,22 @@ class Fopdt:
     n_samples: int
 
 
-def _along_track(run: RunSeries, skip_steps: int) -> np.ndarray:
-    """Mask, shape (n,), of the states at least ``skip_steps`` after their track's (or layer's) start."""
-    new_track = np.r_[True, (np.diff(run.track) != 0) | (np.diff(run.layers()) != 0)]
+def _along_track(run: RunSeries, skip_steps: int, by_layer: bool = False) -> np.ndarray:
+    """Mask, shape (n,), of the states at least ``skip_steps`` after their track's (or layer's) start
+    (``by_layer``: after their layer's start only)."""
+    new_layer = np.diff(run.layers()) != 0
+    new_track = np.r_[True, new_layer if by_layer else (np.diff(run.track) != 0) | new_layer]
     start = np.maximum.accumulate(np.where(new_track, np.arange(len(run)), 0))
     return np.arange(len(run)) - start >= skip_steps
 
 
-def _stretches(runs: Sequence[RunSeries], skip_steps: int, delay: int) -> list[tuple[np.ndarray, np.ndarray]]:
+def _stretches(runs: Sequence[RunSeries], skip_steps: int, delay: int, by_layer: bool = False
+               ) -> list[tuple[np.ndarray, np.ndarray]]:
     """``(area [m²], power [W] acting on each step)`` of every stretch of consecutive states at least
-    ``skip_steps`` after their track's start: ``power[j]`` drives ``area[j] → area[j+1]``."""
+    ``skip_steps`` after their track's (``by_layer``: layer's) start: ``power[j]`` drives ``area[j] → area[j+1]``."""
     out = []
     for run in runs:
-        keep = _along_track(run, skip_steps)
+        keep = _along_track(run, skip_steps, by_layer)
         keep[:max(delay, 1)] = False
         edges = np.flatnonzero(np.diff(np.r_[0, keep.astype(int), 0]))
         for start, stop in zip(edges[::2], edges[1::2]):
@@ -122,7 +125,7 @@ def _scaled_errors(q: np.ndarray, scale: np.ndarray, stretches: list[tuple[np.nd
     return _simulated(q * scale, stretches) / scale[2]
 
 
-def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int | None = None) -> Fopdt:
+def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int | None = None, by_layer: bool = False) -> Fopdt:
     """The FOPDT model of ``runs`` (open-loop power staircases of one process), module docstring.
 
     Parameters
@@ -133,6 +136,10 @@ def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int | None = None) -> Fopdt
         States after a track's start left out of the fit (default :data:`TURNAROUND_STEPS` at the FE step,
         the same time at another sample period: :func:`gp_model.build_up.steps_at`). The delays tried,
         up to :data:`MAX_DELAY_STEPS` at the FE step, are scaled the same way.
+    by_layer : bool
+        Fit over each layer's states, across its tracks (a part: its hatches are shorter than the
+        turnaround window, and a few frames long at a camera's frame period); the states skipped are those
+        after each layer's start.
 
     Raises
     ------
@@ -147,7 +154,7 @@ def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int | None = None) -> Fopdt
     skip_steps = steps_at(TURNAROUND_STEPS, dt) if skip_steps is None else skip_steps
     best = None
     for delay in range(steps_at(MAX_DELAY_STEPS, dt) + 1):
-        stretches = _stretches(runs, skip_steps, delay)
+        stretches = _stretches(runs, skip_steps, delay, by_layer)
         n = sum(area.size - 1 for area, _ in stretches)
         if n < 30:
             raise DatasetError(f"the staircases give {n} samples along the tracks, too few for a FOPDT fit")
@@ -183,9 +190,10 @@ def simc_gains(model: Fopdt, set_point_m2: float) -> dict[str, float]:
     return {"kp_w": float(kp_w), "ki_w": float(kp_w * model.sample_period_s / tau_i), "kd_w": 0.0}
 
 
-def pid_record(runs: Sequence[RunSeries], set_point_m2: float) -> dict[str, Any]:
+def pid_record(runs: Sequence[RunSeries], set_point_m2: float, by_layer: bool = False) -> dict[str, Any]:
     """The ``pid`` entry of a model's ``provenance.controller``: the gains, the method, the FOPDT
-    model and the runs it was fitted on."""
-    model = fit_fopdt(runs)
-    return {**simc_gains(model, set_point_m2), "method": METHOD, "fopdt": asdict(model),
+    model (:func:`fit_fopdt`, ``by_layer`` on a part) and the runs it was fitted on."""
+    model = fit_fopdt(runs, by_layer=by_layer)
+    method = METHOD.replace("along the tracks", "over each layer") if by_layer else METHOD
+    return {**simc_gains(model, set_point_m2), "method": method, "fopdt": asdict(model),
             "runs": [r.name for r in runs]}

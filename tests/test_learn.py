@@ -330,7 +330,7 @@ def test_the_pid_is_tuned_on_the_training_staircases_of_the_scenarios_own_plans(
 
     seen = {}
     monkeypatch.setattr(learn_module, "_series", lambda directory, runs: [r.name for r in runs])
-    monkeypatch.setattr(learn_module, "pid_record", lambda series, set_point_m2: seen.setdefault("runs", series))
+    monkeypatch.setattr(learn_module, "pid_record", lambda series, set_point_m2, **kw: seen.setdefault("runs", series))
     record = learn_module.controller_record(Path("rec"), ProcessDesign(130.0, 0.07, "m.json"))
     assert seen["runs"] == ["ident-layer-p104-s1", "ident-layer-p156-s3", "ident-double-track-p104-s4",
                             "ident-double-track-p156-s6"]

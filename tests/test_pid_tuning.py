@@ -46,6 +46,17 @@ def test_the_fit_recovers_gain_time_constant_and_delay_past_the_turnarounds():
     assert model.dead_time_s == pytest.approx((DELAY + 0.5) * DT)
 
 
+def test_on_a_part_the_fit_runs_over_each_layer_across_its_short_tracks():
+    """Tracks of 30 states (a part's hatches, shorter than the turnaround window): along the tracks there is
+    nothing to fit; over each layer (``by_layer``) the same plant is recovered."""
+    runs = [staircase(1, n_tracks=40, track_steps=30, turn_bump_m2=0.0),
+            staircase(2, n_tracks=40, track_steps=30, turn_bump_m2=0.0)]
+    with pytest.raises(DatasetError, match="0 samples along the tracks"):
+        fit_fopdt(runs)
+    model = fit_fopdt(runs, by_layer=True)
+    assert model.delay_steps == DELAY and model.gain_m2_per_w == pytest.approx(B / (1 - A), rel=1e-3)
+
+
 def test_simc_gains_follow_the_rules():
     model = Fopdt(gain_m2_per_w=6e-10, time_constant_s=1e-3, dead_time_s=1e-4, delay_steps=1, sample_period_s=DT,
                   residual_rms_m2=0.0, n_samples=100)
