@@ -226,7 +226,7 @@ def controller_record(recordings_dir: Path, design: ProcessDesign | PartDesign) 
                   if isinstance(r, IdentRun) and r.tracks is None and r.name not in held]
     record = {"nominal_power_w": design.operating_power_w,
               "pid": pid_record(_series(recordings_dir, staircases), design.setpoint_mm2 * 1e-6,
-                                by_layer=isinstance(design, PartDesign))}
+                                part=isinstance(design, PartDesign))}
     if frame_period_s := dict(design.plant).get("frame_period_s"):
         record["preview"] = preview_steps(float(frame_period_s))
     return record

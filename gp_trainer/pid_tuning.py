@@ -190,10 +190,18 @@ def simc_gains(model: Fopdt, set_point_m2: float) -> dict[str, float]:
     return {"kp_w": float(kp_w), "ki_w": float(kp_w * model.sample_period_s / tau_i), "kd_w": 0.0}
 
 
-def pid_record(runs: Sequence[RunSeries], set_point_m2: float, by_layer: bool = False) -> dict[str, Any]:
+def pid_record(runs: Sequence[RunSeries], set_point_m2: float, part: bool = False) -> dict[str, Any]:
     """The ``pid`` entry of a model's ``provenance.controller``: the gains, the method, the FOPDT
-    model (:func:`fit_fopdt`, ``by_layer`` on a part) and the runs it was fitted on."""
-    model = fit_fopdt(runs, by_layer=by_layer)
+    model (:func:`fit_fopdt`) and the runs it was fitted on. On a ``part`` whose hatches leave too few
+    samples along the tracks (at a camera's frame period a hatch is a few frames), the fit runs over each
+    layer (``by_layer``)."""
+    by_layer = False
+    try:
+        model = fit_fopdt(runs)
+    except DatasetError as err:
+        if not (part and "samples along the tracks" in str(err)):
+            raise
+        model, by_layer = fit_fopdt(runs, by_layer=True), True
     method = METHOD.replace("along the tracks", "over each layer") if by_layer else METHOD
     return {**simc_gains(model, set_point_m2), "method": method, "fopdt": asdict(model),
             "runs": [r.name for r in runs]}

@@ -15,7 +15,7 @@ from controller_node.process import process_table
 from gp_model.errors import DatasetError
 from gp_model.narx import RunSeries
 from gp_model.shipped import DEFAULT_MODEL_PATH
-from gp_trainer.pid_tuning import Fopdt, fit_fopdt, simc_gains
+from gp_trainer.pid_tuning import Fopdt, fit_fopdt, pid_record, simc_gains
 from messages.cli import UsageError
 
 DT = 50e-6
@@ -55,6 +55,12 @@ def test_on_a_part_the_fit_runs_over_each_layer_across_its_short_tracks():
         fit_fopdt(runs)
     model = fit_fopdt(runs, by_layer=True)
     assert model.delay_steps == DELAY and model.gain_m2_per_w == pytest.approx(B / (1 - A), rel=1e-3)
+    record = pid_record(runs, 0.063e-6, part=True)      # a part's record falls back to it, a plate's does not
+    assert record["fopdt"]["n_samples"] == model.n_samples and record["method"].endswith("over each layer")
+    with pytest.raises(DatasetError):
+        pid_record(runs, 0.063e-6)
+    long_tracks = [staircase(1), staircase(2)]
+    assert pid_record(long_tracks, 0.063e-6, part=True) == pid_record(long_tracks, 0.063e-6)
 
 
 def test_simc_gains_follow_the_rules():
