@@ -24,7 +24,9 @@ dependency: ``pip install pythonslm``.
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
+import logging
 import math
 from pathlib import Path
 
@@ -73,6 +75,20 @@ def _contour_tracks(coords: np.ndarray) -> list:
     return [((float(a[0]), float(a[1])), (float(b[0]), float(b[1]))) for a, b in zip(kept[:-1], kept[1:])]
 
 
+@contextlib.contextmanager
+def _root_logging_kept():
+    """Undo the handlers PySLM adds to the root logger (its module-level ``logging.info`` calls
+    ``logging.basicConfig``), which would print every library's INFO records (Dask's among them) for the
+    rest of the process."""
+    root = logging.getLogger()
+    handlers = list(root.handlers)
+    try:
+        yield
+    finally:
+        for handler in [h for h in root.handlers if h not in handlers]:
+            root.removeHandler(handler)
+
+
 def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float, hatch_rotation_deg: float = HATCH_ROTATION_DEG,
                contours: bool = CONTOURS, island_width_m: float = ISLAND_WIDTH_M) -> tuple[ScanPlan, ...]:
     """Per-layer scan plans of the part in ``stl_path`` (module docstring).
@@ -101,6 +117,13 @@ def part_plans(stl_path: str | Path, layer_m: float, hatch_m: float, hatch_rotat
         Missing file, PySLM not installed, a part thinner than one layer, or islands narrower
         than the hatch distance.
     """
+    with _root_logging_kept():
+        return _slice(stl_path, layer_m, hatch_m, hatch_rotation_deg, contours, island_width_m)
+
+
+def _slice(stl_path: str | Path, layer_m: float, hatch_m: float, hatch_rotation_deg: float = HATCH_ROTATION_DEG,
+          contours: bool = CONTOURS, island_width_m: float = ISLAND_WIDTH_M) -> tuple[ScanPlan, ...]:
+    """:func:`part_plans` without the logging guard."""
     if not (island_width_m == 0 or island_width_m >= hatch_m):
         raise ValueError(f"scenario part: island_width_m must be 0 (no islands) or at least hatch_m "
                          f"({hatch_m:g} m), got {island_width_m:g}")

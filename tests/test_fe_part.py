@@ -1,4 +1,7 @@
 """The ``part`` scenario: an STL sliced and hatched by PySLM drives a layer-by-layer build."""
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -8,6 +11,7 @@ from fe_node.scene import laser_pose, part_model, scene_update
 from fe_node.solver import ThermalModel
 from messages import decode, encode
 from messages.topics import PLANT_LASER, PLANT_SCENE
+from tests.conftest import REPO
 from tests.plants import BARE, BARE_ARGS
 
 pytest.importorskip("pyslm")
@@ -173,3 +177,13 @@ def test_launch_refuses_a_part_file_that_is_not_an_stl():
     run = forked_cli.run("launch.py", "--scenario", "part", "--part", "README.md")
     assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
     assert "cannot read 'README.md' as an STL mesh" in run.stderr
+
+
+def test_slicing_a_part_leaves_the_root_logger_as_it_was():
+    """PySLM's module-level ``logging.info`` calls ``logging.basicConfig``: without the guard every later INFO
+    record of any library (Dask's scheduler in ``learn --scenario part``) would print."""
+    code = ("import logging; from fe_node.scenarios import scenario; scenario('part', n_layers=1); "
+            "print(len(logging.getLogger().handlers))")   # in a fresh process: pytest gives the root logger handlers
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "0", out.stdout + out.stderr
+
