@@ -186,6 +186,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--scenario part: the part (default: the example part)")
     p.add_argument("--layers", type=int, default=None,
                    help=f"--scenario part: layers each run builds (default {PART_IDENT_LAYERS})")
+    p.add_argument("--extra-runs", type=Path, nargs="+", default=(), metavar="RECORDING",
+                   help="recordings of other runs on the same process (e.g. another part's identification runs) "
+                        "added to the training runs of both stages, not to the held-out ones")
     p.add_argument("--config", type=Path, required=True,
                    help="TOML file whose [plant] table is the process (launch.py's; [controller] sets the power "
                         "limits)")
@@ -646,12 +649,15 @@ def _learn(args: argparse.Namespace) -> int:
         if args.structure_of is not None:
             _check_structure(args.structure_of, period_s)
         part = _learn_part(args, plant)
+        if missing := [str(p) for p in args.extra_runs if not p.is_file()]:
+            raise UsageError(f"--extra-runs: no recording {', '.join(missing)}")
     except UsageError as err:
         raise LearnError(str(err)) from None
     settings = LearnSettings(plant=tuple(plant.items()), set_point_m2=controller.set_point_m2,
                              power_min_w=controller.power_min_w, power_max_w=controller.power_max_w,
                              model_out=args.out, search_plant=tuple(search.items()), seed=args.seed,
-                             structure_of=args.structure_of, **part, **_runner_settings(args))
+                             structure_of=args.structure_of, extra_runs=tuple(args.extra_runs), **part,
+                             **_runner_settings(args))
     try:
         report = learn(settings, progress=not args.no_progress,
                        log=(lambda m: None) if args.no_progress else (lambda m: print(m, file=sys.stderr)))

@@ -179,6 +179,9 @@ class LearnSettings(RunnerSettings):
         (:class:`~gp_trainer.campaign.ProcessDesign`).
     n_layers : int
         Layers each run on the part builds.
+    extra_runs : tuple[Path, ...]
+        Recordings of other runs on the same process (e.g. another part's identification runs) added to the
+        training runs of both stages, never to the held-out ones; recorded as ``provenance.extra_runs``.
     structure_of : Path or None
         A learned model whose selected candidate (:func:`~gp_trainer.narx_fit.candidate_of`: lags, output
         map, squares, p×T, feature, length-scale floor, smoothness prior, power form, remnant) both stages
@@ -197,6 +200,7 @@ class LearnSettings(RunnerSettings):
     structure_of: Path | None = None
     part_stl: Path | None = None
     n_layers: int = PART_IDENT_LAYERS
+    extra_runs: tuple[Path, ...] = ()
 
     @property
     def stage1_out(self) -> Path:
@@ -290,9 +294,12 @@ def refit(model_path: Path, out: Path, remnant: RemnantFeature | None | Literal[
         raise LearnError(f"--drop: {', '.join(unknown)} not among the model's training runs ({', '.join(names)})")
     names = [n for n in names if n not in drop]
     held_names = list(design.held_out())
-    series = [series_from_states(read_states(recordings_dir / f"{n}.mcap"), n) for n in names + held_names]
+    extra = {Path(p).stem: Path(p) for p in old.provenance.get("extra_runs", [])}
+    series = [series_from_states(read_states(extra.get(n, recordings_dir / f"{n}.mcap")), n)
+              for n in names + held_names]
     train, held = series[:len(names)], series[len(names):]
-    provenance = {key: old.provenance[key] for key in ("design", "process", "controller") if key in old.provenance}
+    provenance = {key: old.provenance[key] for key in ("design", "process", "controller", "extra_runs")
+                  if key in old.provenance}
     dropped = [*old.provenance.get("dropped_runs", []), *drop]
     if dropped:
         provenance["dropped_runs"] = dropped
@@ -316,8 +323,11 @@ def _fit(settings: LearnSettings, design: ProcessDesign | PartDesign, runs, out:
     held_names = set(design.held_out())
     held = [r for r in series if r.name in held_names]
     train = [r for r in series if r.name not in held_names]
-    paths = [job_recording(settings, r.job()) for r in runs]
+    train += [series_from_states(read_states(path), path.stem) for path in settings.extra_runs]
+    paths = [job_recording(settings, r.job()) for r in runs] + list(settings.extra_runs)
     record = {**provenance, "process": {**process_record(paths), "plant": dict(settings.plant)}}
+    if settings.extra_runs:
+        record["extra_runs"] = [str(path) for path in settings.extra_runs]
     candidates = None if settings.structure_of is None else [candidate_of(NarxGPModel.load(settings.structure_of))]
     if candidates is not None:
         record["structure_of"] = str(settings.structure_of)

@@ -303,6 +303,47 @@ def test_the_model_is_the_stage_that_predicts_the_held_out_runs_better(monkeypat
     assert ("stage2" in report) is (chosen == 1)
 
 
+def test_extra_runs_join_the_training_runs_of_a_stage_never_the_held_out(monkeypatch, tmp_path, capsys):
+    """``learn --extra-runs R ...``: other runs of the process (another part's) are fitted with the design's
+    training runs, the held-out runs stay the design's; the paths go to the process check and the provenance;
+    a missing recording is one line, exit 2."""
+    from types import SimpleNamespace
+
+    from gp_trainer import learn as learn_module
+    from gp_trainer.learn import LearnSettings
+
+    seen = {}
+
+    class Saved:
+        def save(self, out):
+            return out
+
+    def select(train, held, **kwargs):
+        seen.update(train=[r.name for r in train], held=[r.name for r in held], provenance=kwargs["provenance"])
+        return Saved(), {}, []
+
+    monkeypatch.setattr(learn_module, "_series", lambda directory, runs: [SimpleNamespace(name=r.name) for r in runs])
+    monkeypatch.setattr(learn_module, "read_states", lambda path: path.stem)
+    monkeypatch.setattr(learn_module, "series_from_states", lambda states, name: SimpleNamespace(name=name))
+    monkeypatch.setattr(learn_module, "job_recording", lambda settings, job: tmp_path / f"{job.name}.mcap")
+    monkeypatch.setattr(learn_module, "process_record", lambda paths: seen.setdefault("paths", paths) and {})
+    monkeypatch.setattr(learn_module, "select_and_fit", select)
+    design = PartDesign(70.0, 0.063, "m.json", "fe_node/parts/l_bracket_3mm.stl", 2)
+    extra = (tmp_path / "ident-part-block_5mm-p60-s21.mcap", tmp_path / "ident-part-p60-s11.mcap")
+    learn_module._fit(LearnSettings(extra_runs=extra, sequential=True), design, design.stage1_runs(),
+                      tmp_path / "m.json", {})
+    own = [r.name for r in design.stage1_runs() if r.name not in design.held_out()]
+    assert seen["train"] == own + ["ident-part-block_5mm-p60-s21", "ident-part-p60-s11"]
+    assert sorted(seen["held"]) == sorted(design.held_out()) and seen["paths"][-2:] == list(extra)
+    assert seen["provenance"]["extra_runs"] == [str(p) for p in extra]
+    config = _config(tmp_path, "[plant]\n")
+    status = main(["learn", "--config", str(config), "--out", str(tmp_path / "m2.json"), "--out-dir",
+                   str(tmp_path / "rec"), "--no-progress", "--extra-runs", str(tmp_path / "none.mcap")])
+    err = capsys.readouterr().err
+    assert status == 2 and "--extra-runs: no recording" in err and err.count("\n") == 1
+    assert not (tmp_path / "rec").exists()
+
+
 def test_selection_in_forked_workers_gives_the_same_model(monkeypatch):
     """``select_and_fit`` with workers fits each candidate in a forked process: the same table and model."""
     import dataclasses
