@@ -443,7 +443,8 @@ def learn(settings: LearnSettings, *, progress: bool = True,
             return report
         if stage == 1:
             provenance["controller"] = controller_record(settings.out_dir, design)
-        log(f"stage {stage}: selecting and fitting the model on {len(fit_on)} runs")
+        extra = f" and {len(settings.extra_runs)} extra runs" if settings.extra_runs else ""
+        log(f"stage {stage}: selecting and fitting the model on {len(fit_on)} runs{extra}")
         model, report[key], held = _fit(settings, design, fit_on, out, provenance)
         horizon = rollout_horizon(model.sample_period_s)
         log(f"stage {stage}: held-out {horizon}-step rollout {report[key][rollout_key(model.sample_period_s)]:.2f} % "
