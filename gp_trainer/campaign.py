@@ -417,8 +417,37 @@ class FeedbackRun:
                    controller_table=controller)
 
 
+class _AboutOperatingPoint:
+    """What a design of runs about an operating point shares (:class:`ProcessDesign`, :class:`PartDesign`):
+    the checks of its scale, set points and powers as ratios of the target and of the operating power, and
+    its runs in order."""
+
+    operating_power_w: float
+    setpoint_mm2: float
+    power_ratios: tuple[float, ...]
+    amplitude_ratio: float
+
+    def _check(self) -> None:
+        if not (math.isfinite(self.operating_power_w) and self.operating_power_w > 0):
+            raise CampaignError(f"operating_power_w must be > 0 W, got {self.operating_power_w}")
+        if not (math.isfinite(self.setpoint_mm2) and self.setpoint_mm2 > 0):
+            raise CampaignError(f"set_point must be > 0 mm², got {self.setpoint_mm2}")
+        if 1.0 not in self.power_ratios or not 0 <= self.amplitude_ratio < min(self.power_ratios):
+            raise CampaignError("the staircases need the operating power among their means and levels >= 0 W")
+
+    def _setpoint(self, ratio: float) -> float:
+        return round(self.setpoint_mm2 * ratio, 4)
+
+    def _power(self, ratio: float) -> float:
+        return float(round(self.operating_power_w * ratio))
+
+    def runs(self) -> tuple[IdentRun | FeedbackRun, ...]:
+        """Stage 1, then stage 2."""
+        return self.stage1_runs() + self.stage2_runs()
+
+
 @dataclass(frozen=True)
-class ProcessDesign:
+class ProcessDesign(_AboutOperatingPoint):
     """The identification runs of a plate process, designed around its operating point.
 
     Stage 1: seeded random power staircases on the layer and the double track about the operating
@@ -462,18 +491,7 @@ class ProcessDesign:
     turn_tracks: tuple[int, float] | None = (8, 5e-3)
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.operating_power_w) and self.operating_power_w > 0):
-            raise CampaignError(f"operating_power_w must be > 0 W, got {self.operating_power_w}")
-        if not (math.isfinite(self.setpoint_mm2) and self.setpoint_mm2 > 0):
-            raise CampaignError(f"set_point must be > 0 mm², got {self.setpoint_mm2}")
-        if 1.0 not in self.power_ratios or not 0 <= self.amplitude_ratio < min(self.power_ratios):
-            raise CampaignError("the staircases need the operating power among their means and levels >= 0 W")
-
-    def _setpoint(self, ratio: float) -> float:
-        return round(self.setpoint_mm2 * ratio, 4)
-
-    def _power(self, ratio: float) -> float:
-        return float(round(self.operating_power_w * ratio))
+        self._check()
 
     def stage1_runs(self) -> tuple[IdentRun | FeedbackRun, ...]:
         """Open-loop staircases (seeds 1-3 on the layer, 4-6 on the double track, 7-9 on the
@@ -498,10 +516,6 @@ class ProcessDesign:
                                  model=self.stage1_model, plant=self.plant)
                      for scenario, ratio, hatch, t0 in PREVIEW_VARIANTS)
 
-    def runs(self) -> tuple[IdentRun | FeedbackRun, ...]:
-        """Stage 1, then stage 2."""
-        return self.stage1_runs() + self.stage2_runs()
-
     def held_out(self) -> tuple[str, ...]:
         """Runs held out for selection and evaluation: the staircases at the operating power (layer and
         double track) and the closed-loop double track at the target."""
@@ -516,7 +530,7 @@ PART_IDENT_LAYERS = 4
 
 
 @dataclass(frozen=True)
-class PartDesign:
+class PartDesign(_AboutOperatingPoint):
     """The identification runs of a part (an STL built layer by layer), designed around its operating point.
 
     A small part holds its heat: it needs far less power than a single track of the same process. The
@@ -560,28 +574,17 @@ class PartDesign:
     preview_setpoint_ratios: tuple[float, ...] = (60 / 63, 66 / 63)
 
     def __post_init__(self) -> None:
-        for key in ("operating_power_w", "track_power_w"):
-            value = getattr(self, key)
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise CampaignError(f"{key} must be > 0 W, got {value}")
-        if not (math.isfinite(self.setpoint_mm2) and self.setpoint_mm2 > 0):
-            raise CampaignError(f"set_point must be > 0 mm², got {self.setpoint_mm2}")
+        self._check()
+        if self.track_power_w is not None and not (math.isfinite(self.track_power_w) and self.track_power_w > 0):
+            raise CampaignError(f"track_power_w must be > 0 W, got {self.track_power_w}")
         if not (isinstance(self.n_layers, int) and self.n_layers >= 1):
             raise CampaignError(f"layers must be an integer >= 1, got {self.n_layers}")
-        if 1.0 not in self.power_ratios or not 0 <= self.amplitude_ratio < min(self.power_ratios):
-            raise CampaignError("the staircases need the operating power among their means and levels >= 0 W")
 
     @property
     def part_plant(self) -> tuple[tuple[str, Any], ...]:
         """The process's ``[plant]`` table with the part."""
         stl = Path(self.part_stl)
         return _merged(self.plant, (("part_stl", str(stl if stl.is_absolute() else REPO_ROOT / stl)),))
-
-    def _setpoint(self, ratio: float) -> float:
-        return round(self.setpoint_mm2 * ratio, 4)
-
-    def _power(self, ratio: float) -> float:
-        return float(round(self.operating_power_w * ratio))
 
     def pid_runs(self) -> tuple[FeedbackRun, ...]:
         """The PID baseline at set points about the target, from :attr:`track_power_w`; the one at the
@@ -606,10 +609,6 @@ class PartDesign:
         """The preview MPC with :attr:`stage1_model`."""
         return tuple(FeedbackRun("part", "preview-mpc", self._setpoint(ratio), self.n_layers, model=self.stage1_model,
                                  plant=self.part_plant) for ratio in self.preview_setpoint_ratios)
-
-    def runs(self) -> tuple[IdentRun | FeedbackRun, ...]:
-        """Stage 1, then stage 2."""
-        return self.stage1_runs() + self.stage2_runs()
 
     def held_out(self) -> tuple[str, ...]:
         """Runs held out for selection and evaluation: the staircase at the operating power and the PID
