@@ -32,6 +32,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
+
 from controller_node.process import preview_steps
 from gp_model.atomic import atomic_write
 from gp_model.build_up import rollout_horizon
@@ -41,7 +43,7 @@ from gp_trainer.campaign import PART_IDENT_LAYERS, IdentRun, PartDesign, Process
 from gp_trainer.dataset import read_states, recording_info
 from gp_trainer.errors import CampaignError, LearnError
 from gp_trainer.evaluate import plot_narx
-from gp_trainer.jobs import JobResult, RunnerSettings, job_recording
+from gp_trainer.jobs import RunnerSettings, job_recording
 from gp_trainer.narx_fit import candidate_of, rollout_key, select_and_fit
 from gp_trainer.pid_tuning import pid_record
 from gp_trainer.provenance import REPO_ROOT
@@ -137,8 +139,6 @@ def find_operating_power(steady_area_m2: Callable[[float], float], set_point_m2:
 
 def median_power_w(recording: Path) -> float:
     """The median power [W] a controller applied over a recorded run (every state after the first)."""
-    import numpy as np
-
     return float(np.median([s.power_w for s in read_states(recording)[1:]]))
 
 
@@ -373,11 +373,26 @@ def design_from_record(record: dict[str, Any]) -> tuple[ProcessDesign | PartDesi
         raise CampaignError(f"the model's provenance.design is incomplete ({err})") from None
 
 
-def _stage(jobs_of, settings: LearnSettings, progress: bool, log: Callable[[str], None]) -> list[JobResult]:
+def _stage(jobs_of, settings: LearnSettings, report: dict[str, Any], progress: bool,
+           log: Callable[[str], None]) -> bool:
+    """Run ``jobs_of``, add their results to ``report["runs"]`` (once per run) and return whether all succeeded;
+    if not, the report is marked ``failed`` with the failed runs and written."""
     results = run_jobs([r.job() for r in jobs_of], settings, progress=progress)
     for r in results:
         log(f"{r.name}: {r.status} ({r.wall_s:.1f} s) {r.recording}")
-    return results
+    done = {r["name"] for r in report.get("runs", [])}
+    report.setdefault("runs", []).extend(asdict(r) for r in results if r.name not in done)
+    if failed := [r.name for r in results if r.status == "failed"]:
+        report.update(status="failed", failed=failed)
+        _write_report(settings.report_out, report)
+        return False
+    return True
+
+
+def _repo_relative(path: Path) -> str:
+    """``path`` relative to the repository when it lies inside it, else absolute."""
+    path = path.absolute()
+    return str(path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path)
 
 
 def learn(settings: LearnSettings, *, progress: bool = True,
@@ -399,8 +414,7 @@ def learn(settings: LearnSettings, *, progress: bool = True,
     op = find_operating_power(fe_steady_area({**plant, **dict(settings.search_plant)}), settings.set_point_m2,
                               settings.power_min_w, settings.power_max_w)
     log(f"operating point: {op.power_w:.1f} W gives {op.area_m2 * 1e6:.4g} mm² ({len(op.evaluations)} FE runs)")
-    stage1 = settings.stage1_out.absolute()
-    stage1_name = str(stage1.relative_to(REPO_ROOT) if stage1.is_relative_to(REPO_ROOT) else stage1)
+    stage1_name = _repo_relative(settings.stage1_out)
     report: dict[str, Any] = {
         "operating_point": {**asdict(op), "power_fraction_of_max": op.power_w / settings.power_max_w,
                             "power_min_w": settings.power_min_w, "power_max_w": settings.power_max_w}}
@@ -408,15 +422,10 @@ def learn(settings: LearnSettings, *, progress: bool = True,
         design = ProcessDesign(float(round(op.power_w)), round(settings.set_point_m2 * 1e6, 6), stage1_name,
                                tuple(plant.items()))
     else:
-        stl = settings.part_stl.absolute()
         design = PartDesign(float(round(op.power_w)), round(settings.set_point_m2 * 1e6, 6), stage1_name,
-                            str(stl.relative_to(REPO_ROOT) if stl.is_relative_to(REPO_ROOT) else stl),
-                            settings.n_layers, tuple(plant.items()), track_power_w=float(round(op.power_w)))
-        results = _stage(design.pid_runs(), settings, progress, log)
-        report["runs"] = [asdict(r) for r in results]
-        if failed := [r.name for r in results if r.status == "failed"]:
-            report.update(status="failed", failed=failed)
-            _write_report(settings.report_out, report)
+                            _repo_relative(settings.part_stl), settings.n_layers, tuple(plant.items()),
+                            track_power_w=float(round(op.power_w)))
+        if not _stage(design.pid_runs(), settings, report, progress, log):
             return report
         target = design.target_pid_run.name
         part_power = median_power_w(settings.out_dir / f"{target}.mcap")
@@ -434,12 +443,7 @@ def learn(settings: LearnSettings, *, progress: bool = True,
     stages = ((design.stage1_runs(), design.stage1_runs(), settings.stage1_out, "stage1"),
               (design.stage2_runs(), design.runs(), settings.model_out, "metrics"))
     for stage, (record, fit_on, out, key) in enumerate(stages, 1):
-        results = _stage(record, settings, progress, log)
-        done = {r["name"] for r in report.get("runs", [])}
-        report.setdefault("runs", []).extend(asdict(r) for r in results if r.name not in done)
-        if failed := [r.name for r in results if r.status == "failed"]:
-            report.update(status="failed", failed=failed)
-            _write_report(settings.report_out, report)
+        if not _stage(record, settings, report, progress, log):
             return report
         if stage == 1:
             provenance["controller"] = controller_record(settings.out_dir, design)

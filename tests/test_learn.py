@@ -288,8 +288,8 @@ def test_the_model_is_the_stage_that_predicts_the_held_out_runs_better(monkeypat
         return Fitted(stage), {"rollout_h40_mape_pct": rollouts[stage - 1]}, []
 
     monkeypatch.setattr(learn_module, "fe_steady_area", lambda plant: lambda p: 0.063e-6 * p / 200.0)
-    monkeypatch.setattr(learn_module, "_stage",
-                        lambda runs, *a: [JobResult(r.name, "rec.mcap", "ok", 0.0, "") for r in runs])
+    monkeypatch.setattr(learn_module, "run_jobs",
+                        lambda jobs, *a, **k: [JobResult(j.name, "rec.mcap", "ok", 0.0, "") for j in jobs])
     monkeypatch.setattr(learn_module, "controller_record", lambda directory, design: {})
     monkeypatch.setattr(learn_module, "_fit", fit)
     monkeypatch.setattr(learn_module.NarxGPModel, "load",
@@ -301,6 +301,35 @@ def test_the_model_is_the_stage_that_predicts_the_held_out_runs_better(monkeypat
     assert json.loads((tmp_path / "m.json").read_text())["stage"] == chosen
     assert report["metrics"]["rollout_h40_mape_pct"] == min(rollouts)
     assert ("stage2" in report) is (chosen == 1)
+
+
+@pytest.mark.parametrize("part", [False, True])
+def test_a_failed_run_ends_learn_with_a_written_report_naming_it_and_no_model(monkeypatch, tmp_path, part):
+    """A run that fails (on a part: one of the PID runs that set the operating power; on the plate: a stage-1
+    run) ends ``learn`` before any fit: the report says ``failed``, names the run, lists every run once, and
+    no model is written."""
+    from gp_trainer import learn as learn_module
+    from gp_trainer.jobs import JobResult
+    from gp_trainer.learn import LearnSettings
+
+    def run_jobs(jobs, *a, **k):
+        return [JobResult(j.name, "rec.mcap", "failed" if i == 1 else "ok", 0.0, "") for i, j in enumerate(jobs)]
+
+    monkeypatch.setattr(learn_module, "fe_steady_area", lambda plant: lambda p: 0.063e-6 * p / 200.0)
+    monkeypatch.setattr(learn_module, "run_jobs", run_jobs)
+    monkeypatch.setattr(learn_module, "_fit", lambda *a: pytest.fail("a fit after a failed run"))
+    stl = REPO_ROOT / "fe_node" / "parts" / "l_bracket_3mm.stl"
+    settings = LearnSettings(model_out=tmp_path / "m.json", out_dir=tmp_path / "rec", sequential=True,
+                             part_stl=stl if part else None)
+    report = learn_module.learn(settings, progress=False, log=lambda m: None)
+    first = (PartDesign(200.0, 0.063, "s1.json", str(stl)).pid_runs() if part
+             else ProcessDesign(200.0, 0.063, "s1.json").stage1_runs())
+    assert report["status"] == "failed" and report["failed"] == [first[1].name]
+    names = [r["name"] for r in report["runs"]]
+    assert len(names) == len(set(names)) == len(first)
+    written = json.loads(settings.report_out.read_text())
+    assert (written["status"], written["failed"], written["runs"]) == ("failed", report["failed"], report["runs"])
+    assert not (tmp_path / "m.json").exists()
 
 
 def test_extra_runs_join_the_training_runs_of_a_stage_never_the_held_out(monkeypatch, tmp_path, capsys):
