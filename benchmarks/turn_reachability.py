@@ -1,12 +1,13 @@
 """How close can a laser power profile hold the pool through a turnaround? A profile optimised on the FE plant.
 
-Runs ``preview-mpc`` with the shipped delay-aware model in closed loop on the default plant (in process, as
-``turn_sensitivity.py``; the mesh ``launch.py`` uses) and copies the plant ``--before`` states before the chosen
-turnaround. From that copy it optimises the next ``--free`` commands (within the controller's power bounds; the
-commands after them stay as the MPC applied them) on copies of the plant itself: L-BFGS-B on forward differences
-of ``--eps-w``, at most ``--iterations`` iterations, from the MPC's own commands. The cost over the ``--window``
-states after the copy is ``mean(e²) + w · mean(max(0, e − o)² + max(0, −u − e)²)``, ``e`` the area error [% of the
-set point], ``o``/``u`` the ``--over-pct``/``--under-pct`` band and ``w`` ``--band-weight``.
+Runs ``preview-mpc`` with the shipped delay-aware model in closed loop on the default plant (in process, with the
+model's process record, the mesh and the real-time iteration's preparation as the nodes of ``launch.py``: its
+commands to 1e-11 W) and copies the plant ``--before`` states before the chosen turnaround. From that copy it
+optimises the next ``--free`` commands (within the controller's power bounds; the commands after them stay as the MPC
+applied them) on copies of the plant itself: L-BFGS-B on forward differences of ``--eps-w``, at most ``--iterations``
+iterations, from the MPC's own commands. The cost over the ``--window`` states after the copy is ``mean(e²) + w ·
+mean(max(0, e − o)² + max(0, −u − e)²)``, ``e`` the area error [% of the set point], ``o``/``u`` the ``--over-
+pct``/``--under-pct`` band and ``w`` ``--band-weight``.
 
 The optimum is local: the profile is one the plant admits, so its over / under is a level that some open-loop power
 reaches at that turn, not a bound on every controller. Beside it, the MPC's own over / under on the same states.
@@ -36,11 +37,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench_preview import measurement  # noqa: E402
 
 from controller_node import ControllerSettings, make_controller  # noqa: E402
+from controller_node.process import process_table  # noqa: E402
 from fe_node.node import plant_model  # noqa: E402
 from fe_node.presets import DEFAULT, NAMES  # noqa: E402
 from fe_node.scenarios import scenario  # noqa: E402
 from gp_model.narx import NarxGPModel  # noqa: E402
 from gp_model.shipped import default_model_path  # noqa: E402
+from messages.config import build  # noqa: E402
 
 
 def band_cost(error_pct: np.ndarray, over_pct: float, under_pct: float, weight: float) -> float:
@@ -76,8 +79,9 @@ def main() -> None:
     sc = scenario(args.scenario, preset=args.preset, **({} if args.h_um is None else {"h_fine_m": args.h_um * 1e-6}))
     plant = plant_model(sc.settings, sc.plan, sc.layer_plans)
     sp = args.setpoint_mm2 * 1e-6
-    settings = ControllerSettings(set_point_m2=sp)
-    ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(default_model_path(sc.settings.powder_layer_m)))
+    model_path = default_model_path(sc.settings.powder_layer_m)
+    settings = build(ControllerSettings, process_table(model_path), "[controller]", set_point_m2=sp)  # as launch.py
+    ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(model_path))
     obs = plant.initial_observation()
     commands, turns, snapshot, start, prev_track = [], 0, None, 0, obs.track
     while not plant.done and (snapshot is None or len(commands) < start + args.window):
@@ -89,6 +93,7 @@ def main() -> None:
         if snapshot is None and turns == args.turn and to_turn == args.before:
             snapshot, start, speed = copy.deepcopy(plant), len(commands), m.speed_m_s
         cmd, _ = ctrl.update(m)
+        ctrl.prepare()                          # as the node after each command (the real-time iteration)
         commands.append(cmd.power_w)
         obs = plant.step(cmd.power_w, m.speed_m_s)
     if snapshot is None or len(commands) < start + args.window:
