@@ -47,7 +47,7 @@ def test_replay_drives_the_controller_node(fe_recording, hub, run_id):
     with NodeBus("observer", BusSettings(run_id=run_id, connect=(), listen=(hub,))) as bus:
         states, commands = bus.inbox(PLANT_STATE), bus.inbox(LASER_COMMAND)
         bus.wait_for_nodes(["controller"], stop, timeout_s=30)
-        node = spawn("fe_node.replay", str(fe_recording), "--rate-scale", "0.002", "--require", "controller", *common)
+        node = spawn("fe_node.replay", str(fe_recording), "--rate-scale", "0.0005", "--require", "controller", *common)
         status, out = finish(node, timeout=30)
         assert status == 0, out
         replayed = list(states.drain())
@@ -59,7 +59,7 @@ def test_replay_drives_the_controller_node(fe_recording, hub, run_id):
     for got, want in zip(replayed, original):
         assert got.source == "replay" and got.run_id == run_id
         assert msgspec.structs.replace(got, run_id=want.run_id, source=want.source) == want
-    assert [c.step for c in answered] == [s.step + 1 for s in original]  # 25 ms apart: every state answered
+    assert [c.step for c in answered] == [s.step + 1 for s in original]  # 100 ms apart: every state answered
     assert "replayed 13 of 13 states; 13 commands received" in out
     status, out = finish(controller, timeout=20)
     assert status == 0 and "plant 'plant' ended" in out, out
