@@ -88,6 +88,10 @@ class Fopdt:
     n_samples: int
 
 
+class TooFewSamplesError(DatasetError):
+    """The staircases leave too few samples for a FOPDT fit where it looks (along the tracks, or over each layer)."""
+
+
 def _along_track(run: RunSeries, skip_steps: int, by_layer: bool = False) -> np.ndarray:
     """Mask, shape (n,), of the states at least ``skip_steps`` after their track's (or layer's) start
     (``by_layer``: after their layer's start only)."""
@@ -157,7 +161,8 @@ def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int | None = None, by_layer
         stretches = _stretches(runs, skip_steps, delay, by_layer)
         n = sum(area.size - 1 for area, _ in stretches)
         if n < 30:
-            raise DatasetError(f"the staircases give {n} samples along the tracks, too few for a FOPDT fit")
+            where = "over the layers" if by_layer else "along the tracks"
+            raise TooFewSamplesError(f"the staircases give {n} samples {where}, too few for a FOPDT fit")
         X = np.vstack([np.column_stack([area[:-1], power, np.ones(power.size)]) for area, power in stretches])
         y = np.concatenate([area[1:] for area, _ in stretches])
         start, *_ = np.linalg.lstsq(X, y, rcond=None)                  # equation error: the initial guess
@@ -198,8 +203,8 @@ def pid_record(runs: Sequence[RunSeries], set_point_m2: float, part: bool = Fals
     by_layer = False
     try:
         model = fit_fopdt(runs)
-    except DatasetError as err:
-        if not (part and "samples along the tracks" in str(err)):
+    except TooFewSamplesError:
+        if not part:
             raise
         model, by_layer = fit_fopdt(runs, by_layer=True), True
     method = METHOD.replace("along the tracks", "over each layer") if by_layer else METHOD
