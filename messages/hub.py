@@ -76,6 +76,9 @@ def router_config(credentials: RunCredentials, endpoint: str, tls: dict | None =
     config = zenoh_config(BusSettings(run_id=credentials.run_id, connect=(), listen=(endpoint,),
                                       low_latency=low_latency))
     config.insert_json5("mode", '"router"')
+    # a router waits scouting/delay (500 ms) for peers found by scouting before zenoh.open returns;
+    # multicast scouting is off and every node connects to the hub, so there is nothing to wait for
+    config.insert_json5("scouting/delay", "0")
     for path, value in credentials.hub_settings().items():
         config.insert_json5(path, value)
     if tls is not None:
