@@ -10,20 +10,20 @@ from __future__ import annotations
 import math
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, replace
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 from .safety import FallbackPlan, clamp_power
 from .settings import ControllerSettings
-from .types import PLAN_REPORT_FIELDS, Command, ConfigurationError, Diagnostics, Measurement, PlanReport
+from .types import Command, ConfigurationError, Diagnostics, Measurement, trusted
 
 __all__ = ["Controller", "Proposal"]
 
 
-@dataclass(frozen=True, slots=True)
-class Proposal(PlanReport):
+class Proposal(NamedTuple):
     """A control law's answer to one measurement, before the safety layer (internal to
-    :meth:`Controller.update`), with its :class:`~controller_node.types.PlanReport`.
+    :meth:`Controller.update`): the power, a status and, after them, the fields of the
+    :class:`~controller_node.types.PlanReport` of the :class:`~controller_node.types.Diagnostics`, in
+    its order (a named tuple: built on every update, it costs less than a frozen dataclass).
 
     Attributes
     ----------
@@ -31,10 +31,18 @@ class Proposal(PlanReport):
         Proposed ``p[k]`` [W] (clamped afterwards).
     status : str
         ``"ok"``, or a failure reason that makes the safety layer fall back.
+    predicted_area_m2, predicted_power_w, model_std_m2, feedforward_w, reference_power_w, solver_iterations
+        As in :class:`~controller_node.types.PlanReport`.
     """
 
     power_w: float
     status: str = "ok"
+    predicted_area_m2: tuple[float, ...] = ()
+    predicted_power_w: tuple[float, ...] = ()
+    model_std_m2: float | None = None
+    feedforward_w: float = 0.0
+    reference_power_w: float | None = None
+    solver_iterations: int = 0
 
 
 class Controller(ABC):
@@ -114,7 +122,7 @@ class Controller(ABC):
             self._last_step = step
 
         if status == "ok" and step == 0:
-            proposal = replace(proposal, power_w=s.nominal_power_w)  # laser-on: every controller starts at nominal
+            proposal = proposal._replace(power_w=s.nominal_power_w)  # laser-on: every controller starts at nominal
         fallback = status != "ok"
         if fallback:
             self.n_fallbacks += 1
@@ -123,9 +131,9 @@ class Controller(ABC):
             power = clamp_power(proposal.power_w, s.power_min_w, s.power_max_w, s.nominal_power_w)
             self._fallback.store(target, proposal.predicted_power_w)
         self._fallback.last_power_w = power
-        command = Command(step=target, power_w=power, speed_m_s=s.nominal_speed_m_s)
+        # checked: an int step > 0, a power within the bounds, the settings' finite speed > 0
+        command = trusted(Command, target, float(power), float(s.nominal_speed_m_s))
         elapsed = time.perf_counter() - t0
         if fallback:
             return command, Diagnostics(elapsed, status, fallback, self.n_fallbacks)
-        plan = {name: getattr(proposal, name) for name in PLAN_REPORT_FIELDS}
-        return command, Diagnostics(elapsed, status, False, self.n_fallbacks, **plan)
+        return command, trusted(Diagnostics, *proposal[2:], elapsed, status, False, self.n_fallbacks)

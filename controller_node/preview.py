@@ -58,7 +58,7 @@ from .learning_state import LEARNING_FORMAT, parse_learning_state
 from .preview_kernel import Kernel
 from .preview_qp import PreviewQP
 from .preview_stages import StateContext
-from .process import SPEED_TOLERANCE, process_mismatch
+from .process import PERIOD_TOLERANCE, SPEED_TOLERANCE, process_mismatch
 from .settings import ControllerSettings
 from .types import ConfigurationError, Measurement
 
@@ -96,6 +96,7 @@ class PreviewMPC(Controller):
                             slack_linear=ps.slack_linear, slack_quadratic=ps.slack_quadratic)
         self._kernel = Kernel(model, self.qp, h if ps.uncertainty_z > 0 else 1, ps.uncertainty_z,
                               len(model.turn_profile_k), ps.turn_learning_steps, ps.observer_gain)
+        self._period_s, self._speed_m_s = model.sample_period_s, model.speed_m_s
         self._warm_up()
         super().__init__(settings)              # reset(): the run's state, after the warm-up wrote into it
 
@@ -149,28 +150,32 @@ class PreviewMPC(Controller):
         k.prepared = False
 
     # ------------------------------------------------------------------ bookkeeping
-    def _check_period(self, m: Measurement) -> None:
+    def _check_process(self, m: Measurement) -> None:
+        """Refuse a state at another speed, or at another sample period since the run's first state
+        (:class:`~controller_node.types.ConfigurationError` naming both)."""
         first = self._first
-        if first is None or m.step == first.step:
-            return
-        reason = process_mismatch(self.model, sample_period_s=(m.time_s - first.time_s) / (m.step - first.step))
+        steps = m.step - first.step
+        reason = None
+        if not abs(m.speed_m_s / self._speed_m_s - 1.0) <= SPEED_TOLERANCE:
+            reason = process_mismatch(self.model, speed_m_s=m.speed_m_s)
+        elif steps and not abs((m.time_s - first.time_s) / (steps * self._period_s) - 1.0) <= PERIOD_TOLERANCE:
+            reason = process_mismatch(self.model, sample_period_s=(m.time_s - first.time_s) / steps)
         if reason is not None:
             raise ConfigurationError(reason)
 
-    def _observe(self, m: Measurement) -> None:
+    def _observe(self, m: Measurement, prev: Measurement | None, next_on_track: bool) -> None:
         """Count the copies of ``p[k]``, ``T[k]`` the update pushes into the histories (one per step
-        since the last state) and follow tracks and turnarounds."""
-        prev = self._prev
-        if (prev is not None and m.step == prev.step + 1 and m.track == prev.track and m.layer == prev.layer
-                and self._t_known):              # the next state of the same track: one copy of each
+        since the last state) and follow tracks and turnarounds (``next_on_track``: ``m`` is the next
+        step of ``prev``'s track and layer)."""
+        if next_on_track:                        # one copy of each
             self._p_fill = self._t_fill = 1
         else:
             self._observe_jump(m, prev)
         if m.track_elapsed_s is not None:
-            self._track_start_step = m.step - round(m.track_elapsed_s / self.model.sample_period_s)
-        new_path = prev is None or m.track != prev.track or m.layer != prev.layer
-        if new_path and m.track_remaining_s is not None and m.track_elapsed_s is not None \
-                and m.track_elapsed_s <= 1.5 * self.model.sample_period_s:   # the first state of a path
+            self._track_start_step = m.step - round(m.track_elapsed_s / self._period_s)
+        if not next_on_track and m.track_remaining_s is not None and m.track_elapsed_s is not None \
+                and m.track_elapsed_s <= 1.5 * self._period_s \
+                and (prev is None or m.track != prev.track or m.layer != prev.layer):   # the first state of a path
             self.path_lengths_m.append((m.track_elapsed_s + m.track_remaining_s) * m.speed_m_s)
         if self._turn_base_k is not None:
             self._observed.append(m.t_ahead_k - self._turn_base_k)
@@ -313,21 +318,19 @@ class PreviewMPC(Controller):
         return z_sigma * self._kernel.std / self.settings.set_point_m2 if z_sigma > 0 else None
 
     def _propose(self, m: Measurement) -> Proposal:
-        s, ps = self.settings, self.settings.preview
+        ps = self.settings.preview
+        prev = self._prev
         if self._first is None:
             self._first = m
-        self._check_period(m)
-        if not abs(m.speed_m_s / self.model.speed_m_s - 1.0) <= SPEED_TOLERANCE:   # a state at another speed
-            raise ConfigurationError(process_mismatch(self.model, speed_m_s=m.speed_m_s))
-        consecutive = self._prev is not None and m.step == self._prev.step + 1
-        self._observe(m)
+        self._check_process(m)
+        consecutive = prev is not None and m.step == prev.step + 1
+        self._observe(m, prev, consecutive and m.track == prev.track and m.layer == prev.layer and self._t_known)
         built_up = m.step - self._layer_start_step >= ps.observer_start_steps
         self._prev = m
-        dt = self.model.sample_period_s
         since = m.step - self._track_start_step
         to_end = -1                              # no turn ahead
         if m.track_remaining_s is not None and m.next_track is not False:  # (False: the layer ends here)
-            to_end = max(round(m.track_remaining_s / dt) - 1, 0)
+            to_end = max(round(m.track_remaining_s / self._period_s) - 1, 0)
         on_first = m.track is None or m.track == self._first_track
         blind = 0 if built_up else ps.observer_start_steps - (m.step - self._layer_start_step) - 1
         self._last_qp = None                     # the workspace is overwritten now
@@ -361,9 +364,8 @@ class PreviewMPC(Controller):
                 return Proposal(math.nan, status=f"solver_{result.path}")
             plan = np.concatenate((self._plan[1:], self._plan[-1:]))   # ū = p̄[k+1..k+H]
             new_plan, fast = result.power_w, result.path == "fast"
-            sp = s.set_point_m2
+            sp = self.settings.set_point_m2
             areas = work.predicted + (work.gamma * (sp / self.qp.scale)) @ (new_plan - plan)  # ∂x̂/∂u times the move
             self._plan[:] = new_plan
         plan_w = tuple(self._plan.tolist())
-        return Proposal(power_w=plan_w[0], predicted_power_w=plan_w, predicted_area_m2=tuple(areas.tolist()),
-                        model_std_m2=float(work.std[0]), solver_iterations=0 if fast else 1)
+        return Proposal(plan_w[0], "ok", tuple(areas.tolist()), plan_w, float(work.std[0]), 0.0, None, 0 if fast else 1)

@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
-__all__ = ["ConfigurationError", "Measurement", "Command", "Diagnostics", "PlanReport"]
+__all__ = ["ConfigurationError", "Measurement", "Command", "Diagnostics", "PlanReport", "trusted"]
 
 
 def _real(name: str, value: object) -> float:
@@ -216,3 +216,24 @@ class Diagnostics(PlanReport):
     status: str
     fallback: bool
     n_fallbacks: int
+
+
+_WRITERS: dict[type, tuple] = {}
+
+
+def trusted(cls: type, *values: object) -> object:
+    """An instance of the frozen slots dataclass ``cls`` (:class:`Command`, :class:`Diagnostics`) with its
+    fields, in :func:`dataclasses.fields` order, set to ``values`` as given: no ``__init__`` and no
+    ``__post_init__`` checks or conversions. For values the caller has checked, on the controller's
+    state-to-command path, where a frozen dataclass's constructor (each field through
+    ``object.__setattr__``, then the checks) costs microseconds on cold caches.
+    ``tests/test_controller_types.py`` checks it equal to the constructor's result."""
+    writers = _WRITERS.get(cls)
+    if writers is None:
+        writers = _WRITERS[cls] = tuple(getattr(cls, f.name).__set__ for f in fields(cls))
+    if len(values) != len(writers):
+        raise TypeError(f"{cls.__name__} has {len(writers)} fields, got {len(values)} values")
+    instance = object.__new__(cls)
+    for write, value in zip(writers, values):
+        write(instance, value)
+    return instance

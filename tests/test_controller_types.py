@@ -119,3 +119,40 @@ def test_command_fields_are_plain_python_numbers():
     cmd = Command(step=np.int64(3), power_w=200, speed_m_s=np.float32(0.8))
     assert (type(cmd.step), type(cmd.power_w), type(cmd.speed_m_s)) == (int, float, float)
     assert (cmd.step, cmd.power_w) == (3, 200.0) and cmd.speed_m_s == pytest.approx(0.8)
+
+
+def test_trusted_construction_equals_the_constructor_and_stays_frozen():
+    """``trusted`` (the controllers' hot path) builds what the dataclass constructor builds from the same
+    checked values, field by field and type by type, and the result is still frozen; a wrong field count
+    is refused. The proposal's plan fields are the diagnostics' plan report, in its order."""
+    from controller_node.base import Proposal
+    from controller_node.types import PLAN_REPORT_FIELDS, Diagnostics, trusted
+
+    assert Proposal._fields[2:] == PLAN_REPORT_FIELDS
+    cmd = trusted(Command, 4, 201.5, 0.8)
+    assert cmd == Command(step=4, power_w=201.5, speed_m_s=0.8) and type(cmd) is Command
+    plan = Proposal(150.0, predicted_area_m2=(6e-8, 6.1e-8), predicted_power_w=(150.0, 151.0), model_std_m2=1e-9,
+                    solver_iterations=1)
+    diag = trusted(Diagnostics, *plan[2:], 1e-4, "ok", False, 2)
+    built = Diagnostics(1e-4, "ok", False, 2, **{name: getattr(plan, name) for name in PLAN_REPORT_FIELDS})
+    assert diag == built
+    assert [type(getattr(diag, f)) for f in Diagnostics.__dataclass_fields__] == \
+        [type(getattr(built, f)) for f in Diagnostics.__dataclass_fields__]
+    with pytest.raises(AttributeError):
+        cmd.power_w = 0.0  # type: ignore[misc]
+    with pytest.raises(TypeError, match="3 fields, got 2"):
+        trusted(Command, 4, 201.5)
+
+
+def test_every_controller_answers_with_plain_numbers_from_any_number_type():
+    """The update's command and diagnostics carry int and float, whatever number types the settings hold
+    (TOML integers) and the control law returns: the hot path builds them without the constructor's
+    conversions, so the update converts."""
+    settings = ControllerSettings(power_min_w=0, power_max_w=350, nominal_power_w=250, nominal_speed_m_s=1)
+    for name in ("open-loop", "pid", "feedforward"):
+        controller = make_controller(name, settings)
+        for step in range(3):
+            cmd, diag = controller.update(Measurement(step, step * 5e-5, 0.06e-6, 500.0, 250.0, 1.0))
+            assert (type(cmd.step), type(cmd.power_w), type(cmd.speed_m_s)) == (int, float, float)
+            assert cmd.step == step + 1 and 0.0 <= cmd.power_w <= 350.0 and cmd.speed_m_s == 1.0
+            assert type(diag.solve_time_s) is float and diag.status == "ok" and diag.fallback is False
