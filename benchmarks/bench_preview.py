@@ -1,7 +1,8 @@
 """Benchmark of the preview MPC's update on the FE plant, against the cvxpy reference.
 
 Runs ``preview-mpc`` with the shipped delay-aware model in closed loop on the FE plant (in
-process, no zenoh; default the double track, 250 steps) as the controller node runs it: ``update``
+process, no zenoh; default the double track, 250 steps) as the controller node runs it (with the
+model's process record: its operating power at laser-on, as ``launch.py`` passes it): ``update``
 on each state, timed (between FE steps: cold caches), then ``prepare`` for the next state after the
 command, timed apart (the real-time iteration's preparation, off the state-to-command path). Then
 the same loop on a fresh plant without ``prepare`` (every update is the full update); the two
@@ -39,12 +40,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from controller_node import ControllerSettings, make_controller
 from controller_node.preview_qp import solve_reference
+from controller_node.process import process_table
 from controller_node.types import Measurement
 from fe_node.presets import DEFAULT, NAMES
 from fe_node.scenarios import scenario
 from fe_node.solver import ThermalModel
 from gp_model.narx import NarxGPModel
 from gp_model.shipped import default_model_path
+from messages.config import build
 
 
 def measurement(obs) -> Measurement:
@@ -95,7 +98,7 @@ def main() -> None:
     args = parser.parse_args()
     sc = scenario(args.scenario, preset=args.preset)
     model_path = args.model or default_model_path(sc.settings.powder_layer_m)  # default: the shipped one of its layer
-    settings = ControllerSettings(set_point_m2=0.063e-6)
+    settings = build(ControllerSettings, process_table(model_path), "[controller]", set_point_m2=0.063e-6)  # as launch
     load_at_start = os.getloadavg()[0]
     times, prepare_times, full_times, differences, feedback_updates = [], [], [], [], 0
     for _ in range(args.rounds):   # alternated: this host's speed drifts by tens of percent within minutes

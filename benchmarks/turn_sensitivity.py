@@ -1,7 +1,9 @@
 """Does the preview MPC's model see what power before a turnaround does after it? Plant vs model.
 
 Runs ``preview-mpc`` with the shipped delay-aware model in closed loop on the FE plant (in
-process, as ``bench_preview.py``; on the uniform mesh, the one its models were learned on).
+process, as ``bench_preview.py``; on the uniform mesh, the one its models were learned on), as
+``launch.py``'s controller node runs it: with the model's process record (its operating power at
+laser-on) and the real-time iteration's preparation after each command.
 ``--before`` states before the chosen turnaround it copies the plant and replays the next
 ``--horizon`` commands twice from that copy: as applied, and with ``--delta-w`` added to the first
 ``--steps`` of them. The plant's change of the area and of the temperature ahead is set beside the
@@ -35,11 +37,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench_preview import measurement  # noqa: E402
 
 from controller_node import ControllerSettings, make_controller  # noqa: E402
+from controller_node.process import process_table  # noqa: E402
 from fe_node.presets import DEFAULT, NAMES  # noqa: E402
 from fe_node.scenarios import TRAINING_MESH, scenario  # noqa: E402
 from fe_node.solver import ThermalModel  # noqa: E402
 from gp_model.narx import NarxGPModel  # noqa: E402
 from gp_model.shipped import default_model_path  # noqa: E402
+from messages.config import build  # noqa: E402
 
 SPEED_M_S = 0.8
 
@@ -60,8 +64,9 @@ def main() -> None:
     sc = scenario(args.scenario, preset=args.preset, mesh=TRAINING_MESH)   # the plant the models were learned on
     plant = ThermalModel(sc.settings, sc.plan)
     sp = args.setpoint_mm2 * 1e-6
-    model = NarxGPModel.load(args.model or default_model_path(sc.settings.powder_layer_m))
-    ctrl = make_controller("preview-mpc", ControllerSettings(set_point_m2=sp), model)
+    model_path = args.model or default_model_path(sc.settings.powder_layer_m)
+    settings = build(ControllerSettings, process_table(model_path), "[controller]", set_point_m2=sp)  # as launch.py
+    ctrl = make_controller("preview-mpc", settings, NarxGPModel.load(model_path))
     horizon = ctrl.qp.horizon
     if not 1 <= args.steps <= horizon:
         parser.error(f"--steps must be in [1, {horizon}]")
@@ -73,6 +78,7 @@ def main() -> None:
             turns += 1
         prev_track = obs.track
         cmd, _ = ctrl.update(m)
+        ctrl.prepare()                          # as the node after each command (the real-time iteration)
         to_turn = round(m.track_remaining_s / ctrl.model.sample_period_s) if m.next_track else None
         if snapshot is None and turns == args.turn and to_turn == args.before:
             snapshot, problem, start = copy.deepcopy(plant), ctrl.last_qp, len(commands)
