@@ -288,7 +288,8 @@ def default_nodes(opts: RunOptions, out: Path) -> list[NodeSpec]:
         speed = plant_speed(opts)
         controller += ["--nominal-speed-m-s", repr(speed)] if speed is not None else []
         controller += ["--learning-state", str(opts.learning_state)] if opts.learning_state else []
-        nodes.append(NodeSpec("controller", "controller_node", tuple(controller)))
+        # started beside the plant, which waits for it (--require): their start-ups overlap
+        nodes.append(NodeSpec("controller", "controller_node", tuple(controller), wait_ready=False))
         plant += ["--require", "controller"]
     else:
         plant += ["--open-loop"]

@@ -113,6 +113,31 @@ def test_a_node_that_finishes_before_it_is_seen_ready_ends_the_run_with_0(tmp_pa
     assert "before it was ready" not in run.stdout + run.stderr
 
 
+def test_a_node_started_without_a_readiness_wait_that_fails_ends_the_wait_for_the_next(tmp_path):
+    """``launch.py`` starts the controller beside the plant (``wait_ready = false``), and the plant waits for
+    it: a node started so that fails must end the launch's wait for the next node's readiness at once,
+    naming it (the waiting node would otherwise give up only at its own timeout, 60 s)."""
+    nodes = tmp_path / "nodes.toml"
+    nodes.write_text('[[node]]\nname = "broken"\nmodule = "tests.nodes.no_such_node"\nwait_ready = false\n\n'
+                     '[[node]]\nname = "waiter"\nmodule = "tests.nodes.ticker"\n'
+                     'args = ["--steps", "0", "--require", "broken"]\nmain = true\n')
+    run = subprocess.run([sys.executable, "launch.py", "--nodes", str(nodes), "--out", str(tmp_path / "run.mcap")],
+                         cwd=REPO, capture_output=True, text=True, timeout=40)
+    assert run.returncode == 1, run.stdout + run.stderr
+    assert "node broken exited with status 1 while the launch waited for waiter to be ready" in run.stdout
+
+
+def test_the_default_run_starts_the_controller_beside_the_plant():
+    """The plant waits for the controller itself (``--require controller``), so the launch does not wait for
+    the controller's readiness before starting the plant: their start-ups overlap."""
+    from launch import RunOptions, default_nodes
+
+    specs = {s.name: s for s in default_nodes(RunOptions(), Path("run.mcap"))}
+    assert specs["controller"].wait_ready is False and specs["recorder"].wait_ready is True
+    plant = list(specs["plant"].args)
+    assert [plant[i + 1] for i, a in enumerate(plant) if a == "--require"] == ["recorder", "controller"]
+
+
 def test_bad_node_list_exit_2(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[[node]]\nname='x'\n")

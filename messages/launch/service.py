@@ -12,6 +12,7 @@ stop request; then every node is stopped, last started first.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import socket
 import sys
@@ -195,7 +196,7 @@ class LaunchService:
                     self.nodes.append(node)
                     if spec.wait_ready:
                         wait_for_nodes(session, self.run_id, [node.name], stop, self.ready_timeout_s,
-                                       node.finished_before_ready)
+                                       functools.partial(self._finished_before_ready, node))
                 return self._supervise(stop)
             except (RunFailed, ChildProcessError) as err:
                 self.say(f"error: {err}; stopping the run")
@@ -205,6 +206,18 @@ class LaunchService:
                     return self._stopped(stop)
                 self.say(f"error: {err}; stopping the run")
                 return 1
+
+    def _finished_before_ready(self, node: NodeProcess) -> bool:
+        """The readiness wait's check for ``node``: whether it already ended with status 0; raises
+        :class:`ChildProcessError` if it, or a node started before it without a wait for its readiness,
+        ended with another status meanwhile (``node`` may wait for that one)."""
+        for other in self.nodes:
+            if other is not node and not other.spec.wait_ready:
+                code = other.process.poll()
+                if code not in (None, 0):
+                    raise ChildProcessError(f"node {other.name} exited with status {code} while the launch waited "
+                                            f"for {node.name} to be ready")
+        return node.finished_before_ready()
 
     def _stopped(self, stop: StopFlag) -> int:
         self.say(f"{stop.signal_name or 'stop requested'}; stopping the nodes")
