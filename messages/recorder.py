@@ -159,6 +159,8 @@ class McapRecorder:
                     **{f"version.{k}": v for k, v in package_versions().items()},
                 },
             )
+        self.flush()  # the header, channels and run metadata on disk at once: a recorder killed before its first
+        #               periodic flush still leaves a readable recording, not an empty file
 
     @contextmanager
     def _writing(self) -> Iterator[None]:

@@ -282,16 +282,30 @@ def test_the_periodic_flush_fsyncs_the_file_and_no_message_does(tmp_path, monkey
     out = tmp_path / "sync.mcap"
     stream = out.open("wb")
     recorder = McapRecorder(out, RUN, stream)
+    assert synced == [stream.fileno()]  # the header, once
     for step in range(100):
         recorder.write(PLANT_STATE, encode(state(step)), state(step), time.time_ns())
-    assert synced == []
+    assert len(synced) == 1
     recorder.flush_due(time.monotonic() + FLUSH_PERIOD_S)
-    assert synced == [stream.fileno()]
+    assert synced == [stream.fileno()] * 2
     recorder.finish({"complete": "true"})
-    assert len(synced) == 2  # and once when finished
+    assert len(synced) == 3  # and once when finished
     memory = McapRecorder(out, RUN, io.BytesIO())  # a stream without a file descriptor is only flushed
     memory.flush()
-    assert len(synced) == 2
+    assert len(synced) == 3
+
+
+def test_a_recorder_killed_before_its_first_periodic_flush_leaves_a_readable_recording(tmp_path):
+    """The header, the channels and the run's metadata are on disk as soon as the recorder exists: a
+    recorder killed at once (never flushed again, never finished) leaves a recording that reads, with its
+    run id and no messages, not an empty file (which ``launch.py`` removes as never written)."""
+    out = tmp_path / "killed.mcap"
+    stream = out.open("wb")
+    McapRecorder(out, RUN, stream)             # then nothing: the process is gone
+    recording = read_recording(out)
+    assert recording.truncated and list(read_messages(out, "/plant/state")) == []
+    assert metadata(out)["meltloop"]["run_id"] == RUN and not is_complete(out)
+    stream.close()
 
 
 def test_recordings_are_created_0600_whatever_the_umask(tmp_path):
