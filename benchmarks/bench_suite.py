@@ -32,7 +32,8 @@ line, ``{"cases": [{"case", "controller", "status", "overshoot_pct", "undershoot
 "speed_m_s", "setpoint_mm2", "wall_s", "refused"}, ...]}``. The runs on the delay-aware model (preview MPC,
 scan-feedforward) also carry how well that model predicts their own recording one step ahead, with the measured
 T ahead and powers (:func:`gp_trainer.narx_fit.evaluate_model`, as ``python -m gp_trainer evaluate --runs``):
-``model_mape_turnaround_pct``, ``model_bias_turnaround_pct`` (mean signed error, model minus plant),
+``model_mape_turnaround_pct``, ``model_bias_turnaround_pct`` (mean signed error, model minus plant; by bins of
+5 states after the turn: ``model_bias_after_turn_pct``),
 ``model_mape_along_pct``, ``model_bias_along_pct``. With ``--bound`` each record also carries
 the case's learning bound, ``bound_rmse_pct`` and ``bound_iteration`` (:mod:`learning_bound`: iterative
 learning control of the open-loop power against the FE plant, the best that power alone reached).
@@ -243,7 +244,8 @@ def run_case(case: Case, controller: str, out_dir: Path, max_steps: int | None,
     return summary
 
 
-MODEL_FIT_KEYS = ("mape_turnaround_pct", "bias_turnaround_pct", "mape_along_pct", "bias_along_pct")
+MODEL_FIT_KEYS = ("mape_turnaround_pct", "bias_turnaround_pct", "mape_along_pct", "bias_along_pct",
+                  "bias_after_turn_pct")
 """The keys of :func:`gp_trainer.narx_fit.evaluate_model` a model controller's record carries (``model_`` first)."""
 
 

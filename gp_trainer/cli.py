@@ -446,7 +446,9 @@ def _evaluate_narx_on(model: NarxGPModel, args: argparse.Namespace) -> int:
     print(json.dumps(result) if args.json else
           f"on {len(runs)} recording(s), {result['n_valid']} samples: one-step MAPE {pct('mape_pct')} "
           f"(turnarounds {pct('mape_turnaround_pct')}, bias {pct('bias_turnaround_pct', '+')}; "
-          f"along {pct('mape_along_pct')}, bias {pct('bias_along_pct', '+')})")
+          f"along {pct('mape_along_pct')}, bias {pct('bias_along_pct', '+')}); bias after the turns by "
+          f"{result['after_turn_bin_states']} states: "
+          + " ".join("n/a" if b is None else f"{b:+.1f}" for b in result["bias_after_turn_pct"]) + " %")
     return 0
 
 

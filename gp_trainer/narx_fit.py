@@ -49,6 +49,8 @@ SMOOTHINGS = (0.0, 0.1)
 """Candidate weights λ of the smoothness prior on the lag kernels (:func:`gp_model.narx.smoothing_rows`):
 without it the lags of one signal, nearly collinear, are fitted with alternating signs that cancel along a
 track and give a wrong response to power before a turn (``benchmarks/turn_sensitivity.py``)."""
+AFTER_TURN_BIN_STEPS = 5
+"""Width of the bins of :func:`evaluate_model`'s ``bias_after_turn_pct``, in states at the FE step (0.25 ms)."""
 
 
 def rollout_key(sample_period_s: float) -> str:
@@ -88,19 +90,23 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int |
     :data:`controller_node.report.TURNAROUND_STEPS` states of every track but a layer's first) and
     along the tracks, with the one-step MAPE of each: where the model is overconfident. The one-step
     bias (mean signed relative error, model minus plant) of each tells what a disturbance estimate
-    would have to absorb there.
+    would have to absorb there; ``bias_after_turn_pct`` splits the turnaround windows' bias into bins of
+    ``after_turn_bin_states`` states since the turn (:data:`AFTER_TURN_BIN_STEPS` at the FE step): where
+    after a turn the model misses the pool (None for a bin without a sample).
     """
     period = model.sample_period_s
     horizon = rollout_horizon(period) if horizon is None else horizon
     stride = steps_at(ROLLOUT_STRIDE, period) if stride is None else stride
     build_up, turnaround = build_up_steps(period), steps_at(TURNAROUND_STEPS, period)
-    ys, means, sds, rollouts, turns = [], [], [], [], []
+    after_turn_bin = max(1, steps_at(AFTER_TURN_BIN_STEPS, period))
+    ys, means, sds, rollouts, turns, sinces = [], [], [], [], [], []
     for run in runs:
         mean, var = model.predict_run(run)
         since_laser_on = run.steps_since_layer_start()
         keep = (since_laser_on[1:] >= build_up) & (run.area_m2[1:] > 0)
         turn = ~run.first_track_of_layer()[1:] & (run.steps_since_track_start()[1:] < turnaround)
         turns.append(turn[keep])
+        sinces.append(run.steps_since_track_start()[1:][keep])
         ys.append(run.area_m2[1:][keep]), means.append(mean[keep])
         sds.append(np.sqrt(var[keep] + model.residual.noise_variance))
         for k in range(build_up, len(run) - horizon - 1, stride):
@@ -108,6 +114,7 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int |
             if since_laser_on[k] >= build_up and np.all(truth > 0):
                 rollouts.append(float(np.mean(np.abs(model.rollout(run, k, horizon) - truth) / truth)))
     y, mean, sd, turn = np.concatenate(ys), np.concatenate(means), np.concatenate(sds), np.concatenate(turns)
+    since = np.concatenate(sinces)
     inside, signed = np.abs(mean - y) <= 1.96 * sd, (mean - y) / y
     error = np.abs(signed)
 
@@ -126,6 +133,9 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int |
         "mape_along_pct": share(error, ~turn),
         "bias_turnaround_pct": share(signed, turn),
         "bias_along_pct": share(signed, ~turn),
+        "bias_after_turn_pct": [share(signed, turn & (since >= start) & (since < start + after_turn_bin))
+                                for start in range(0, turnaround, after_turn_bin)],
+        "after_turn_bin_states": after_turn_bin,
         "n_turnaround": int(np.sum(turn)),
         "held_out": [r.name for r in runs],
     }

@@ -559,6 +559,28 @@ def test_evaluate_splits_error_and_coverage_between_turnarounds_and_tracks():
     assert -5.0 < result["bias_turnaround_pct"] < -2.5 and abs(result["bias_along_pct"]) < 0.5   # model minus plant
 
 
+def test_evaluate_places_the_model_error_after_a_turn_in_bins_of_states_since_the_turn():
+    """A plant that departs from the model only 5-9 states after each turn: the after-turn bias profile puts
+    the error in that bin alone, model minus plant."""
+    from gp_trainer.narx_fit import evaluate_model
+
+    rng = np.random.default_rng(1)
+
+    def noisy(run: RunSeries, bump: float = 0.0) -> RunSeries:
+        since = run.steps_since_track_start()
+        dip = (run.track > 0) & (since >= 5) & (since < 10)
+        area = run.area_m2 + 0.01 * C0 * rng.standard_normal(len(run)) - np.where(dip, bump, 0.0)
+        return RunSeries(run.name, area, run.t_ahead_k, run.power_w, run.track, DT)
+
+    model = NarxGPModel.fit([noisy(synthetic_run(s)) for s in range(3)], n_power_lags=8, n_temperature_lags=5,
+                            quadratic=False, output="identity", n_train=60, n_restarts=1, profile_length=50,
+                            speed_m_s=SPEED_M_S)
+    result = evaluate_model(model, [noisy(synthetic_run(11), bump=0.2 * C0)])
+    profile = result["bias_after_turn_pct"]
+    assert result["after_turn_bin_states"] == 5 and len(profile) == 10
+    assert profile[1] > 2.5 and max(abs(b) for i, b in enumerate(profile) if i != 1) < 0.5
+
+
 def _record_run(path, run: RunSeries, speed_mm_s: float = 1e3 * SPEED_M_S):
     """``run`` as the ``/plant/state`` messages of an MCAP recording at ``path``."""
     import time
