@@ -53,6 +53,9 @@ import math
 
 import numpy as np
 
+from gp_model.compiled import compile_lock
+
+from . import preview_kernel
 from .base import Controller, Proposal
 from .learning_state import LEARNING_FORMAT, parse_learning_state
 from .preview_kernel import Kernel
@@ -94,10 +97,11 @@ class PreviewMPC(Controller):
                             power_min_w=settings.power_min_w, power_max_w=settings.power_max_w,
                             area_min_m2=ps.area_min_m2, area_max_m2=ps.area_max_m2,
                             slack_linear=ps.slack_linear, slack_quadratic=ps.slack_quadratic)
-        self._kernel = Kernel(model, self.qp, h if ps.uncertainty_z > 0 else 1, ps.uncertainty_z,
-                              len(model.turn_profile_k), ps.turn_learning_steps, ps.observer_gain)
+        with compile_lock(preview_kernel.__file__):   # one process compiles on a fresh install, the others load
+            self._kernel = Kernel(model, self.qp, h if ps.uncertainty_z > 0 else 1, ps.uncertainty_z,
+                                  len(model.turn_profile_k), ps.turn_learning_steps, ps.observer_gain)
+            self._warm_up()
         self._period_s, self._speed_m_s = model.sample_period_s, model.speed_m_s
-        self._warm_up()
         super().__init__(settings)              # reset(): the run's state, after the warm-up wrote into it
 
     def _warm_up(self) -> None:

@@ -279,7 +279,16 @@ def deepest_line(t3: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray,
 def warm() -> None:
     """Compile (or load from numba's cache) every kernel here with the argument types the plant
     passes, on tiny arrays: a plant calls it when it is built, so its first step runs at speed
-    (a fresh install compiles them once, about a second)."""
+    (a fresh install compiles them once, in one process of those that start together:
+    :func:`gp_model.compiled.compile_lock`)."""
+    from gp_model.compiled import compile_lock
+
+    with compile_lock(__file__):
+        _warm()
+
+
+def _warm() -> None:
+    """:func:`warm`'s calls."""
     one, two = np.ones(2), np.ones((2, 2))
     ptr, idx = np.array([0, 1, 2], dtype=np.int32), np.array([0, 1], dtype=np.int32)
     tensor_apply(ptr, idx, one, ptr, idx, one, two, one, one[:1], one, one[:1], np.empty((2, 2)))

@@ -1,10 +1,40 @@
-"""Calling a compiled (numba) function on a hot path without the dispatcher's type resolution."""
+"""Calling a compiled (numba) function on a hot path without the dispatcher's type resolution, and
+compiling a package's functions once when several processes start together."""
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+
 from numba import typeof
 
-__all__ = ["BoundOnFirstCall"]
+__all__ = ["BoundOnFirstCall", "compile_lock"]
+
+
+@contextlib.contextmanager
+def compile_lock(module_file: str) -> Iterator[None]:
+    """Hold an exclusive lock on ``__pycache__/numba-compile.lock`` beside ``module_file`` while compiling
+    (or loading from numba's cache) that package's functions.
+
+    On a fresh install numba compiles each function in every process that calls it before its cache file
+    exists: processes that start together (pytest's workers, a campaign's Dask workers, the nodes of a run)
+    would each compile the same code, the preview MPC's about 30 s of CPU. Under the lock the first
+    process compiles and writes numba's cache and the others then load it. Without a writable
+    ``__pycache__`` (an installed, read-only package) or ``fcntl`` (not POSIX) it does nothing.
+    """
+    try:
+        import fcntl
+
+        lock_path = Path(module_file).resolve().parent / "__pycache__" / "numba-compile.lock"
+        lock_path.parent.mkdir(exist_ok=True)
+        lock = lock_path.open("a")
+    except (ImportError, OSError):
+        yield
+        return
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
 
 
 class BoundOnFirstCall:
