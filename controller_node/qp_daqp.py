@@ -19,7 +19,7 @@ from __future__ import annotations
 import daqp
 import numpy as np
 
-from gp_model.compiled import BoundOnFirstCall
+from gp_model.compiled import BoundOnFirstCall, compile_lock
 
 from .qp import QPData, QPSolution, qp_constants
 from .qp_condensed import condense_into
@@ -67,7 +67,8 @@ class DaqpBackend:
         self._sense2 = np.zeros(5 * h, dtype=np.int32)
         # compiled (or loaded from numba's cache) and bound to its argument types now, not at a run's first state
         self._condense = BoundOnFirstCall(condense_into)
-        self.solve(QPData(a=0.5, beta=1.0, g=0.0, e0=0.0, u_lo=-1.0, u_hi=1.0, u_prev=0.0, p_ref_w=0.0))
+        with compile_lock(__file__):        # one process compiles on a fresh install, the others load
+            self.solve(QPData(a=0.5, beta=1.0, g=0.0, e0=0.0, u_lo=-1.0, u_hi=1.0, u_prev=0.0, p_ref_w=0.0))
 
     def solve(self, data: QPData) -> QPSolution:
         """Condense one step's QP and solve it (:meth:`~controller_node.qp.QPBackend.solve`; DAQP only if

@@ -4,12 +4,17 @@ compiling a package's functions once when several processes start together."""
 from __future__ import annotations
 
 import contextlib
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
 from numba import typeof
 
 __all__ = ["BoundOnFirstCall", "compile_lock"]
+
+
+_HELD = threading.local()
+"""``folders``: the package folders whose compile lock this thread holds."""
 
 
 @contextlib.contextmanager
@@ -21,12 +26,18 @@ def compile_lock(module_file: str) -> Iterator[None]:
     exists: processes that start together (pytest's workers, a campaign's Dask workers, the nodes of a run)
     would each compile the same code, the preview MPC's about 30 s of CPU. Under the lock the first
     process compiles and writes numba's cache and the others then load it. Without a writable
-    ``__pycache__`` (an installed, read-only package) or ``fcntl`` (not POSIX) it does nothing.
+    ``__pycache__`` (an installed, read-only package) or ``fcntl`` (not POSIX) it does nothing; taken again
+    by the thread that holds it, it does nothing.
     """
+    folder = Path(module_file).resolve().parent
+    held = _HELD.__dict__.setdefault("folders", set())
+    if folder in held:        # taken again inside itself: already this thread's (flock would wait on itself)
+        yield
+        return
     try:
         import fcntl
 
-        lock_path = Path(module_file).resolve().parent / "__pycache__" / "numba-compile.lock"
+        lock_path = folder / "__pycache__" / "numba-compile.lock"
         lock_path.parent.mkdir(exist_ok=True)
         lock = lock_path.open("a")
     except (ImportError, OSError):
@@ -34,7 +45,11 @@ def compile_lock(module_file: str) -> Iterator[None]:
         return
     with lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        yield
+        held.add(folder)
+        try:
+            yield
+        finally:
+            held.discard(folder)
 
 
 class BoundOnFirstCall:

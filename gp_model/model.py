@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from gp_model.compiled import BoundOnFirstCall
+from gp_model.compiled import BoundOnFirstCall, compile_lock
 from gp_model.errors import ModelFormatError, ModelVersionError
 from gp_model.files import is_format, read_document, write_document
 from gp_model.gp_eval import evaluate_into
@@ -192,7 +192,8 @@ class GPModel:
         self._variance_factor_t = np.ascontiguousarray(self._variance_factor.T)
         # the compiled evaluation is built (or loaded from numba's cache) and bound now, not on the hot path
         self._evaluate_compiled = BoundOnFirstCall(evaluate_into)
-        self._evaluate(self.input_mean.copy(), True, True)
+        with compile_lock(__file__):        # one process compiles on a fresh install, the others load
+            self._evaluate(self.input_mean.copy(), True, True)
 
     # ------------------------------------------------------------------ prediction (hot path)
     def _kernel_row(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

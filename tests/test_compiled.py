@@ -47,6 +47,9 @@ def test_the_compile_lock_lets_one_holder_in_at_a_time_and_does_nothing_where_it
         order.append("second in")
     thread.join()
     assert order == ["first in", "first out", "second in"]
+    with compile_lock(str(module)), compile_lock(str(module)):   # taken again inside itself: no wait on itself
+        order.append("nested")
+    assert order[-1] == "nested"
     assert (tmp_path / "__pycache__" / "numba-compile.lock").is_file()
 
     not_a_folder = tmp_path / "file"          # (a read-only folder: root may write it anyway)
