@@ -231,15 +231,16 @@ class PreviewMPC(Controller):
         self._prepared_for = None
 
     def _learn_turn_correction(self) -> None:
-        """Iterative learning over turnarounds: ``c ← c_j + κ ε_j`` with ``c_j`` the correction applied
-        after turn j and ``ε_j`` the one-step errors seen after it (where seen). ``c`` is applied after
-        the next turns of this layer; ``c_j`` after turn j of the next layer (its own turn: a later
-        turn of a layer is on a hotter plate)."""
-        k = self._kernel
+        """Iterative learning over turnarounds: ``c ← (1 − γ)(c_j + κ ε_j)`` with ``c_j`` the correction
+        applied after turn j, ``ε_j`` the one-step errors seen after it (where seen) and γ the forgetting
+        (``turn_learning_forgetting``). ``c`` is applied after the next turns of this layer; ``c_j`` after
+        turn j of the next layer (its own turn: a later turn of a layer is on a hotter plate)."""
+        k, ps = self._kernel, self.settings.preview
         if self._turn >= 0:
             seen = k.turn_error_seen
             learned = self._correction_for(self._turn).copy()
-            learned[seen] += self.settings.preview.turn_learning_gain * k.turn_errors[seen]
+            learned[seen] += ps.turn_learning_gain * k.turn_errors[seen]
+            learned *= 1.0 - ps.turn_learning_forgetting
             self.turn_correction_m2 = learned
             self.turn_corrections_by_turn_m2.append(learned)
             self._learned = self._learned or bool(np.any(learned))

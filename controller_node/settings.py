@@ -292,6 +292,10 @@ class PreviewSettings(SoftAreaBounds):
         of the layer and after the same turn of the next layer. 0 disables it.
     turn_learning_steps : int
         States after a turn that the learned correction covers.
+    turn_learning_forgetting : float
+        γ in [0, 1) of the learning's forgetting: each update is ``c ← (1 − γ)(c_j + κ ε_j)``, so the learned
+        correction stays bounded where the model's answer to power differs from the plant's. 0 (the default)
+        keeps all it learned; 0.2 holds the RMSE of learning over runs from rising (``docs/controller.md``).
     """
 
     horizon: int = 40
@@ -305,6 +309,7 @@ class PreviewSettings(SoftAreaBounds):
     learn_turn_profile: bool = True
     turn_learning_gain: float = 0.75
     turn_learning_steps: int = 60
+    turn_learning_forgetting: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -321,6 +326,8 @@ class PreviewSettings(SoftAreaBounds):
         _check(isinstance(self.learn_turn_profile, bool), "PreviewSettings.learn_turn_profile must be bool")
         _finite(self, "turn_learning_gain")
         _check(0 <= self.turn_learning_gain <= 1, "PreviewSettings.turn_learning_gain must be in [0, 1]")
+        _finite(self, "turn_learning_forgetting")
+        _check(0 <= self.turn_learning_forgetting < 1, "PreviewSettings.turn_learning_forgetting must be in [0, 1)")
         _check(
             isinstance(self.turn_learning_steps, int)
             and not isinstance(self.turn_learning_steps, bool)

@@ -479,6 +479,30 @@ def test_turnaround_learning_is_indexed_by_the_turn_across_layers(model):
         second.load_learning_state({**first.learning_state(), "turn_corrections_by_turn_m2": [[1.0]]})
 
 
+def test_turnaround_learning_forgets_a_share_of_what_it_learned_at_each_update(model):
+    """With forgetting γ each update is ``c ← (1 − γ)(c_j + κ ε_j)``: an error seen once decays by (1 − γ) per
+    turn it is not seen again, and a constant error leads to a bounded correction, κ ε (1 − γ)/γ at most."""
+    settings = ControllerSettings(set_point_m2=1.5e-8, preview=PreviewSettings(
+        horizon=10, turn_learning_steps=3, turn_learning_gain=0.5, turn_learning_forgetting=0.2))
+    ctrl = PreviewMPC(settings, model)
+    error = np.array([2e-9, 0.0, -2e-9])
+    for turn in range(40):
+        ctrl._turn = turn
+        ctrl._kernel.turn_errors[:], ctrl._kernel.turn_error_seen[:] = error, True
+        ctrl._learn_turn_correction()
+    learned = ctrl.turn_corrections_by_turn_m2
+    assert np.allclose(learned[0], 0.8 * 0.5 * error, rtol=1e-12, atol=1e-21)
+    assert np.allclose(learned[1], 0.8 * (learned[0] + 0.5 * error), rtol=1e-12, atol=1e-21)
+    last = learned[-1].copy()
+    assert np.allclose(last, 0.5 * error * 0.8 / 0.2, rtol=1e-3, atol=1e-21)   # the bound, reached
+    ctrl._turn = 40
+    ctrl._kernel.turn_error_seen[:] = False
+    ctrl._learn_turn_correction()                 # not seen again: it decays
+    assert np.allclose(ctrl.turn_correction_m2, 0.8 * last, rtol=1e-12, atol=1e-21)
+    with pytest.raises(ValueError, match="turn_learning_forgetting"):
+        PreviewSettings(turn_learning_forgetting=1.0)
+
+
 def test_node_learning_state_option_errors(tmp_path):
     from controller_node.node import main
 
