@@ -7,42 +7,37 @@ delegates the control law to :meth:`Controller._propose`.
 
 from __future__ import annotations
 
+import collections
+import dataclasses
 import math
 import time
 from abc import ABC, abstractmethod
-from typing import ClassVar, NamedTuple
+from typing import ClassVar
 
 from .safety import FallbackPlan, clamp_power
 from .settings import ControllerSettings
-from .types import Command, ConfigurationError, Diagnostics, Measurement, trusted
+from .types import PLAN_REPORT_FIELDS, Command, ConfigurationError, Diagnostics, Measurement, PlanReport, trusted
 
 __all__ = ["Controller", "Proposal"]
 
 
-class Proposal(NamedTuple):
-    """A control law's answer to one measurement, before the safety layer (internal to
-    :meth:`Controller.update`): the power, a status and, after them, the fields of the
-    :class:`~controller_node.types.PlanReport` of the :class:`~controller_node.types.Diagnostics`, in
-    its order (a named tuple: built on every update, it costs less than a frozen dataclass).
+Proposal = collections.namedtuple(
+    "Proposal", ("power_w", "status", *PLAN_REPORT_FIELDS),
+    defaults=("ok", *(f.default for f in dataclasses.fields(PlanReport))))
+Proposal.__doc__ = """A control law's answer to one measurement, before the safety layer (internal to
+:meth:`Controller.update`): the power, a status and, after them, the fields of the
+:class:`~controller_node.types.PlanReport` of the :class:`~controller_node.types.Diagnostics`, in its order,
+with its defaults (a named tuple: built on every update, it costs less than a frozen dataclass).
 
-    Attributes
-    ----------
-    power_w : float
-        Proposed ``p[k]`` [W] (clamped afterwards).
-    status : str
-        ``"ok"``, or a failure reason that makes the safety layer fall back.
-    predicted_area_m2, predicted_power_w, model_std_m2, feedforward_w, reference_power_w, solver_iterations
-        As in :class:`~controller_node.types.PlanReport`.
-    """
-
-    power_w: float
-    status: str = "ok"
-    predicted_area_m2: tuple[float, ...] = ()
-    predicted_power_w: tuple[float, ...] = ()
-    model_std_m2: float | None = None
-    feedforward_w: float = 0.0
-    reference_power_w: float | None = None
-    solver_iterations: int = 0
+Attributes
+----------
+power_w : float
+    Proposed ``p[k]`` [W] (clamped afterwards).
+status : str
+    ``"ok"`` (default), or a failure reason that makes the safety layer fall back.
+predicted_area_m2, predicted_power_w, model_std_m2, feedforward_w, reference_power_w, solver_iterations
+    As in :class:`~controller_node.types.PlanReport`.
+"""
 
 
 class Controller(ABC):
