@@ -104,9 +104,10 @@ def evaluate_model(model: NarxGPModel, runs: Sequence[RunSeries], horizon: int |
         mean, var = model.predict_run(run)
         since_laser_on = run.steps_since_layer_start()
         keep = (since_laser_on[1:] >= build_up) & (run.area_m2[1:] > 0)
-        turn = ~run.first_track_of_layer()[1:] & (run.steps_since_track_start()[1:] < turnaround)
+        since_track = run.steps_since_track_start()[1:]
+        turn = ~run.first_track_of_layer()[1:] & (since_track < turnaround)
         turns.append(turn[keep])
-        sinces.append(run.steps_since_track_start()[1:][keep])
+        sinces.append(since_track[keep])
         ys.append(run.area_m2[1:][keep]), means.append(mean[keep])
         sds.append(np.sqrt(var[keep] + model.residual.noise_variance))
         for k in range(build_up, len(run) - horizon - 1, stride):
