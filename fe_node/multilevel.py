@@ -18,7 +18,9 @@ and after a coarser level's step its nodes inside the finer box take the finer f
 (energy exact without losses, ``tests/test_fe_multilevel.py``).  The cost of a step depends
 on the fine box, not on the part.  The fine box moves when less than ``MIN_FRONT`` of its side
 lies ahead of the laser or ``MIN_SIDE`` to a side (the new box has ``FRONT_ROOM`` ahead); the
-intermediate box moves when the fine one nears its edge.  Moves carry the state over with the
+intermediate box moves when the fine one nears its edge.  A box whose side holds the whole-plan band
+(every layer's tracks plus ``fine_pad_m``, a small part or wall) is centred on it and never moves: the
+earlier layers' heat stays on the fine level.  Moves carry the state over with the
 energy-conserving :func:`~fe_node.levels.prolong`, and the powder's consolidation through the
 :class:`~fe_node.window.ConsolidationLattice`.
 
@@ -98,6 +100,8 @@ class MultiLevelModel(ThermalModel):
     ----------
     grid : Grid
         The fine level's grid (moves with the laser).
+    fixed_centre : ndarray or None
+        The fine box's fixed centre (x, y) [m] where it holds the whole-plan band, else None.
     mid, part : ConductionLevel
         The intermediate and part levels.
     boundary_outflow_j : float
@@ -113,6 +117,7 @@ class MultiLevelModel(ThermalModel):
         self._bands = tuple(band for _, band in bands)
         self.layer = 0
         self._zs_box, self._z_bed = self._box_heights()
+        self.fixed_centre = self._plan_centre()
         self._box_centre = self._centre(*plan.locate(0.0)[1:])
         self.boundary_outflow_j = 0.0
         super().__init__(settings, plan, layer_plans)
@@ -177,8 +182,18 @@ class MultiLevelModel(ThermalModel):
             below = below[below < z - tol]
         return np.concatenate([kept[::-1], fine]), max(0.0, float(fine[0]))
 
+    def _plan_centre(self) -> np.ndarray | None:
+        """The centre [m] (x, y) of the whole-plan band if the fine box's side holds the band along x and y
+        (every layer's tracks plus ``fine_pad_m``), else None."""
+        if all(hi - lo <= self.settings.fine_box_m for lo, hi in self._bands):
+            return np.array([0.5 * (lo + hi) for lo, hi in self._bands])
+        return None
+
     def _centre(self, xy: np.ndarray, direction: np.ndarray) -> np.ndarray:
-        """The fine box's centre [m] for the laser at ``xy`` moving along ``direction``: ``FRONT_ROOM`` ahead."""
+        """The fine box's centre [m] for the laser at ``xy`` moving along ``direction``: ``FRONT_ROOM`` ahead,
+        or the centre of the whole-plan band where the box holds it (:attr:`fixed_centre`)."""
+        if self.fixed_centre is not None:
+            return self.fixed_centre
         return np.asarray(xy, float) + (FRONT_ROOM - 0.5) * self.settings.fine_box_m * np.asarray(direction, float)
 
     def _initial_grid(self) -> Grid:
@@ -291,7 +306,7 @@ class MultiLevelModel(ThermalModel):
                                                                       total)]))
         travel = speed_m_s * self.settings.dt_s
         jumps = float(np.hypot(*(points[1] - points[0]))) > 1.5 * travel        # the step crosses to a far track
-        if self._needs_move(self.grid, points[0], directions[0]) or (
+        if self.fixed_centre is None and self._needs_move(self.grid, points[0], directions[0]) or (
                 jumps and self._needs_move(self.grid, points[1], directions[1])):
             centre = self._centre(points[0], directions[0])
             if self._needs_move(self._box_grid(centre), points[1], directions[1]):
