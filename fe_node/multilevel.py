@@ -306,8 +306,8 @@ class MultiLevelModel(ThermalModel):
                                                                       total)]))
         travel = speed_m_s * self.settings.dt_s
         jumps = float(np.hypot(*(points[1] - points[0]))) > 1.5 * travel        # the step crosses to a far track
-        if self.fixed_centre is None and self._needs_move(self.grid, points[0], directions[0]) or (
-                jumps and self._needs_move(self.grid, points[1], directions[1])):
+        if self.fixed_centre is None and (self._needs_move(self.grid, points[0], directions[0]) or (
+                jumps and self._needs_move(self.grid, points[1], directions[1]))):
             centre = self._centre(points[0], directions[0])
             if self._needs_move(self._box_grid(centre), points[1], directions[1]):
                 _, path, _ = self.plan.locate(self._s + (np.arange(8) + 0.5) / 8 * travel)
