@@ -16,7 +16,16 @@ from fe_node.observe import Observation
 from fe_node.scan import Profile, ScanPlan, Signal
 from fe_node.scenarios import NAMES, Scenario, scenario
 from fe_node.settings import Settings
-from fe_node.solver import ThermalModel
 
 __all__ = ["Material", "NAMES", "Observation", "Profile", "ScanPlan", "Scenario", "Settings",
            "Signal", "ThermalModel", "scenario"]
+
+
+def __getattr__(name: str):
+    """:class:`~fe_node.solver.ThermalModel` on first use: the solver brings scipy's sparse algebra, which
+    a process that only checks a configuration (``launch.py``) does not load."""
+    if name == "ThermalModel":
+        from fe_node.solver import ThermalModel
+
+        return ThermalModel
+    raise AttributeError(f"module 'fe_node' has no attribute {name!r}")

@@ -34,6 +34,7 @@ import math
 
 import numpy as np
 
+from fe_node.grid_size import MAX_GRID_NODES, plan_bands
 from fe_node.levels import (
     ConductionLevel,
     HeldFaces,
@@ -55,7 +56,7 @@ from fe_node.operators import TensorOperator
 from fe_node.powder import RHO_W, PowderBed
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
-from fe_node.solver import MAX_GRID_NODES, ThermalModel, check_command, depth_axis, plan_bands
+from fe_node.solver import ThermalModel, check_command, depth_axis
 
 FRONT_ROOM = 0.4
 """Share of ``fine_box_m`` ahead of the laser after the fine box moves (the rest holds the pool's tail)."""
@@ -242,7 +243,7 @@ class MultiLevelModel(ThermalModel):
         return mid
 
     def _check_nodes(self) -> None:
-        """RuntimeError if the three grids hold more than :data:`~fe_node.solver.MAX_GRID_NODES` nodes
+        """RuntimeError if the three grids hold more than :data:`~fe_node.grid_size.MAX_GRID_NODES` nodes
         (checked at every change of the mesh)."""
         if self.n_nodes > MAX_GRID_NODES:
             raise RuntimeError(f"multi-level mesh: {self.n_nodes:,} nodes, more than {MAX_GRID_NODES:,}")

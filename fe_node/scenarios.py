@@ -53,12 +53,12 @@ from pathlib import Path
 
 import numpy as np
 
+from fe_node.grid_size import check_grid_size
 from fe_node.part import CONTOURS, EXAMPLE_STL, HATCH_ROTATION_DEG, ISLAND_WIDTH_M, part_plans
 from fe_node.presets import DEFAULT as DEFAULT_PRESET
 from fe_node.presets import preset
 from fe_node.scan import Profile, ScanPlan, Signal
 from fe_node.settings import Settings, check_type
-from fe_node.solver import check_grid_size
 from messages.types import CONFIG_JSON_MAX_CHARS
 
 P_SINE = Signal(mean=225.0, amplitude=75.0, period_s=2e-3)

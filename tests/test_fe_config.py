@@ -8,10 +8,11 @@ import time
 import numpy as np
 import pytest
 
+from fe_node.grid_size import MAX_GRID_NODES, grid_shape
 from fe_node.mesh import graded_axis, graded_axis_size
 from fe_node.scan import ScanPlan
 from fe_node.scenarios import scenario
-from fe_node.solver import MAX_GRID_NODES, build_grid, grid_shape
+from fe_node.solver import build_grid
 from tests import forked_cli
 
 BAD_OVERRIDES = [

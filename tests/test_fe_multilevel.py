@@ -5,6 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from fe_node.grid_size import check_grid_size
 from fe_node.levels import (
     Restriction,
     column_weights,
@@ -20,7 +21,7 @@ from fe_node.multilevel import MultiLevelModel, plant_model
 from fe_node.scan import ScanPlan
 from fe_node.scenarios import scenario
 from fe_node.settings import Settings
-from fe_node.solver import ThermalModel, check_grid_size
+from fe_node.solver import ThermalModel
 
 COARSE = dict(h_fine_m=50e-6, beam_radius_m=60e-6, fine_pad_m=150e-6, fine_depth_m=150e-6, margin_m=0.6e-3,
               depth_m=0.6e-3, min_substeps=1)

@@ -1,6 +1,6 @@
 """A process loads only the numerics it runs: a PID controller node and ``launch.py`` checking a
-PID run start without numba, scipy's optimisers or cvxpy (each test process and every node of a
-run pays its imports at start)."""
+PID run start without numba, scipy (the plant's sparse algebra, the optimisers) or cvxpy (each test
+process and every node of a run pays its imports at start)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 
 from tests.conftest import REPO
 
-HEAVY = ("numba", "scipy.optimize", "cvxpy", "gp_model.narx", "gp_model.model")
+HEAVY = ("numba", "scipy", "cvxpy", "gp_model.narx", "gp_model.model", "fe_node.solver")
 
 BUILD_PID = """
 import controller_node.node as node
