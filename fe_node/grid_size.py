@@ -34,7 +34,7 @@ anything is allocated."""
 
 def grid_shape(settings: Settings, plan: ScanPlan, layer_plans: tuple[ScanPlan, ...] | None = None
                ) -> tuple[int, int, int]:
-    """Nodes along x, y, z of :func:`build_grid`'s grid, counted without building it (exact for the
+    """Nodes along x, y, z of :func:`~fe_node.solver.build_grid`'s grid, counted without building it (exact for the
     whole-plan band; with ``window_m > 0`` an estimate, as if the whole window lay inside the band)."""
     s = settings
     ax = dict(h=s.h_fine_m, growth=s.growth, h_max=s.h_max_m)
