@@ -373,4 +373,5 @@ class PreviewMPC(Controller):
             areas = work.predicted + (work.gamma * (sp / self.qp.scale)) @ (new_plan - plan)  # ∂x̂/∂u times the move
             self._plan[:] = new_plan
         plan_w = tuple(self._plan.tolist())
-        return Proposal(plan_w[0], "ok", tuple(areas.tolist()), plan_w, float(work.std[0]), 0.0, None, 0 if fast else 1)
+        return Proposal(plan_w[0], "ok", tuple(areas.tolist()), plan_w, float(work.std[0]),
+                        solver_iterations=0 if fast else 1)
