@@ -4,7 +4,9 @@ compiling a package's functions once when several processes start together."""
 from __future__ import annotations
 
 import contextlib
+import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -15,6 +17,11 @@ __all__ = ["BoundOnFirstCall", "compile_lock"]
 
 _HELD = threading.local()
 """``folders``: the package folders whose compile lock this thread holds."""
+
+COMPILE_NOTICE_S = 2.0
+"""Seconds inside :func:`compile_lock` (waiting for it, or compiling under it) after which a line on
+stderr says what the process is doing: loading from numba's cache takes well under a second, a
+compilation tens of seconds."""
 
 
 @contextlib.contextmanager
@@ -43,13 +50,39 @@ def compile_lock(module_file: str) -> Iterator[None]:
     except (ImportError, OSError):
         yield
         return
-    with lock:
+    with lock, _notice(folder.name):
         fcntl.flock(lock, fcntl.LOCK_EX)
         held.add(folder)
         try:
             yield
         finally:
             held.discard(folder)
+
+
+@contextlib.contextmanager
+def _notice(package: str) -> Iterator[None]:
+    """Print on stderr, from a timer thread, that ``package``'s compiled functions are being prepared if
+    the block (the lock's wait and what runs under it) is still running after :data:`COMPILE_NOTICE_S`,
+    and then how long it took when it ends: a node's first run after an install is otherwise silent for
+    tens of seconds."""
+    start, said = time.monotonic(), threading.Event()
+
+    def say() -> None:
+        said.set()
+        print(f"info: preparing the compiled functions of {package}: numba compiles them once after an install or a "
+              "change (up to a minute, one process at a time); later runs load them from its cache",
+              file=sys.stderr, flush=True)
+
+    timer = threading.Timer(COMPILE_NOTICE_S, say)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+        if said.is_set():
+            print(f"info: the compiled functions of {package} ready after {time.monotonic() - start:.1f} s",
+                  file=sys.stderr, flush=True)
 
 
 class BoundOnFirstCall:

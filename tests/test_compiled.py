@@ -59,6 +59,29 @@ def test_the_compile_lock_lets_one_holder_in_at_a_time_and_does_nothing_where_it
     assert order[-1] == "unlocked"
 
 
+
+def test_a_long_compile_lock_says_what_it_prepares_and_how_long_it_took(tmp_path, monkeypatch, capsys):
+    """A block under the compile lock that outlasts ``COMPILE_NOTICE_S`` (a compilation, or the wait for
+    another process's) prints one line naming the package when the delay passes and one with its
+    duration at the end; a short one (a load from numba's cache) prints nothing."""
+    import re
+    import time
+
+    from gp_model import compiled
+
+    monkeypatch.setattr(compiled, "COMPILE_NOTICE_S", 0.05)
+    module = tmp_path / "kernels" / "stages.py"
+    module.parent.mkdir()
+    with compiled.compile_lock(str(module)):
+        pass
+    assert capsys.readouterr().err == ""
+    with compiled.compile_lock(str(module)):
+        time.sleep(0.5)
+        during = capsys.readouterr().err
+    after = capsys.readouterr().err
+    assert during.startswith("info: preparing the compiled functions of kernels: numba compiles them once"), during
+    assert re.fullmatch(r"info: the compiled functions of kernels ready after 0\.\d s\n", after), after
+
 def test_building_the_preview_mpc_and_a_plant_take_their_package_s_compile_lock(monkeypatch):
     """The preview MPC's kernel and the plant's kernels compile under their package's lock."""
     import contextlib
