@@ -16,7 +16,8 @@ snapshot, 1..H), ``states_after_turn``, ``plant_darea_pct``, ``model_darea_pct``
 % of the set point), ``plant_dt_ahead_k``, the mean changes over the states 15–30 after the turn
 (``plant_darea_pct_turn_15_30``, ``model_darea_pct_turn_15_30``) and ``model_to_plant_ratio``,
 the second over the first (1: the model sees the pre-turn power change as the plant does; null
-without a change of the plant's).
+without a change of the plant's), and the same over the states 1–7 after the turn, where the new pool
+forms (``plant_darea_pct_turn_1_7``, ``model_darea_pct_turn_1_7``, ``model_to_plant_ratio_turn_1_7``).
 
 Usage: ``python benchmarks/turn_sensitivity.py [--preset physical] [--scenario layer] [--turn 2]
 [--before 12] [--steps 10] [--delta-w -20] [--model FILE] [--json]``
@@ -46,6 +47,23 @@ from gp_model.shipped import default_model_path  # noqa: E402
 from messages.config import build  # noqa: E402
 
 SPEED_M_S = 0.8
+LATE_WINDOW = (15, 30)
+"""States after the turn (first and last) of ``model_to_plant_ratio``: the pool grown on the new track."""
+EARLY_WINDOW = (1, 7)
+"""States after the turn of ``model_to_plant_ratio_turn_1_7``: the new pool's first states, where the preview
+MPC's dip after each turn sits."""
+
+
+def window_means(plant_da: np.ndarray, model_da: np.ndarray, after: np.ndarray, first: int, last: int
+                 ) -> tuple[float | None, float | None, float | None]:
+    """Mean change of the area [% of the set point] of the plant and of the model over the states ``first`` to
+    ``last`` after the turn (``after``: each state's index after it), and the model's over the plant's (None where
+    the window holds no state, or the plant's mean is 0)."""
+    band = (after >= first) & (after <= last)
+    if not band.any():
+        return None, None, None
+    plant, model = float(plant_da[band].mean()), float(model_da[band].mean())
+    return plant, model, (model / plant if plant else None)
 
 
 def main() -> None:
@@ -104,10 +122,8 @@ def main() -> None:
     model_da = (gamma @ (delta / ctrl.qp.scale))[:n] * 100.0
     dt = changed[:, 1] - base[:, 1]
     after = np.arange(1, n + 1) - args.before       # 0: the first state of the next track
-    band = (after >= 15) & (after <= 30)
-    plant_band = float(plant_da[band].mean()) if band.any() else None
-    model_band = float(model_da[band].mean()) if band.any() else None
-    ratio = model_band / plant_band if plant_band else None
+    plant_band, model_band, ratio = window_means(plant_da, model_da, after, *LATE_WINDOW)
+    plant_early, model_early, ratio_early = window_means(plant_da, model_da, after, *EARLY_WINDOW)
     result = {
         "scenario": args.scenario, "turn": args.turn, "before": args.before, "steps": args.steps,
         "delta_w": args.delta_w, "state": list(range(1, n + 1)), "states_after_turn": after.tolist(),
@@ -116,13 +132,17 @@ def main() -> None:
         "plant_darea_pct_turn_15_30": None if plant_band is None else round(plant_band, 3),
         "model_darea_pct_turn_15_30": None if model_band is None else round(model_band, 3),
         "model_to_plant_ratio": None if ratio is None else round(ratio, 3),
+        "plant_darea_pct_turn_1_7": None if plant_early is None else round(plant_early, 3),
+        "model_darea_pct_turn_1_7": None if model_early is None else round(model_early, 3),
+        "model_to_plant_ratio_turn_1_7": None if ratio_early is None else round(ratio_early, 3),
     }
     print("states after the turn:", " ".join(f"{a:6d}" for a in after[::2]))
     print("plant Δarea [% sp]:   ", " ".join(f"{x:6.2f}" for x in plant_da[::2]))
     print("model Δarea [% sp]:   ", " ".join(f"{x:6.2f}" for x in model_da[::2]))
     print("plant ΔT ahead [K]:   ", " ".join(f"{x:6.1f}" for x in dt[::2]))
-    print("model / plant, mean Δarea over the states 15-30 after the turn:",
-          "n/a" if ratio is None else f"{ratio:.3f}")
+    for (lo, hi), r in ((LATE_WINDOW, ratio), (EARLY_WINDOW, ratio_early)):
+        print(f"model / plant, mean Δarea over the states {lo}-{hi} after the turn:",
+              "n/a" if r is None else f"{r:.3f}")
     if args.json:
         print(json.dumps(result))
 
