@@ -40,8 +40,6 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.signal import lfilter
 
 from controller_node.report import TURNAROUND_STEPS
 from gp_model.build_up import steps_at
@@ -119,6 +117,8 @@ def _stretches(runs: Sequence[RunSeries], skip_steps: int, delay: int, by_layer:
 
 def _simulated(theta: np.ndarray, stretches: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     """Simulation errors [m²] of ``x[k+1] = a x[k] + b p + c`` over every stretch, from its first area."""
+    from scipy.signal import lfilter  # here: every `python -m gp_trainer` command imports this module
+
     a, b, c = theta
     errors = [lfilter([1.0], [1.0, -a], b * power + c, zi=[a * area[0]])[0] - area[1:] for area, power in stretches]
     return np.concatenate(errors)
@@ -151,6 +151,8 @@ def fit_fopdt(runs: Sequence[RunSeries], skip_steps: int | None = None, by_layer
         Runs of different sample periods, too few samples, or a fit that is not a stable positive
         gain (0 < a < 1, b > 0): the staircases do not excite the process.
     """
+    from scipy.optimize import least_squares  # here: as scipy.signal in _simulated (tests/test_light_imports.py)
+
     periods = {round(r.sample_period_s, 12) for r in runs}
     if len(periods) != 1:
         raise DatasetError(f"the staircases have different sample periods: {sorted(periods)} s")

@@ -38,3 +38,12 @@ def test_the_preview_mpc_model_class_loads_them():
     """The check above can see a heavy import: naming the preview MPC's model class imports its module
     (without compiling: this module runs during the numba warm-up of ``tests/conftest.py``)."""
     assert {"numba", "gp_model.narx"} <= set(loaded(PREVIEW_MODEL))
+
+
+def test_the_trainer_s_command_line_loads_no_optimiser_until_it_fits():
+    """``python -m gp_trainer`` (its help, ``dataset``, ``evaluate``, ...) imports the PID tuning with ``learn``;
+    its optimiser and filter (``scipy.optimize``, ``scipy.signal``: about a second of CPU) load when it fits."""
+    probe = "import gp_trainer.cli, json, sys\nprint(json.dumps([m for m in ('scipy.optimize', 'scipy.signal') " \
+            "if m in sys.modules]))\n"
+    out = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout.splitlines()[-1]) == []
