@@ -47,6 +47,29 @@ def test_build_plate_sink_removes_heat():
     assert max(abs(o.energy_error_pct) for o in obs1[0]) < 1e-6
 
 
+
+def test_the_default_dwell_step_gives_the_field_of_short_steps(monkeypatch):
+    """``dwell_step_s`` at its default (1 s) over a 5 s dwell: the second layer starts on the field that
+    steps of 0.05 s give, within 0.01 K (a rise of tens of K above ambient), in fewer implicit steps."""
+    from fe_node import solver
+    from fe_node.dwell import implicit_cooling_step
+
+    steps, fields = {}, {}
+    for key, kw in (("default", {}), ("short", {"dwell_step_s": 0.05})):
+        model = ThermalModel(Settings(**{**COARSE, **kw}, n_layers=2, dwell_s=5.0), ScanPlan.layer(2, 0.8e-3, 0.1e-3))
+        while not model.layer_done:
+            model.step(250.0, 0.8)
+        calls = []
+        monkeypatch.setattr(solver, "implicit_cooling_step", lambda *a, calls=calls, **k: calls.append(1) or
+                            implicit_cooling_step(*a, **k))
+        model.add_layer()                          # the dwell, then the next layer's powder
+        monkeypatch.undo()
+        steps[key], fields[key] = len(calls), model.temperature()
+    assert Settings().dwell_step_s == 1.0
+    assert np.max(fields["short"]) > 320.0
+    assert np.max(np.abs(fields["default"] - fields["short"])) < 0.01
+    assert 0 < steps["default"] < steps["short"] / 4
+
 def test_dwell_between_layers_cools_implicitly():
     _, (_, no_dwell) = build(2)
     runs = {step: build(2, dwell_s=0.5, dwell_step_s=step, plate_h_w_m2k=1e3) for step in (0.05, 0.01)}
