@@ -22,9 +22,9 @@ make_controller("pid", ControllerSettings(), node.load_model("pid", None))
 PREVIEW_MODEL = "from controller_node.registry import model_class\nmodel_class('preview-mpc')\n"
 
 
-def loaded(code: str) -> list[str]:
-    """The :data:`HEAVY` modules that ``code`` has imported, run in a fresh interpreter."""
-    probe = f"{code}\nimport json, sys\nprint(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))\n"
+def loaded(code: str, modules: tuple[str, ...] = HEAVY) -> list[str]:
+    """The ``modules`` (default :data:`HEAVY`) that ``code`` has imported, run in a fresh interpreter."""
+    probe = f"{code}\nimport json, sys\nprint(json.dumps([m for m in {modules!r} if m in sys.modules]))\n"
     out = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, check=True)
     return json.loads(out.stdout.splitlines()[-1])
 
@@ -43,7 +43,4 @@ def test_the_preview_mpc_model_class_loads_them():
 def test_the_trainer_s_command_line_loads_no_optimiser_until_it_fits():
     """``python -m gp_trainer`` (its help, ``dataset``, ``evaluate``, ...) imports the PID tuning with ``learn``;
     its optimiser and filter (``scipy.optimize``, ``scipy.signal``: about a second of CPU) load when it fits."""
-    probe = "import gp_trainer.cli, json, sys\nprint(json.dumps([m for m in ('scipy.optimize', 'scipy.signal') " \
-            "if m in sys.modules]))\n"
-    out = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, check=True)
-    assert json.loads(out.stdout.splitlines()[-1]) == []
+    assert loaded("import gp_trainer.cli", ("scipy.optimize", "scipy.signal")) == []
