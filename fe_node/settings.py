@@ -110,8 +110,8 @@ class Settings:
         Time between layers (recoating, laser off) [s]; 0 (default) = none.  Simulated by
         implicit steps of at most ``dwell_step_s`` (:mod:`fe_node.dwell`).
     dwell_step_s : float
-        Largest implicit dwell step [s] (default 1 s: after the example part's first 10 s dwell the
-        field is within 0.002 K of that of 5 ms steps; ``docs/fe.md``).
+        Largest implicit dwell step [s] (default 1 s: within 0.01 K of 0.05 s steps,
+        ``tests/test_fe_layers.py``; ``docs/fe.md``).
     plate_h_w_m2k : float
         Build-plate heat sink: heat transfer coefficient [W/(m² K)] from the bottom face to the
         plate at ``t0_k``; 0 (default) = insulated.  ``k_plate / L`` of the plate below the
