@@ -5,7 +5,9 @@ The numpy forms they replace took about ten passes over the grid each.  The tabl
 (:func:`piecewise_linear`: Kirchhoff variable and temperature), the tensor operator's product
 (:func:`tensor_apply`, equal to scipy's sparse product and the x passes) and the powder's consolidation
 (:func:`melt_powder`) are bitwise equal to those forms (same IEEE operations in the same order, no
-fast-math; ``tests/test_fe_kernels.py``); the operator's element-wise correction,
+fast-math; ``tests/test_fe_kernels.py``), as are the explicit sub-step's fused passes
+(:func:`piecewise_linear_box`, :func:`add_mushy_integral`, :func:`vertical_box`, :func:`forward_euler`);
+the operator's element-wise correction,
 the evaporation solve, the keyhole's column walk (:func:`drill_columns`) and the melt-pool geometry
 (:func:`area_and_extent`, :func:`deepest_line`) agree with the library or numpy results to rounding
 (``tests/test_fe_operators.py`` against the scikit-fem forms, the evaporation residual test,
@@ -65,6 +67,74 @@ def piecewise_linear(h: np.ndarray, h0: float, inv_dh: float, imax: int, a: np.n
 
 
 @numba.njit(cache=True, nogil=True)
+def piecewise_linear_box(h: np.ndarray, h0: float, inv_dh: float, imax: int, a: np.ndarray, b: np.ndarray,
+                         floor: float, out: np.ndarray, box: np.ndarray) -> bool:
+    """:func:`piecewise_linear` over the (ny, nz, nx) arrays ``h`` and ``out``, and in the same pass the
+    smallest box of nodes with ``h > floor`` into ``box`` (int, 6: first and past-last y, z, x index);
+    False if no node is above ``floor`` (``box`` then unchanged)."""
+    ny, nz, nx = h.shape
+    j0, k0, i0, j1, k1, i1 = ny, nz, nx, -1, -1, -1
+    for j in range(ny):
+        for k in range(nz):
+            for i in range(nx):
+                v = h[j, k, i]
+                x = (v - h0) * inv_dh
+                n = int(x) if x > 0.0 else 0
+                if n > imax:
+                    n = imax
+                out[j, k, i] = b[n] * v + a[n]
+                if v > floor:
+                    j0, k0, i0 = min(j0, j), min(k0, k), min(i0, i)
+                    j1, k1, i1 = max(j1, j), max(k1, k), max(i1, i)
+    if j1 < 0:
+        return False
+    box[0], box[1], box[2], box[3], box[4], box[5] = j0, j1 + 1, k0, k1 + 1, i0, i1 + 1
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def add_mushy_integral(h: np.ndarray, box: np.ndarray, h0: float, inv_dh: float, imax: int, t_a: np.ndarray,
+                       t_b: np.ndarray, t_solidus: float, t_liquidus: float, in_plane: float, vertical: float,
+                       phi: np.ndarray, u_box: np.ndarray) -> None:
+    """On the node box ``box`` (as :func:`piecewise_linear_box` gives it) of the (ny, nz, nx) arrays:
+    ``phi += in_plane psi`` and ``u_box = vertical psi`` (``u_box`` the box's shape), ``psi`` the
+    mushy integral at ``h`` (:meth:`fe_node.material.Constitutive.mushy_integral`, through the
+    temperature table ``t_a``, ``t_b``; the same operations in the same order)."""
+    two_dt, half_dt = 2 * (t_liquidus - t_solidus), 0.5 * (t_liquidus - t_solidus)
+    j0, k0, i0 = box[0], box[2], box[4]
+    for j in range(j0, box[1]):
+        for k in range(k0, box[3]):
+            for i in range(i0, box[5]):
+                v = h[j, k, i]
+                x = (v - h0) * inv_dh
+                n = int(x) if x > 0.0 else 0
+                if n > imax:
+                    n = imax
+                t = t_b[n] * v + t_a[n]
+                if t < t_liquidus:
+                    d = max(t - t_solidus, 0.0)
+                    psi = d * d / two_dt
+                else:
+                    psi = half_dt + (t - t_liquidus)
+                phi[j, k, i] += in_plane * psi
+                u_box[j - j0, k - k0, i - i0] = vertical * psi
+
+
+@numba.njit(cache=True, nogil=True)
+def forward_euler(h: np.ndarray, kphi: np.ndarray, c: np.ndarray, top_w: np.ndarray, c_top: np.ndarray) -> None:
+    """``h -= c kphi`` over the (ny, nz, nx) arrays, then ``h[:, -1, :] += top_w c_top`` ((ny, nx) arrays):
+    the forward-Euler update of :func:`fe_node.solver.explicit_update`."""
+    ny, nz, nx = h.shape
+    for j in range(ny):
+        for k in range(nz):
+            for i in range(nx):
+                h[j, k, i] -= kphi[j, k, i] * c[j, k, i]
+    for j in range(ny):
+        for i in range(nx):
+            h[j, nz - 1, i] += top_w[j, i] * c_top[j, i]
+
+
+@numba.njit(cache=True, nogil=True)
 def element_apply(corners: np.ndarray, ke: np.ndarray, u: np.ndarray, out: np.ndarray) -> None:
     """``out += sum_e K_e u`` for element matrices ``ke`` (n, 8, 8) on the flat node indices
     ``corners`` (n, 8) of the flat arrays ``u`` and ``out``."""
@@ -94,6 +164,29 @@ def csr_box_rows(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, nz: 
                     v = data[q]
                     for i in range(u_box.shape[2]):
                         out[o, i0 + i] += v * u_box[jc, kc, i]
+
+
+@numba.njit(cache=True, nogil=True)
+def vertical_box(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, nz: int, rows: np.ndarray,
+                 sj: int, sk: int, si: int, u_box: np.ndarray, md: np.ndarray, mo: np.ndarray, out: np.ndarray) -> None:
+    """``out += (Mx (x) C) u`` for ``u`` zero outside the node box from (``sj``, ``sk``, ``si``),
+    ``u_box`` its values, on the node rows ``rows`` (int, 6: first and past-last y, z, x index; the box
+    and its neighbours): :func:`csr_box_rows` with the (y, z) factor ``C`` (CSR), then the tridiagonal x
+    factor (diagonal ``md``, off-diagonal ``mo``); ``out`` the grid's (ny, nz, nx) array."""
+    j0, j1, k0, k1, i0, i1 = rows[0], rows[1], rows[2], rows[3], rows[4], rows[5]
+    k_rows, n = k1 - k0, i1 - i0
+    w = np.zeros(((j1 - j0) * k_rows, n))
+    csr_box_rows(indptr, indices, data, nz, j1 - j0, k_rows, j0, k0, sj, sk, u_box, si - i0, w)
+    for a in range(j1 - j0):
+        for b in range(k_rows):
+            o = a * k_rows + b
+            for i in range(n):
+                s = w[o, i] * md[i0 + i]
+                if i > 0:
+                    s += w[o, i - 1] * mo[i0 + i - 1]
+                if i < n - 1:
+                    s += w[o, i + 1] * mo[i0 + i]
+                out[j0 + a, k0 + b, i0 + i] += s
 
 
 @numba.njit(cache=True, nogil=True)
@@ -293,10 +386,16 @@ def _warm() -> None:
     ptr, idx = np.array([0, 1, 2], dtype=np.int32), np.array([0, 1], dtype=np.int32)
     tensor_apply(ptr, idx, one, ptr, idx, one, two, one, one[:1], one, one[:1], np.empty((2, 2)))
     piecewise_linear(one, 0.0, 1.0, 1, one, one, np.empty(2))
+    cube, box = np.ones((2, 2, 2)), np.array([0, 1, 0, 1, 0, 1])
+    piecewise_linear_box(cube, 0.0, 1.0, 1, one, one, 0.5, np.empty((2, 2, 2)), box)
+    add_mushy_integral(cube, box, 0.0, 1.0, 1, one, one, 1.0, 2.0, 1.0, 1.0, np.zeros((2, 2, 2)), np.empty((2, 2, 2)))
+    forward_euler(cube.copy(), cube, cube, two, two)
     corners = np.zeros((1, 8), dtype=np.intp)
     element_apply(corners, np.zeros((1, 8, 8)), one, np.zeros(2))
     csr_box_rows(np.array([0, 1], dtype=np.int32), np.zeros(1, dtype=np.int32), one[:1], 1, 1, 1, 0, 0, 0, 0,
                  np.ones((1, 1, 2)), 0, np.zeros((1, 2)))
+    vertical_box(np.array([0, 1], dtype=np.int32), np.zeros(1, dtype=np.int32), one[:1], 1,
+                 np.array([0, 1, 0, 1, 0, 2]), 0, 0, 0, np.ones((1, 1, 1)), one, one[:1], np.zeros((2, 2, 2)))
     element_apply_box(np.zeros((1, 3), dtype=np.intp), np.zeros((1, 8, 8)), np.ones((1, 1, 1)), 0, 0, 0,
                       np.zeros((2, 2, 2)))
     evaporate_nodes(one * 2000.0, one, 1.0, 3000.0, 1000.0, 1.0, 1.0, 1.0, 2, np.empty(2))

@@ -214,6 +214,27 @@ class Constitutive:
         piecewise_linear(h.reshape(-1), self._h0, self._inv_dh, self._imax, self._p_a, self._p_b, out.reshape(-1))
         return out
 
+    def kirchhoff_above(self, h: np.ndarray, floor: float, out: np.ndarray, box: np.ndarray) -> bool:
+        """:meth:`kirchhoff` of the (ny, nz, nx) C-contiguous ``h`` into ``out`` (the same) and, in the same
+        compiled pass (:func:`fe_node.kernels.piecewise_linear_box`), the smallest box of nodes with
+        ``h > floor`` [J/m³] into ``box`` (int, 6: first and past-last y, z, x index); False if there is none."""
+        from fe_node.kernels import piecewise_linear_box
+
+        return piecewise_linear_box(h, self._h0, self._inv_dh, self._imax, self._p_a, self._p_b, floor, out, box)
+
+    def add_mushy_integral(self, h: np.ndarray, box: np.ndarray, in_plane: float, vertical: float,
+                           phi: np.ndarray) -> np.ndarray:
+        """``phi += in_plane psi`` on the node box ``box`` (as :meth:`kirchhoff_above` gives it) of the
+        (ny, nz, nx) arrays ``h``, ``phi``; returns ``vertical psi`` on the box, ``psi`` the
+        :meth:`mushy_integral` at ``h`` (one compiled pass, :func:`fe_node.kernels.add_mushy_integral`)."""
+        from fe_node.kernels import add_mushy_integral
+
+        m = self.material
+        u_box = np.empty((box[1] - box[0], box[3] - box[2], box[5] - box[4]))
+        add_mushy_integral(h, box, self._h0, self._inv_dh, self._imax, self._t_a, self._t_b, m.t_solidus,
+                           m.t_liquidus, in_plane, vertical, phi, u_box)
+        return u_box
+
     def mushy_integral(self, h):
         """``psi = int_solidus^T f_liq(s) ds`` [K] at enthalpy ``h`` [J/m³] (any shape).
 

@@ -428,20 +428,12 @@ class TensorOperator:
     def add_vertical(self, u_box: np.ndarray, box: tuple[slice, slice, slice], out: np.ndarray) -> None:
         """``out += K_z u`` for ``u`` zero outside the node box ``box`` (slices along y, z, x with
         explicit bounds), ``u_box`` its values there; only ``box`` and its neighbours are touched."""
-        from fe_node.kernels import csr_box_rows
+        from fe_node.kernels import vertical_box
 
-        nz = self.shape[1]
-        sj, sk, si = box
-        jo, ko, io = (slice(max(s.start - 1, 0), min(s.stop + 1, n)) for s, n in zip(box, self.shape))
-        w = np.zeros(((jo.stop - jo.start) * (ko.stop - ko.start), io.stop - io.start))
+        rows = np.array([v for s, n in zip(box, self.shape) for v in (max(s.start - 1, 0), min(s.stop + 1, n))])
         cz = self._cz
-        csr_box_rows(cz.indptr, cz.indices, cz.data, nz, jo.stop - jo.start, ko.stop - ko.start, jo.start, ko.start,
-                     sj.start, sk.start, np.ascontiguousarray(u_box, dtype=float), si.start - io.start, w)
-        res = w * self._md[io]
-        mo = self._mo[io.start:io.stop - 1]
-        res[:, 1:] += w[:, :-1] * mo
-        res[:, :-1] += w[:, 1:] * mo
-        out[jo, ko, io] += res.reshape(jo.stop - jo.start, ko.stop - ko.start, -1)
+        vertical_box(cz.indptr, cz.indices, cz.data, self.shape[1], rows, box[0].start, box[1].start, box[2].start,
+                     np.ascontiguousarray(u_box, dtype=float), self._md, self._mo, out)
         self._corr.apply_vertical(u_box, box, out.reshape(-1))
 
     def reweight(self, elements, kw, rho_w, kw_z=None) -> None:

@@ -85,20 +85,13 @@ class StepWork:
     def __init__(self, shape: tuple[int, ...]):
         self.phi = np.empty(shape)
         self.kphi = np.empty(shape)
-        self.mask = np.empty(shape, dtype=bool)
+        self.box = np.zeros(6, dtype=np.intp)
+        """The node box above the mushy floor (first and past-last y, z, x index)."""
 
-
-def node_box(h: np.ndarray, floor: float, mask: np.ndarray | None = None) -> tuple[slice, slice, slice] | None:
-    """Smallest box of nodes (slices along y, z, x) holding every node with ``h > floor``
-    (``None``: no such node); ``mask`` (bool, ``h``'s shape) is scratch."""
-    above = np.greater(h, floor, out=mask)
-    yx = above.any(axis=1)
-    j = np.flatnonzero(yx.any(axis=1))
-    if not len(j):
-        return None
-    i = np.flatnonzero(yx.any(axis=0))
-    k = np.flatnonzero(above[j[0]:j[-1] + 1, :, i[0]:i[-1] + 1].any(axis=(0, 2)))
-    return slice(j[0], j[-1] + 1), slice(k[0], k[-1] + 1), slice(i[0], i[-1] + 1)
+    def box_slices(self) -> tuple[slice, slice, slice]:
+        """:attr:`box` as slices along y, z, x."""
+        b = self.box
+        return slice(int(b[0]), int(b[1])), slice(int(b[2]), int(b[3])), slice(int(b[4]), int(b[5]))
 
 
 def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, top_w: np.ndarray,
@@ -109,7 +102,8 @@ def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, t
     With liquid conductivity factors ``(f_xy, f_z)`` the conduction term is
     ``K_w phi_xy + K_z (phi_z - phi_xy)``, ``phi_d = phi + (f_d - 1) psi``
     (:meth:`~fe_node.material.Constitutive.mushy_integral`), ``psi`` evaluated and ``K_z`` applied
-    only on the box of nodes above ``Constitutive.mushy_floor`` (:func:`node_box`).
+    only on the box of nodes above ``Constitutive.mushy_floor``
+    (:meth:`~fe_node.material.Constitutive.kirchhoff_above`).
 
     Parameters
     ----------
@@ -130,19 +124,22 @@ def explicit_update(h: np.ndarray, operator, law: Constitutive, c: np.ndarray, t
     work : StepWork, optional
         Scratch arrays of ``h``'s shape (default: allocated for this call).
     """
+    from fe_node.kernels import forward_euler
+
     work = work if work is not None else StepWork(h.shape)
-    phi = law.kirchhoff(h, out=work.phi)
     f_xy, f_z = liquid_factors
-    box = None if f_xy == f_z == 1.0 else node_box(h, law.mushy_floor, work.mask)   # psi = 0 outside
-    if box is not None:
-        psi = law.mushy_integral(h[box])
-        phi[box] += (f_xy - 1.0) * psi
+    phi = work.phi
+    liquid = law.kirchhoff_above(h, law.mushy_floor, phi, work.box) and not f_xy == f_z == 1.0   # psi = 0 outside
+    if liquid:
+        psi_z = law.add_mushy_integral(h, work.box, f_xy - 1.0, f_z - f_xy, phi)
     kphi = operator(phi, out=work.kphi)
-    if box is not None and f_z != f_xy:
-        operator.add_vertical((f_z - f_xy) * psi, box, kphi)
-    kphi *= c
-    h -= kphi
-    h[:, -1, :] += top_w * c_top
+    if liquid and f_z != f_xy:
+        operator.add_vertical(psi_z, work.box_slices(), kphi)
+    if c.shape != h.shape or c_top.shape != (h.shape[0], h.shape[2]):
+        raise ValueError(f"explicit_update: c {c.shape} and c_top {c_top.shape} for h {h.shape}")
+    if np.shape(top_w) != c_top.shape:
+        top_w = np.broadcast_to(top_w, c_top.shape).copy()
+    forward_euler(h, kphi, c, np.ascontiguousarray(top_w, dtype=float), c_top)
 
 
 class ThermalModel:

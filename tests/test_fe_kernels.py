@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from fe_node.kernels import piecewise_linear, tensor_apply, warm
+from fe_node.kernels import forward_euler, piecewise_linear, tensor_apply, vertical_box, warm
 from fe_node.material import Constitutive, Material
 
 
@@ -85,11 +85,58 @@ def test_warm_compiles_every_kernel_with_the_plants_types():
     from fe_node.solver import ThermalModel
 
     warm()
-    compiled = {name: len(getattr(kernels, name).signatures) for name in
-                ("tensor_apply", "piecewise_linear", "element_apply", "csr_box_rows", "element_apply_box",
-                 "evaporate_nodes", "drill_columns", "melt_powder", "area_and_extent", "deepest_line")}
+    compiled = {name: len(f.signatures) for name, f in vars(kernels).items()
+                if hasattr(f, "signatures") and not name.startswith("_")}
+    assert len(compiled) >= 14 and all(compiled.values())
     sc = scenario("double-track", h_fine_m=50e-6, track_length_m=1e-3)
     model = ThermalModel(sc.settings, sc.plan)
     for _ in range(30):
         model.step(*sc.profile.command(model.step_index))
     assert {name: len(getattr(kernels, name).signatures) for name in compiled} == compiled
+
+
+def test_the_fused_sub_step_passes_equal_their_numpy_forms():
+    """The explicit sub-step's compiled passes equal the numpy forms they replace, bit for bit: the
+    Kirchhoff variable with the box of nodes above a floor (none above: False), the mushy integral
+    added on that box, the vertical term's x passes, and the forward-Euler update with the top row."""
+    rng = np.random.default_rng(11)
+    law = Constitutive(Material.in625())
+    floor = law.mushy_floor
+    h = rng.uniform(0.2, 0.9, (9, 7, 13)) * floor
+    h[2:5, 4:7, 3:11] = rng.uniform(0.95, 1.6, (3, 3, 8)) * floor
+    phi, box = np.empty(h.shape), np.zeros(6, dtype=np.intp)
+    assert law.kirchhoff_above(h, floor, phi, box)
+    np.testing.assert_array_equal(phi, law.kirchhoff(h))
+    j, k, i = np.nonzero(h > floor)
+    np.testing.assert_array_equal(box, [j.min(), j.max() + 1, k.min(), k.max() + 1, i.min(), i.max() + 1])
+    assert not law.kirchhoff_above(h, 2 * floor, phi, box)
+    sl = tuple(slice(box[2 * d], box[2 * d + 1]) for d in range(3))
+    psi = law.mushy_integral(h[sl])
+    assert np.count_nonzero(psi) and np.count_nonzero(psi == 0)        # liquid, mushy and solid nodes
+    ref = phi.copy()
+    ref[sl] += 0.3 * psi
+    u_box = law.add_mushy_integral(h, box, 0.3, 1.7, phi)
+    np.testing.assert_array_equal(phi, ref)
+    np.testing.assert_array_equal(u_box, 1.7 * psi)
+
+    cz = sp.random(9 * 7, 9 * 7, density=0.2, format="csr", random_state=3)
+    md, mo = rng.standard_normal(13), rng.standard_normal(12)
+    rows = np.array([1, 6, 3, 7, 2, 12])                 # the box and its neighbours
+    w = (cz @ np.pad(u_box, [(box[2 * d], h.shape[d] - box[2 * d + 1]) for d in range(3)]).reshape(63, 13))
+    w = w.reshape(9, 7, 13)[1:6, 3:7, 2:12].reshape(20, 10)
+    res = w * md[2:12]
+    res[:, 1:] += w[:, :-1] * mo[2:11]
+    res[:, :-1] += w[:, 1:] * mo[2:11]
+    out = rng.standard_normal(h.shape)
+    expected = out.copy()
+    expected[1:6, 3:7, 2:12] += res.reshape(5, 4, 10)
+    vertical_box(cz.indptr, cz.indices, cz.data, 7, rows, box[0], box[2], box[4], u_box, md, mo, out)
+    np.testing.assert_allclose(out, expected, rtol=0, atol=1e-12)      # the CSR rows sum in scipy's order
+
+    kphi, c = rng.standard_normal(h.shape), rng.uniform(size=h.shape)
+    top, c_top = rng.standard_normal((9, 13)), rng.uniform(size=(9, 13))
+    ref = h.copy()
+    ref -= kphi * c
+    ref[:, -1, :] += top * c_top
+    forward_euler(h, kphi, c, top, c_top)
+    np.testing.assert_array_equal(h, ref)
