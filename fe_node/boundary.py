@@ -51,40 +51,50 @@ def evaporation_flux(t, t_boil: float):
     return L_VAP_J_KG * (1.0 - RECONDENSATION) * p_sat * np.sqrt(MOLAR_MASS_KG_MOL / (2.0 * np.pi * R_GAS * t))
 
 
-def evaporate(t_star: np.ndarray, k: np.ndarray, heat_capacity: float, t_boil: float, t_low: float,
-              n_iter: int = 100) -> np.ndarray:
-    """Backward-Euler temperatures of liquid surface nodes that lose evaporative heat.
+def top_loss_w(h: np.ndarray, law, a_top: np.ndarray, settings: Settings) -> np.ndarray:
+    """:func:`loss_flux` at the top nodes of the (ny, nz, nx) enthalpy ``h`` [J/m³] (temperature by
+    ``law``, a :class:`fe_node.material.Constitutive`) times their areas ``a_top`` (ny, nx) [m²]: the
+    nodal loss [W], shape (ny, nx), in one compiled pass (:func:`fe_node.kernels.top_losses`, equal to
+    the numpy form bit for bit)."""
+    from fe_node.kernels import top_losses
 
-    Solves ``f(T) = C (T - T*) + k q_evap(T) = 0`` per node: ``f`` increases on
-    ``[t_low, T*]`` from ``f(t_low) <= 0`` to ``f(T*) >= 0``; Newton steps that leave the
-    bracket are replaced by bisection (``q_evap`` is convex near boiling but concave above
-    ~2e4 K, where a plain Newton step overshoots).  Implicit because the flux is stiff:
-    ``dq/dT`` reaches 1e7 W/(m² K) at 4000 K, 10x the explicit limit at 50 µs.  Each node
-    iterates until its step is below 1e-10 T (compiled, :func:`fe_node.kernels.evaporate_nodes`).
+    s = settings
+    out = np.empty(a_top.shape)
+    top_losses(h, *law.temperature_table, s.material.t_boil, s.h_conv_w_m2k, s.t_amb_k, s.emissivity * SIGMA_SB,
+               s.t_amb_k**4, a_top, out)
+    return out
+
+
+def evaporate_top(h: np.ndarray, m: np.ndarray, law, k: np.ndarray, lost: np.ndarray) -> float:
+    """Backward-Euler evaporative cooling of the liquid top nodes of the (ny, nz, nx) enthalpy ``h``
+    [J/m³], in place.
+
+    Solves ``C (T - T*) + k q_evap(T) = 0`` per node above the liquidus (:func:`evaporation_flux`,
+    ``C`` the liquid volumetric heat capacity, ``H`` linear in ``T`` there), then ``H -= C (T* - T)``.
+    Implicit because the flux is stiff: ``dq/dT`` reaches 1e7 W/(m² K) at 4000 K, 10x the explicit
+    limit at 50 µs. One compiled pass (:func:`fe_node.kernels.evaporate_top`).
 
     Parameters
     ----------
-    t_star : ndarray, shape (n,)
-        Temperatures after the explicit update [K], above ``t_low``.
-    k : ndarray, shape (n,)
-        ``dt A / m`` of the nodes [s/m].
-    heat_capacity : float
-        Liquid volumetric heat capacity C [J/(m³ K)] (``H`` linear in ``T`` above ``t_low``).
-    t_boil : float
-        Boiling point [K].
-    t_low : float
-        Lower end of the bracket [K] (the liquidus).
+    h, m : ndarray, shape (ny, nz, nx)
+        Nodal enthalpy [J/m³] (updated) and lumped masses [m³].
+    law : Constitutive
+        The material's tables (:class:`fe_node.material.Constitutive`).
+    k : ndarray, shape (ny, nx)
+        ``dt A / m`` of the top nodes [s/m].
+    lost : ndarray
+        Scratch of at least ny nx values.
 
     Returns
     -------
-    ndarray, shape (n,)
-        New temperatures [K] in ``[t_low, T*]``.
+    float
+        The energy evaporated [J].
     """
-    from fe_node.kernels import evaporate_nodes
+    from fe_node.kernels import evaporate_top as evaporate_nodes_on_top
 
-    t_star = np.ascontiguousarray(t_star, dtype=float)
-    out = np.empty_like(t_star)
-    evaporate_nodes(t_star, np.array(np.broadcast_to(k, t_star.shape), dtype=float), float(heat_capacity),
-                    float(t_boil), float(t_low), L_VAP_J_KG * (1.0 - RECONDENSATION) * P_AMBIENT_PA,
-                    L_VAP_J_KG * MOLAR_MASS_KG_MOL / R_GAS, MOLAR_MASS_KG_MOL / (2.0 * np.pi * R_GAS), n_iter, out)
-    return out
+    mat = law.material
+    n = evaporate_nodes_on_top(h, m, *law.temperature_table, k, float(law.liquid_heat_capacity), float(mat.t_boil),
+                               float(mat.t_liquidus), L_VAP_J_KG * (1.0 - RECONDENSATION) * P_AMBIENT_PA,
+                               L_VAP_J_KG * MOLAR_MASS_KG_MOL / R_GAS, MOLAR_MASS_KG_MOL / (2.0 * np.pi * R_GAS), 100,
+                               lost)
+    return float(np.sum(lost[:n]))

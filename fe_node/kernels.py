@@ -217,29 +217,74 @@ def element_apply_box(first: np.ndarray, ke: np.ndarray, u_box: np.ndarray, j0: 
 
 
 @numba.njit(cache=True, nogil=True)
-def evaporate_nodes(t_star: np.ndarray, k: np.ndarray, heat_capacity: float, t_boil: float, t_low: float,
-                    a: float, b: float, c: float, n_iter: int, out: np.ndarray) -> None:
-    """:func:`fe_node.boundary.evaporate`, node by node: bracketed Newton on
-    ``C (T - T*) + k q_evap(T) = 0`` in ``[t_low, T*]``, each node until its step is below 1e-10 T,
-    with ``q_evap(T) = a exp(b (1/T_boil - 1/T)) sqrt(c / T)``
-    (:func:`fe_node.boundary.evaporation_flux`)."""
-    for n in range(t_star.size):
-        lo, hi, t = t_low, t_star[n], t_star[n]
-        for _ in range(n_iter):
-            q = a * np.exp(b * (1.0 / t_boil - 1.0 / t)) * np.sqrt(c / t)
-            f = heat_capacity * (t - t_star[n]) + k[n] * q
-            if f > 0:
-                hi = t
-            else:
-                lo = t
-            new = t - f / (heat_capacity + k[n] * q * (b / t**2 - 0.5 / t))
-            if not (lo <= new <= hi):
-                new = 0.5 * (lo + hi)
-            done = abs(new - t) < 1e-10 * t
-            t = new
-            if done:
-                break
-        out[n] = t
+def _evaporated(t_star: float, k: float, heat_capacity: float, t_boil: float, t_low: float, a: float, b: float,
+                c: float, n_iter: int) -> float:
+    """Temperature [K] of a liquid surface node after the implicit evaporation step: bracketed Newton on
+    ``C (T - T*) + k q_evap(T) = 0`` in ``[t_low, T*]`` until the step is below 1e-10 T, with
+    ``q_evap(T) = a exp(b (1/T_boil - 1/T)) sqrt(c / T)`` (:func:`fe_node.boundary.evaporation_flux`;
+    Newton steps that leave the bracket are replaced by bisection: ``q_evap`` is convex near boiling but
+    concave above ~2e4 K, where a plain Newton step overshoots)."""
+    lo, hi, t = t_low, t_star, t_star
+    for _ in range(n_iter):
+        q = a * np.exp(b * (1.0 / t_boil - 1.0 / t)) * np.sqrt(c / t)
+        f = heat_capacity * (t - t_star) + k * q
+        if f > 0:
+            hi = t
+        else:
+            lo = t
+        new = t - f / (heat_capacity + k * q * (b / t**2 - 0.5 / t))
+        if not (lo <= new <= hi):
+            new = 0.5 * (lo + hi)
+        done = abs(new - t) < 1e-10 * t
+        t = new
+        if done:
+            break
+    return t
+
+
+@numba.njit(cache=True, nogil=True)
+def evaporate_top(h: np.ndarray, m: np.ndarray, h0: float, inv_dh: float, imax: int, t_a: np.ndarray,
+                  t_b: np.ndarray, k: np.ndarray, heat_capacity: float, t_boil: float, t_low: float, a: float,
+                  b: float, c: float, n_iter: int, lost: np.ndarray) -> int:
+    """:func:`_evaporated` on the top nodes of the (ny, nz, nx) enthalpy ``h`` [J/m³] whose temperature
+    (the table ``t_a``, ``t_b``) is above ``t_low``, in place: ``H -= C (T* - T)``; ``k`` (ny, nx) as
+    there. Returns their number n, with ``lost[:n]`` their energies ``C (T* - T) m`` [J] (``m`` the lumped
+    masses, ``h``'s shape), in C order."""
+    ny, nz, nx = h.shape
+    n = 0
+    for j in range(ny):
+        for i in range(nx):
+            v = h[j, nz - 1, i]
+            x = (v - h0) * inv_dh
+            r = int(x) if x > 0.0 else 0
+            if r > imax:
+                r = imax
+            t = t_b[r] * v + t_a[r]
+            if t > t_low:
+                dh = heat_capacity * (t - _evaporated(t, k[j, i], heat_capacity, t_boil, t_low, a, b, c, n_iter))
+                h[j, nz - 1, i] = v - dh
+                lost[n] = dh * m[j, nz - 1, i]
+                n += 1
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def top_losses(h: np.ndarray, h0: float, inv_dh: float, imax: int, t_a: np.ndarray, t_b: np.ndarray, t_cap: float,
+               h_conv: float, t_amb: float, eps_sigma: float, t_amb4: float, a_top: np.ndarray,
+               out: np.ndarray) -> None:
+    """``out = A (h_conv (T - T_amb) + eps_sigma (T^4 - t_amb4))`` [W] for the top nodes of the (ny, nz, nx)
+    enthalpy ``h``, their temperature (the table ``t_a``, ``t_b``) capped at ``t_cap``; ``a_top`` and
+    ``out`` (ny, nx): :func:`fe_node.boundary.loss_flux` times the top areas."""
+    ny, nz, nx = h.shape
+    for j in range(ny):
+        for i in range(nx):
+            v = h[j, nz - 1, i]
+            x = (v - h0) * inv_dh
+            r = int(x) if x > 0.0 else 0
+            if r > imax:
+                r = imax
+            t = min(t_b[r] * v + t_a[r], t_cap)
+            out[j, i] = a_top[j, i] * (h_conv * (t - t_amb) + eps_sigma * (t ** 4.0 - t_amb4))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -398,7 +443,8 @@ def _warm() -> None:
                  np.array([0, 1, 0, 1, 0, 2]), 0, 0, 0, np.ones((1, 1, 1)), one, one[:1], np.zeros((2, 2, 2)))
     element_apply_box(np.zeros((1, 3), dtype=np.intp), np.zeros((1, 8, 8)), np.ones((1, 1, 1)), 0, 0, 0,
                       np.zeros((2, 2, 2)))
-    evaporate_nodes(one * 2000.0, one, 1.0, 3000.0, 1000.0, 1.0, 1.0, 1.0, 2, np.empty(2))
+    evaporate_top(cube.copy(), cube, 0.0, 1.0, 1, one, one, two, 1.0, 3.0, 0.5, 1.0, 1.0, 1.0, 2, np.empty(4))
+    top_losses(cube, 0.0, 1.0, 1, one, one, 3.0, 1.0, 0.0, 1.0, 0.0, two, np.empty((2, 2)))
     drill_columns(np.ones((1, 2, 1)), np.ones((1, 2, 1)), 2.0, 1, np.empty((1, 1), dtype=np.bool_))
     melt_powder(np.ones((2, 2, 2)), 2.0, np.zeros((1, 1, 1), dtype=np.bool_), 1, np.empty(1, dtype=np.intp))
     axis = np.array([0.0, 1.0])

@@ -214,6 +214,12 @@ class Constitutive:
         piecewise_linear(h.reshape(-1), self._h0, self._inv_dh, self._imax, self._p_a, self._p_b, out.reshape(-1))
         return out
 
+    @property
+    def temperature_table(self) -> tuple[float, float, int, np.ndarray, np.ndarray]:
+        """The temperature table for the compiled passes: ``h0``, ``1 / dh``, the last interval, and each
+        interval's ``a``, ``b`` (``T = b H + a``; :func:`fe_node.kernels.piecewise_linear`)."""
+        return self._h0, self._inv_dh, self._imax, self._t_a, self._t_b
+
     def kirchhoff_above(self, h: np.ndarray, floor: float, out: np.ndarray, box: np.ndarray) -> bool:
         """:meth:`kirchhoff` of the (ny, nz, nx) C-contiguous ``h`` into ``out`` (the same) and, in the same
         compiled pass (:func:`fe_node.kernels.piecewise_linear_box`), the smallest box of nodes with

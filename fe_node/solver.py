@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from fe_node.boundary import evaporate, loss_flux
+from fe_node.boundary import evaporate_top, top_loss_w
 from fe_node.dwell import cool, implicit_cooling_step
 from fe_node.grid_size import check_grid_size, plan_bands
 from fe_node.keyhole import beam_1e2_radius_m, cavity_absorptivity, drill, keyhole_temperature_k, vapour_depth_m
@@ -193,6 +193,7 @@ class ThermalModel:
         self._h_ref = float(self.law.enthalpy(settings.t0_k))
         self._h = np.full(self.grid.solver_shape, self._h_ref)
         self._work: StepWork | None = None
+        self._evaporated: np.ndarray | None = None     # scratch of the evaporation pass: one value per top node
         self._set_time_step()
         self._e0 = self._energy()
         self.t_keyhole_k = (keyhole_temperature_k(settings.beam_radius_m, settings.material.t_boil)
@@ -541,7 +542,7 @@ class ThermalModel:
 
     def _substep(self, load) -> None:
         """One explicit sub-step (losses at the start temperature, capped at boiling)."""
-        q = self._a_top * loss_flux(self.law.temperature(self._h[:, -1, :]), self.settings)
+        q = top_loss_w(self._h, self.law, self._a_top, self.settings)
         s = self.settings
         if s.plate_h_w_m2k > 0:
             q_plate = self._a_bottom * s.plate_h_w_m2k * (self.law.temperature(self._h[:, 0, :]) - s.t0_k)
@@ -563,18 +564,10 @@ class ThermalModel:
             self._evaporate()
 
     def _evaporate(self) -> None:
-        """Evaporative cooling of liquid top nodes, implicit per node (:func:`fe_node.boundary.evaporate`)."""
-        top = self._h[:, -1, :]
-        t = self.law.temperature(top)
-        hot = t > self.settings.material.t_liquidus
-        if not np.any(hot):
-            return
-        cap = self.law.liquid_heat_capacity
-        m = self.settings.material
-        t_new = evaporate(t[hot], self._k_evap[hot], cap, m.t_boil, m.t_liquidus)
-        dh = cap * (t[hot] - t_new)
-        top[hot] -= dh
-        self._lost += float(np.sum(dh * self._m[:, -1, :][hot]))
+        """Evaporative cooling of liquid top nodes, implicit per node (:func:`fe_node.boundary.evaporate_top`)."""
+        if self._evaporated is None or self._evaporated.size < self._k_evap.size:
+            self._evaporated = np.empty(self._k_evap.size)
+        self._lost += evaporate_top(self._h, self._m, self.law, self._k_evap, self._evaporated)
 
     def pool(self, level_k: float, t_top: np.ndarray | None = None) -> dict:
         """Geometry of the region above ``level_k`` [K] (:func:`fe_node.observe.pool_geometry`).

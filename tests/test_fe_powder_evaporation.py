@@ -3,7 +3,8 @@ effective anisotropic liquid conductivity."""
 import numpy as np
 import pytest
 
-from fe_node.boundary import evaporate, evaporation_flux
+from fe_node.boundary import evaporate_top, evaporation_flux
+from fe_node.material import Constitutive, Material
 from fe_node.scan import ScanPlan
 from fe_node.settings import Settings
 from fe_node.solver import ThermalModel
@@ -73,14 +74,23 @@ def test_evaporation_caps_the_peak_temperature(bare):
 
 
 def test_evaporation_flux_and_implicit_solve():
+    """The implicit evaporation of the liquid top nodes solves C (T - T*) + k q_evap(T) = 0 on each, leaves
+    solid ones alone and returns the energy it took."""
     t_boil = 3190.0
     assert evaporation_flux(1623.0, t_boil) < 1e3 < evaporation_flux(t_boil, t_boil) < 1e9
+    law = Constitutive(Material.in625())
     # k = dt A / m at 25 µm (7.3 on a 25 µm powder layer, where T* reached 3.1e4 K)
-    t_star, k, cap = np.array([3500.0, 8000.0, 20000.0, 31069.5, 1e5]), np.array([4.0, 4.0, 4.0, 7.27, 7.27]), 6.2e6
-    t = evaporate(t_star, k, cap, t_boil, 1623.0)
-    kq = k * evaporation_flux(t, t_boil)
-    assert np.all(np.abs(cap * (t - t_star) + kq) < 1e-6 * kq)
-    assert np.all(t < t_star) and np.all(t > 1623.0) and t[2:].max() < 6000.0
+    k = np.array([[4.0, 4.0, 4.0, 4.0, 7.27, 7.27]])
+    h = law.enthalpy(np.array([1500.0, 3500.0, 8000.0, 20000.0, 31069.5, 1e5]))[None, None, :]
+    m = np.full(h.shape, 2e-14)
+    t_star = law.temperature(h[0, 0])
+    lost = evaporate_top(h, m, law, k, np.empty(6))
+    t, cap = law.temperature(h[0, 0]), law.liquid_heat_capacity
+    kq = k[0] * evaporation_flux(t, t_boil)
+    assert t[0] == t_star[0]                                         # solid: no evaporation
+    assert np.all(np.abs(cap * (t - t_star) + kq)[1:] < 1e-6 * kq[1:])
+    assert lost == pytest.approx(float(np.sum(cap * (t_star - t) * 2e-14)), rel=1e-9)
+    assert np.all(t[1:] < t_star[1:]) and np.all(t[1:] > 1623.0) and t[3:].max() < 6000.0
 
 
 def test_liquid_conductivity_enhancement_sign_and_size(bare):
