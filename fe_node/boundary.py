@@ -51,20 +51,6 @@ def evaporation_flux(t, t_boil: float):
     return L_VAP_J_KG * (1.0 - RECONDENSATION) * p_sat * np.sqrt(MOLAR_MASS_KG_MOL / (2.0 * np.pi * R_GAS * t))
 
 
-def top_loss_w(h: np.ndarray, law, a_top: np.ndarray, settings: Settings) -> np.ndarray:
-    """:func:`loss_flux` at the top nodes of the (ny, nz, nx) enthalpy ``h`` [J/m³] (temperature by
-    ``law``, a :class:`fe_node.material.Constitutive`) times their areas ``a_top`` (ny, nx) [m²]: the
-    nodal loss [W], shape (ny, nx), in one compiled pass (:func:`fe_node.kernels.top_losses`, equal to
-    the numpy form bit for bit)."""
-    from fe_node.kernels import top_losses
-
-    s = settings
-    out = np.empty(a_top.shape)
-    top_losses(h, *law.temperature_table, s.material.t_boil, s.h_conv_w_m2k, s.t_amb_k, s.emissivity * SIGMA_SB,
-               s.t_amb_k**4, a_top, out)
-    return out
-
-
 def evaporate_top(h: np.ndarray, m: np.ndarray, law, k: np.ndarray, lost: np.ndarray) -> float:
     """Backward-Euler evaporative cooling of the liquid top nodes of the (ny, nz, nx) enthalpy ``h``
     [J/m³], in place.

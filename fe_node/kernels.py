@@ -269,25 +269,6 @@ def evaporate_top(h: np.ndarray, m: np.ndarray, h0: float, inv_dh: float, imax: 
 
 
 @numba.njit(cache=True, nogil=True)
-def top_losses(h: np.ndarray, h0: float, inv_dh: float, imax: int, t_a: np.ndarray, t_b: np.ndarray, t_cap: float,
-               h_conv: float, t_amb: float, eps_sigma: float, t_amb4: float, a_top: np.ndarray,
-               out: np.ndarray) -> None:
-    """``out = A (h_conv (T - T_amb) + eps_sigma (T^4 - t_amb4))`` [W] for the top nodes of the (ny, nz, nx)
-    enthalpy ``h``, their temperature (the table ``t_a``, ``t_b``) capped at ``t_cap``; ``a_top`` and
-    ``out`` (ny, nx): :func:`fe_node.boundary.loss_flux` times the top areas."""
-    ny, nz, nx = h.shape
-    for j in range(ny):
-        for i in range(nx):
-            v = h[j, nz - 1, i]
-            x = (v - h0) * inv_dh
-            r = int(x) if x > 0.0 else 0
-            if r > imax:
-                r = imax
-            t = min(t_b[r] * v + t_a[r], t_cap)
-            out[j, i] = a_top[j, i] * (h_conv * (t - t_amb) + eps_sigma * (t ** 4.0 - t_amb4))
-
-
-@numba.njit(cache=True, nogil=True)
 def drill_columns(h: np.ndarray, m: np.ndarray, h_cap: float, n_heated: int, opening: np.ndarray) -> None:
     """:func:`fe_node.keyhole.drill` column by column: ``h``, ``m`` of shape (ny, nz, nx), top at
     ``[:, -1, :]``; ``opening`` (ny, nx) receives the drilled columns.  A column is walked down from
@@ -444,7 +425,6 @@ def _warm() -> None:
     element_apply_box(np.zeros((1, 3), dtype=np.intp), np.zeros((1, 8, 8)), np.ones((1, 1, 1)), 0, 0, 0,
                       np.zeros((2, 2, 2)))
     evaporate_top(cube.copy(), cube, 0.0, 1.0, 1, one, one, two, 1.0, 3.0, 0.5, 1.0, 1.0, 1.0, 2, np.empty(4))
-    top_losses(cube, 0.0, 1.0, 1, one, one, 3.0, 1.0, 0.0, 1.0, 0.0, two, np.empty((2, 2)))
     drill_columns(np.ones((1, 2, 1)), np.ones((1, 2, 1)), 2.0, 1, np.empty((1, 1), dtype=np.bool_))
     melt_powder(np.ones((2, 2, 2)), 2.0, np.zeros((1, 1, 1), dtype=np.bool_), 1, np.empty(1, dtype=np.intp))
     axis = np.array([0.0, 1.0])

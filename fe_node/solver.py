@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from fe_node.boundary import evaporate_top, top_loss_w
+from fe_node.boundary import evaporate_top, loss_flux
 from fe_node.dwell import cool, implicit_cooling_step
 from fe_node.grid_size import check_grid_size, plan_bands
 from fe_node.keyhole import beam_1e2_radius_m, cavity_absorptivity, drill, keyhole_temperature_k, vapour_depth_m
@@ -542,7 +542,7 @@ class ThermalModel:
 
     def _substep(self, load) -> None:
         """One explicit sub-step (losses at the start temperature, capped at boiling)."""
-        q = top_loss_w(self._h, self.law, self._a_top, self.settings)
+        q = self._a_top * loss_flux(self.law.temperature(self._h[:, -1, :]), self.settings)
         s = self.settings
         if s.plate_h_w_m2k > 0:
             q_plate = self._a_bottom * s.plate_h_w_m2k * (self.law.temperature(self._h[:, 0, :]) - s.t0_k)

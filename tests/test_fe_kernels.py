@@ -141,16 +141,3 @@ def test_the_fused_sub_step_passes_equal_their_numpy_forms():
     forward_euler(h, kphi, c, top, c_top)
     np.testing.assert_array_equal(h, ref)
 
-
-def test_the_top_losses_equal_the_numpy_form():
-    """The compiled top-surface loss equals ``A * loss_flux(T)`` bit for bit, the cap at boiling included."""
-    from fe_node.boundary import loss_flux, top_loss_w
-    from fe_node.settings import Settings
-
-    rng = np.random.default_rng(5)
-    law, settings = Constitutive(Material.in625()), Settings()
-    h = law.enthalpy(rng.uniform(290.0, 6000.0, (6, 3, 11)))
-    a_top = rng.uniform(1e-10, 1e-9, (6, 11))
-    expected = a_top * loss_flux(law.temperature(h[:, -1, :]), settings)
-    assert np.any(law.temperature(h[:, -1, :]) > settings.material.t_boil)
-    np.testing.assert_array_equal(top_loss_w(h, law, a_top, settings), expected)
