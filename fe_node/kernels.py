@@ -54,16 +54,23 @@ def tensor_apply(a_ptr: np.ndarray, a_idx: np.ndarray, a_val: np.ndarray, b_ptr:
 
 
 @numba.njit(cache=True, nogil=True)
+def _table(h: float, h0: float, inv_dh: float, imax: int, a: np.ndarray, b: np.ndarray) -> float:
+    """``b[i] h + a[i]`` with ``i = clip(trunc((h - h0) inv_dh), 0, imax)``: one value of a table of
+    :class:`~fe_node.material.Constitutive`."""
+    x = (h - h0) * inv_dh
+    i = int(x) if x > 0.0 else 0
+    if i > imax:
+        i = imax
+    return b[i] * h + a[i]
+
+
+@numba.njit(cache=True, nogil=True)
 def piecewise_linear(h: np.ndarray, h0: float, inv_dh: float, imax: int, a: np.ndarray, b: np.ndarray,
                      out: np.ndarray) -> None:
     """``out = b[i] h + a[i]`` with ``i = clip(trunc((h - h0) inv_dh), 0, imax)``, element-wise over
     the flat arrays ``h`` and ``out``: a table of :class:`~fe_node.material.Constitutive`."""
     for n in range(h.size):
-        x = (h[n] - h0) * inv_dh
-        i = int(x) if x > 0.0 else 0
-        if i > imax:
-            i = imax
-        out[n] = b[i] * h[n] + a[i]
+        out[n] = _table(h[n], h0, inv_dh, imax, a, b)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -78,11 +85,7 @@ def piecewise_linear_box(h: np.ndarray, h0: float, inv_dh: float, imax: int, a: 
         for k in range(nz):
             for i in range(nx):
                 v = h[j, k, i]
-                x = (v - h0) * inv_dh
-                n = int(x) if x > 0.0 else 0
-                if n > imax:
-                    n = imax
-                out[j, k, i] = b[n] * v + a[n]
+                out[j, k, i] = _table(v, h0, inv_dh, imax, a, b)
                 if v > floor:
                     j0, k0, i0 = min(j0, j), min(k0, k), min(i0, i)
                     j1, k1, i1 = max(j1, j), max(k1, k), max(i1, i)
@@ -105,12 +108,7 @@ def add_mushy_integral(h: np.ndarray, box: np.ndarray, h0: float, inv_dh: float,
     for j in range(j0, box[1]):
         for k in range(k0, box[3]):
             for i in range(i0, box[5]):
-                v = h[j, k, i]
-                x = (v - h0) * inv_dh
-                n = int(x) if x > 0.0 else 0
-                if n > imax:
-                    n = imax
-                t = t_b[n] * v + t_a[n]
+                t = _table(h[j, k, i], h0, inv_dh, imax, t_a, t_b)
                 if t < t_liquidus:
                     d = max(t - t_solidus, 0.0)
                     psi = d * d / two_dt
@@ -255,11 +253,7 @@ def evaporate_top(h: np.ndarray, m: np.ndarray, h0: float, inv_dh: float, imax: 
     for j in range(ny):
         for i in range(nx):
             v = h[j, nz - 1, i]
-            x = (v - h0) * inv_dh
-            r = int(x) if x > 0.0 else 0
-            if r > imax:
-                r = imax
-            t = t_b[r] * v + t_a[r]
+            t = _table(v, h0, inv_dh, imax, t_a, t_b)
             if t > t_low:
                 dh = heat_capacity * (t - _evaporated(t, k[j, i], heat_capacity, t_boil, t_low, a, b, c, n_iter))
                 h[j, nz - 1, i] = v - dh
