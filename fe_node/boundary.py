@@ -78,6 +78,9 @@ def evaporate_top(h: np.ndarray, m: np.ndarray, law, k: np.ndarray, lost: np.nda
     """
     from fe_node.kernels import evaporate_top as evaporate_nodes_on_top
 
+    if not (h.ndim == 3 and m.shape == h.shape and k.shape == (h.shape[0], h.shape[2]) and lost.size >= k.size):
+        raise ValueError(f"evaporate_top: h {h.shape}, m {m.shape}, k {k.shape} (ny, nx) and lost of at least ny nx "
+                         f"values ({lost.size})")
     mat = law.material
     n = evaporate_nodes_on_top(h, m, *law.temperature_table, k, float(law.liquid_heat_capacity), float(mat.t_boil),
                                float(mat.t_liquidus), L_VAP_J_KG * (1.0 - RECONDENSATION) * P_AMBIENT_PA,

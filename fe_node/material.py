@@ -223,9 +223,15 @@ class Constitutive:
     def kirchhoff_above(self, h: np.ndarray, floor: float, out: np.ndarray, box: np.ndarray) -> bool:
         """:meth:`kirchhoff` of the (ny, nz, nx) C-contiguous ``h`` into ``out`` (the same) and, in the same
         compiled pass (:func:`fe_node.kernels.piecewise_linear_box`), the smallest box of nodes with
-        ``h > floor`` [J/m³] into ``box`` (int, 6: first and past-last y, z, x index); False if there is none."""
+        ``h > floor`` [J/m³] into ``box`` (int, 6: first and past-last y, z, x index); False if there is none.
+        ValueError unless ``h`` and ``out`` are C-contiguous 3-D float arrays of one shape and ``box`` holds 6 ints
+        (the compiled pass does not check its indices)."""
         from fe_node.kernels import piecewise_linear_box
 
+        if not (h.ndim == 3 and h.shape == out.shape and h.flags.c_contiguous and out.flags.c_contiguous
+                and h.dtype == out.dtype == np.float64 and box.shape == (6,) and box.dtype == np.intp):
+            raise ValueError(f"kirchhoff_above: h {h.shape} and out {out.shape} must be C-contiguous float arrays "
+                             f"of one 3-D shape, box {box.shape} 6 ints")
         return piecewise_linear_box(h, self._h0, self._inv_dh, self._imax, self._p_a, self._p_b, floor, out, box)
 
     def add_mushy_integral(self, h: np.ndarray, box: np.ndarray, in_plane: float, vertical: float,

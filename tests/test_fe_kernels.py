@@ -141,3 +141,18 @@ def test_the_fused_sub_step_passes_equal_their_numpy_forms():
     forward_euler(h, kphi, c, top, c_top)
     np.testing.assert_array_equal(h, ref)
 
+
+
+def test_the_compiled_passes_refuse_arrays_they_would_overrun():
+    """The compiled passes do not check their indices: their callers refuse mismatched arrays first."""
+    from fe_node.boundary import evaporate_top
+
+    law, h = Constitutive(Material.in625()), np.ones((3, 2, 4))
+    with pytest.raises(ValueError, match="kirchhoff_above"):
+        law.kirchhoff_above(h, 0.5, np.empty((3, 2, 3)), np.zeros(6, dtype=np.intp))
+    with pytest.raises(ValueError, match="kirchhoff_above"):
+        law.kirchhoff_above(h, 0.5, np.empty((3, 2, 4)), np.zeros(5, dtype=np.intp))
+    with pytest.raises(ValueError, match="evaporate_top"):
+        evaporate_top(h, np.ones((3, 2, 4)), law, np.ones((3, 4)), np.empty(11))
+    with pytest.raises(ValueError, match="evaporate_top"):
+        evaporate_top(h, np.ones((3, 2, 4)), law, np.ones((4, 3)), np.empty(12))
