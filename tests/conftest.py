@@ -44,7 +44,7 @@ NUMBA_FREE_MODULES = frozenset({
     "test_report.py", "test_layering.py", "test_plan_feature.py", "test_low_latency.py", "test_hostile_input.py",
     "test_controller_types.py", "test_controller_node.py", "test_blas_threads.py", "test_turn_sensitivity.py",
     "test_bench_suite.py", "test_fe_multilevel.py", "test_freerun.py", "test_replay.py", "test_contract_plain_node.py",
-    "test_campaign_dask.py",  # the open-loop plant under launch.py, no controller
+    "test_campaign_dask.py", "test_mesh_convergence.py",  # the open-loop plant (under launch.py), no controller
 })
 """Test modules that build no controller but the PID and no GP model (no numba function): they run
 first, while the warm-up compiles; every other test waits for it."""
