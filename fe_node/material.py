@@ -243,8 +243,7 @@ class Constitutive:
 
         m = self.material
         u_box = np.empty((box[1] - box[0], box[3] - box[2], box[5] - box[4]))
-        add_mushy_integral(h, box, self._h0, self._inv_dh, self._imax, self._t_a, self._t_b, m.t_solidus,
-                           m.t_liquidus, in_plane, vertical, phi, u_box)
+        add_mushy_integral(h, box, *self.temperature_table, m.t_solidus, m.t_liquidus, in_plane, vertical, phi, u_box)
         return u_box
 
     def mushy_integral(self, h):
