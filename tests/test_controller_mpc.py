@@ -10,7 +10,6 @@ import pytest
 from controller_node import ControllerSettings, FeedForwardSettings, Measurement, MPCSettings, make_controller
 from controller_node.model import linearise
 from controller_node.mpc import MPCController
-from controller_node.mpc_reference import CvxpyBackend
 from controller_node.qp import build_qp_data, power_scale_w
 from controller_node.qp_daqp import DaqpBackend
 from controller_node.qp_osqp import OSQPBackend
@@ -55,6 +54,8 @@ def _random_points(rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, f
 
 @pytest.mark.parametrize("variant", sorted(SETTING_VARIANTS))
 def test_fast_backends_match_cvxpy_reference(variant: str) -> None:
+    from controller_node.mpc_reference import CvxpyBackend  # imports cvxpy: here, not at collection
+
     settings = SETTING_VARIANTS[variant]
     daqp_b, osqp_b, ref_b = DaqpBackend(settings), OSQPBackend(settings), CvxpyBackend(settings)
     scale = power_scale_w(settings)
