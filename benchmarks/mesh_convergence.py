@@ -81,10 +81,11 @@ def case(settings, power_w: float, track_m: float, refinements: tuple[int, ...] 
                "peak_temperature_k": round(run["peak_temperature_k"], 1),
                "error_vs_finest_pct": round(100.0 * (a - finest) / finest, 2) if finest > 0 else None}
               for r, run, a in zip(sizes, runs, means, strict=True)]
-    a, b = means[0], means[sizes.index(2)]
-    return {"power_w": power_w, "area_mm2_h": meshes[0]["area_mm2"], "area_mm2_h2": meshes[sizes.index(2)]["area_mm2"],
+    half = sizes.index(2)
+    a, b = means[0], means[half]
+    return {"power_w": power_w, "area_mm2_h": meshes[0]["area_mm2"], "area_mm2_h2": meshes[half]["area_mm2"],
             "mesh_convergence_pct": round(100.0 * (a - b) / b, 2) if b > 0 else None,
-            "jitter_pct_h": meshes[0]["jitter_pct"], "jitter_pct_h2": meshes[sizes.index(2)]["jitter_pct"],
+            "jitter_pct_h": meshes[0]["jitter_pct"], "jitter_pct_h2": meshes[half]["jitter_pct"],
             "n_states": int(runs[0]["area_m2"].size), "meshes": meshes}
 
 
